@@ -1,0 +1,87 @@
+"""The `drivedegrade` command: spec, preview, world, verify.
+
+Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
+only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from .errors import DriveDegradeError
+
+
+def _spec(args: argparse.Namespace) -> int:
+    from .corruptions.spec import render_spec
+
+    text = render_spec(args.format)
+    if args.out:
+        from .report.io import atomic_write_text
+
+        atomic_write_text(args.out, text)
+        print(f"wrote {args.out}", file=sys.stderr)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def _preview(args: argparse.Namespace) -> int:
+    from .corruptions.preview import write_preview
+
+    path = write_preview(args.images, severity=args.severity, family=args.family, out=args.out,
+                         seed=args.seed, width=args.width)
+    print(f"wrote {path}", file=sys.stderr)
+    return 0
+
+
+def _world(args: argparse.Namespace) -> int:
+    from .data.world import cli_world
+
+    return cli_world(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("spec", help="emit the corruption ladder from the injector's own tables")
+    p.add_argument("--format", choices=("yaml", "table", "json"), default="yaml")
+    p.add_argument("--out", help="write to this file (atomically) instead of standard output")
+    p.set_defaults(func=_spec)
+
+    p = sub.add_parser("preview", help="render images under every family at one severity, or one family S1..S5")
+    p.add_argument("images", nargs="+", help="image files (JPEG/PNG); the first is the montage's subject")
+    p.add_argument("--severity", type=int, default=4, help="severity 1..5 for the all-family montage (default 4)")
+    p.add_argument("--family", help="render this one family across S1..S5 instead")
+    p.add_argument("--out", default="montage.png", help="output PNG (default montage.png)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=480, help="width of each montage tile in pixels (default 480)")
+    p.set_defaults(func=_preview)
+
+    p = sub.add_parser("world", help="render the embedded surround-view world in nuScenes format")
+    p.add_argument("--out", required=True, help="output folder (the nuScenes data root)")
+    p.add_argument("--scenes", type=int, default=None, help="number of scenes (default: the suite's default)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--full-size", action="store_true", help="render 1600x900 instead of 800x450")
+    p.add_argument("--train-images", action="store_true", help="also render the train split's images")
+    p.set_defaults(func=_world)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except DriveDegradeError as exc:
+        print(f"drivedegrade: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("drivedegrade: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""One place for every constant the pipeline shares: cameras, geometry, horizons."""
+
+from __future__ import annotations
+
+#: nuScenes camera names, in the order the suite iterates them.
+CAMERAS: tuple[str, ...] = (
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_FRONT_LEFT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
+)
+
+#: Spatial corruption parameters (pixels) are defined at this image width and scale linearly with it.
+REFERENCE_WIDTH: int = 1600
+
+#: nuScenes ego vehicle footprint (Renault Zoe), metres: length along x, width along y.
+EGO_LENGTH: float = 4.084
+EGO_WIDTH: float = 1.85
+
+#: Planning horizon: six waypoints, 0.5 s apart (t = 0.5 .. 3.0 s); keyframes run at 2 Hz.
+HORIZON_STEPS: int = 6
+STEP_SECONDS: float = 0.5
+#: Past trajectory handed to the planner: the last four keyframes (2 s).
+PAST_STEPS: int = 4
+#: The high-level command is LEFT / RIGHT when the final ground-truth waypoint is this far to the side.
+COMMAND_THRESHOLD_M: float = 2.0
+#: Horizons (seconds) at which L2 and collision are reported; each is an index into the six steps.
+REPORT_HORIZONS_S: tuple[int, ...] = (1, 2, 3)
+
+#: Agent categories that count as vulnerable road users for the VRU collision rate.
+VRU_CATEGORIES: tuple[str, ...] = ("pedestrian", "cyclist")

@@ -1,0 +1,1 @@
+"""Data: the frame model, the nuScenes-format reader and the embedded rendered world."""

@@ -1,0 +1,109 @@
+"""The frame model: what the reader yields for one keyframe, and the types planners receive.
+
+Everything here is plain data. Arrays are numpy; coordinates are in the *current ego frame* (x forward,
+y left, metres) unless a field says otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+import numpy as np
+
+from ..constants import COMMAND_THRESHOLD_M, HORIZON_STEPS, PAST_STEPS
+
+
+class Command(IntEnum):
+    """High-level driving command, in UniAD's order."""
+
+    RIGHT = 0
+    LEFT = 1
+    STRAIGHT = 2
+
+
+def command_from_future(future_xy: np.ndarray, threshold: float = COMMAND_THRESHOLD_M) -> Command:
+    """The 2 m rule: LEFT / RIGHT when the final future waypoint lies at least `threshold` to that side."""
+    lateral = float(np.asarray(future_xy, dtype=float)[-1, 1])
+    if lateral >= threshold:
+        return Command.LEFT
+    if lateral <= -threshold:
+        return Command.RIGHT
+    return Command.STRAIGHT
+
+
+@dataclass(frozen=True)
+class EgoStatus:
+    """Ego status at the current keyframe, in the current ego frame.
+
+    `past_xy` holds the last `PAST_STEPS` keyframe positions (2 s), oldest first, as (x, y) in the current
+    ego frame (so the most recent past point lies behind the ego, x < 0 when driving forward).
+    """
+
+    velocity: tuple[float, float]  # (vx, vy) m/s
+    acceleration: tuple[float, float]  # (ax, ay) m/s^2
+    yaw_rate: float  # rad/s, positive turning left
+    past_xy: np.ndarray = field(default_factory=lambda: np.zeros((PAST_STEPS, 2)))
+
+    def as_vector(self) -> np.ndarray:
+        """A fixed-order float32 feature vector: vx, vy, ax, ay, yaw_rate, then past (x, y) oldest first."""
+        head = np.array([*self.velocity, *self.acceleration, self.yaw_rate], dtype=np.float32)
+        return np.concatenate([head, np.asarray(self.past_xy, dtype=np.float32).reshape(-1)])
+
+    @staticmethod
+    def vector_size() -> int:
+        return 5 + 2 * PAST_STEPS
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """One camera of a keyframe: where its image is and how it is mounted.
+
+    `intrinsic` is the 3x3 camera matrix for the image as stored; `rotation` (w, x, y, z quaternion) and
+    `translation` (m) map camera coordinates to the ego frame, as nuScenes' calibrated_sensor does.
+    """
+
+    name: str
+    path: str
+    width: int
+    height: int
+    intrinsic: np.ndarray
+    rotation: tuple[float, float, float, float]
+    translation: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class AgentBoxes:
+    """Annotated agents at one future keyframe, as oriented boxes in the current ego frame."""
+
+    center: np.ndarray  # (N, 2) x, y
+    size: np.ndarray  # (N, 2) length (along heading), width
+    yaw: np.ndarray  # (N,) heading rad, in the current ego frame
+    category: tuple[str, ...]  # coarse class per box: vehicle, pedestrian, cyclist, other
+
+    @staticmethod
+    def empty() -> "AgentBoxes":
+        return AgentBoxes(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0,)), ())
+
+    def __len__(self) -> int:
+        return len(self.category)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One scorable (or not) keyframe: images to decode, ego status, command and ground-truth future."""
+
+    token: str
+    scene_token: str
+    timestamp: int  # microseconds, nuScenes convention
+    cameras: dict[str, CameraInfo]
+    ego: EgoStatus
+    command: Command
+    gt_future: np.ndarray  # (HORIZON_STEPS, 2) in the current ego frame
+    gt_valid: np.ndarray  # (HORIZON_STEPS,) bool
+    agents: tuple[AgentBoxes, ...] = ()  # one per future step, len HORIZON_STEPS when scorable
+
+    @property
+    def scorable(self) -> bool:
+        """True when all six future keyframes exist (the VAD-style valid-planning subset)."""
+        return bool(np.asarray(self.gt_valid).all()) and len(self.gt_valid) == HORIZON_STEPS
