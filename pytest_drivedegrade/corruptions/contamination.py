@@ -1,0 +1,180 @@
+"""Lens and windshield contamination: spatially concentrated damage. Part of the frame stays pristine; the
+rest is refracted (raindrop), removed (occlusion, mud) or veiled (lens dirt)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .kernels import coverage_mask, scaled, smooth_field
+from .registry import register
+
+#: Raindrop radius range (px at 1600 px width), drawn log-uniform; the drop is a little taller than wide.
+_DROP_RADIUS = (14.0, 55.0)
+_DROP_ASPECT = 1.15
+#: A drop is a fisheye lens: it shows an inverted view of a region this many times its own size.
+_DROP_MAGNIFICATION = 2.6
+
+
+def _drop_list(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float):
+    """Drops (cx, cy, rx, ry) added until their union covers `fraction` of the frame, and that union."""
+    covered = np.zeros((h, w), np.uint8)
+    target = fraction * h * w
+    drops = []
+    lo, hi = np.log(scaled(_DROP_RADIUS[0], scale)), np.log(scaled(_DROP_RADIUS[1], scale))
+    area = 0
+    while area < target and len(drops) < 5000:
+        batch = max(1, int((target - area) / (np.pi * np.exp(lo + hi) * _DROP_ASPECT)))
+        for _ in range(batch):
+            rx = max(1.0, float(np.exp(rng.uniform(lo, hi))))
+            ry = rx * _DROP_ASPECT
+            cx, cy = float(rng.uniform(0, w)), float(rng.uniform(0, h))
+            drops.append((cx, cy, rx, ry))
+            cv2.ellipse(covered, (round(cx), round(cy)), (round(rx), round(ry)), 0, 0, 360, 1, -1)
+        area = int(covered.sum())
+    return drops, covered
+
+
+def _paint_drop(maps: np.ndarray, drop: tuple, step: float) -> None:
+    """Write one drop into the layer `maps` (source x, source y, shade, alpha planes on a grid of `step`
+    full-resolution pixels): an inverted, magnified view of the scene above it, with a darker rim."""
+    _, gh, gw = maps.shape
+    cx, cy, rx, ry = (v / step for v in drop)
+    x0, x1 = max(0, int(cx - rx)), min(gw, int(cx + rx) + 2)
+    y0, y1 = max(0, int(cy - ry)), min(gh, int(cy + ry) + 2)
+    if x0 >= x1 or y0 >= y1:
+        return
+    dx = (np.arange(x0, x1, dtype=np.float32) + 0.5 - cx)[None, :] / rx
+    dy = (np.arange(y0, y1, dtype=np.float32) + 0.5 - cy)[:, None] / ry
+    rho2 = dx * dx + dy * dy
+    alpha = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
+    lens = _DROP_MAGNIFICATION * (1.0 + 0.35 * rho2)  # stronger bending towards the rim
+    inside = alpha > 0
+    roi = maps[:, y0:y1, x0:x1]
+    roi[0][inside] = ((cx - dx * rx * lens) * step)[inside]
+    roi[1][inside] = ((cy - 1.5 * ry - dy * ry * lens) * step)[inside]  # looks up and through, inverted
+    roi[2][inside] = (1.0 - 0.45 * rho2**3)[inside]
+    roi[3][inside] = np.maximum(roi[3], alpha)[inside]
+
+
+@register("raindrop", group="contamination", axis="contamination", parameter="frame fraction under drops",
+          unit="fraction", values=(0.03, 0.06, 0.10, 0.16, 0.25), random=True, spatial=True)
+def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
+    """Water drops on the lens, each a small inverted fisheye view of the scene behind it, out of focus
+    (the drop sits far in front of the focal plane). The drop layer is built at half resolution (its
+    content is defocused anyway) and composited over the sharp frame."""
+    h, w = image.shape[:2]
+    drops, _ = _drop_list(rng, h, w, fraction, scale)
+    small = cv2.resize(image, (max(1, w // 4), max(1, h // 4)), interpolation=cv2.INTER_AREA)
+    source = cv2.GaussianBlur(small, (0, 0), sigmaX=max(0.5, scaled(8.0, scale) / 4))
+    gh, gw = max(1, h // 2), max(1, w // 2)
+    maps = np.zeros((4, gh, gw), np.float32)
+    for drop in drops:
+        _paint_drop(maps, drop, w / gw)
+    to_source = source.shape[1] / w
+    view = cv2.remap(source, maps[0] * to_source, maps[1] * to_source, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REFLECT_101)
+    view = (view * maps[2][..., None]).astype(np.uint8)
+    view = cv2.resize(view, (w, h), interpolation=cv2.INTER_LINEAR)
+    alpha = cv2.resize(maps[3], (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.blendLinear(image, view, 1.0 - alpha, alpha)
+
+
+@register("occlusion", group="contamination", axis="removal", parameter="frame fraction under one black box",
+          unit="fraction", values=(0.1, 0.2, 0.3, 0.4, 0.5), random=True)
+def occlusion(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
+    """One black axis-aligned rectangle of the given area fraction, random aspect (1:2 .. 2:1) and place."""
+    h, w = image.shape[:2]
+    area = fraction * h * w
+    aspect = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
+    bw = min(w, max(1, round(np.sqrt(area * aspect))))
+    bh = min(h, max(1, round(area / bw)))
+    bw = min(w, max(1, round(area / bh)))
+    x0 = int(rng.integers(0, w - bw + 1))
+    y0 = int(rng.integers(0, h - bh + 1))
+    out = image.copy()
+    out[y0:y0 + bh, x0:x0 + bw] = 0
+    return out
+
+
+def _deposit_field(rng: np.random.Generator, h: int, w: int, blobs: int, bottom_bias: float) -> np.ndarray:
+    """A low-resolution field whose top quantile is a set of irregular splashes: a few Gaussian bumps
+    roughened by value noise. Coordinates are in units of the frame, so it is resolution-free."""
+    gh, gw = max(8, h // 8), max(8, w // 8)
+    yy, xx = np.mgrid[0:gh, 0:gw].astype(np.float32)
+    field = np.zeros((gh, gw), np.float32)
+    for _ in range(blobs):
+        cx = rng.uniform(0, gw)
+        cy = gh * (bottom_bias + (1 - bottom_bias) * rng.uniform(0, 1))
+        r = gw * rng.uniform(0.05, 0.18)
+        field += np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * r * r)).astype(np.float32)
+    return field + 0.55 * smooth_field(rng, gh, gw, cells=6, octaves=3)
+
+
+def _deposit_alpha(rng: np.random.Generator, h: int, w: int, fraction: float, blobs: int,
+                   bottom_bias: float) -> tuple[np.ndarray, tuple[slice, slice]]:
+    """Float32 coverage in [0, 1] over about `fraction` of the frame, cropped to its bounding box, and
+    that box (row slice, column slice) in full-resolution pixels."""
+    field = _deposit_field(rng, h, w, blobs, bottom_bias)
+    mask = coverage_mask(field, fraction)
+    gh, gw = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return np.zeros((0, 0), np.float32), (slice(0, 0), slice(0, 0))
+    # one coarse cell of margin for the soft edge, mapped to full-resolution pixels
+    r0, r1 = max(0, rows[0] - 1), min(gh, rows[-1] + 2)
+    c0, c1 = max(0, cols[0] - 1), min(gw, cols[-1] + 2)
+    full = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    box = (slice(r0 * h // gh, r1 * h // gh), slice(c0 * w // gw, c1 * w // gw))
+    return np.clip(full[box] * 1.6 - 0.3, 0.0, 1.0), box
+
+
+def _texture(rng: np.random.Generator, shape: tuple[int, int], cells: int) -> np.ndarray:
+    h, w = shape
+    coarse = smooth_field(rng, max(8, h // 4), max(8, w // 4), cells=cells, octaves=2)
+    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+
+
+_MUD_RGB = np.array([92.0, 68.0, 44.0], np.float32)
+
+
+@register("mud_splash", group="contamination", axis="contamination", parameter="frame fraction under mud",
+          unit="fraction", values=(0.02, 0.05, 0.09, 0.14, 0.20), random=True)
+def mud_splash(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
+    """Opaque mud thrown up from the road: irregular splashes, lower frame more likely, textured brown."""
+    h, w = image.shape[:2]
+    alpha, box = _deposit_alpha(rng, h, w, fraction, blobs=int(rng.integers(2, 5)), bottom_bias=0.35)
+    out = image.copy()
+    if alpha.size:
+        grain = _texture(rng, alpha.shape, cells=40)
+        mud = np.clip(_MUD_RGB * (0.7 + 0.6 * grain)[..., None], 0, 255).astype(np.uint8)
+        out[box] = cv2.blendLinear(image[box], mud, 1.0 - alpha, alpha)
+    return out
+
+
+_DIRT_RGB = np.array([150.0, 140.0, 122.0], np.float32)
+_DIRT_VEIL_PER_FRACTION = 0.5  # veiling glare opacity per unit of dirty frame fraction
+_VEIL_GREY = 215.0
+
+
+@register("lens_dirt", group="contamination", axis="contamination", parameter="frame fraction under dirt",
+          unit="fraction", values=(0.05, 0.10, 0.20, 0.30, 0.45), random=True, spatial=True)
+def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
+    """Semi-transparent dirt on the lens: under it the scene is defocused and dimmed behind a grey-brown
+    film; light scattered by the dirt veils the whole frame in proportion to the dirty fraction."""
+    h, w = image.shape[:2]
+    alpha, box = _deposit_alpha(rng, h, w, fraction, blobs=int(rng.integers(4, 9)), bottom_bias=0.0)
+    out = image.copy()
+    if alpha.size:
+        region = image[box]
+        rh, rw = region.shape[:2]
+        small = cv2.resize(region, (max(1, rw // 4), max(1, rh // 4)), interpolation=cv2.INTER_AREA)
+        sigma = max(0.5, scaled(10.0, scale) / 4)
+        blurred = cv2.resize(cv2.GaussianBlur(small, (0, 0), sigma), (rw, rh), interpolation=cv2.INTER_LINEAR)
+        opacity = alpha * (0.35 + 0.3 * _texture(rng, alpha.shape, cells=5))
+        film = np.clip(blurred.astype(np.float32) * (1 - opacity[..., None]) + _DIRT_RGB * opacity[..., None],
+                       0, 255).astype(np.uint8)
+        soft = np.minimum(alpha * 2.0, 1.0)
+        out[box] = cv2.blendLinear(region, film, 1.0 - soft, soft)
+    veil = _DIRT_VEIL_PER_FRACTION * fraction
+    return cv2.addWeighted(out, 1.0 - veil, out, 0.0, _VEIL_GREY * veil)

@@ -1,0 +1,96 @@
+"""`drivedegrade preview`: one image under every family at one severity (the paper's Figure 2A), or one
+family across S1..S5, as a labelled PNG montage."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..constants import CAMERAS
+from ..errors import InvalidInput
+from .api import check_family, check_severity, corrupt, corrupt_sample
+from .registry import FAMILIES
+
+_CAMERA_IN_NAME = re.compile(r"(CAM_(?:FRONT|BACK)(?:_LEFT|_RIGHT)?)")
+
+
+def read_rgb(path: str | Path) -> np.ndarray:
+    """Decode an image file to H x W x 3 uint8 RGB, or InvalidInput naming the file."""
+    data = np.fromfile(str(path), dtype=np.uint8) if Path(path).is_file() else None
+    if data is None:
+        raise InvalidInput(f"{path}: no such image file")
+    bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InvalidInput(f"{path}: not a readable image (truncated or not JPEG/PNG)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def camera_of(path: str | Path) -> str:
+    """The nuScenes camera named in a file path (`..__CAM_FRONT__..` or `samples/CAM_FRONT/`), else CAM_FRONT."""
+    found = _CAMERA_IN_NAME.findall(str(path))
+    return found[-1] if found and found[-1] in CAMERAS else "CAM_FRONT"
+
+
+def render(image: np.ndarray, family: str, severity: int, *, seed: int, frame: str, camera: str) -> np.ndarray:
+    """One family on one image; stream families go through the sample API with this camera alone."""
+    if FAMILIES[family].scope == "image":
+        return corrupt(image, family, severity, seed=seed, frame=frame, camera=camera)
+    return corrupt_sample({camera: image}, family, severity, seed=seed, frame=frame)[camera]
+
+
+def _tile(image: np.ndarray, label: str, width: int) -> np.ndarray:
+    h = round(image.shape[0] * width / image.shape[1])
+    tile = cv2.resize(image, (width, h), interpolation=cv2.INTER_AREA)
+    bar = np.full((24, width, 3), 20, np.uint8)
+    cv2.putText(bar, label, (6, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (235, 235, 235), 1, cv2.LINE_AA)
+    return np.vstack([bar, tile])
+
+
+def _grid(tiles: list[np.ndarray], columns: int) -> np.ndarray:
+    blank = np.zeros_like(tiles[0])
+    rows = [tiles[i:i + columns] + [blank] * (columns - len(tiles[i:i + columns]))
+            for i in range(0, len(tiles), columns)]
+    return np.vstack([np.hstack(r) for r in rows])
+
+
+def montage(image: np.ndarray, *, severity: int | None = None, family: str | None = None, seed: int = 0,
+            frame: str = "", camera: str = "CAM_FRONT", width: int = 480) -> np.ndarray:
+    """All sixteen families at `severity` (with the clean image first), or `family` at S1..S5."""
+    tiles = [_tile(image, "clean", width)]
+    if family is not None:
+        fam = FAMILIES[check_family(family)]
+        for s in range(1, 6):
+            out = render(image, family, s, seed=seed, frame=frame, camera=camera)
+            tiles.append(_tile(out, f"{family} S{s}: {fam.describe(s)}", width))
+        return _grid(tiles, 3)
+    severity = check_severity(severity if severity is not None else 4)
+    for name, fam in FAMILIES.items():
+        out = render(image, name, severity, seed=seed, frame=frame, camera=camera)
+        tiles.append(_tile(out, f"{name} S{severity}: {fam.describe(severity)}", width))
+    return _grid(tiles, 6)
+
+
+def write_preview(images: Sequence[str], *, severity: int = 4, family: str | None = None,
+                  out: str = "montage.png", seed: int = 0, width: int = 480) -> Path:
+    """Render the montage of each image (stacked vertically) into one PNG; returns its path."""
+    if width < 64:
+        raise InvalidInput(f"--width must be at least 64 pixels, got {width}")
+    panels = []
+    for path in images:
+        rgb = read_rgb(path)
+        panels.append(montage(rgb, severity=severity, family=family, seed=seed, frame=Path(path).stem,
+                              camera=camera_of(path), width=width))
+    widest = max(p.shape[1] for p in panels)
+    panels = [np.pad(p, ((0, 8), (0, widest - p.shape[1]), (0, 0))) for p in panels]
+    target = Path(out)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.vstack(panels), cv2.COLOR_RGB2BGR))
+    if not ok:  # pragma: no cover
+        raise InvalidInput(f"could not encode the montage as PNG for {out}")
+    from ..report.io import atomic_write_bytes
+
+    return atomic_write_bytes(target, buf.tobytes())

@@ -1,0 +1,90 @@
+"""The corruption registry: each family declares its parameter, unit and five values beside its code.
+
+`FAMILIES` maps a family name to its `Family` record, in the order of SPEC section 3. The spec file
+(`spec/ladder.yaml`) is emitted from these records, so specification and code cannot diverge.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+#: Version of the ladder (operators and values). A new value is a minor bump; a changed operator is major.
+SPEC_VERSION = "1.0.0"
+
+#: Order of SPEC section 3: the twelve core families first, then the four contamination families.
+ORDER: tuple[str, ...] = (
+    "gaussian_blur", "motion_blur", "gaussian_noise", "low_light", "jpeg", "downscale", "color_quant",
+    "fog", "snow", "frame_dropout", "blackout", "bit_error",
+    "raindrop", "occlusion", "mud_splash", "lens_dirt",
+)
+CORE: frozenset[str] = frozenset(ORDER[:12])
+SEVERITIES: tuple[int, ...] = (1, 2, 3, 4, 5)
+
+#: An image operator: (image, value, rng, scale) -> new image. `rng` is None for deterministic families;
+#: `scale` is image width / 1600 for spatial parameters.
+ImageOp = Callable[..., Any]
+
+
+@dataclass(frozen=True)
+class Family:
+    """One corruption family: a single physical parameter with a value at each severity S1..S5.
+
+    `scope` is "image" for operators on one camera image, "sample" for those that need the whole
+    six-camera sample (blackout) or the previous delivered frame (frame_dropout).
+    """
+
+    name: str
+    group: str
+    axis: str
+    parameter: str
+    unit: str
+    values: tuple[Any, ...]
+    random: bool
+    scope: str
+    op: ImageOp = field(repr=False, compare=False)
+    spatial: bool = False
+
+    @property
+    def core(self) -> bool:
+        return self.name in CORE
+
+    def value(self, severity: int) -> Any:
+        """The parameter value at severity 1..5."""
+        return self.values[severity - 1]
+
+    def describe(self, severity: int) -> str:
+        """A short human label such as 'defocus sigma = 2.0 px'."""
+        value = self.value(severity)
+        if isinstance(value, tuple):
+            value = "+".join(c.replace("CAM_", "") for c in value)
+        unit = f" {self.unit}" if self.unit and self.unit not in ("level", "cameras") else ""
+        return f"{self.parameter} = {value}{unit}"
+
+
+_REGISTRY: dict[str, Family] = {}
+
+
+def register(name: str, *, group: str, axis: str, parameter: str, unit: str, values: tuple[Any, ...],
+             random: bool, scope: str = "image", spatial: bool = False) -> Callable[[ImageOp], ImageOp]:
+    """Class-free declaration: decorate the operator with its parameter, unit and ladder values."""
+    if len(values) != len(SEVERITIES):
+        raise AssertionError(f"{name}: a family needs exactly five values, got {len(values)}")
+
+    def decorate(op: ImageOp) -> ImageOp:
+        _REGISTRY[name] = Family(name, group, axis, parameter, unit, tuple(values), random, scope, op,
+                                 spatial)
+        return op
+
+    return decorate
+
+
+# Importing the group modules fills the registry (they import `register` from this module).
+from . import contamination, memory, sensor, temporal, transmission, weather  # noqa: E402,F401
+
+FAMILIES: dict[str, Family] = {name: _REGISTRY[name] for name in ORDER}
+QUALITY_FAMILIES: tuple[str, ...] = tuple(n for n in ORDER if FAMILIES[n].axis == "quality")
+
+if set(_REGISTRY) != set(ORDER):  # pragma: no cover - a programming error, caught by every test run
+    raise AssertionError(f"registry and ORDER differ: {sorted(set(_REGISTRY) ^ set(ORDER))}")

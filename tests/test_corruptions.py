@@ -1,0 +1,204 @@
+"""Injector properties (hypothesis) and known answers on synthetic images."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from pytest_drivedegrade import FAMILIES, corrupt, corrupt_sample
+from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.corruptions.kernels import discrete_normal
+from pytest_drivedegrade.corruptions.memory import flip_positions
+
+IMAGE_FAMILIES = [n for n, f in FAMILIES.items() if f.scope == "image"]
+RANDOM_IMAGE = [n for n in IMAGE_FAMILIES if FAMILIES[n].random]
+DETERMINISTIC_IMAGE = [n for n in IMAGE_FAMILIES if not FAMILIES[n].random]
+
+images = st.tuples(st.integers(8, 72), st.integers(8, 96)).flatmap(
+    lambda hw: arrays(np.uint8, (hw[0], hw[1], 3), elements=st.integers(0, 255)))
+fast = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def textured(h: int = 64, w: int = 96, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+@fast
+@given(image=images, family=st.sampled_from(IMAGE_FAMILIES), severity=st.integers(1, 5))
+def test_shape_dtype_and_input_untouched(image, family, severity):
+    before = image.copy()
+    image.setflags(write=False)
+    out = corrupt(image, family, severity, frame="f", camera="CAM_BACK")
+    assert out.shape == image.shape and out.dtype == np.uint8
+    assert out.flags.writeable and out.flags.c_contiguous
+    np.testing.assert_array_equal(image, before)
+    assert not np.shares_memory(out, image)
+
+
+@fast
+@given(image=images, family=st.sampled_from(IMAGE_FAMILIES))
+def test_severity_zero_is_an_equal_copy(image, family):
+    out = corrupt(image, family, 0)
+    np.testing.assert_array_equal(out, image)
+    assert not np.shares_memory(out, image)
+
+
+@fast
+@given(image=images, family=st.sampled_from(IMAGE_FAMILIES), severity=st.integers(1, 5),
+       seed=st.integers(0, 2**31), frame=st.text(max_size=12))
+def test_same_key_is_bit_identical(image, family, severity, seed, frame):
+    a = corrupt(image, family, severity, seed=seed, frame=frame, camera="CAM_FRONT_LEFT")
+    b = corrupt(image.copy(), family, severity, seed=seed, frame=frame, camera="CAM_FRONT_LEFT")
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("family", RANDOM_IMAGE)
+def test_random_family_differs_across_frames_and_cameras(family):
+    image = textured()
+    base = corrupt(image, family, 5, frame="a", camera="CAM_FRONT")
+    assert not np.array_equal(base, corrupt(image, family, 5, frame="b", camera="CAM_FRONT"))
+    assert not np.array_equal(base, corrupt(image, family, 5, frame="a", camera="CAM_BACK"))
+    assert not np.array_equal(base, corrupt(image, family, 5, frame="a", camera="CAM_FRONT", seed=1))
+
+
+@fast
+@given(image=images, family=st.sampled_from(DETERMINISTIC_IMAGE), severity=st.integers(1, 5),
+       seed=st.integers(1, 2**31))
+def test_deterministic_family_ignores_seed_frame_and_camera(image, family, severity, seed):
+    a = corrupt(image, family, severity, seed=0, frame="x", camera="CAM_FRONT")
+    b = corrupt(image, family, severity, seed=seed, frame="y", camera="CAM_BACK")
+    np.testing.assert_array_equal(a, b)
+
+
+def sample(h: int = 24, w: int = 40) -> dict[str, np.ndarray]:
+    return {cam: textured(h, w, seed=i) for i, cam in enumerate(CAMERAS)}
+
+
+@pytest.mark.parametrize("severity", [1, 2, 3, 4, 5])
+def test_blackout_zeroes_exactly_the_spec_cameras(severity):
+    spec = {1: {"CAM_BACK"}, 2: {"CAM_BACK_LEFT", "CAM_BACK_RIGHT"},
+            3: {"CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"}, 4: {"CAM_FRONT_LEFT", "CAM_FRONT_RIGHT"},
+            5: {"CAM_FRONT"}}[severity]
+    images = sample()
+    out = corrupt_sample(images, "blackout", severity)
+    for cam in CAMERAS:
+        if cam in spec:
+            assert not out[cam].any()
+        else:
+            np.testing.assert_array_equal(out[cam], images[cam])
+
+
+def test_blind_and_clean_cells():
+    images = sample()
+    assert all(not v.any() for v in corrupt_sample(images, "blind", 0).values())
+    clean = corrupt_sample(images, "clean", 0)
+    assert all(np.array_equal(clean[c], images[c]) and clean[c] is not images[c] for c in CAMERAS)
+
+
+def test_frame_dropout_holds_the_last_delivered_frame_or_black():
+    images, previous = sample(), {cam: textured(24, 40, seed=99) for cam in CAMERAS}
+    lost_seen = kept_seen = 0
+    for k in range(30):
+        out = corrupt_sample(images, "frame_dropout", 3, frame=f"f{k}", previous=previous)
+        black = corrupt_sample(images, "frame_dropout", 3, frame=f"f{k}")
+        for cam in CAMERAS:
+            if np.array_equal(out[cam], previous[cam]):
+                lost_seen += 1
+                assert not black[cam].any()
+            else:
+                kept_seen += 1
+                np.testing.assert_array_equal(out[cam], images[cam])
+                np.testing.assert_array_equal(black[cam], images[cam])
+    assert lost_seen and kept_seen
+
+
+def test_frame_dropout_loss_rate_follows_the_ladder():
+    images = {cam: np.full((2, 2, 3), 7, np.uint8) for cam in CAMERAS}
+    rates = []
+    for severity in range(1, 6):
+        lost = sum(not out.any() for k in range(150)
+                   for out in corrupt_sample(images, "frame_dropout", severity, frame=str(k)).values())
+        rates.append(lost / 900)
+    nominal = FAMILIES["frame_dropout"].values
+    for rate, p in zip(rates, nominal):
+        assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / 900), (rates, nominal)
+
+
+@pytest.mark.parametrize("severity", [1, 2, 3, 4, 5])
+def test_color_quant_levels(severity):
+    bits = FAMILIES["color_quant"].value(severity)
+    out = corrupt(textured(128, 128), "color_quant", severity)
+    for c in range(3):
+        assert len(np.unique(out[..., c])) <= 2**bits
+
+
+@pytest.mark.parametrize("severity", [3, 4, 5])
+def test_bit_error_rate_within_binomial_interval(severity):
+    rate = FAMILIES["bit_error"].value(severity)
+    image = textured(450, 800)
+    out = corrupt(image, "bit_error", severity, frame="x")
+    flipped = int(np.unpackbits(np.bitwise_xor(image, out)).sum())
+    n = image.size * 8
+    assert abs(flipped - n * rate) <= 4 * np.sqrt(n * rate * (1 - rate)) + 1, (flipped, n * rate)
+
+
+def test_flip_positions_are_distinct_and_in_range():
+    pos = flip_positions(np.random.default_rng(3), 10_000, 0.2)
+    assert len(np.unique(pos)) == len(pos) and pos.min() >= 0 and pos.max() < 10_000
+    assert abs(len(pos) - 2000) < 4 * np.sqrt(10_000 * 0.2 * 0.8)
+
+
+@pytest.mark.parametrize("severity", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("shape", [(900, 1600), (450, 800), (120, 200)])
+def test_occlusion_covers_the_nominal_fraction(severity, shape):
+    fraction = FAMILIES["occlusion"].value(severity)
+    image = np.full((*shape, 3), 128, np.uint8)
+    for frame in ("a", "b", "c"):
+        out = corrupt(image, "occlusion", severity, frame=frame)
+        covered = (out.sum(axis=2) == 0).mean()
+        assert abs(covered - fraction) <= 0.01, (covered, fraction)
+
+
+@pytest.mark.parametrize("sigma", [4, 16, 45])
+def test_discrete_normal_matches_rounded_gaussian(sigma):
+    x = discrete_normal(np.random.default_rng(0), (400_000,), sigma)
+    assert abs(x.mean()) < 4 * sigma / np.sqrt(x.size)
+    # variance of round(sigma z) is sigma^2 + 1/12 (Sheppard's correction)
+    assert abs(x.var() / (sigma**2 + 1 / 12) - 1) < 0.01
+    # the mass at 0 equals P(|sigma z| < 0.5)
+    from math import erf, sqrt
+
+    p0 = erf(0.5 / sigma / sqrt(2))
+    assert abs((x == 0).mean() - p0) < 4 * np.sqrt(p0 * (1 - p0) / x.size)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((4, 4, 3), np.float32), "dtype uint8"),
+    (np.zeros((4, 4), np.uint8), "H x W x 3"),
+    (np.zeros((4, 4, 4), np.uint8), "H x W x 3"),
+    (np.zeros((0, 4, 3), np.uint8), "empty"),
+    ([[1, 2, 3]], "numpy array"),
+])
+def test_bad_images_are_named(bad, match):
+    with pytest.raises(ValueError, match=match):
+        corrupt(bad, "jpeg", 1)
+
+
+def test_bad_family_severity_camera_list_the_valid_choices():
+    image = textured(8, 8)
+    with pytest.raises(ValueError, match="unknown corruption family 'haze'.*gaussian_blur.*lens_dirt"):
+        corrupt(image, "haze", 1)
+    for severity in (6, -1, 2.5, True, "3"):
+        with pytest.raises(ValueError, match=r"severity must be an integer 0\.\.5"):
+            corrupt(image, "jpeg", severity)
+    with pytest.raises(ValueError, match="unknown camera 'CAM_TOP'.*CAM_FRONT.*CAM_BACK_RIGHT"):
+        corrupt(image, "jpeg", 1, camera="CAM_TOP")
+    with pytest.raises(ValueError, match="corrupt_sample"):
+        corrupt(image, "blackout", 1)
+    with pytest.raises(ValueError, match="unknown camera 'front'"):
+        corrupt_sample({"front": image}, "jpeg", 1)
+    with pytest.raises(ValueError, match=r"images\['CAM_BACK'\].*dtype uint8"):
+        corrupt_sample({"CAM_BACK": image.astype(float)}, "jpeg", 1)

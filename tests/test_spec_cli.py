@@ -1,0 +1,86 @@
+"""The spec is emitted from the code, the CLI works end to end, and the plugin entry stays light."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import yaml
+
+from pytest_drivedegrade import FAMILIES, SPEC_VERSION
+from pytest_drivedegrade.cli import main
+from pytest_drivedegrade.corruptions.spec import render_spec, spec_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_committed_ladder_matches_the_code():
+    committed = (ROOT / "spec" / "ladder.yaml").read_text()
+    assert committed == render_spec("yaml"), (
+        "spec/ladder.yaml differs from the injector: run `drivedegrade spec --out spec/ladder.yaml` and bump "
+        "SPEC_VERSION if an operator or value changed")
+
+
+def test_spec_carries_version_and_the_exact_table():
+    spec = yaml.safe_load(render_spec("yaml"))
+    assert spec["spec_version"] == SPEC_VERSION
+    by_name = {f["name"]: f for f in spec["families"]}
+    assert list(by_name) == list(FAMILIES)
+    assert by_name["gaussian_blur"]["values"] == {"S1": 0.5, "S2": 1.0, "S3": 2.0, "S4": 3.5, "S5": 6.0}
+    assert by_name["fog"]["values"]["S5"] == 35 and by_name["fog"]["unit"] == "m"
+    assert by_name["blackout"]["values"]["S3"] == ["CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"]
+    assert by_name["bit_error"]["values"]["S1"] == 1e-7
+    assert sum(f["core"] for f in spec["families"]) == 12
+    assert sum(f["axis"] == "quality" for f in spec["families"]) == 9
+    assert {n for n, f in by_name.items() if not f["random"]} == {
+        "gaussian_blur", "jpeg", "downscale", "color_quant", "fog", "blackout"}
+
+
+def test_cli_spec_formats(capsys, tmp_path):
+    assert main(["spec", "--format", "table"]) == 0
+    table = capsys.readouterr().out
+    assert "lens_dirt" in table and SPEC_VERSION in table and "FRONT_LEFT+FRONT_RIGHT" in table
+    assert main(["spec", "--format", "json", "--out", str(tmp_path / "l.json")]) == 0
+    import json
+
+    assert json.loads((tmp_path / "l.json").read_text()) == spec_dict()
+
+
+def test_cli_preview_all_families_and_one_family(tmp_path, nuscenes_frames):
+    front = str(nuscenes_frames["CAM_FRONT"][0])
+    out = tmp_path / "m.png"
+    assert main(["preview", front, "--severity", "4", "--out", str(out), "--width", "160"]) == 0
+    montage = cv2.imread(str(out))
+    tile_h = 24 + round(900 * 160 / 1600)
+    assert montage.shape[:2] == (3 * tile_h + 8, 6 * 160)  # clean + 16 families on a 6-wide grid
+    out2 = tmp_path / "f.png"
+    assert main(["preview", front, "--family", "fog", "--out", str(out2), "--width", "160"]) == 0
+    assert cv2.imread(str(out2)).shape[:2] == (2 * tile_h + 8, 3 * 160)  # clean + S1..S5
+
+
+def test_cli_errors_are_one_clear_line(tmp_path, capsys):
+    assert main(["preview", str(tmp_path / "missing.jpg")]) == 2
+    assert "missing.jpg: no such image file" in capsys.readouterr().err
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
+    assert main(["preview", str(broken)]) == 2
+    assert "broken.jpg: not a readable image" in capsys.readouterr().err
+    good = tmp_path / "g.png"
+    cv2.imwrite(str(good), cv2.UMat(8, 8, cv2.CV_8UC3).get())
+    assert main(["preview", str(good), "--family", "haze"]) == 2
+    assert "unknown corruption family 'haze'" in capsys.readouterr().err
+
+
+def test_plugin_entry_imports_nothing_heavy():
+    code = ("import sys, pytest_drivedegrade.plugin, pytest_drivedegrade\n"
+            "heavy = [m for m in ('cv2', 'torch', 'pandas', 'matplotlib') if m in sys.modules]\n"
+            "print(','.join(heavy))")
+    out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
+    assert out.strip() == ""
+
+
+def test_console_script_is_installed():
+    out = subprocess.run(["drivedegrade", "spec", "--format", "table"], capture_output=True, text=True)
+    assert out.returncode == 0 and "gaussian_blur" in out.stdout
