@@ -1,0 +1,64 @@
+"""cells.csv: one row per cell with every metric, retention and its CI, and what makes the row traceable.
+
+Written with the csv module (pandas is not needed to write a table). Column names up to ``retention_ci_high``
+are stable (SPEC section 6); more may be added, never renamed. Floats are rounded to six decimals like the
+certificate; a missing or non-finite value is an empty field; booleans are ``true`` / ``false``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from ..analysis import CONVENTIONS, RunAnalysis
+from ..constants import REPORT_HORIZONS_S
+from .certificate import DIGITS, Provenance
+from .io import atomic_write_text
+
+STABLE_COLUMNS = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
+                  "retention_ci_high")
+METRIC_COLUMNS = (
+    *(f"l2_avg_{c}" for c in CONVENTIONS),
+    *(f"{k}_{h}s_{c}" for k in ("l2", "collision", "vru") for c in CONVENTIONS for h in REPORT_HORIZONS_S),
+    "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
+)
+PROVENANCE_COLUMNS = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed",
+                      "convention")
+CSV_COLUMNS: tuple[str, ...] = (*STABLE_COLUMNS, *METRIC_COLUMNS, *PROVENANCE_COLUMNS)
+
+
+def _field(value: Any) -> str:
+    """One CSV field: rounded floats, empty for missing / NaN, lower-case booleans."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(round(value, DIGITS) + 0.0) if math.isfinite(value) else ""
+    return str(value)
+
+
+def cell_rows(analysis: RunAnalysis, provenance: Provenance) -> list[dict[str, str]]:
+    """The CSV rows as string fields, in report order."""
+    extra = {"planner": provenance.planner_name, "planner_fingerprint": provenance.planner_fingerprint,
+             "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
+             "spec_version": provenance.spec_version, "seed": provenance.seed,
+             "convention": analysis.settings.get("convention", "")}
+    return [{col: _field({**s.flat(), **extra}.get(col)) for col in CSV_COLUMNS} for s in analysis.summaries]
+
+
+def cells_csv_text(analysis: RunAnalysis, provenance: Provenance) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(cell_rows(analysis, provenance))
+    return buf.getvalue()
+
+
+def write_cells_csv(path: str | os.PathLike[str], analysis: RunAnalysis, provenance: Provenance) -> Path:
+    """Write cells.csv atomically."""
+    return atomic_write_text(path, cells_csv_text(analysis, provenance))

@@ -1,0 +1,263 @@
+"""The reliance certificate: build it from an analysis, seal it with SHA-256, verify it, load it as a baseline.
+
+The digest covers the canonical JSON of everything but the digest itself: keys sorted, separators ``(",", ":")``,
+ASCII only, floats rounded to ``DIGITS`` decimals *before* sealing (so what is stored is exactly what was hashed)
+and non-finite floats stored as null. ``section_digests`` hashes each top-level section on its own, so a
+verification failure can name the section that was edited, and two runs can be compared section by section
+(``cells`` is identical under ``-n 0`` and ``-n 2``; only ``created`` differs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..analysis import VERDICT_LABELS, RunAnalysis
+from ..errors import DriveDegradeError
+from .io import atomic_write_text
+
+SCHEMA = "drivedegrade-certificate/1"
+DIGITS = 6
+#: Top-level keys every certificate has (SPEC section 6 stable names, plus this tool's additions).
+REQUIRED_KEYS = ("schema", "spec_version", "planner", "dataset", "cells", "thresholds", "axes", "floor",
+                 "null_control", "verdict", "settings", "created", "section_digests", "digest")
+#: Per-cell fields copied into the certificate (the CSV carries every metric).
+CERT_CELL_FIELDS = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
+                    "retention_ci_high", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
+                    "l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad", "l2_3s_uniad",
+                    "collision_1s_stp3", "collision_2s_stp3", "collision_3s_stp3", "vru_3s_stp3", "jerk")
+_HEX64 = re.compile(r"^[0-9a-f]{64}$")
+
+
+class CertificateError(DriveDegradeError):
+    """A certificate that cannot be read or is not a sealed certificate at all (CLI exit 2)."""
+
+
+class CertificateMismatch(CertificateError):
+    """A readable certificate whose content no longer matches its digest: it was edited (CLI exit 1)."""
+
+    def __init__(self, message: str, *, recorded: str, computed: str, sections: list[str], problems: list[str]):
+        super().__init__(message)
+        self.recorded, self.computed, self.sections, self.problems = recorded, computed, sections, problems
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """What makes a run traceable: who was certified, on what data, under which ladder and how it was run."""
+
+    planner_name: str
+    planner_fingerprint: str
+    dataset_fingerprint: str
+    split: str
+    spec_version: str
+    seed: int = 0
+    frames: int = 0
+    frames_unscored: int | None = None
+    data_source: str = "embedded world"
+    command: str = ""
+    tool_version: str = ""
+
+
+def canonicalize(obj: Any, digits: int = DIGITS) -> Any:
+    """Plain JSON builtins with floats rounded to `digits` decimals and NaN / inf as None (numpy accepted)."""
+    if isinstance(obj, Mapping):
+        return {str(k): canonicalize(v, digits) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, np.ndarray)):
+        return [canonicalize(v, digits) for v in (obj.tolist() if isinstance(obj, np.ndarray) else obj)]
+    if obj is None or isinstance(obj, (bool, np.bool_)):
+        return None if obj is None else bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        value = float(obj)
+        return round(value, digits) + 0.0 if math.isfinite(value) else None
+    if isinstance(obj, (str, os.PathLike)):
+        return os.fspath(obj)
+    raise TypeError(f"cannot put a {type(obj).__name__} into a certificate")
+
+
+def canonical_json(obj: Any) -> bytes:
+    """The exact bytes the digest is taken over."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode()
+
+
+def _sha256(obj: Any) -> str:
+    return hashlib.sha256(canonical_json(obj)).hexdigest()
+
+
+def compute_digest(cert: Mapping[str, Any]) -> str:
+    """SHA-256 hex over the canonical JSON of every key but ``digest``."""
+    return _sha256({k: v for k, v in cert.items() if k != "digest"})
+
+
+def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None) -> dict:
+    """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC."""
+    cells = [{k: row[k] for k in CERT_CELL_FIELDS if k in row} for row in (s.flat() for s in analysis.summaries)]
+    nc = analysis.null_control or {"passed": None, "max_abs_diff": None, "max_l2_change": None}
+    return {
+        "schema": SCHEMA,
+        "spec_version": provenance.spec_version,
+        "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint},
+        "dataset": {"fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
+                    "frames": provenance.frames, "frames_unscored": provenance.frames_unscored,
+                    "source": provenance.data_source},
+        "cells": cells,
+        "thresholds": analysis.thresholds,
+        "axes": analysis.axes,
+        "floor": analysis.floor,
+        "null_control": {**nc, "ran": analysis.null_control is not None},
+        "verdict": analysis.verdict,
+        "settings": {**analysis.settings, "seed": provenance.seed},
+        "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command},
+        "created": created or datetime.now(timezone.utc).replace(microsecond=0).isoformat(),
+    }
+
+
+def seal(cert: Mapping[str, Any]) -> dict[str, Any]:
+    """Canonicalise, add per-section digests and the overall digest. Idempotent on a sealed certificate."""
+    body = canonicalize({k: v for k, v in cert.items() if k not in ("digest", "section_digests")})
+    body["section_digests"] = {k: _sha256(v) for k, v in body.items()}
+    body["digest"] = compute_digest(body)
+    return body
+
+
+def certificate_text(cert: Mapping[str, Any]) -> str:
+    """The file's text: indented for people; the digest does not depend on the layout."""
+    return json.dumps(cert, indent=2, sort_keys=True, ensure_ascii=True, allow_nan=False) + "\n"
+
+
+def write_certificate(path: str | os.PathLike[str], cert: Mapping[str, Any]) -> Path:
+    """Seal (if needed) and write atomically."""
+    return atomic_write_text(path, certificate_text(seal(cert)))
+
+
+def load_certificate(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read and parse a certificate file; ``CertificateError`` naming the file and the problem otherwise."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CertificateError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CertificateError(f"{path}: cannot read it ({exc})") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CertificateError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") \
+            from None
+    if not isinstance(data, dict):
+        raise CertificateError(f"{path}: a certificate is a JSON object, found {type(data).__name__}")
+    return data
+
+
+def _num(v: Any) -> bool:
+    return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+
+
+def check_schema(cert: Mapping[str, Any]) -> list[str]:
+    """Every malformed field as 'where: what', e.g. ``cells[3].retention: expected a number, found str``."""
+    problems = [f"{k}: missing" for k in REQUIRED_KEYS if k not in cert]
+
+    def expect(where: str, value: Any, ok: bool, what: str) -> None:
+        if not ok:
+            problems.append(f"{where}: expected {what}, found {type(value).__name__} {value!r:.40}")
+
+    for sect in ("planner", "dataset", "axes", "floor", "null_control", "verdict", "thresholds", "settings"):
+        expect(sect, cert.get(sect), isinstance(cert.get(sect, {}), dict), "an object")
+    cells = cert.get("cells", [])
+    expect("cells", cells, isinstance(cells, list), "a list")
+    for i, c in enumerate(cells if isinstance(cells, list) else []):
+        if not isinstance(c, dict):
+            expect(f"cells[{i}]", c, False, "an object")
+            continue
+        for k in ("cell", "family"):
+            expect(f"cells[{i}].{k}", c.get(k), isinstance(c.get(k), str), "a string")
+        expect(f"cells[{i}].severity", c.get("severity"), type(c.get("severity")) is int, "an integer")
+        for k in ("l2_avg", "retention", "retention_ci_low", "retention_ci_high"):
+            expect(f"cells[{i}].{k}", c.get(k), _num(c.get(k)), "a number or null")
+    for fam, t in (cert.get("thresholds") or {}).items() if isinstance(cert.get("thresholds"), dict) else ():
+        for k in ("s10", "s25"):
+            v = t.get(k) if isinstance(t, dict) else t
+            expect(f"thresholds.{fam}.{k}", v, isinstance(t, dict) and _num(v), "a number or null")
+    axes = cert.get("axes") if isinstance(cert.get("axes"), dict) else {}
+    for k in ("quality", "removal", "gap", "mean"):
+        expect(f"axes.{k}", axes.get(k), _num(axes.get(k)), "a number or null")
+    label = (cert.get("verdict") or {}).get("label") if isinstance(cert.get("verdict"), dict) else None
+    expect("verdict.label", label, label in (*VERDICT_LABELS, "undetermined"), "a verdict label")
+    expect("digest", cert.get("digest"), isinstance(cert.get("digest"), str) and bool(_HEX64.match(cert["digest"])),
+           "64 lowercase hex digits")
+    return problems
+
+
+def verify_data(cert: Mapping[str, Any], where: str = "certificate") -> dict[str, Any]:
+    """Return `cert` when its digest verifies; raise ``CertificateMismatch`` (edited) or ``CertificateError``."""
+    recorded = cert.get("digest")
+    if not isinstance(recorded, str):
+        raise CertificateError(f"{where}: no digest: this is not a sealed drivedegrade certificate")
+    computed = compute_digest(cert)
+    problems = check_schema(cert)
+    if computed == recorded:
+        if problems:  # sealed as is: written by something else, not edited afterwards
+            raise CertificateError(f"{where}: digest verifies but the content is malformed: {'; '.join(problems)}")
+        return dict(cert)
+    recorded_sections = cert.get("section_digests") if isinstance(cert.get("section_digests"), dict) else {}
+    sections = sorted(k for k, v in cert.items() if k not in ("digest", "section_digests")
+                      and recorded_sections.get(k) != _sha256(v))
+    msg = f"{where}: digest mismatch: recorded {recorded}, content hashes to {computed}"
+    if sections:
+        msg += f"; edited section(s): {', '.join(sections)}"
+    if problems:
+        msg += f"; malformed: {'; '.join(problems)}"
+    raise CertificateMismatch(msg, recorded=recorded, computed=computed, sections=sections, problems=problems)
+
+
+def verify(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Load and verify a certificate file; returns it when intact (see ``verify_data`` for the errors)."""
+    return verify_data(load_certificate(path), where=os.fspath(path))
+
+
+# --- argparse gates: a bad value is a usage error at start-up (pytest-benchmark style) ---------------------
+
+
+def parse_baseline(text: str) -> dict[str, Any]:
+    """argparse ``type=`` for ``--drivedegrade-baseline``: a readable, sealed, intact certificate file.
+
+    Any problem becomes ``argparse.ArgumentTypeError`` naming the file and what is wrong (a usage error at
+    start-up rather than a failure at the end of a long run).
+    """
+    if not Path(text).is_file():
+        raise argparse.ArgumentTypeError(f"baseline certificate {text!r} does not exist or is not a file")
+    try:
+        return verify(text)
+    except CertificateError as exc:
+        raise argparse.ArgumentTypeError(f"baseline certificate is unusable: {exc}") from None
+
+
+def _unit_float(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{what} must be a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{what} must be a number in [0, 1], got {text!r}")
+    return value
+
+
+def parse_tolerance(text: str) -> float:
+    """argparse ``type=`` for ``--drivedegrade-tolerance``: a float in [0, 1] (retention points)."""
+    return _unit_float(text, "--drivedegrade-tolerance")
+
+
+def parse_flat(text: str) -> float:
+    """argparse ``type=`` for ``--drivedegrade-flat``: a float in [0, 1]."""
+    return _unit_float(text, "--drivedegrade-flat")

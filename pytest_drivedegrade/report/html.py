@@ -1,0 +1,134 @@
+"""report.html: one self-contained page (charts as embedded PNG, CSS inline, no external URL).
+
+Jinja2 renders ``templates/report.html.j2`` with autoescape on for every template (the file ends in ``.j2``, so
+extension-based autoescape would miss it): planner names, cell ids and frame tokens come from user code and
+data and are always escaped. Charts come from ``plots``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..analysis import DIAGNOSTIC_CELLS, CellRecord, CellSummary, RunAnalysis
+from .certificate import Provenance
+from .io import atomic_write_text
+
+TEMPLATES = Path(__file__).parent / "templates"
+LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
+               "not-shown-to-use-cameras": "flat", "undetermined": "undetermined"}
+
+
+@dataclass(frozen=True)
+class TrajectoryExample:
+    """One frame for the bird's-eye panel: ground truth and the plans of clean and the chosen cells."""
+
+    frame: str
+    gt: np.ndarray
+    plans: dict[str, np.ndarray]
+
+    def as_mapping(self) -> dict[str, Any]:
+        return {"frame": self.frame, "gt": self.gt, "plans": self.plans}
+
+
+def most_damaging(summaries: Sequence[CellSummary], n: int = 3) -> list[CellSummary]:
+    """The `n` ladder cells with the lowest retention (ties broken by cell id, so the choice is stable)."""
+    ladder = [s for s in summaries if s.family not in DIAGNOSTIC_CELLS and math.isfinite(s.retention)]
+    return sorted(ladder, key=lambda s: (s.retention, s.cell))[:n]
+
+
+def trajectory_examples(records: Mapping[str, CellRecord], gt: Mapping[str, Any], summaries: Sequence[CellSummary],
+                        *, n_cells: int = 3, n_frames: int = 2) -> list[TrajectoryExample]:
+    """Pick frames where the most damaging cells moved the 3 s endpoint furthest from clean's plan.
+
+    `records` maps cell id -> record (clean included); `gt` maps frame token -> (6, 2) ground truth.
+    """
+    clean = records.get("clean")
+    cells = [s.cell for s in most_damaging(summaries, n_cells) if s.cell in records]
+    if clean is None or not cells:
+        return []
+    shift = sum(np.nan_to_num(np.linalg.norm(records[c].plans[:, -1] - clean.plans[:, -1], axis=-1)) for c in cells)
+    order = [i for i in np.argsort(-shift, kind="stable") if clean.frames[i] in gt][:n_frames]
+    return [TrajectoryExample(clean.frames[i], np.asarray(gt[clean.frames[i]], dtype=float),
+                              {"clean": clean.plans[i], **{c: records[c].plans[i] for c in cells}}) for i in order]
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
+def _family_info(families: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:
+    """group / axis / S5 parameter per family, from the registry when it is importable."""
+    if families is None:
+        try:
+            from ..corruptions.registry import FAMILIES as families  # noqa: N811
+        except ImportError:
+            return {}
+    out = {}
+    for name, fam in families.items():
+        try:
+            s5 = fam.describe(5)
+        except Exception:  # noqa: BLE001 - a description is decoration, never a failure
+            s5 = ""
+        out[name] = {"group": str(getattr(fam, "group", "")), "axis": str(getattr(fam, "axis", "")), "s5": s5}
+    return out
+
+
+def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, str | None],
+             families: Mapping[str, Any] | None, extra: Mapping[str, Any]) -> dict[str, Any]:
+    info = _family_info(families)
+    s5 = {s.family: s for s in analysis.summaries if s.severity == 5}
+    thresholds = [{"family": fam, **info.get(fam, {}), "s10": _fmt(t["s10"], 2), "s25": _fmt(t["s25"], 2),
+                   "r5": _fmt(s5[fam].retention) if fam in s5 else "—",
+                   "ci5": (f"{_fmt(s5[fam].retention_ci_low)} – {_fmt(s5[fam].retention_ci_high)}"
+                           if fam in s5 else "—")} for fam, t in analysis.thresholds.items()]
+    cells = [{"cell": s.cell, "retention": _fmt(s.retention), "ci": f"{_fmt(s.retention_ci_low)} – "
+              f"{_fmt(s.retention_ci_high)}", "l2": _fmt(s.l2_avg), "col": _fmt(s.metrics.get("collision_3s_stp3")),
+              "shift": _fmt(s.metrics.get("endpoint_shift")), "energy": _fmt(s.metrics.get("energy")),
+              "sep": _fmt(s.separable_from_null), "errors": s.conformance_errors,
+              "low": math.isfinite(s.retention) and s.retention < 0.9} for s in analysis.summaries]
+    axes = {k: _fmt(v) for k, v in analysis.axes.items() if k != "missing"}
+    return {"p": provenance, "verdict": analysis.verdict, "label_class": LABEL_CLASS.get(analysis.verdict["label"]),
+            "axes": axes, "missing": analysis.axes.get("missing", []), "null": analysis.null_control,
+            "floor": {k: _fmt(v) for k, v in analysis.floor.items()}, "settings": analysis.settings,
+            "thresholds": thresholds, "cells": cells, "charts": charts, **extra}
+
+
+def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.ndarray | None = None,
+                  trajectories: Sequence[TrajectoryExample | Mapping[str, Any]] = (),
+                  floor_point: tuple[float, float] = (1.0, 1.0), families: Mapping[str, Any] | None = None,
+                  created: str = "", digest: str = "") -> str:
+    """The page as a string. `montage`: the S4 montage of one front frame (RGB uint8), optional."""
+    from jinja2 import Environment, FileSystemLoader, StrictUndefined
+
+    from . import plots
+
+    blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
+    traj = [t.as_mapping() if isinstance(t, TrajectoryExample) else t for t in trajectories]
+    charts = {
+        "curves": plots.tolerance_curves(analysis.summaries, analysis.thresholds),
+        "heatmap": plots.retention_heatmap(analysis.summaries),
+        "axes": plots.axes_chart(analysis.axes, analysis.verdict["flat"], planner=provenance.planner_name,
+                                 blind=blind, floor=floor_point),
+        "montage": plots.image_data_uri(montage) if montage is not None else None,
+        "trajectories": plots.trajectory_panels(traj),
+    }
+    env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
+                      trim_blocks=True, lstrip_blocks=True)
+    extra = {"created": created, "digest": digest, "traj_cells": [c for t in traj[:1] for c in t["plans"]]}
+    return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
+
+
+def write_report(path: str | os.PathLike[str], analysis: RunAnalysis, provenance: Provenance, **kwargs: Any) -> Path:
+    """Render and write report.html atomically (keyword arguments as ``render_report``)."""
+    return atomic_write_text(path, render_report(analysis, provenance, **kwargs))

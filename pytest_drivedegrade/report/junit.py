@@ -1,0 +1,60 @@
+"""JUnit properties: each cell's figures as testcase properties, axes and verdict as suite properties.
+
+Values are plain ``str`` / ``float`` / ``int`` only: a numpy scalar, ``Path`` or ``Enum`` in
+``item.user_properties`` crashes a run under ``-n`` (xdist serialises them), and ``record_testsuite_property``
+wants the same. Non-finite floats and None become the string ``"none"``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from ..analysis import CellSummary, RunAnalysis
+
+#: Testcase properties, in the order they appear in the XML.
+CELL_PROPERTIES = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
+                   "retention_ci_high", "l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad",
+                   "l2_3s_uniad", "collision_3s_stp3", "vru_3s_stp3", "jerk", "endpoint_shift", "energy",
+                   "separable_from_null", "conformance_errors")
+SUITE_PREFIX = "drivedegrade_"
+
+
+def plain(value: Any) -> str | float | int:
+    """A property value xdist and the JUnit writer accept: bool -> "true"/"false", numpy -> builtins."""
+    if value is None:
+        return "none"
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return round(float(value), 6) if math.isfinite(value) else "none"
+    return str(value)
+
+
+def cell_properties(summary: CellSummary | Mapping[str, Any]) -> list[tuple[str, str | float | int]]:
+    """(name, value) pairs for ``item.user_properties`` of one cell's test item."""
+    row = summary.flat() if isinstance(summary, CellSummary) else dict(summary)
+    return [(name, plain(row[name])) for name in CELL_PROPERTIES if name in row]
+
+
+def suite_properties(analysis: RunAnalysis | Mapping[str, Any]) -> list[tuple[str, str | float | int]]:
+    """(name, value) pairs for ``record_testsuite_property``: axes, verdict, null control, floor, thresholds."""
+    data = analysis.to_builtins() if isinstance(analysis, RunAnalysis) else dict(analysis)
+    out: list[tuple[str, Any]] = [(f"axis_{k}", data["axes"].get(k))
+                                  for k in ("quality", "removal", "gap", "mean", "dropout", "occlusion")]
+    verdict = data["verdict"]
+    out += [("verdict", verdict["label"]), ("verdict_flat", verdict["flat"]),
+            ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"])]
+    nc = data.get("null_control") or {}
+    out += [("null_control_passed", nc.get("passed")), ("null_control_max_abs_diff", nc.get("max_abs_diff"))]
+    out += [("floor_l2_avg", (data.get("floor") or {}).get("l2_avg"))]
+    for fam, t in sorted(data.get("thresholds", {}).items()):
+        out += [(f"threshold_{fam}_s10", t.get("s10")), (f"threshold_{fam}_s25", t.get("s25"))]
+    return [(SUITE_PREFIX + name, plain(value)) for name, value in out]

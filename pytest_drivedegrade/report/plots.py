@@ -1,0 +1,204 @@
+"""The report's charts, each rendered off-screen (Agg, no pyplot state) to a ``data:image/png;base64`` URI.
+
+Every function takes plain data and returns a string the HTML template embeds as is, so the report stays one
+self-contained file. Imported only when a report is written (matplotlib is not light).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from ..analysis import DIAGNOSTIC_CELLS, THRESHOLD_LEVELS, CellSummary
+from ..constants import EGO_LENGTH, EGO_WIDTH
+
+INK, MUTED, ACCENT, GRID = "#1f2933", "#7b8794", "#2463eb", "#e4e7eb"
+LEVEL_COLORS = {"s10": "#d97706", "s25": "#dc2626"}
+CELL_COLORS = ("#dc2626", "#d97706", "#7c3aed", "#0891b2", "#65a30d")
+
+
+def _label(text: object, limit: int = 40) -> str:
+    """User text (planner name, frame token) as a literal matplotlib label: ``$`` would start mathtext."""
+    return str(text)[:limit].replace("$", r"\$")
+
+
+def _figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=110)
+    FigureCanvasAgg(fig)
+    fig.patch.set_facecolor("white")
+    return fig
+
+
+def _style(ax: Any) -> None:
+    ax.spines[["top", "right"]].set_visible(False)
+    ax.spines[["left", "bottom"]].set_color(MUTED)
+    ax.tick_params(colors=INK, labelsize=8)
+    ax.grid(color=GRID, linewidth=0.6)
+    ax.set_axisbelow(True)
+
+
+def to_data_uri(fig: Figure) -> str:
+    """PNG bytes of `fig` as a data URI (no timestamp metadata, so the bytes are reproducible)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None}, bbox_inches="tight", facecolor="white")
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def image_data_uri(rgb: np.ndarray) -> str:
+    """An RGB uint8 image (the S4 montage) as a PNG data URI."""
+    arr = np.ascontiguousarray(np.asarray(rgb, dtype=np.uint8))
+    h, w = arr.shape[:2]
+    fig = Figure(figsize=(w / 100, h / 100), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.imshow(arr, interpolation="nearest")
+    ax.axis("off")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None}, dpi=100)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
+    out: dict[str, list[CellSummary]] = {}
+    for s in summaries:
+        if s.family not in DIAGNOSTIC_CELLS:
+            out.setdefault(s.family, []).append(s)
+    return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
+
+
+def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, Mapping[str, float | None]],
+                     cols: int = 4) -> str | None:
+    """Small multiples: retention vs severity per family (clean at S0 = 1), 95% CI band, 0.90 / 0.75 lines and
+    the interpolated thresholds as markers. One shared y range so the panels compare at a glance."""
+    curves = _curves(summaries)
+    if not curves:
+        return None
+    rows = math.ceil(len(curves) / cols)
+    lows = [s.retention_ci_low for c in curves.values() for s in c if math.isfinite(s.retention_ci_low)]
+    ymin = min(0.5, math.floor(min(lows, default=0.5) * 10) / 10)
+    fig = _figure(3.0 * cols, 2.1 * rows)
+    for i, (fam, cells) in enumerate(curves.items()):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        _style(ax)
+        sev = [0] + [s.severity for s in cells]
+        ax.fill_between(sev, [1.0] + [s.retention_ci_low for s in cells], [1.0] + [s.retention_ci_high for s in cells],
+                        color=ACCENT, alpha=0.15, linewidth=0)
+        ax.plot(sev, [1.0] + [s.retention for s in cells], color=ACCENT, marker="o", markersize=3.5, linewidth=1.6)
+        for key, level in THRESHOLD_LEVELS.items():
+            ax.axhline(level, color=LEVEL_COLORS[key], linestyle="--", linewidth=0.9)
+            x = thresholds.get(fam, {}).get(key)
+            if x is not None:
+                ax.plot([x], [level], marker="v", color=LEVEL_COLORS[key], markersize=6)
+        ax.set_title(fam, fontsize=9.5, color=INK, loc="left", fontweight="bold")
+        ax.set_xlim(-0.2, 5.2)
+        ax.set_xticks(range(6), ["clean", "S1", "S2", "S3", "S4", "S5"])
+        ax.set_ylim(ymin, 1.08)
+    fig.tight_layout(h_pad=1.2, w_pad=1.0)
+    return to_data_uri(fig)
+
+
+def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
+    """Family x severity retention, red (lost) to green (kept), each cell annotated with its value."""
+    curves = _curves(summaries)
+    if not curves:
+        return None
+    fams = list(curves)
+    grid = np.full((len(fams), 5), np.nan)
+    for i, fam in enumerate(fams):
+        for s in curves[fam]:
+            if 1 <= s.severity <= 5:
+                grid[i, s.severity - 1] = s.retention
+    fig = _figure(6.4, 0.36 * len(fams) + 1.0)
+    ax = fig.add_subplot(1, 1, 1)
+    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdYlGn", vmin=0.5, vmax=1.0, aspect="auto")
+    for (i, j), v in np.ndenumerate(grid):
+        if math.isfinite(v):
+            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=8,
+                    color="white" if v < 0.62 else INK)
+    ax.set_xticks(range(5), [f"S{k}" for k in range(1, 6)])
+    ax.set_yticks(range(len(fams)), fams)
+    ax.tick_params(labelsize=8.5, length=0)
+    ax.xaxis.tick_top()
+    for side in ax.spines.values():
+        side.set_visible(False)
+    cbar = fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02)
+    cbar.ax.tick_params(labelsize=7.5)
+    cbar.set_label("retention (clipped to 0.5 .. 1.0)", fontsize=8)
+    return to_data_uri(fig)
+
+
+def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: float | None = None,
+               floor: tuple[float, float] = (1.0, 1.0)) -> str | None:
+    """Quality (x) vs removal (y) S5 retention: the planner, the ego-only floor and the blind point.
+
+    The flat line on each axis splits the plane into the verdict regions; the diagonal is gap = 0. The blind
+    point sits at (r_blind, r_blind): a planner for which every corruption is as bad as losing all cameras.
+    """
+    q, r = axes.get("quality"), axes.get("removal")
+    if q is None or r is None:
+        return None
+    pts = [v for v in (q, r, blind, *floor) if v is not None and math.isfinite(v)]
+    lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
+    fig = _figure(5.2, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    _style(ax)
+    ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
+    ax.add_patch(Rectangle((flat, lo - 1), 2, flat - lo + 1, color="#fde68a", alpha=0.5, linewidth=0))
+    ax.add_patch(Rectangle((lo - 1, lo - 1), flat - lo + 1, 3, color="#fecaca", alpha=0.45, linewidth=0))
+    kw = dict(fontsize=7.5, color=MUTED, style="italic")
+    ax.text(flat + 0.005, 1.075, "not shown to\nuse cameras", va="top", **kw)
+    ax.text(flat + 0.005, lo + 0.01, "quality-insensitive", va="bottom", **kw)
+    ax.text(lo + 0.01, lo + 0.01, "camera-reliant", va="bottom", **kw)
+    ax.plot([lo, 1.1], [lo, 1.1], color=MUTED, linewidth=0.8, linestyle=":")
+    ax.scatter([floor[0]], [floor[1]], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
+    if blind is not None and math.isfinite(blind):
+        ax.scatter([blind], [blind], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")
+    ax.scatter([q], [r], marker="o", s=90, color=ACCENT, edgecolor="white", zorder=4, label=_label(planner))
+    ax.set_xlim(lo, 1.08)
+    ax.set_ylim(lo, 1.08)
+    ax.set_xlabel("quality axis: mean S5 retention, nine quality families", fontsize=8.5)
+    ax.set_ylabel("removal axis: blackout S5 retention", fontsize=8.5)
+    ax.legend(fontsize=7.5, loc="upper left", frameon=False)
+    return to_data_uri(fig)
+
+
+def trajectory_panels(examples: Sequence[Mapping[str, Any]]) -> str | None:
+    """Bird's-eye view of planned trajectories, one panel per example frame: ground truth, clean plan and
+    the plans of the most damaging cells. x (forward) points up and y (left) points left, as seen from above.
+
+    Each example: ``{"frame": token, "gt": (6, 2), "plans": {cell_id: (6, 2)}}`` with "clean" among the plans.
+    """
+    if not examples:
+        return None
+    fig = _figure(3.4 * len(examples), 4.6)
+    handles: dict[str, Any] = {}
+    for i, ex in enumerate(examples):
+        ax = fig.add_subplot(1, len(examples), i + 1)
+        _style(ax)
+        ax.add_patch(Rectangle((-EGO_WIDTH / 2, -EGO_LENGTH / 2), EGO_WIDTH, EGO_LENGTH, color="#9ca3af", zorder=2))
+        handles["ground truth"] = _bev_line(ax, ex["gt"], INK, "--")
+        colors = iter(CELL_COLORS)
+        for cell, plan in ex["plans"].items():
+            handles[_label(cell, 28)] = _bev_line(ax, plan, ACCENT if cell == "clean" else next(colors, MUTED), "-")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"frame {_label(ex['frame'], 18)}", fontsize=8.5, color=INK, loc="left")
+        ax.set_xlabel("lateral (m, left is left)", fontsize=7.5)
+        ax.set_ylabel("forward (m)", fontsize=7.5)
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.legend(list(handles.values()), list(handles), loc="lower center", ncol=min(len(handles), 6), fontsize=8,
+               frameon=False)
+    return to_data_uri(fig)
+
+
+def _bev_line(ax: Any, plan: Any, color: str, style: str) -> Any:
+    """Draw one trajectory from the ego origin in bird's-eye axes (horizontal = -y, vertical = x)."""
+    pts = np.vstack([np.zeros((1, 2)), np.asarray(plan, dtype=float).reshape(-1, 2)])
+    return ax.plot(-pts[:, 1], pts[:, 0], style, color=color, linewidth=1.8, marker="o", markersize=2.8)[0]

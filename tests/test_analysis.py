@@ -1,0 +1,341 @@
+"""Known answers and properties of the analysis layer: retention, bootstrap, thresholds, axes, verdict, baseline.
+
+``synthetic_run`` builds a whole run of cell records without a planner; the certificate and report tests
+import it from here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import random
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pytest_drivedegrade import analysis as an
+from pytest_drivedegrade.analysis import CellRecord, FamilyGroups
+from pytest_drivedegrade.report.certificate import parse_flat, parse_tolerance
+
+ORDER = ("gaussian_blur", "motion_blur", "gaussian_noise", "low_light", "jpeg", "downscale", "color_quant", "fog",
+         "snow", "frame_dropout", "blackout", "bit_error", "raindrop", "occlusion", "mud_splash", "lens_dirt")
+GROUPS = FamilyGroups(quality=ORDER[:9], core=ORDER[:12], order=ORDER)
+
+
+def record(cell: str, family: str, severity: int, plans: np.ndarray, gt: np.ndarray, bit1: float = 0.45,
+           collide_every: int = 0) -> CellRecord:
+    """A record whose per-step L2 is the true distance between `plans` (F, 6, 2) and `gt` (F, 6, 2)."""
+    n = len(plans)
+    col = np.zeros((n, 6))
+    if collide_every:
+        col[::collide_every, 3:] = 1
+    return CellRecord(cell, family, severity, [f"tok{i:03d}" for i in range(n)], plans,
+                      np.linalg.norm(plans - gt, axis=-1), col, col * 0, np.linalg.norm(plans[:, :3], axis=(1, 2)),
+                      np.full(n, bit1), {"total": 1.0}, [])
+
+
+def synthetic_run(n_frames: int = 30, damage=None, families=ORDER, seed: int = 0, null_wander: float = 0.0):
+    """Records for clean, null, blind and every family S1..S5, plus the ground truth by frame token.
+
+    Each cell's plan error is clean's error scaled by (1 + damage(family, severity)), so its retention is
+    close to 1 / (1 + damage). The default damage makes a camera-reliant planner.
+    """
+    rng = np.random.default_rng(seed)
+    damage = damage or (lambda fam, s: (0.06 if fam in ORDER[:9] else 0.12) * s * s / 5)
+    t = np.arange(1, 7) * 0.5
+    speed = rng.uniform(2, 8, size=(n_frames, 1))
+    gt = np.stack([speed * t, 0.1 * speed * t**2 * rng.normal(size=(n_frames, 1))], axis=-1)
+    base = rng.normal(size=(n_frames, 6, 2)) * 0.25 * t[None, :, None]
+
+    def cell(cell_id, fam, sev, d, extra=0.0):
+        noise = rng.normal(size=base.shape) * 0.02 * d
+        plans = gt + base * (1 + d) + noise + extra
+        return record(cell_id, fam, sev, plans, gt, bit1=0.45 * (1 - 0.05 * d), collide_every=max(1, 12 - sev))
+
+    recs = [record("clean", "clean", 0, gt + base, gt, collide_every=12),
+            record("null", "null", 0, gt + base + null_wander, gt, collide_every=12),
+            cell("blind", "blind", 0, 1.2)]
+    recs += [cell(f"{f}-s{s}", f, s, damage(f, s)) for f in families for s in range(1, 6)]
+    return recs, {f"tok{i:03d}": gt[i] for i in range(n_frames)}
+
+
+# --- records ------------------------------------------------------------------------------------------------
+
+
+def test_record_round_trips_through_json_bit_exactly() -> None:
+    recs, _ = synthetic_run(5)
+    rec = recs[4]
+    rec.l2[2, 3] = np.nan  # a frame that failed conformance
+    back = CellRecord.from_builtins(json.loads(json.dumps(rec.to_builtins())))
+    assert back.plans.tobytes() == rec.plans.tobytes() and back.frames == rec.frames
+    np.testing.assert_array_equal(back.l2, rec.l2)
+    np.testing.assert_array_equal(back.collision, rec.collision)
+    assert all(type(v) in (float, int) for row in rec.to_builtins()["collision"] for v in row)
+
+
+def test_record_rejects_wrong_shapes_by_name() -> None:
+    with pytest.raises(an.InvalidInput, match="plans has shape"):
+        CellRecord("x", "x", 1, ["a"], np.zeros((1, 5, 2)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)),
+                   [0.0], [0.5])
+
+
+# --- retention and bootstrap ---------------------------------------------------------------------------------
+
+
+def test_retention_known_answers() -> None:
+    assert an.retention(1.0, 2.0) == 0.5
+    assert an.retention(1.0, 2.0, "reward") == 2.0
+    assert an.retention(0.0, 0.0) == 1.0
+    assert an.retention(1.0, 0.0) == math.inf
+    np.testing.assert_allclose(an.retention(np.array([1.0, 3.0]), np.array([4.0, 3.0])), [0.25, 1.0])
+    with pytest.raises(an.InvalidInput):
+        an.retention(1.0, 1.0, "loss")
+
+
+def test_summary_retention_is_clean_over_cell_l2_avg() -> None:
+    recs, _ = synthetic_run(10)
+    clean, cell = recs[0], recs[8]
+    s = an.summarise_cell(cell, clean, n_resamples=200)
+    m_clean = clean.l2_avg_per_frame().mean()
+    assert s.retention == pytest.approx(m_clean / cell.l2_avg_per_frame().mean())
+    assert s.l2_avg == pytest.approx(s.metrics["l2_avg_stp3"])
+    # stp3 l2 at 3 s is the mean of all six steps; uniad at 3 s is the last step.
+    assert s.metrics["l2_3s_stp3"] == pytest.approx(cell.l2.mean())
+    assert s.metrics["l2_3s_uniad"] == pytest.approx(cell.l2[:, 5].mean())
+    assert s.metrics["endpoint_shift"] == pytest.approx(np.linalg.norm(cell.plans[:, 5] - clean.plans[:, 5],
+                                                                       axis=1).mean())
+    assert s.metrics["energy"] == pytest.approx(cell.bit1.mean() / clean.bit1.mean())
+    assert s.retention_ci_low <= s.retention <= s.retention_ci_high
+
+
+def test_bootstrap_is_deterministic_and_contains_the_estimate() -> None:
+    rng = np.random.default_rng(1)
+    a = rng.gamma(2.0, 1.0, 200)
+    b = a * 1.3 + rng.gamma(1.0, 0.3, 200)
+    ci = an.bootstrap_retention_ci(a, b, seed=7)
+    assert ci == an.bootstrap_retention_ci(a, b, seed=7)
+    assert ci != an.bootstrap_retention_ci(a, b, seed=8)
+    assert ci[0] < an.retention(a.mean(), b.mean()) < ci[1]
+    assert an.bootstrap_retention_ci(a, b, seed=7, chunk_elems=1000) == ci  # chunking does not change it
+
+
+def test_bootstrap_ci_shrinks_with_more_frames() -> None:
+    rng = np.random.default_rng(2)
+    a, noise = rng.gamma(2.0, 1.0, 2000), rng.gamma(2.0, 0.5, 2000)
+    widths = [np.diff(an.bootstrap_retention_ci(a[:n], a[:n] + noise[:n])).item() for n in (25, 400)]
+    assert widths[1] < widths[0] / 2.5  # ~ 1 / sqrt(16) = 1/4 in theory
+
+
+def test_bootstrap_drops_nan_frames_and_handles_none_left() -> None:
+    a, b = np.array([1.0, np.nan, 2.0, 3.0]), np.array([2.0, 5.0, np.nan, 6.0])
+    assert an.bootstrap_retention_ci(a, b, n_resamples=50) == an.bootstrap_retention_ci(a[[0, 3]], b[[0, 3]],
+                                                                                         n_resamples=50)
+    assert all(math.isnan(v) for v in an.bootstrap_retention_ci([np.nan], [1.0]))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(0.01, 50.0), min_size=1, max_size=40))
+def test_identical_cells_retain_everything(values: list[float]) -> None:
+    arr = np.array(values)
+    assert an.retention(arr.mean(), arr.mean()) == 1.0
+    assert an.bootstrap_retention_ci(arr, arr, n_resamples=100) == pytest.approx((1.0, 1.0))
+
+
+# --- tolerance thresholds ------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("curve", "level", "expected"), [
+    ({1: 0.95, 2: 0.85, 3: 0.7, 4: 0.6, 5: 0.5}, 0.90, 1.5),  # 1 + (0.95 - 0.90) / (0.95 - 0.85)
+    ({1: 0.95, 2: 0.85, 3: 0.80, 4: 0.70, 5: 0.5}, 0.75, 3.5),  # 3 + (0.80 - 0.75) / (0.80 - 0.70)
+    ({1: 0.99, 2: 0.98, 3: 0.96, 4: 0.93, 5: 0.87}, 0.90, 4.5),
+    ({1: 0.80, 2: 0.70, 3: 0.6, 4: 0.5, 5: 0.4}, 0.90, 1.0),  # S1 already below
+    ({1: 0.99, 2: 0.98, 3: 0.97, 4: 0.96, 5: 0.95}, 0.90, None),  # never reached
+    ({1: 0.95, 2: 0.90, 3: 0.90, 4: 0.90, 5: 0.90}, 0.90, None),  # exactly at the level is not below
+    ({1: 0.95, 2: 0.92, 3: 0.90, 4: 0.89, 5: 0.8}, 0.90, 3.0),  # crossing right at S3
+    ({1: 0.85, 2: 0.95, 3: 0.97, 4: 0.97, 5: 0.97}, 0.90, 1.0),  # first crossing counts
+    ({3: 0.95, 5: 0.85}, 0.90, 4.0),  # a subset of severities: interpolate between those measured
+    ({1: 0.95, 2: float("nan"), 3: 0.85}, 0.90, 2.0),  # NaN skipped: between S1 and S3
+])
+def test_tolerance_threshold_known_answers(curve, level, expected) -> None:
+    got = an.tolerance_threshold(curve, level)
+    assert got == (None if expected is None else pytest.approx(expected))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.3, 1.1), min_size=5, max_size=5), st.lists(st.floats(0.0, 0.3), min_size=5, max_size=5))
+def test_thresholds_monotone(upper: list[float], drop: list[float]) -> None:
+    """A curve lower everywhere crosses no later; s*10 never comes after s*25."""
+    high = dict(zip(range(1, 6), upper))
+    low = {s: r - d for (s, r), d in zip(high.items(), drop)}
+    inf = lambda v: math.inf if v is None else v  # noqa: E731
+    for level in (0.90, 0.75):
+        assert inf(an.tolerance_threshold(low, level)) <= inf(an.tolerance_threshold(high, level)) + 1e-9
+    assert inf(an.tolerance_threshold(high, 0.90)) <= inf(an.tolerance_threshold(high, 0.75)) + 1e-9
+
+
+# --- axes and verdict ----------------------------------------------------------------------------------------
+
+
+def s5(quality: float, removal: float, other: float = 1.0) -> dict[str, float]:
+    out = {f: quality for f in ORDER[:9]} | {f: other for f in ORDER[9:]}
+    return out | {"blackout": removal}
+
+
+def test_axes_known_answer() -> None:
+    values = s5(0.9, 0.6, 0.8)
+    values["gaussian_blur"] = 0.0  # mean of nine: (8 * 0.9 + 0) / 9 = 0.8
+    ax = an.compute_axes(values, GROUPS)
+    assert ax["quality"] == pytest.approx(0.8) and ax["removal"] == pytest.approx(0.6)
+    assert ax["gap"] == pytest.approx(0.2)
+    assert ax["mean"] == pytest.approx((0.8 * 9 + 0.8 + 0.6 + 0.8) / 12)
+    assert ax["dropout"] == pytest.approx(0.8) and ax["occlusion"] == pytest.approx(0.8)
+    assert ax["missing"] == []
+
+
+def test_missing_family_makes_its_axis_none() -> None:
+    values = s5(0.99, 0.5)
+    del values["fog"], values["occlusion"]
+    ax = an.compute_axes(values, GROUPS)
+    assert ax["quality"] is None and ax["gap"] is None and ax["mean"] is None
+    assert ax["removal"] == 0.5 and ax["occlusion"] is None and ax["missing"] == ["fog", "occlusion"]
+    assert an.verdict(ax)["label"] == "undetermined"
+
+
+@pytest.mark.parametrize(("q", "r", "label", "case"), [
+    (0.99, 0.97, "not-shown-to-use-cameras", "both-flat"),
+    (0.95, 0.95, "not-shown-to-use-cameras", "both-flat"),  # at the flat line counts as flat
+    (0.98, 0.60, "quality-insensitive", "removal-only"),
+    (0.80, 0.60, "camera-reliant", "both-below"),
+    (0.80, 0.99, "camera-reliant", "quality-only"),
+])
+def test_verdict_labels(q, r, label, case) -> None:
+    v = an.verdict(an.compute_axes(s5(q, r), GROUPS), flat=0.95)
+    assert (v["label"], v["case"], v["flat"]) == (label, case, 0.95)
+    assert f"{q:.3f}" in v["text"] and f"{r:.3f}" in v["text"]
+    assert v["negative_gap"] is (q < r)
+    assert ("Negative gap" in v["text"]) is (q < r)
+
+
+def test_flat_is_a_parameter() -> None:
+    ax = an.compute_axes(s5(0.93, 0.92), GROUPS)
+    assert an.verdict(ax, flat=0.95)["label"] == "camera-reliant"
+    assert an.verdict(ax, flat=0.90)["label"] == "not-shown-to-use-cameras"
+
+
+def test_family_groups_from_the_registry_match_the_spec() -> None:
+    pytest.importorskip("pytest_drivedegrade.corruptions.registry")
+    groups = FamilyGroups.from_registry()
+    assert groups.quality == GROUPS.quality and groups.core == GROUPS.core and groups.removal == "blackout"
+
+
+# --- null control, floor, whole run --------------------------------------------------------------------------
+
+
+def test_null_control_identical_and_wandering() -> None:
+    plans = np.random.default_rng(0).normal(size=(4, 6, 2))
+    assert an.null_control(plans, plans.copy()) == {"passed": True, "max_abs_diff": 0.0, "max_l2_change": 0.0,
+                                                    "frames_changed": 0}
+    moved = plans.copy()
+    moved[2, 5] += [0.3, 0.4]
+    nc = an.null_control(plans, moved)
+    assert nc["passed"] is False and nc["frames_changed"] == 1
+    assert nc["max_abs_diff"] == pytest.approx(0.4) and nc["max_l2_change"] == pytest.approx(0.5)
+
+
+def test_cells_within_the_null_wander_are_not_separable() -> None:
+    recs, _ = synthetic_run(8, null_wander=0.5)
+    res = an.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    sep = {s.cell: s.separable_from_null for s in res.summaries}
+    assert res.null_control["passed"] is False
+    assert sep["clean"] is None and sep["null"] is None
+    assert sep["blind"] is True and sep["gaussian_blur-s1"] is False
+    clean_run = an.analyse_run(synthetic_run(8)[0], groups=GROUPS, n_resamples=50)
+    assert clean_run.null_control["passed"] is True
+    assert all(s.separable_from_null for s in clean_run.summaries if s.cell not in ("clean", "null"))
+
+
+def test_floor_comparison() -> None:
+    summaries = [an.CellSummary("blackout-s5", "blackout", 5, 3, 1.2, 0.5, 0.4, 0.6),
+                 an.CellSummary("blind", "blind", 0, 3, 2.5, 0.3, 0.2, 0.4)]
+    floor = an.floor_comparison(2.0, summaries)
+    assert floor == {"l2_avg": 2.0, "blackout_s5_l2_avg": 1.2, "blackout_s5_below_floor": True,
+                     "blind_l2_avg": 2.5, "blind_below_floor": False}
+    assert an.floor_comparison(None, summaries)["blind_below_floor"] is None
+
+
+def test_analyse_run_is_order_independent_and_complete() -> None:
+    recs, _ = synthetic_run(12)
+    res = an.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    shuffled = recs[:]
+    random.Random(3).shuffle(shuffled)
+    again = an.analyse_run([r.to_builtins() for r in shuffled], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    assert json.dumps(again.to_builtins()) == json.dumps(res.to_builtins())
+    assert [s.cell for s in res.summaries][:4] == ["clean", "null", "blind", "gaussian_blur-s1"]
+    assert res.summaries[0].retention == 1.0 and len(res.summaries) == 3 + 16 * 5
+    assert res.verdict["label"] == "camera-reliant" and res.floor["blind_below_floor"] is True
+    assert res.thresholds["blackout"]["s10"] is not None and set(res.thresholds) == set(ORDER)
+
+
+def test_failed_frames_drop_out_of_that_cells_comparison_only() -> None:
+    recs, _ = synthetic_run(6)
+    clean, cell = recs[0], recs[5]
+    cell.l2[2] = np.nan
+    s = an.summarise_cell(cell, clean, n_resamples=50)
+    keep = [0, 1, 3, 4, 5]
+    expected = clean.l2_avg_per_frame()[keep].mean() / cell.l2_avg_per_frame()[keep].mean()
+    assert s.frames == 5 and s.retention == pytest.approx(expected)
+    assert len(an.analyse_run(recs + [recs[5]], groups=GROUPS, n_resamples=20).summaries) == len(recs)
+
+
+def test_analyse_run_needs_clean() -> None:
+    recs, _ = synthetic_run(3)
+    with pytest.raises(an.InvalidInput, match="no clean cell"):
+        an.analyse_run(recs[1:], groups=GROUPS)
+
+
+# --- baseline gate -------------------------------------------------------------------------------------------
+
+
+def cert_like(retentions: dict[str, float], axes: dict[str, float], spec="1.0.0", data="d1") -> dict:
+    return {"spec_version": spec, "dataset": {"fingerprint": data}, "axes": axes,
+            "cells": [{"cell": c, "retention": r} for c, r in retentions.items()]}
+
+
+def test_baseline_comparison_catches_regressions_beyond_tolerance() -> None:
+    base = cert_like({"fog-s5": 0.90, "jpeg-s5": 0.80, "blur-s1": 0.99}, {"quality": 0.9, "removal": 0.7})
+    assert an.compare_to_baseline(base, base, 0.02) == {"cells": [], "axes": []}
+    now = cert_like({"fog-s5": 0.85, "jpeg-s5": 0.79, "blur-s1": 0.999, "new-s1": 0.1},
+                    {"quality": 0.87, "removal": 0.69})
+    out = an.compare_to_baseline(now, base, 0.02)
+    assert [(r.name, r.baseline, r.current) for r in out["cells"]] == [("fog-s5", 0.90, 0.85)]
+    assert [r.name for r in out["axes"]] == ["axis:quality"]
+    assert "0.850 vs baseline 0.900" in out["cells"][0].message()
+    assert an.compare_to_baseline(now, base, 0.06)["cells"] == []
+    assert an.cell_regression("fog-s5", 0.85, base, 0.02).drop == pytest.approx(0.05)
+
+
+@pytest.mark.parametrize(("spec", "data", "match"), [("2.0.0", "d1", "spec version"),
+                                                      ("1.0.0", "d2", "dataset fingerprint")])
+def test_incompatible_baseline_is_a_clear_error(spec, data, match) -> None:
+    base = cert_like({}, {})
+    with pytest.raises(an.BaselineError, match=match):
+        an.compare_to_baseline(cert_like({}, {}, spec, data), base)
+
+
+@pytest.mark.parametrize("bad", ["-0.1", "1.5", "abc", "", "nan"])
+def test_bad_tolerance_is_a_usage_error(bad: str, capsys) -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--drivedegrade-tolerance", type=parse_tolerance, default=0.02)
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args([f"--drivedegrade-tolerance={bad}"])
+    assert exc.value.code == 2 and "must be a number in [0, 1]" in capsys.readouterr().err
+    assert parser.parse_args(["--drivedegrade-tolerance", "0.05"]).drivedegrade_tolerance == 0.05
+
+
+def test_flat_gate() -> None:
+    assert parse_flat("0.9") == 0.9
+    with pytest.raises(argparse.ArgumentTypeError, match="--drivedegrade-flat"):
+        parse_flat("2")

@@ -1,0 +1,142 @@
+"""The reliance certificate: seal / verify round trip, tamper detection, the CLI's exit codes, the baseline gate."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+from test_analysis import GROUPS, synthetic_run
+
+from pytest_drivedegrade import analysis as an
+from pytest_drivedegrade.cli import main
+from pytest_drivedegrade.report import certificate as cf
+
+PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
+
+
+@pytest.fixture(scope="module")
+def run() -> an.RunAnalysis:
+    return an.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+
+
+@pytest.fixture()
+def cert_file(tmp_path: Path, run: an.RunAnalysis) -> Path:
+    return cf.write_certificate(tmp_path / "certificate.json",
+                                cf.build_certificate(run, PROV, created="2025-01-01T00:00:00+00:00"))
+
+
+def edit(path: Path, change) -> None:
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data, indent=2))
+
+
+def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
+    cert = cf.verify(cert_file)
+    for key in ("spec_version", "planner", "dataset", "cells", "thresholds", "axes", "floor", "null_control",
+                "verdict", "digest"):
+        assert key in cert
+    assert cert["planner"] == {"name": "demo", "fingerprint": "sha256:planner"}
+    assert cert["dataset"]["fingerprint"] == "sha256:data" and cert["dataset"]["split"] == "val"
+    cell = cert["cells"][3]
+    assert {"cell", "family", "severity", "l2_avg", "retention", "retention_ci_low", "retention_ci_high"} <= set(cell)
+    assert set(cert["thresholds"]["fog"]) == {"s10", "s25"}
+    assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
+    assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
+    assert cert["verdict"]["label"] in an.VERDICT_LABELS and cert["settings"]["flat"] == 0.95
+    assert cf.check_schema(cert) == []
+
+
+def test_digest_is_sha256_over_canonical_json_with_rounded_floats(cert_file: Path) -> None:
+    import hashlib
+
+    cert = json.loads(cert_file.read_text())
+    body = {k: v for k, v in cert.items() if k != "digest"}
+    canon = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
+    assert cert["digest"] == hashlib.sha256(canon).hexdigest()
+    assert all(len(repr(c["retention"]).split(".")[-1]) <= 6 for c in cert["cells"])
+
+
+def test_seal_is_idempotent_and_layout_free(run: an.RunAnalysis) -> None:
+    sealed = cf.seal(cf.build_certificate(run, PROV, created="x"))
+    assert cf.seal(sealed) == sealed
+    assert cf.verify_data(json.loads(json.dumps(sealed))) == sealed  # compact JSON verifies as well
+
+
+def test_canonicalize_numpy_and_non_finite() -> None:
+    import numpy as np
+
+    got = cf.canonicalize({"a": np.float32(0.1), "b": np.int64(3), "c": [np.nan, np.inf, 1 / 3], "d": np.bool_(1)})
+    assert got == {"a": 0.1, "b": 3, "c": [None, None, 0.333333], "d": True}
+    assert type(got["b"]) is int
+
+
+def test_editing_one_number_breaks_verification_and_names_the_section(cert_file: Path) -> None:
+    edit(cert_file, lambda d: d["cells"][5].__setitem__("retention", 0.999))
+    with pytest.raises(cf.CertificateMismatch) as exc:
+        cf.verify(cert_file)
+    assert exc.value.sections == ["cells"] and exc.value.recorded != exc.value.computed
+    assert "edited section(s): cells" in str(exc.value)
+
+
+def test_malformed_field_is_named(cert_file: Path) -> None:
+    edit(cert_file, lambda d: d["axes"].__setitem__("quality", "high"))
+    with pytest.raises(cf.CertificateMismatch, match=r"axes\.quality: expected a number or null, found str"):
+        cf.verify(cert_file)
+
+
+def test_cli_verify_exit_codes(cert_file: Path, tmp_path: Path, capsys) -> None:
+    assert main(["verify", str(cert_file)]) == 0
+    assert "OK" in capsys.readouterr().out
+    edit(cert_file, lambda d: d["verdict"].__setitem__("label", "not-shown-to-use-cameras"))
+    assert main(["verify", str(cert_file)]) == 1
+    err = capsys.readouterr().err
+    assert "digest mismatch" in err and "verdict" in err
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"spec_version": "1.0.0", ')
+    assert main(["verify", str(broken)]) == 2
+    assert "not valid JSON" in capsys.readouterr().err
+    assert main(["verify", str(tmp_path / "absent.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    (tmp_path / "list.json").write_text("[1, 2]")
+    assert main(["verify", str(tmp_path / "list.json")]) == 2
+    (tmp_path / "unsealed.json").write_text("{}")
+    assert main(["verify", str(tmp_path / "unsealed.json")]) == 2
+    assert "no digest" in capsys.readouterr().err
+
+
+def test_baseline_passes_on_itself_and_catches_a_regression(cert_file: Path, run: an.RunAnalysis) -> None:
+    base = cf.parse_baseline(str(cert_file))
+    now = cf.seal(cf.build_certificate(run, PROV))
+    assert an.compare_to_baseline(now, base) == {"cells": [], "axes": []}
+    worse = json.loads(json.dumps(now))
+    worse["cells"][10]["retention"] -= 0.05
+    worse["axes"]["removal"] -= 0.03
+    out = an.compare_to_baseline(worse, base, 0.02)
+    assert [r.name for r in out["cells"]] == [worse["cells"][10]["cell"]]
+    assert [r.name for r in out["axes"]] == ["axis:removal"]
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (None, "does not exist"),
+    ("{not json", "not valid JSON"),
+    ('{"cells": []}', "no digest"),
+])
+def test_bad_baseline_is_a_usage_error_naming_the_file(tmp_path: Path, capsys, content, message) -> None:
+    path = tmp_path / "baseline.json"
+    if content is not None:
+        path.write_text(content)
+    parser = argparse.ArgumentParser(prog="pytest")
+    parser.add_argument("--drivedegrade-baseline", type=cf.parse_baseline)
+    with pytest.raises(SystemExit) as exc:
+        parser.parse_args(["--drivedegrade-baseline", str(path)])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and message in err and "baseline.json" in err
+
+
+def test_edited_baseline_is_a_usage_error(cert_file: Path) -> None:
+    edit(cert_file, lambda d: d["axes"].__setitem__("quality", 1.0))
+    with pytest.raises(argparse.ArgumentTypeError, match="digest mismatch"):
+        cf.parse_baseline(str(cert_file))

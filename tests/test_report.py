@@ -1,0 +1,136 @@
+"""cells.csv, report.html and JUnit properties rendered from a synthetic run."""
+
+from __future__ import annotations
+
+import csv
+import html
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_analysis import GROUPS, synthetic_run
+
+from pytest_drivedegrade import analysis as an
+from pytest_drivedegrade.report import cells, junit
+from pytest_drivedegrade.report.certificate import Provenance
+
+EVIL = '<script>alert(1)</script>'
+PROV = Provenance(EVIL, "sha256:p", "sha256:d", "val", "1.0.0", seed=3, frames=12, command="pytest --drivedegrade x")
+
+
+@pytest.fixture(scope="module")
+def run_and_records():
+    recs, gt = synthetic_run(12)
+    return an.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0), recs, gt
+
+
+@pytest.fixture(scope="module")
+def page(run_and_records, tmp_path_factory) -> str:
+    from pytest_drivedegrade.report import html as report_html
+
+    res, recs, gt = run_and_records
+    by_cell = {r.cell: r for r in recs}
+    examples = report_html.trajectory_examples(by_cell, gt, res.summaries)
+    montage = np.zeros((60, 120, 3), np.uint8)
+    path = tmp_path_factory.mktemp("report") / "report.html"
+    report_html.write_report(path, res, PROV, montage=montage, trajectories=examples, created="2025-01-01")
+    return path.read_text()
+
+
+def test_csv_has_the_stable_columns_and_values(run_and_records, tmp_path: Path) -> None:
+    res, _, _ = run_and_records
+    path = cells.write_cells_csv(tmp_path / "cells.csv", res, PROV)
+    with path.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    header = list(rows[0])
+    assert header[:8] == ["cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
+                          "retention_ci_high"]
+    for col in ("l2_1s_stp3", "l2_3s_uniad", "collision_2s_stp3", "vru_3s_uniad", "jerk", "endpoint_shift",
+                "energy", "separable_from_null", "planner_fingerprint", "dataset_fingerprint", "split",
+                "spec_version", "seed"):
+        assert col in header
+    assert len(rows) == len(res.summaries) == 83
+    assert rows[0]["cell"] == "clean" and rows[0]["retention"] == "1.0" and rows[0]["separable_from_null"] == ""
+    fog = next(r for r in rows if r["cell"] == "fog-s5")
+    s = next(s for s in res.summaries if s.cell == "fog-s5")
+    assert float(fog["retention"]) == pytest.approx(s.retention, abs=1e-6)
+    assert (fog["family"], fog["severity"], fog["frames"], fog["seed"]) == ("fog", "5", "12", "3")
+    assert fog["separable_from_null"] == "true" and fog["planner"] == EVIL  # CSV is data, not markup
+
+
+def test_csv_is_deterministic(run_and_records) -> None:
+    res, _, _ = run_and_records
+    assert cells.cells_csv_text(res, PROV) == cells.cells_csv_text(res, PROV)
+
+
+def test_html_shows_verdict_and_axes(run_and_records, page: str) -> None:
+    res, _, _ = run_and_records
+    assert html.escape(res.verdict["text"], quote=True) in page
+    assert res.verdict["label"] in page
+    assert f"{res.axes['quality']:.3f}" in page and f"{res.axes['removal']:.3f}" in page
+    assert page.count('src="data:image/png;base64,') == 5  # axes, curves, heatmap, trajectories, montage
+
+
+def test_html_escapes_planner_strings(page: str) -> None:
+    assert EVIL not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
+    assert "<script" not in page.lower()
+
+
+def test_html_is_self_contained(page: str) -> None:
+    assert not re.search(r"https?://", page)
+    assert not re.search(r"""(src|href)=["'](?!data:|#)""", page)
+
+
+def test_html_without_optional_parts(run_and_records) -> None:
+    from pytest_drivedegrade.report.html import render_report
+
+    res, _, _ = run_and_records
+    partial = an.RunAnalysis(res.summaries[:3], {}, an.compute_axes({}, GROUPS), an.verdict({}), None,
+                             res.floor, res.settings)
+    page = render_report(partial, PROV)
+    assert "undetermined" in page and "Null control:" in page and "not run" in page
+
+
+def test_most_damaging_and_trajectory_examples(run_and_records) -> None:
+    from pytest_drivedegrade.report.html import most_damaging, trajectory_examples
+
+    res, recs, gt = run_and_records
+    worst = most_damaging(res.summaries, 3)
+    ladder = sorted(s.retention for s in res.summaries if s.family not in an.DIAGNOSTIC_CELLS)
+    assert [s.retention for s in worst] == ladder[:3]
+    ex = trajectory_examples({r.cell: r for r in recs}, gt, res.summaries, n_frames=2)
+    assert len(ex) == 2 and list(ex[0].plans) == ["clean"] + [s.cell for s in worst]
+    np.testing.assert_array_equal(ex[0].gt, gt[ex[0].frame])
+
+
+def test_junit_properties_are_plain_builtins(run_and_records) -> None:
+    res, _, _ = run_and_records
+    props = junit.cell_properties(res.summaries[5])
+    assert props[0] == ("cell", res.summaries[5].cell)
+    assert dict(props)["retention"] == pytest.approx(res.summaries[5].retention, abs=1e-6)
+    suite = junit.suite_properties(res)
+    names = dict(suite)
+    assert names["drivedegrade_verdict"] == res.verdict["label"]
+    assert names["drivedegrade_axis_quality"] == pytest.approx(res.axes["quality"], abs=1e-6)
+    assert "drivedegrade_threshold_fog_s10" in names
+    for _, value in props + suite:
+        assert type(value) in (str, float, int)
+        assert not (isinstance(value, float) and not math.isfinite(value))
+
+
+def test_junit_plain_converts_numpy_and_none() -> None:
+    assert junit.plain(np.float32(0.5)) == 0.5 and type(junit.plain(np.float32(0.5))) is float
+    assert type(junit.plain(np.int64(3))) is int
+    assert junit.plain(np.bool_(True)) == "true" and junit.plain(None) == "none"
+    assert junit.plain(float("nan")) == "none" and junit.plain(Path("a")) == "a"
+
+
+def test_user_text_with_dollar_signs_does_not_break_charts() -> None:
+    from pytest_drivedegrade.report import plots
+
+    uri = plots.axes_chart({"quality": 0.9, "removal": 0.8}, 0.95, planner="costs $5 and $\\frac{", blind=0.4)
+    assert uri.startswith("data:image/png;base64,")
+    ex = [{"frame": "tok$_{", "gt": np.zeros((6, 2)), "plans": {"clean": np.ones((6, 2)), "fog-s5$": np.ones((6, 2))}}]
+    assert plots.trajectory_panels(ex).startswith("data:image/png;base64,")
