@@ -42,6 +42,20 @@ def _world(args: argparse.Namespace) -> int:
     return cli_world(args)
 
 
+def _verify(args: argparse.Namespace) -> int:
+    """Exit 0 when the certificate is intact, 1 when it was edited (naming how), 2 when unreadable."""
+    from .report.certificate import CertificateMismatch, verify
+
+    try:
+        cert = verify(args.file)
+    except CertificateMismatch as exc:
+        print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
+        return 1
+    print(f"{args.file}: OK, digest {cert['digest']} verifies (planner {cert['planner'].get('name')!r}, "
+          f"verdict {cert['verdict'].get('label')})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -67,6 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full-size", action="store_true", help="render 1600x900 instead of 800x450")
     p.add_argument("--train-images", action="store_true", help="also render the train split's images")
     p.set_defaults(func=_world)
+
+    p = sub.add_parser("verify", help="check a certificate's digest: exit 0 intact, 1 edited, 2 unreadable")
+    p.add_argument("file", metavar="FILE", help="the certificate.json to check")
+    p.set_defaults(func=_verify)
     return parser
 
 
