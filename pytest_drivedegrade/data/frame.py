@@ -70,6 +70,7 @@ class CameraInfo:
     intrinsic: np.ndarray
     rotation: tuple[float, float, float, float]
     translation: tuple[float, float, float]
+    sample_token: str = ""  # the keyframe (sample) this image belongs to, for error messages
 
 
 @dataclass(frozen=True)
@@ -102,6 +103,7 @@ class Frame:
     gt_future: np.ndarray  # (HORIZON_STEPS, 2) in the current ego frame
     gt_valid: np.ndarray  # (HORIZON_STEPS,) bool
     agents: tuple[AgentBoxes, ...] = ()  # one per future step, len HORIZON_STEPS when scorable
+    scene_name: str = ""
 
     @property
     def scorable(self) -> bool:

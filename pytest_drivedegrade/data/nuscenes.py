@@ -1,0 +1,302 @@
+"""The nuScenes-format reader: one reader for real nuScenes (v1.0-mini, v1.0-trainval) and the embedded world.
+
+Tables are loaded and indexed once; frames are built lazily in scene order and images are decoded only on
+request (`load_image`), so memory does not grow with the number of frames iterated. Ego status comes from the
+CAN bus expansion (`can_bus/<scene>_pose.json`) when present, else from ego_pose finite differences (past
+keyframes only; the first keyframe of a scene falls back to the forward difference). Frames that cannot be
+scored or built are skipped and counted in `skipped` (reason -> count), with messages in `problems`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections import Counter, defaultdict
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from ..constants import CAMERAS, HORIZON_STEPS, PAST_STEPS, STEP_SECONDS
+from ..errors import DataError
+from . import geometry as geo
+from .frame import AgentBoxes, CameraInfo, Command, EgoStatus, Frame, command_from_future
+
+REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
+                   "sample_annotation", "instance", "category")
+OPTIONAL_TABLES = ("log", "visibility", "attribute", "map")
+WORLD_MANIFEST = "drivedegrade_world.json"
+SPLITS = ("train", "val", "mini_train", "mini_val", "all")
+
+
+def coarse_category(name: str) -> str:
+    """nuScenes category name -> vehicle / pedestrian / cyclist / other."""
+    if name.startswith("human.pedestrian"):
+        return "pedestrian"
+    if name.startswith(("vehicle.bicycle", "vehicle.motorcycle")):
+        return "cyclist"
+    if name.startswith("vehicle."):
+        return "vehicle"
+    return "other"
+
+
+def official_split(split: str) -> set[str]:
+    """Scene names of an official nuScenes split, from the devkit's lists shipped with the package."""
+    import yaml
+
+    data = yaml.safe_load((Path(__file__).with_name("nuscenes_splits.yaml")).read_text())
+    names: set[str] = set()
+    for part in data[split].split(","):
+        a, _, b = part.strip().partition("-")
+        names.update(f"scene-{i:04d}" for i in range(int(a), int(b or a) + 1))
+    return names
+
+
+def _load_table(path: Path) -> list[dict]:
+    if not path.is_file():
+        raise DataError(f"missing nuScenes table {path}: the data root must hold every table of the version "
+                        f"folder ({', '.join(REQUIRED_TABLES)})")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"unreadable nuScenes table {path}: {exc}; re-extract or regenerate the data") from exc
+
+
+class NuScenesReader:
+    """Frames of one split of a nuScenes-format data root."""
+
+    def __init__(self, root, version: str | None = None, split: str = "val", strict: bool = False):
+        self.root = Path(root)
+        if not self.root.is_dir():
+            raise DataError(f"nuScenes data root {self.root} does not exist or is not a folder")
+        self.version = version or self._detect_version()
+        self.table_dir = self.root / self.version
+        if not self.table_dir.is_dir():
+            raise DataError(f"no version folder {self.table_dir}: pass the nuScenes root that holds it")
+        if split not in SPLITS:
+            raise DataError(f"unknown split {split!r}: choose one of {', '.join(SPLITS)}")
+        self.split, self.strict = split, strict
+        self.skipped: Counter[str] = Counter()
+        self.problems: list[str] = []
+        manifest = self.root / WORLD_MANIFEST
+        self.manifest = json.loads(manifest.read_text()) if manifest.is_file() else None
+        self._index()
+
+    def _detect_version(self) -> str:
+        found = sorted(p.name for p in self.root.iterdir() if p.is_dir() and p.name.startswith("v1.0-"))
+        if len(found) != 1:
+            what = "no v1.0-* version folder" if not found else f"several version folders ({', '.join(found)})"
+            raise DataError(f"nuScenes data root {self.root} has {what}: pass the version explicitly")
+        return found[0]
+
+    def _index(self) -> None:
+        t = {name: _load_table(self.table_dir / f"{name}.json") for name in REQUIRED_TABLES}
+        self.scenes = t["scene"]
+        self.samples = {r["token"]: r for r in t["sample"]}
+        self.poses = {r["token"]: r for r in t["ego_pose"]}
+        sensors = {r["token"]: r for r in t["sensor"]}
+        self.calib = {r["token"]: dict(r, channel=sensors.get(r["sensor_token"], {}).get("channel", ""))
+                      for r in t["calibrated_sensor"]}
+        self.key_data: dict[str, dict[str, dict]] = defaultdict(dict)
+        for r in t["sample_data"]:
+            if r.get("is_key_frame", True):
+                channel = self.calib.get(r["calibrated_sensor_token"], {}).get("channel", "")
+                self.key_data[r["sample_token"]][channel] = r
+        categories = {r["token"]: coarse_category(r["name"]) for r in t["category"]}
+        inst = {r["token"]: categories.get(r["category_token"], "other") for r in t["instance"]}
+        self.annotations: dict[str, list[tuple]] = defaultdict(list)
+        for r in t["sample_annotation"]:
+            self.annotations[r["sample_token"]].append(
+                (r["translation"], r["size"], r["rotation"], inst.get(r["instance_token"], "other")))
+        self.split_scenes = self._select_scenes()
+
+    def _select_scenes(self) -> list[dict]:
+        if self.split == "all":
+            return list(self.scenes)
+        if self.manifest is not None and self.split in self.manifest.get("splits", {}):
+            names = set(self.manifest["splits"][self.split])
+        else:
+            names = official_split(self.split)
+        return [s for s in self.scenes if s["name"] in names]
+
+    # -- public API ---------------------------------------------------------------------------------
+    def frames(self) -> Iterator[Frame]:
+        """Every keyframe of the split's scenes, in scene order (scorable or not). Each pass recounts
+        `skipped` and `problems`."""
+        self.skipped, self.problems = Counter(), []
+        for scene in self.split_scenes:
+            tokens = self._scene_samples(scene)
+            if not tokens:
+                continue
+            poses, problem = self._poses(tokens)
+            if problem:
+                self._skip("sample points at a missing record", problem, len(tokens))
+                continue
+            can = self._can_bus(scene["name"])
+            for k, token in enumerate(tokens):
+                frame = self._frame(scene, tokens, poses, k, can)
+                if frame is not None:
+                    yield frame
+
+    def scorable_frames(self, limit: int | None = None) -> list[Frame]:
+        """Frames with six future keyframes; with `limit`, `limit` of them evenly spaced (deterministic)."""
+        frames = [f for f in self.frames() if f.scorable]
+        if limit is not None and 0 < limit < len(frames):
+            idx = np.unique(np.round(np.linspace(0, len(frames) - 1, limit)).astype(int))
+            frames = [frames[i] for i in idx]
+        return frames
+
+    def fingerprint(self) -> str:
+        """A stable hex id of the data content and split."""
+        h = hashlib.blake2b(digest_size=16)
+        if self.manifest is not None:
+            h.update(f"{self.manifest['fingerprint']}|{self.split}".encode())
+        else:
+            h.update(f"{self.version}|{self.split}".encode())
+            for scene in self.split_scenes:
+                h.update(f"|{scene['name']}|{scene['first_sample_token']}|{scene.get('nbr_samples')}".encode())
+        return h.hexdigest()
+
+    @staticmethod
+    def load_image(camera: CameraInfo) -> np.ndarray:
+        """Decode one camera image to H x W x 3 uint8 RGB; DataError names the file for a missing or
+        truncated JPEG."""
+        from .images import decode_rgb
+
+        return decode_rgb(camera.path, camera.sample_token)
+
+    # -- building frames ----------------------------------------------------------------------------
+    def _skip(self, reason: str, detail: str, count: int = 1) -> None:
+        if self.strict:
+            raise DataError(detail)
+        self.skipped[reason] += count
+        self.problems.append(detail)
+
+    def _scene_samples(self, scene: dict) -> list[str]:
+        tokens, token, seen = [], scene.get("first_sample_token", ""), set()
+        while token and token not in seen:
+            if token not in self.samples:
+                self._skip("sample points at a missing record",
+                           f"scene {scene['name']} ({scene['token']}) links to missing sample {token} in "
+                           f"{self.table_dir / 'sample.json'}", max(len(tokens), 1))
+                return []
+            seen.add(token)
+            tokens.append(token)
+            token = self.samples[token].get("next", "")
+        if not tokens:
+            self._skip("scene without keyframes", f"scene {scene.get('name')} ({scene['token']}) has no "
+                                                   f"keyframes in {self.table_dir / 'sample.json'}")
+        return tokens
+
+    def _poses(self, tokens: list[str]) -> tuple[tuple, str]:
+        """The ego pose of every keyframe (of its LIDAR_TOP record when present, else CAM_FRONT)."""
+        out = []
+        for tok in tokens:
+            data = self.key_data.get(tok, {})
+            ref = data.get("LIDAR_TOP") or data.get("CAM_FRONT") or next(iter(data.values()), None)
+            if ref is None:
+                return [], f"sample {tok} has no key-frame sample_data in {self.table_dir / 'sample_data.json'}"
+            pose = self.poses.get(ref["ego_pose_token"])
+            if pose is None:
+                return [], (f"sample_data {ref['token']} of sample {tok} points at missing ego_pose "
+                            f"{ref['ego_pose_token']} in {self.table_dir / 'ego_pose.json'}")
+            out.append(pose)
+        xy = np.array([p["translation"][:2] for p in out], dtype=float)
+        yaw = geo.quat_yaws(np.array([p["rotation"] for p in out]))
+        return (xy, yaw, np.array([p["timestamp"] for p in out])), ""
+
+    def _can_bus(self, scene_name: str) -> list[dict] | None:
+        path = self.root / "can_bus" / f"{scene_name}_pose.json"
+        if not path.is_file():
+            return None
+        try:
+            records = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            self.problems.append(f"unreadable CAN bus file {path}; using ego_pose differences")
+            return None
+        return records or None
+
+    def _frame(self, scene, tokens, poses, k, can) -> Frame | None:
+        token = tokens[k]
+        cameras, problem = self._cameras(token)
+        if problem:
+            self._skip("sample points at a missing record", problem)
+            return None
+        xy, yaw, stamps = poses
+        ego = _ego_status(xy, yaw, stamps, k, can)
+        fut_idx = [k + i for i in range(1, HORIZON_STEPS + 1)]
+        valid = np.array([i < len(tokens) for i in fut_idx])
+        future = np.zeros((HORIZON_STEPS, 2))
+        agents = []
+        for step, i in enumerate(fut_idx):
+            if valid[step]:
+                future[step] = geo.se2_to_ego(xy[i], xy[k], yaw[k])[0]
+                agents.append(self._agents(tokens[i], xy[k], yaw[k]))
+        command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
+        if not valid.all():
+            self.skipped["fewer than six future keyframes (not scored)"] += 1
+        return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
+                     future, valid, tuple(agents), scene["name"])
+
+    def _cameras(self, token: str) -> tuple[dict[str, CameraInfo], str]:
+        data = self.key_data.get(token, {})
+        out = {}
+        for name in CAMERAS:
+            rec = data.get(name)
+            if rec is None:
+                return {}, f"sample {token} has no {name} key-frame image in {self.table_dir / 'sample_data.json'}"
+            cal = self.calib.get(rec["calibrated_sensor_token"])
+            if cal is None:
+                return {}, (f"sample_data {rec['token']} points at missing calibrated_sensor "
+                            f"{rec['calibrated_sensor_token']} in {self.table_dir / 'calibrated_sensor.json'}")
+            out[name] = CameraInfo(name, str(self.root / rec["filename"]), int(rec["width"]), int(rec["height"]),
+                                   np.asarray(cal["camera_intrinsic"], dtype=float),
+                                   tuple(cal["rotation"]), tuple(cal["translation"]), token)
+        return out, ""
+
+    def _agents(self, sample_token: str, origin_xy: np.ndarray, origin_yaw: float) -> AgentBoxes:
+        anns = self.annotations.get(sample_token, [])
+        if not anns:
+            return AgentBoxes.empty()
+        centre = geo.se2_to_ego(np.array([a[0][:2] for a in anns], dtype=float), origin_xy, origin_yaw)
+        size = np.array([[a[1][1], a[1][0]] for a in anns], dtype=float)  # nuScenes size is (w, l, h)
+        yaw = geo.wrap_angle(geo.quat_yaws(np.array([a[2] for a in anns])) - origin_yaw)
+        return AgentBoxes(centre, size, yaw, tuple(a[3] for a in anns))
+
+
+def _ego_status(xy: np.ndarray, yaw: np.ndarray, stamps: np.ndarray, k: int, can) -> EgoStatus:
+    """Ego status at keyframe k: past positions in the current frame (oldest first) and motion terms."""
+    dt = np.maximum(np.diff(stamps) * 1e-6, 1e-3)
+    def vel(i):  # backward difference in the frame of keyframe i; forward difference at the first keyframe
+        j0, j1 = (i - 1, i) if i > 0 else (0, min(1, len(xy) - 1))
+        if j0 == j1:
+            return np.zeros(2)
+        return geo.se2_to_ego(xy[j1], xy[j0], yaw[i])[0] / dt[j0]
+    v = vel(k)
+    if can is not None:
+        rec = _nearest(can, stamps[k])
+        velocity, accel = tuple(rec["vel"][:2]), tuple(rec["accel"][:2])
+        yaw_rate = float(rec["rotation_rate"][2])
+    else:
+        yaw_rate = float(geo.wrap_angle(yaw[k] - yaw[k - 1]) / dt[k - 1]) if k > 0 else 0.0
+        if k > 1:
+            c, s = np.cos(yaw[k - 1] - yaw[k]), np.sin(yaw[k - 1] - yaw[k])
+            vp = vel(k - 1)
+            accel = tuple((v - np.array([c * vp[0] - s * vp[1], s * vp[0] + c * vp[1]])) / dt[k - 1])
+        else:
+            accel = (0.0, 0.0)
+        velocity = tuple(v)
+    past = np.zeros((PAST_STEPS, 2))
+    for n in range(1, PAST_STEPS + 1):
+        row = PAST_STEPS - n  # oldest first
+        past[row] = geo.se2_to_ego(xy[k - n], xy[k], yaw[k])[0] if k - n >= 0 else \
+            -np.asarray(velocity, dtype=float) * n * STEP_SECONDS
+    return EgoStatus((float(velocity[0]), float(velocity[1])), (float(accel[0]), float(accel[1])),
+                     float(yaw_rate), past)
+
+
+def _nearest(records: list[dict], utime: int) -> dict:
+    """The CAN bus record nearest in time at or before `utime` (the first record when none is before)."""
+    times = np.array([r["utime"] for r in records])
+    i = int(np.searchsorted(times, utime, side="right")) - 1
+    return records[max(i, 0)]

@@ -1,0 +1,171 @@
+"""Build a world on disk: scenes -> tables, CAN bus, JPEGs, manifest; and the cached default world."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+
+from ...errors import DataError
+from . import export
+from .rig import Rig
+from .scene import KEYFRAMES, make_scene
+
+GENERATOR_VERSION = "1.0.0"
+WORLD_VERSION = "v1.0-ddworld"
+MANIFEST = "drivedegrade_world.json"
+DEFAULT_SCENES = 50  # 45 train scenes (1530 scorable frames) and 5 val scenes (170 scorable frames)
+SCORABLE_PER_SCENE = KEYFRAMES - 6
+
+Progress = Callable[[str], None] | None
+
+
+def split_names(n: int) -> tuple[list[str], list[str]]:
+    """Scene names of the train and val splits: the last tenth (at least one scene) is val."""
+    names = [f"scene-{i + 1:04d}" for i in range(n)]
+    n_val = max(1, -(-n // 10))
+    return names[: n - n_val], names[n - n_val:]
+
+
+def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size: bool = False,
+                train_images: bool = False, progress: Progress = None, val_images: bool = True) -> Path:
+    """Generate a world of `scenes` scenes into `out_dir` (the nuScenes data root) and return it.
+
+    Val images are rendered (unless `val_images` is False, for table-only checks); train images only with
+    `train_images` (the tables are complete either way).
+    The manifest is written last, so a world without one is incomplete.
+    """
+    n = DEFAULT_SCENES if scenes is None else int(scenes)
+    if n < 2:
+        raise DataError(f"a world needs at least 2 scenes (one train, one val); got {n}")
+    root = Path(out_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda s: None)
+    rig = Rig.nuscenes_like(full_size)
+    train, val = split_names(n)
+    tables = export.static_tables(seed, rig)
+    for name in ("log", "scene", "sample", "ego_pose", "sample_data", "sample_annotation", "instance"):
+        tables[name] = []
+    tables["map"] = [{"token": export.token(seed, "map"), "log_tokens": [], "category": "semantic_prior",
+                      "filename": ""}]
+    digest = hashlib.blake2b(f"{GENERATOR_VERSION}|{seed}|{n}|{full_size}".encode(), digest_size=16)
+    events: dict[str, list[str]] = {"train": [], "val": []}
+    start = time.perf_counter()
+    for i, name in enumerate(train + val):
+        scene = make_scene(seed, i, name)
+        split = "val" if name in val else "train"
+        events[split] += scene.events[:SCORABLE_PER_SCENE]
+        export.scene_tables(scene, seed, tables, rig)
+        export.dump(root / "can_bus" / f"{name}_pose.json", export.can_bus(scene))
+        render = (split == "val" and val_images) or (split == "train" and train_images)
+        if render:
+            for d in export.render_scene(scene, rig, root):
+                if split == "val":
+                    digest.update(d)
+        say(f"drivedegrade world: scene {i + 1}/{n} ({split}{', rendered' if render else ''})"
+            f" {time.perf_counter() - start:.1f} s")
+    for name, records in sorted(tables.items()):
+        digest.update(export.dump(root / WORLD_VERSION / f"{name}.json", records))
+    manifest = {"generator": "pytest-drivedegrade world", "generator_version": GENERATOR_VERSION,
+                "version": WORLD_VERSION, "seed": seed, "scenes": n, "full_size": full_size,
+                "train_images": bool(train_images), "splits": {"train": train, "val": val},
+                "fingerprint": digest.hexdigest(), "events": {s: _event_stats(e) for s, e in events.items()}}
+    export.dump(root / MANIFEST, manifest)
+    return root
+
+
+def _event_stats(kinds: list[str]) -> dict:
+    n = max(len(kinds), 1)
+    out = {"frames": len(kinds), "fraction": round(sum(1 for k in kinds if k) / n, 4)}
+    out.update({k: sum(1 for x in kinds if x == k) for k in ("brake", "vru", "bend")})
+    return out
+
+
+def add_train_images(root: Path, progress: Progress = None) -> None:
+    """Render the train split's images into an existing world (same seed and options as its manifest)."""
+    manifest = json.loads((root / MANIFEST).read_text())
+    rig = Rig.nuscenes_like(manifest["full_size"])
+    say = progress or (lambda s: None)
+    names = manifest["splits"]["train"]
+    for i, name in enumerate(names):
+        export.render_scene(make_scene(manifest["seed"], i, name), rig, root)
+        say(f"drivedegrade world: train images {i + 1}/{len(names)}")
+    manifest["train_images"] = True
+    tmp = root / (MANIFEST + ".tmp")
+    export.dump(tmp, manifest)
+    os.replace(tmp, root / MANIFEST)
+
+
+@contextmanager
+def _locked(path: Path):
+    """An exclusive inter-process lock on `path` (fcntl where available; else an O_EXCL lock file)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        fcntl = None
+    if fcntl is not None:
+        with open(path, "a+") as fh:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(fh, fcntl.LOCK_UN)
+        return
+    while True:  # pragma: no cover - Windows
+        try:
+            fd = os.open(str(path) + ".excl", os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            time.sleep(0.5)
+    try:  # pragma: no cover
+        yield
+    finally:  # pragma: no cover
+        os.close(fd)
+        os.unlink(str(path) + ".excl")
+
+
+def ensure_default_world(cache_root, *, train_images: bool = False, progress: Progress = None) -> Path:
+    """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed)."""
+    cache_root = Path(cache_root)
+    cache_root.mkdir(parents=True, exist_ok=True)
+    target = cache_root / f"world-{GENERATOR_VERSION}-seed0"
+    say = progress or (lambda s: print(s, file=sys.stderr, flush=True))
+
+    def ready() -> bool:
+        if not (target / MANIFEST).is_file():
+            return False
+        return not train_images or json.loads((target / MANIFEST).read_text()).get("train_images", False)
+
+    if ready():
+        return target
+    with _locked(cache_root / ".world.lock"):
+        if ready():
+            return target
+        if not (target / MANIFEST).is_file():
+            tmp = cache_root / f".world-tmp-{os.getpid()}"
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.rmtree(target, ignore_errors=True)  # an incomplete world from an older crash
+            write_world(tmp, train_images=train_images, progress=say)
+            os.replace(tmp, target)
+        if train_images and not ready():
+            add_train_images(target, say)
+    return target
+
+
+def cli_world(args) -> int:
+    """`drivedegrade world --out DIR [--scenes N] [--seed S] [--full-size] [--train-images]`."""
+    start = time.perf_counter()
+    root = write_world(args.out, scenes=args.scenes, seed=args.seed, full_size=args.full_size,
+                       train_images=args.train_images, progress=lambda s: print(s, file=sys.stderr, flush=True))
+    manifest = json.loads((root / MANIFEST).read_text())
+    ev = manifest["events"]["val"]
+    print(f"wrote {root} ({manifest['scenes']} scenes, fingerprint {manifest['fingerprint']}) in "
+          f"{time.perf_counter() - start:.1f} s; val frames with a camera-only event: {ev['fraction']:.0%}",
+          file=sys.stderr)
+    return 0

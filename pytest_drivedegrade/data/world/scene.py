@@ -1,0 +1,103 @@
+"""One scene of the world, generated from (seed, index): roads, appearance, agents, scenery, the expert's drive."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from .agents import (SIM_STEPS, Agent, Prop, background_traffic, crossing_walker, lead_vehicle, scenery)
+from .expert import KEY_EVERY, EgoLog, corridor_obstacles, drive, follower, keyframe_events, start_state
+from .roads import LANE_WIDTH, Path, RoadNet, build_roads
+
+KEYFRAMES = 40  # 20 s at 2 Hz, as a nuScenes scene
+
+
+@dataclass
+class Style:
+    """Appearance of a scene: light, sky, surfaces. Drawn from the seed so that scenes look different."""
+
+    sky_top: np.ndarray
+    sky_horizon: np.ndarray
+    clouds: float
+    sun: np.ndarray  # unit vector towards the sun, world frame
+    light: float  # global exposure factor
+    asphalt: float  # asphalt grey level
+    sidewalk: np.ndarray
+    verge: np.ndarray  # ground beyond the sidewalk (grass or dirt)
+    yellow_centre: bool
+    haze_m: float  # distance at which haze reaches 63 %
+    urban: float
+
+    @staticmethod
+    def draw(rng: np.random.Generator) -> "Style":
+        overcast = rng.random() < 0.35
+        top = np.array([150, 160, 170]) if overcast else np.array([60, 110, 200]) + rng.normal(0, 12, 3)
+        horizon = np.array([200, 205, 210]) if overcast else np.array([185, 205, 230]) + rng.normal(0, 8, 3)
+        az, el = rng.uniform(0, 2 * np.pi), rng.uniform(0.3, 1.1)
+        grass = rng.random() < 0.6
+        verge = np.array([70, 110, 45]) if grass else np.array([150, 130, 100])
+        return Style(np.clip(top, 0, 255), np.clip(horizon, 0, 255), float(rng.uniform(0.1, 0.9)),
+                     np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)]),
+                     float(rng.uniform(0.8, 1.1) * (0.85 if overcast else 1.0)), float(rng.uniform(70, 115)),
+                     np.array([165, 160, 150]) + rng.normal(0, 10, 3), verge + rng.normal(0, 10, 3),
+                     bool(rng.random() < 0.5), float(rng.uniform(250, 700) * (0.6 if overcast else 1.0)),
+                     float(rng.uniform(0.35, 1.0)))
+
+
+@dataclass
+class Scene:
+    index: int
+    seed: int
+    name: str
+    net: RoadNet
+    lane: Path
+    agents: list[Agent]
+    ego: EgoLog
+    style: Style
+    events: list[str]
+    crosswalks: list[float]  # arc lengths on the route centreline with a zebra crossing
+    v_cruise: float
+
+    @functools.cached_property
+    def props(self) -> list[Prop]:
+        """Static scenery, drawn only when rendering (its own random stream keeps tables-only runs fast)."""
+        return scenery(np.random.default_rng([self.seed, self.index, 0x9C0B]), self.net, self.style.urban)
+
+    @property
+    def key_steps(self) -> np.ndarray:
+        return np.arange(KEYFRAMES) * KEY_EVERY
+
+
+def make_scene(seed: int, index: int, name: str) -> Scene:
+    """Generate scene `index` of the world with `seed`: deterministic for a given (seed, index)."""
+    rng = np.random.default_rng([seed, index, 0x5EED])
+    net = build_roads(rng)
+    turn = net.junctions[0].turn if net.junctions else "straight"
+    lanes = net.route.lanes
+    k = lanes - 1 if turn == "right" else (0 if turn == "left" else int(rng.integers(lanes)))
+    lane_d = -(k + 0.5) * LANE_WIDTH
+    lane = net.route.center.offset(lane_d)
+    v_cruise = float(rng.uniform(8.0, 14.0))
+    style = Style.draw(rng)
+    agents: list[Agent] = []
+    if rng.random() < 0.8:
+        agents.append(lead_vehicle(rng, lane, v_cruise))
+    crosswalks: list[float] = []
+    for kind, p in (("pedestrian", 0.6), ("pedestrian", 0.25), ("cyclist", 0.2)):
+        if rng.random() < p:
+            walker, s_c = crossing_walker(rng, net, lane_d, v_cruise, kind)
+            if walker is not None:
+                agents.append(walker)
+                if kind == "pedestrian" and rng.random() < 0.7:
+                    crosswalks.append(float(s_c))
+    agents += background_traffic(rng, net, k)
+    s0, v0 = start_state(rng, v_cruise)
+    ego = drive(lane, agents, v_cruise, v0, s0)
+    if rng.random() < 0.5:
+        agents.append(follower(rng, lane, ego))
+    vru = [a for a in agents if a.role == "crossing"]
+    walker_block = corridor_obstacles(lane, vru)[2].any(0) if vru else np.zeros(SIM_STEPS, bool)
+    events = keyframe_events(lane, ego, KEYFRAMES, walker_block)
+    return Scene(index, seed, name, net, lane, agents, ego, style, events, crosswalks, v_cruise)

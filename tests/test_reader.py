@@ -1,0 +1,229 @@
+"""The reader on a nuScenes-format fixture written here by hand (real field names and types of the schema),
+independent of the world's own writer; and on bad data."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.data.frame import Command
+from pytest_drivedegrade.data.nuscenes import NuScenesReader, coarse_category
+from pytest_drivedegrade.errors import DataError
+
+N_SAMPLES = 8
+SPEED = 5.0  # m/s along global +y for scene-0103 (heading 90 deg); scene-0061 turns left
+
+
+def _q(yaw):
+    return [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))]
+
+
+def _write_fixture(root):
+    """v1.0-mini with scene-0061 (mini_train: curving left) and scene-0103 (mini_val: straight north)."""
+    v = root / "v1.0-mini"
+    v.mkdir(parents=True)
+    t = {k: [] for k in ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
+                         "sample_annotation", "instance", "category", "log", "attribute", "visibility", "map")}
+    t["category"] = [{"token": "cat-car", "name": "vehicle.car", "description": "", "index": 1},
+                     {"token": "cat-ped", "name": "human.pedestrian.adult", "description": "", "index": 2}]
+    t["instance"] = [{"token": "inst-car", "category_token": "cat-car", "nbr_annotations": N_SAMPLES,
+                      "first_annotation_token": "", "last_annotation_token": ""}]
+    red = cv2.imencode(".jpg", np.full((90, 160, 3), (0, 0, 255), np.uint8))[1].tobytes()  # BGR red
+    for ci, cam in enumerate(CAMERAS):
+        t["sensor"].append({"token": f"sensor-{cam}", "channel": cam, "modality": "camera"})
+        t["calibrated_sensor"].append({"token": f"cal-{cam}", "sensor_token": f"sensor-{cam}",
+                                       "translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5],
+                                       "camera_intrinsic": [[126.6, 0.0, 80.0], [0.0, 126.6, 45.0], [0.0, 0.0, 1.0]]})
+        (root / "samples" / cam).mkdir(parents=True)
+    for si, name in enumerate(("scene-0061", "scene-0103")):
+        t["log"].append({"token": f"log{si}", "logfile": "n008-2018", "vehicle": "n008",
+                         "date_captured": "2018-08-01", "location": "singapore-onenorth"})
+        toks = [f"s{si}-{k}" for k in range(N_SAMPLES)]
+        t["scene"].append({"token": f"scene{si}", "log_token": f"log{si}", "nbr_samples": N_SAMPLES,
+                           "first_sample_token": toks[0], "last_sample_token": toks[-1], "name": name,
+                           "description": "fixture"})
+        for k, tok in enumerate(toks):
+            ts = 1_533_000_000_000_000 + si * 10**8 + k * 500_000
+            if si == 0:  # left turn: heading grows by 0.25 rad per keyframe, on a circle of radius 10 m
+                yaw = 0.25 * k
+                pos = [10 * np.sin(yaw), 10 * (1 - np.cos(yaw)), 0.0]
+            else:
+                yaw, pos = np.pi / 2, [100.0, SPEED * 0.5 * k, 0.0]
+            t["sample"].append({"token": tok, "timestamp": ts, "prev": toks[k - 1] if k else "",
+                                "next": toks[k + 1] if k + 1 < N_SAMPLES else "", "scene_token": f"scene{si}"})
+            t["ego_pose"].append({"token": f"pose-{tok}", "timestamp": ts, "rotation": _q(yaw),
+                                  "translation": [float(p) for p in pos]})
+            for cam in CAMERAS:
+                fn = f"samples/{cam}/n008__{cam}__{ts}.jpg"
+                (root / fn).write_bytes(red)
+                t["sample_data"].append({"token": f"sd-{tok}-{cam}", "sample_token": tok,
+                                         "ego_pose_token": f"pose-{tok}", "calibrated_sensor_token": f"cal-{cam}",
+                                         "timestamp": ts, "fileformat": "jpg", "is_key_frame": True,
+                                         "height": 90, "width": 160, "filename": fn, "prev": "", "next": ""})
+            # a car 10 m ahead of the ego pose of this sample, same heading; a pedestrian in scene-0103 only
+            ahead = np.array(pos[:2]) + 10 * np.array([np.cos(yaw), np.sin(yaw)])
+            t["sample_annotation"].append({
+                "token": f"ann-{tok}", "sample_token": tok, "instance_token": "inst-car", "visibility_token": "4",
+                "attribute_tokens": [], "translation": [float(ahead[0]), float(ahead[1]), 0.8],
+                "size": [1.9, 4.5, 1.6], "rotation": _q(yaw), "prev": "", "next": "", "num_lidar_pts": 5,
+                "num_radar_pts": 0})
+    for name, records in t.items():
+        (v / f"{name}.json").write_text(json.dumps(records))
+    return root
+
+
+@pytest.fixture()
+def fixture_root(tmp_path):
+    return _write_fixture(tmp_path / "nuscenes")
+
+
+def test_splits_and_frame_counts(fixture_root):
+    val = NuScenesReader(fixture_root, split="mini_val")
+    assert val.version == "v1.0-mini"
+    frames = list(val.frames())
+    assert [f.scene_name for f in frames] == ["scene-0103"] * N_SAMPLES
+    assert len(val.scorable_frames()) == N_SAMPLES - 6
+    assert val.skipped["fewer than six future keyframes (not scored)"] == 6
+    assert len(list(NuScenesReader(fixture_root, split="all").frames())) == 2 * N_SAMPLES
+    train = NuScenesReader(fixture_root, split="mini_train")
+    assert {f.scene_name for f in train.frames()} == {"scene-0061"}
+    # the mini scenes belong to the official trainval splits too
+    assert {f.scene_name for f in NuScenesReader(fixture_root, split="val").frames()} == {"scene-0103"}
+    assert {f.scene_name for f in NuScenesReader(fixture_root, split="train").frames()} == {"scene-0061"}
+
+
+def test_straight_scene_future_ego_command_and_agents(fixture_root):
+    frame = NuScenesReader(fixture_root, split="mini_val").scorable_frames()[1]
+    expected = np.stack([SPEED * 0.5 * np.arange(1, 7), np.zeros(6)], 1)
+    np.testing.assert_allclose(frame.gt_future, expected, atol=1e-9)
+    assert frame.command == Command.STRAIGHT
+    assert frame.ego.velocity == pytest.approx((SPEED, 0.0), abs=1e-6)
+    assert frame.ego.acceleration == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert frame.ego.yaw_rate == pytest.approx(0.0, abs=1e-9)
+    # past: the last four keyframes, oldest first; at keyframe 1 the missing ones are extrapolated
+    np.testing.assert_allclose(frame.ego.past_xy, [[-10.0, 0], [-7.5, 0], [-5.0, 0], [-2.5, 0]], atol=1e-9)
+    assert len(frame.agents) == 6
+    for step, boxes in enumerate(frame.agents, start=1):
+        assert boxes.category == ("vehicle",)
+        np.testing.assert_allclose(boxes.center[0], [SPEED * 0.5 * step + 10.0, 0.0], atol=1e-9)
+        np.testing.assert_allclose(boxes.size[0], [4.5, 1.9])
+        assert boxes.yaw[0] == pytest.approx(0.0, abs=1e-9)
+    cam = frame.cameras["CAM_FRONT"]
+    assert cam.width == 160 and cam.intrinsic[0, 0] == pytest.approx(126.6)
+    img = NuScenesReader.load_image(cam)
+    assert img.shape == (90, 160, 3) and img.dtype == np.uint8
+    assert img[..., 0].mean() > 200 and img[..., 2].mean() < 50  # RGB order: the red file reads red
+
+
+def test_turning_scene_gives_left_command_and_yaw_rate(fixture_root):
+    frame = NuScenesReader(fixture_root, split="mini_train").scorable_frames()[1]
+    assert frame.command == Command.LEFT
+    assert frame.gt_future[-1, 1] > 2.0
+    assert frame.ego.yaw_rate == pytest.approx(0.25 / 0.5, rel=1e-6)
+    chord = 2 * 10 * np.sin(0.125)
+    assert np.hypot(*frame.ego.velocity) == pytest.approx(chord / 0.5, rel=1e-6)
+
+
+def test_limit_gives_evenly_spaced_stable_subset(fixture_root):
+    reader = NuScenesReader(fixture_root, split="all")
+    full = reader.scorable_frames()
+    sub = reader.scorable_frames(limit=2)
+    assert [f.token for f in sub] == [full[0].token, full[-1].token]
+    assert [f.token for f in NuScenesReader(fixture_root, split="all").scorable_frames(limit=2)] == \
+        [f.token for f in sub]
+    assert reader.fingerprint() == NuScenesReader(fixture_root, split="all").fingerprint()
+    assert reader.fingerprint() != NuScenesReader(fixture_root, split="mini_val").fingerprint()
+
+
+@pytest.mark.parametrize("name,category", [("vehicle.car", "vehicle"), ("vehicle.bus.rigid", "vehicle"),
+                                           ("human.pedestrian.child", "pedestrian"),
+                                           ("vehicle.bicycle", "cyclist"), ("vehicle.motorcycle", "cyclist"),
+                                           ("movable_object.barrier", "other")])
+def test_coarse_categories(name, category):
+    assert coarse_category(name) == category
+
+
+# --- bad data -------------------------------------------------------------------------------------------
+
+def test_missing_table_names_the_file(fixture_root):
+    (fixture_root / "v1.0-mini" / "ego_pose.json").unlink()
+    with pytest.raises(DataError, match=r"ego_pose\.json"):
+        NuScenesReader(fixture_root, split="all")
+
+
+def test_missing_root_and_ambiguous_version(fixture_root, tmp_path):
+    with pytest.raises(DataError, match="does not exist"):
+        NuScenesReader(tmp_path / "nope")
+    shutil.copytree(fixture_root / "v1.0-mini", fixture_root / "v1.0-trainval")
+    with pytest.raises(DataError, match="several version folders"):
+        NuScenesReader(fixture_root)
+    assert NuScenesReader(fixture_root, version="v1.0-mini", split="all").version == "v1.0-mini"
+    with pytest.raises(DataError, match="unknown split"):
+        NuScenesReader(fixture_root, version="v1.0-mini", split="test-ish")
+
+
+def test_missing_and_truncated_images_name_file_and_frame(fixture_root):
+    frame = NuScenesReader(fixture_root, split="mini_val").scorable_frames()[0]
+    cam = frame.cameras["CAM_BACK"]
+    data = open(cam.path, "rb").read()
+    open(cam.path, "wb").write(data[: len(data) // 2])
+    with pytest.raises(DataError, match="truncated JPEG") as err:
+        NuScenesReader.load_image(cam)
+    assert cam.path in str(err.value) and frame.token in str(err.value)
+    (fixture_root / frame.cameras["CAM_FRONT"].path).unlink()
+    with pytest.raises(DataError, match="missing image"):
+        NuScenesReader.load_image(frame.cameras["CAM_FRONT"])
+
+
+def _edit(root, table, fn):
+    path = root / "v1.0-mini" / f"{table}.json"
+    records = json.loads(path.read_text())
+    path.write_text(json.dumps(fn(records)))
+
+
+def test_dangling_ego_pose_skips_scene_with_count(fixture_root):
+    _edit(fixture_root, "ego_pose", lambda r: [x for x in r if x["token"] != "pose-s1-3"])
+    reader = NuScenesReader(fixture_root, split="all")
+    frames = list(reader.frames())
+    assert {f.scene_name for f in frames} == {"scene-0061"}
+    assert reader.skipped["sample points at a missing record"] == N_SAMPLES
+    assert any("pose-s1-3" in p for p in reader.problems)
+    with pytest.raises(DataError, match="pose-s1-3"):
+        list(NuScenesReader(fixture_root, split="all", strict=True).frames())
+
+
+def test_missing_camera_record_skips_the_frame(fixture_root):
+    _edit(fixture_root, "sample_data", lambda r: [x for x in r if x["token"] != "sd-s1-2-CAM_BACK_LEFT"])
+    reader = NuScenesReader(fixture_root, split="mini_val")
+    tokens = [f.token for f in reader.frames()]
+    assert "s1-2" not in tokens and len(tokens) == N_SAMPLES - 1
+    assert reader.skipped["sample points at a missing record"] == 1
+    assert any("s1-2" in p and "CAM_BACK_LEFT" in p for p in reader.problems)
+
+
+def test_scene_without_keyframes_is_counted(fixture_root):
+    def empty(records):
+        records[1]["first_sample_token"], records[1]["nbr_samples"] = "", 0
+        return records
+    _edit(fixture_root, "scene", empty)
+    reader = NuScenesReader(fixture_root, split="all")
+    assert {f.scene_name for f in reader.frames()} == {"scene-0061"}
+    assert reader.skipped["scene without keyframes"] == 1
+    assert any("scene-0103" in p for p in reader.problems)
+
+
+def test_can_bus_expansion_overrides_finite_differences(fixture_root):
+    can = fixture_root / "can_bus"
+    can.mkdir()
+    recs = [{"utime": 1_533_000_100_000_000 + i * 20_000, "vel": [7.0, 0.1, 0.0], "accel": [0.5, 0.2, 9.8],
+             "rotation_rate": [0.0, 0.0, 0.05], "pos": [0, 0, 0], "orientation": [1, 0, 0, 0]} for i in range(300)]
+    (can / "scene-0103_pose.json").write_text(json.dumps(recs))
+    frame = NuScenesReader(fixture_root, split="mini_val").scorable_frames()[0]
+    assert frame.ego.velocity == (7.0, 0.1)
+    assert frame.ego.acceleration == (0.5, 0.2)
+    assert frame.ego.yaw_rate == 0.05

@@ -1,0 +1,139 @@
+"""The generated world read back by the reader: futures equal the expert's log, commands follow the rule,
+annotations are complete, generation is deterministic, images look like a road scene, the cache is atomic."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.data import geometry as geo
+from pytest_drivedegrade.data.frame import command_from_future
+from pytest_drivedegrade.data.nuscenes import NuScenesReader
+from pytest_drivedegrade.data.world import WORLD_VERSION, build, ensure_default_world, write_world
+from pytest_drivedegrade.data.world.scene import KEYFRAMES, make_scene
+
+
+@pytest.fixture(scope="session")
+def world(tmp_path_factory) -> Path:
+    """Two scenes: one train (tables only), one val (rendered)."""
+    return write_world(tmp_path_factory.mktemp("world") / "w", scenes=2, seed=3)
+
+
+def _tree_hash(root: Path) -> str:
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(root)).encode() + p.read_bytes())
+    return h.hexdigest()
+
+
+def test_layout_is_nuscenes(world):
+    tables = {p.stem for p in (world / WORLD_VERSION).glob("*.json")}
+    assert tables >= {"scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
+                      "sample_annotation", "instance", "category", "log", "visibility", "attribute", "map"}
+    for cam in CAMERAS:
+        assert len(list((world / "samples" / cam).glob("*.jpg"))) == KEYFRAMES  # the val scene only
+    manifest = json.loads((world / build.MANIFEST).read_text())
+    assert manifest["splits"] == {"train": ["scene-0001"], "val": ["scene-0002"]}
+    assert len(manifest["fingerprint"]) == 32
+
+
+def test_futures_equal_the_expert_log_and_commands_follow_the_rule(world):
+    reader = NuScenesReader(world, split="val")
+    frames = list(reader.frames())
+    assert len(frames) == KEYFRAMES and sum(f.scorable for f in frames) == KEYFRAMES - 6
+    scene = make_scene(3, 1, "scene-0002")
+    keys = scene.key_steps
+    for k, frame in enumerate(frames):
+        origin, yaw = scene.ego.xy[keys[k]], scene.ego.yaw[keys[k]]
+        for step in range(6):
+            if k + step + 1 < KEYFRAMES:
+                expected = geo.se2_to_ego(scene.ego.xy[keys[k + step + 1]], origin, yaw)[0]
+                np.testing.assert_allclose(frame.gt_future[step], expected, atol=1e-6)
+        if frame.scorable:
+            assert frame.command == command_from_future(frame.gt_future)
+        assert frame.ego.velocity[0] == pytest.approx(scene.ego.speed[keys[k]], abs=1e-6)
+
+
+def test_every_future_annotation_is_present(world):
+    reader = NuScenesReader(world, split="val")
+    per_sample: dict[str, int] = {}
+    for rec in json.loads((world / WORLD_VERSION / "sample_annotation.json").read_text()):
+        per_sample[rec["sample_token"]] = per_sample.get(rec["sample_token"], 0) + 1
+    samples = {r["token"]: r for r in json.loads((world / WORLD_VERSION / "sample.json").read_text())}
+    for frame in reader.scorable_frames():
+        token = frame.token
+        for boxes in frame.agents:
+            token = samples[token]["next"]
+            assert len(boxes) == per_sample.get(token, 0)
+            assert set(boxes.category) <= {"vehicle", "pedestrian", "cyclist", "other"}
+
+
+def test_images_look_like_a_road_scene(world):
+    frame = NuScenesReader(world, split="val").scorable_frames(limit=1)[0]
+    for cam in CAMERAS:
+        img = NuScenesReader.load_image(frame.cameras[cam])
+        assert img.shape == (450, 800, 3)
+        assert img.std() > 15  # texture, not a flat fill
+    front = NuScenesReader.load_image(frame.cameras["CAM_FRONT"]).astype(float)
+    road = front[400:, 350:450]  # straight ahead, close: asphalt, nearly grey
+    assert np.abs(road - road.mean(-1, keepdims=True)).mean() < 25
+    assert front[:40].mean() > front[400:].mean()  # sky above is brighter than the road below
+
+
+def test_generation_is_deterministic(world, tmp_path):
+    a = write_world(tmp_path / "a", scenes=3, seed=11, val_images=False)
+    b = write_world(tmp_path / "b", scenes=3, seed=11, val_images=False)
+    assert _tree_hash(a) == _tree_hash(b)
+    c = write_world(tmp_path / "c", scenes=3, seed=12, val_images=False)
+    assert _tree_hash(a) != _tree_hash(c)
+    again = write_world(tmp_path / "again", scenes=2, seed=3)
+    assert _tree_hash(again) == _tree_hash(world)
+
+
+def test_event_fraction_over_many_scenes():
+    kinds = [e for i in range(12) for e in make_scene(0, i, "s").events[: KEYFRAMES - 6]]
+    fraction = sum(1 for k in kinds if k) / len(kinds)
+    assert fraction >= 0.30
+    assert {"brake", "vru"} <= set(kinds)
+
+
+def test_ensure_default_world_builds_once_atomically(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_write(out, *, train_images=False, progress=None, **_):
+        calls.append(Path(out).name)
+        assert not (tmp_path / f"world-{build.GENERATOR_VERSION}-seed0").exists()  # rendered aside first
+        out.mkdir(parents=True)
+        (out / build.MANIFEST).write_text(json.dumps({"train_images": train_images}))
+        return out
+
+    monkeypatch.setattr(build, "write_world", fake_write)
+    first = ensure_default_world(tmp_path)
+    second = ensure_default_world(tmp_path)
+    assert first == second and (first / build.MANIFEST).is_file()
+    assert len(calls) == 1 and calls[0].startswith(".world-tmp-")
+    assert not list(tmp_path.glob(".world-tmp-*"))
+    added = []
+    monkeypatch.setattr(build, "add_train_images", lambda root, say: added.append(root) or (
+        root / build.MANIFEST).write_text(json.dumps({"train_images": True})))
+    ensure_default_world(tmp_path, train_images=True)
+    ensure_default_world(tmp_path, train_images=True)
+    assert added == [first]
+
+
+def test_cli_world_writes_a_world(tmp_path, capsys, monkeypatch):
+    import functools
+
+    from pytest_drivedegrade.cli import main
+
+    monkeypatch.setattr(build, "write_world", functools.partial(write_world, val_images=False))  # fast
+
+    assert main(["world", "--out", str(tmp_path / "cli"), "--scenes", "2", "--seed", "3"]) == 0
+    assert (tmp_path / "cli" / build.MANIFEST).is_file()
+    assert "wrote" in capsys.readouterr().err
