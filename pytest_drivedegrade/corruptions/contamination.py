@@ -172,8 +172,9 @@ def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scal
         sigma = max(0.5, scaled(10.0, scale) / 4)
         blurred = cv2.resize(cv2.GaussianBlur(small, (0, 0), sigma), (rw, rh), interpolation=cv2.INTER_LINEAR)
         opacity = alpha * (0.35 + 0.3 * _texture(rng, alpha.shape, cells=5))
-        film = np.clip(blurred.astype(np.float32) * (1 - opacity[..., None]) + _DIRT_RGB * opacity[..., None],
-                       0, 255).astype(np.uint8)
+        dirt = np.empty_like(region)
+        dirt[:] = _DIRT_RGB.astype(np.uint8)
+        film = cv2.blendLinear(blurred, dirt, 1.0 - opacity, opacity)
         soft = np.minimum(alpha * 2.0, 1.0)
         out[box] = cv2.blendLinear(region, film, 1.0 - soft, soft)
     veil = _DIRT_VEIL_PER_FRACTION * fraction

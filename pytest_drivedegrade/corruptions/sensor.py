@@ -12,13 +12,33 @@ from .kernels import add_noise, discrete_normal, linear_to_srgb, scaled, srgb_to
 from .registry import register
 
 
+#: From this defocus sigma up, the blur runs at half resolution (see `gaussian_blur`).
+_PYRAMID_SIGMA = 3.0
+#: Per-axis variance (full-resolution px^2) that a 2x area downsampling and a 2x bilinear upsampling add.
+_PYRAMID_VARIANCE = (2**2 - 1) / 12 + 2**2 / 6
+
+
+def _gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
+    k = 2 * ceil(3 * sigma) + 1
+    return cv2.GaussianBlur(image, (k, k), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT_101)
+
+
 @register("gaussian_blur", group="sensor", axis="quality", parameter="defocus sigma", unit="px",
           values=(0.5, 1.0, 2.0, 3.5, 6.0), random=False, spatial=True)
 def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> np.ndarray:
-    """Defocus as a Gaussian point spread function (separable, truncated at 3 sigma)."""
+    """Defocus as a Gaussian point spread function (separable, truncated at 3 sigma).
+
+    From sigma 3 px up the image is already smooth at half resolution, so the blur runs there: 2x area
+    downsampling, a Gaussian whose variance is sigma^2 less what the resampling adds, bilinear upsampling.
+    The point spread function keeps its variance and is Gaussian to within the resampling kernels' tails.
+    """
     s = scaled(sigma, scale)
-    k = 2 * ceil(3 * s) + 1
-    return cv2.GaussianBlur(image, (k, k), sigmaX=s, sigmaY=s, borderType=cv2.BORDER_REFLECT_101)
+    h, w = image.shape[:2]
+    if s < _PYRAMID_SIGMA or min(h, w) < 16:
+        return _gaussian(image, s)
+    half = cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    blurred = _gaussian(half, float(np.sqrt(s * s - _PYRAMID_VARIANCE)) / 2)
+    return cv2.resize(blurred, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
 def _line_blur_x_major(image: np.ndarray, n: int, slope: float) -> np.ndarray:

@@ -1,0 +1,93 @@
+"""Injector throughput: median milliseconds per 1600x900 image, per family at S3 and S5, on one thread.
+
+Prints each family beside the memory-copy floor measured in the same run and, where `imagecorruptions`
+is importable, the ratio against its nearest corruption. Run by hand:
+
+    OMP_NUM_THREADS=1 python benchmarks/injector.py [--repeats 15] [--image PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pytest_drivedegrade import FAMILIES, corrupt, corrupt_sample  # noqa: E402
+from pytest_drivedegrade.corruptions.preview import read_rgb  # noqa: E402
+
+DEFAULT_IMAGE = next((Path(__file__).resolve().parents[1] / "tests" / "data" / "nuscenes").glob("*__CAM_FRONT__*.jpg"))
+#: our family -> imagecorruptions' nearest corruption
+NEAREST = {"gaussian_noise": "gaussian_noise", "gaussian_blur": "gaussian_blur", "motion_blur": "motion_blur",
+           "jpeg": "jpeg_compression", "fog": "fog", "snow": "snow", "downscale": "pixelate"}
+
+
+#: The clock: CPU time of this thread (one thread does all the work), which a process waiting for a core on a
+#: shared machine does not accumulate; --clock wall uses the wall clock instead.
+CLOCK = time.thread_time
+
+
+def median_ms(fn, repeats: int) -> float:
+    fn()  # warm caches and lazy tables once
+    times = []
+    for _ in range(repeats):
+        start = CLOCK()
+        fn()
+        times.append(CLOCK() - start)
+    return statistics.median(times) * 1000
+
+
+def ours(image: np.ndarray, family: str, severity: int, counter: list[int]):
+    def run():
+        counter[0] += 1  # a new realisation each call, as in a run over frames
+        if FAMILIES[family].scope == "image":
+            return corrupt(image, family, severity, frame=str(counter[0]))
+        return corrupt_sample({"CAM_FRONT": image}, family, severity, frame=str(counter[0]))
+    return run
+
+
+def reference(image: np.ndarray, family: str, severity: int):
+    try:
+        from imagecorruptions import corrupt as ic_corrupt
+    except ImportError:
+        return None
+    name = NEAREST.get(family)
+    return None if name is None else (lambda: ic_corrupt(image, corruption_name=name, severity=severity))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--image", default=str(DEFAULT_IMAGE))
+    parser.add_argument("--no-reference", action="store_true", help="skip imagecorruptions even if present")
+    parser.add_argument("--clock", choices=("cpu", "wall"), default="cpu")
+    args = parser.parse_args()
+    global CLOCK
+    CLOCK = time.thread_time if args.clock == "cpu" else time.perf_counter
+    cv2.setNumThreads(1)
+    image = read_rgb(args.image)
+    floor = median_ms(image.copy, args.repeats * 4)
+    print(f"image {image.shape[1]}x{image.shape[0]}, one thread, {args.clock} time, median of {args.repeats}; "
+          f"copy floor {floor:.3f} ms")
+    print(f"{'family':15s} {'S3 ms':>8s} {'S5 ms':>8s} {'S5/copy':>8s} {'ref S3':>8s} {'ref S5':>8s} {'x faster':>9s}")
+    total_s5, counter = 0.0, [0]
+    for family in FAMILIES:
+        s3 = median_ms(ours(image, family, 3, counter), args.repeats)
+        s5 = median_ms(ours(image, family, 5, counter), args.repeats)
+        total_s5 += s5
+        ref = [None if args.no_reference else reference(image, family, s) for s in (3, 5)]
+        r3, r5 = (median_ms(r, max(3, args.repeats // 3)) if r else None for r in ref)
+        ratio = f"{min(r3 / s3, r5 / s5):9.1f}" if r3 and r5 else f"{'-':>9s}"
+        fmt = lambda v: f"{v:8.1f}" if v is not None else f"{'-':>8s}"  # noqa: E731
+        print(f"{family:15s} {s3:8.2f} {s5:8.2f} {s5 / floor:8.1f} {fmt(r3)} {fmt(r5)} {ratio}")
+    print(f"sixteen families at S5 together: {total_s5:.1f} ms")
+
+
+if __name__ == "__main__":
+    main()
