@@ -13,3 +13,7 @@ class InvalidInput(DriveDegradeError, ValueError):
 
 class DataError(DriveDegradeError):
     """A data set problem: a missing table, a missing or truncated image, a dangling token."""
+
+
+class PlannerOutputError(DriveDegradeError):
+    """A planner broke the output contract: not a finite (6, 2) float array. Names the frame and shows the value."""

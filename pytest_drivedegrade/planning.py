@@ -1,0 +1,190 @@
+"""The planner contract (SPEC section 2): what a planner is, what it must return, and how it is identified.
+
+A planner is any object with ``predict(images, ego, cmd)`` returning a ``(6, 2)`` float array of waypoints at
+t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Two attributes are optional:
+
+- ``cameras``: the camera names it reads (default all six); a claim the null control checks.
+- ``name``: the report folder name (default the planner file's stem).
+
+A planner file (or the user's ``conftest.py``) provides it through a pytest fixture named ``planner``. Loading
+that file as a plugin module is the pytest plugin's job; this module only judges the object it yields.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from .constants import CAMERAS, HORIZON_STEPS
+from .data.frame import Command, EgoStatus
+from .errors import InvalidInput, PlannerOutputError
+
+__all__ = [
+    "Command",
+    "EgoStatus",
+    "Planner",
+    "planner_cameras",
+    "planner_fingerprint",
+    "planner_name",
+    "predict_checked",
+    "validate_output",
+]
+
+#: The fixture name a planner file or conftest.py must define.
+FIXTURE_NAME = "planner"
+#: At most this many characters of an offending value go into an error message.
+_VALUE_CHARS = 400
+
+
+@runtime_checkable
+class Planner(Protocol):
+    """What the suite drives. ``cameras`` and ``name`` are optional attributes, so they are not part of the
+    runtime check; read them with ``planner_cameras`` and ``planner_name``."""
+
+    def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
+        """Waypoints (6, 2) at 0.5 s steps, metres, current ego frame; `images` are read-only RGB uint8."""
+        ...
+
+
+def _show(value: Any) -> str:
+    """A short, single-message rendering of an offending value."""
+    try:
+        text = np.array2string(np.asarray(value), precision=4, threshold=24, separator=", ")
+    except Exception:  # noqa: BLE001 - any object must be showable
+        text = repr(value)
+    text = " ".join(text.split())
+    return text if len(text) <= _VALUE_CHARS else text[:_VALUE_CHARS] + " ..."
+
+
+def _fail(frame_token: str, problem: str, value: Any) -> PlannerOutputError:
+    return PlannerOutputError(
+        f"planner output for frame {frame_token!r} {problem}; the contract is a finite "
+        f"({HORIZON_STEPS}, 2) float array of waypoints. Got {type(value).__name__}: {_show(value)}"
+    )
+
+
+def validate_output(traj: Any, frame_token: str) -> np.ndarray:
+    """Check one planner output against the contract and return it as a fresh float64 (6, 2) array.
+
+    Accepts any float array-like (numpy, lists of floats, a CPU torch tensor); rejects a wrong shape, a non-float
+    dtype (int, bool, complex, object) and NaN / inf, raising ``PlannerOutputError`` that names the frame token
+    and shows the value.
+    """
+    if traj is None:
+        raise _fail(frame_token, "is None (did predict() forget to return?)", traj)
+    if hasattr(traj, "detach") and hasattr(traj, "cpu"):  # a torch tensor, without importing torch
+        traj = traj.detach().cpu().numpy()
+    try:
+        arr = np.asarray(traj)
+    except Exception as exc:  # noqa: BLE001 - ragged lists and exotic objects
+        raise _fail(frame_token, f"is not an array ({exc})", traj) from None
+    if arr.dtype.kind != "f":
+        raise _fail(frame_token, f"has dtype {arr.dtype}, not a float dtype", traj)
+    if arr.shape != (HORIZON_STEPS, 2):
+        raise _fail(frame_token, f"has shape {arr.shape}, not ({HORIZON_STEPS}, 2)", traj)
+    if not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise _fail(frame_token, f"is not finite (first at step {bad[0]}, coordinate {bad[1]})", traj)
+    return np.array(arr, dtype=np.float64, copy=True)
+
+
+def predict_checked(
+    planner: Any, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command, frame_token: str
+) -> np.ndarray:
+    """Call ``planner.predict`` and validate its output. Exceptions raised by the planner propagate unchanged."""
+    return validate_output(planner.predict(images, ego, cmd), frame_token)
+
+
+def planner_cameras(planner: Any) -> tuple[str, ...]:
+    """The cameras a planner declares it reads, in ``CAMERAS`` order; all six when it declares nothing.
+
+    An empty declaration (``cameras = ()``) is valid: a planner that reads no camera, such as the ego-only
+    floor. A bare string, a non-string entry or an unknown name raises ``InvalidInput``.
+    """
+    declared = getattr(planner, "cameras", None)
+    if declared is None:
+        return CAMERAS
+    if isinstance(declared, (str, bytes)):
+        raise InvalidInput(
+            f"planner.cameras must be a collection of camera names, got the string {declared!r}; "
+            f"write cameras = ({declared!r},)"
+        )
+    try:
+        names = list(declared)
+    except TypeError:
+        raise InvalidInput(f"planner.cameras must be a collection of camera names, got {declared!r}") from None
+    unknown = [n for n in names if n not in CAMERAS]
+    if unknown:
+        raise InvalidInput(
+            f"planner.cameras names unknown camera(s) {unknown!r}; valid names are {', '.join(CAMERAS)}"
+        )
+    return tuple(c for c in CAMERAS if c in names)
+
+
+def planner_name(planner: Any, default: str) -> str:
+    """The planner's ``name`` attribute when it is a usable folder name, else `default` (the file's stem)."""
+    name = getattr(planner, "name", None)
+    if name is None:
+        return default
+    if not isinstance(name, str) or not name.strip():
+        raise InvalidInput(f"planner.name must be a non-empty string, got {name!r}")
+    name = name.strip()
+    if any(sep in name for sep in ("/", "\\")) or name in (".", ".."):
+        raise InvalidInput(f"planner.name {name!r} is used as a report folder and may not contain a path")
+    return name
+
+
+def _state_bytes(planner: Any) -> bytes | None:
+    """Bytes of the planner's weights when it has a torch-like ``state_dict`` (itself or its ``model``)."""
+    for owner in (planner, getattr(planner, "model", None), getattr(planner, "net", None)):
+        state_dict = getattr(owner, "state_dict", None)
+        if owner is None or not callable(state_dict):
+            continue
+        digest = hashlib.sha256()
+        for key, tensor in sorted(state_dict().items()):
+            data = tensor.detach().cpu().contiguous().numpy() if hasattr(tensor, "detach") else np.asarray(tensor)
+            digest.update(f"{key}|{data.dtype}|{data.shape}|".encode())
+            digest.update(np.ascontiguousarray(data).tobytes())
+        return digest.digest()
+    return None
+
+
+def _source_bytes(planner: Any, path: str | Path | None) -> bytes:
+    """The planner file's source, or, for a conftest fixture without a path, its class's source file."""
+    candidates: list[Any] = [path] if path is not None else []
+    try:
+        candidates.append(inspect.getsourcefile(type(planner)))
+    except TypeError:  # builtins have no source file
+        pass
+    for candidate in candidates:
+        if candidate and Path(candidate).is_file():
+            return Path(candidate).read_bytes()
+    return f"{type(planner).__module__}.{type(planner).__qualname__}".encode()
+
+
+def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
+    """A SHA-256 hex digest identifying a planner: its file's source plus its weights or declared state.
+
+    State, in order of preference: a ``fingerprint`` attribute (a string, or a callable returning one), the
+    bytes of a torch ``state_dict`` (on the planner or its ``model`` / ``net``), nothing. The planner's class
+    name and declared cameras are included too, since they change what the suite tests.
+    """
+    digest = hashlib.sha256(b"drivedegrade-planner-v1|")
+    digest.update(_source_bytes(planner, path))
+    digest.update(f"|class|{type(planner).__module__}.{type(planner).__qualname__}".encode())
+    declared = getattr(planner, "fingerprint", None)
+    if callable(declared):
+        declared = declared()
+    if declared is not None:
+        digest.update(b"|fingerprint|" + str(declared).encode())
+    else:
+        state = _state_bytes(planner)
+        if state is not None:
+            digest.update(b"|state|" + state)
+    digest.update(b"|cameras|" + ",".join(planner_cameras(planner)).encode())
+    return digest.hexdigest()
