@@ -1,0 +1,153 @@
+"""The controller's end of a run: gather the cells, compute the analysis and the floor, write the outputs,
+apply the baseline gate, and say it all in a short terminal summary. Never raises for a user mistake."""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from .options import RunOptions
+
+
+@dataclass
+class Outcome:
+    lines: list[str] = field(default_factory=list)
+    failed: bool = False
+
+
+def cache_root(config: pytest.Config) -> Path:
+    """pytest's cache folder for the world and the floor, or a folder under rootdir with -p no:cacheprovider."""
+    cache = getattr(config, "cache", None)
+    return Path(cache.mkdir("drivedegrade")) if cache is not None else Path(config.rootpath) / ".drivedegrade-cache"
+
+
+def open_run_context(config: pytest.Config, options: RunOptions):
+    """The data (the embedded world unless --drivedegrade-data) indexed, and the frames to score chosen."""
+    from .run import open_context
+
+    root = options.data
+    if root is None:
+        from .data.world import ensure_default_world
+
+        root = ensure_default_world(cache_root(config),
+                                    progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
+    return open_context(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
+                        timeout=options.timeout, planner_path=options.planner_path)
+
+
+def _floor_l2(config: pytest.Config, context: Any, split: str, lines: list[str]) -> float | None:
+    """The ego-only floor's clean l2_avg on the scored frames (trained on the train split once, cached)."""
+    import numpy as np
+
+    from .data.nuscenes import NuScenesReader
+    from .errors import DriveDegradeError
+    from .floor import load_or_train_floor, train_split_for
+
+    try:
+        train = NuScenesReader(context.reader.root, split=train_split_for(split))
+        if not train.scorable_frames(limit=1):
+            lines.append(f"ego-only floor: skipped, split {train_split_for(split)!r} has no scorable frames")
+            return None
+        model = load_or_train_floor(train, cache_root(config) / "floor")
+    except DriveDegradeError as exc:
+        lines.append(f"ego-only floor: skipped ({exc})")
+        return None
+    values = context.run_cell(model, "clean", 0).l2_avg_per_frame()
+    return float(np.nanmean(values))
+
+
+def _gather(plugin: Any, context: Any) -> tuple[str | None, dict[str, Any], dict[str, dict[str, Any]]]:
+    """(planner name, run key, cell -> payload): this session's cells plus stored ones of the same run."""
+    from .loader import cell_id
+    from .store import ResultStore
+
+    payloads = dict(plugin.records)
+    if not payloads:
+        return None, {}, {}
+    first = payloads.get("clean") or next(iter(payloads.values()))
+    name, key = first["planner"], first["key"]
+    payloads = {c: p for c, p in payloads.items() if p["key"] == key}
+    expected = [cell_id(f, s) for f, s in plugin.cells()]
+    stored = ResultStore(plugin.options.report_dir).read_all(name, key, [c for c in expected if c not in payloads])
+    return name, key, {**stored, **payloads}
+
+
+def finish_run(plugin: Any, session: pytest.Session) -> Outcome | None:
+    """Analyse and write everything the run has; an Outcome whose lines go into the terminal summary."""
+    from .loader import cell_id
+
+    out = Outcome()
+    context = plugin.context
+    if context is None:
+        return None
+    name, key, payloads = _gather(plugin, context)
+    if name is None:
+        out.lines.append("no cell finished: nothing to analyse")
+        return out
+    expected = [cell_id(f, s) for f, s in plugin.cells()]
+    missing = [c for c in expected if c not in payloads]
+    if "clean" not in payloads:  # not a failure: the cells that ran are stored, and a later run completes them
+        out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
+                         "deselected with -k?); the cells that ran are stored and reused by a run that includes "
+                         "clean")
+        return out
+    from .analysis import analyse_run
+
+    floor_l2 = _floor_l2(plugin.config, context, plugin.options.split, out.lines)
+    analysis = analyse_run([p["record"] for p in payloads.values()], flat=plugin.options.flat,
+                           seed=plugin.options.seed, floor_l2=floor_l2)
+    from .outputs import write_outputs
+
+    cert = write_outputs(plugin, session, context, name, key, payloads, analysis, out)
+    _gate(plugin, cert, out)
+    _summary(analysis, missing, out)
+    return out
+
+
+def _gate(plugin: Any, cert: dict[str, Any], out: Outcome) -> None:
+    """--drivedegrade-baseline: an axis that regressed fails the session (cells fail in their own items)."""
+    if plugin.baseline is None:
+        return
+    from .analysis import BaselineError, compare_to_baseline
+
+    try:
+        result = compare_to_baseline(cert, plugin.baseline, plugin.options.tolerance)
+    except BaselineError as exc:
+        out.lines.append(f"baseline: {exc}")
+        out.failed = True
+        return
+    for reg in result["axes"]:
+        out.lines.append(f"REGRESSION {reg.message()}")
+        out.failed = True
+    out.lines.append(f"baseline: {len(result['cells'])} cell and {len(result['axes'])} axis regression(s) beyond "
+                     f"tolerance {plugin.options.tolerance:g}")
+
+
+def _fmt(value: Any) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else f"{value:.3f}"
+
+
+def _summary(analysis: Any, missing: list[str], out: Outcome) -> None:
+    ax, verdict = analysis.axes, analysis.verdict
+    out.lines.insert(0, f"verdict: {verdict['label']} - {verdict['text']}")
+    out.lines.insert(1, f"axes: quality {_fmt(ax.get('quality'))}  removal {_fmt(ax.get('removal'))}  "
+                        f"gap {_fmt(ax.get('gap'))}  mean {_fmt(ax.get('mean'))}")
+    nc = analysis.null_control
+    if nc is not None:
+        out.lines.insert(2, f"null control: {'passed' if nc['passed'] else 'FAILED'} "
+                            f"(max abs diff {nc['max_abs_diff']:.3g} m)")
+    floor = analysis.floor or {}
+    if floor.get("l2_avg") is not None:
+        out.lines.append(f"ego-only floor: l2_avg {_fmt(floor['l2_avg'])} m")
+    reached = {f: t for f, t in analysis.thresholds.items() if t.get("s10") is not None}
+    if reached:
+        out.lines.append("s*10 (severity where retention first falls below 0.90): "
+                         + ", ".join(f"{f} {t['s10']:.2f}" for f, t in sorted(reached.items(), key=lambda x: x[1]["s10"])))
+    if missing:
+        out.lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
+                         "compute only these (finished cells are reused)")

@@ -1,0 +1,124 @@
+"""The loader: decode a keyframe's camera images and inject the cell's corruption, on demand.
+
+A `CellSample` is the read-only mapping camera -> image a planner receives. Each camera is decoded and
+corrupted only when the planner reads it, so a planner that reads three cameras costs three decodes; every
+delivered array is read-only. What a cell delivers depends only on (seed, frame, camera, family,
+severity), and for frame_dropout on the frames before it in the same cell, never on the worker layout.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator, Mapping
+
+import numpy as np
+
+from .constants import CAMERAS
+from .corruptions.api import corrupt
+from .corruptions.registry import FAMILIES
+from .corruptions.seeding import rng_for
+from .corruptions.temporal import frame_lost
+from .data.frame import Frame
+
+#: Diagnostic cells and what they deliver: clean (severity 0), null (the cameras the planner does not read
+#: blacked out; an untouched rerun for a planner that reads all six) and blind (all six black).
+DIAGNOSTIC = ("clean", "null", "blind")
+
+Decode = Callable[[Frame, str], np.ndarray]
+
+
+def cell_id(family: str, severity: int) -> str:
+    return family if family in DIAGNOSTIC else f"{family}-s{severity}"
+
+
+class DropoutState:
+    """frame_dropout's hold-last-frame: for each camera, the frame whose image it last delivered.
+
+    The state is the *source* frame, not pixels, so nothing is decoded for a camera the planner never reads.
+    It resets at each new scene: a camera stream does not carry over between logs.
+    """
+
+    def __init__(self) -> None:
+        self.scene = None
+        self.source: dict[str, Frame | None] = {}
+
+    def advance(self, frame: Frame, probability: float, seed: int, severity: int) -> dict[str, Frame | None]:
+        if frame.scene_token != self.scene:
+            self.scene, self.source = frame.scene_token, {}
+        for cam in CAMERAS:
+            lost = frame_lost(rng_for(seed, frame.token, cam, "frame_dropout", severity), probability)
+            self.source[cam] = self.source.get(cam) if lost else frame
+        return dict(self.source)
+
+
+class CellSample(Mapping[str, np.ndarray]):
+    """The six degraded camera images of one frame for one cell, produced lazily and read-only."""
+
+    def __init__(self, frame: Frame, family: str, severity: int, *, seed: int, decode: Decode,
+                 unread: tuple[str, ...] = (), dropout: dict[str, Frame | None] | None = None) -> None:
+        self.frame, self.family, self.severity, self.seed = frame, family, severity, seed
+        self._decode, self._unread, self._dropout = decode, unread, dropout
+        self._cache: dict[str, np.ndarray] = {}
+        self.seconds = {"decode": 0.0, "inject": 0.0}
+
+    def __getitem__(self, camera: str) -> np.ndarray:
+        if camera not in self._cache:
+            if camera not in CAMERAS:
+                raise KeyError(camera)
+            image = self._make(camera)
+            image.setflags(write=False)
+            self._cache[camera] = image
+        return self._cache[camera]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(CAMERAS)
+
+    def __len__(self) -> int:
+        return len(CAMERAS)
+
+    def __repr__(self) -> str:
+        return f"<CellSample {cell_id(self.family, self.severity)} frame {self.frame.token}>"
+
+    @property
+    def delivered(self) -> dict[str, np.ndarray]:
+        """The images the planner actually read (for the energy proxy)."""
+        return dict(self._cache)
+
+    def _black(self, camera: str) -> np.ndarray:
+        info = self.frame.cameras[camera]
+        return np.zeros((info.height, info.width, 3), np.uint8)
+
+    def _load(self, frame: Frame, camera: str) -> np.ndarray:
+        start = time.perf_counter()
+        try:
+            return self._decode(frame, camera)
+        finally:
+            self.seconds["decode"] += time.perf_counter() - start
+
+    def _make(self, camera: str) -> np.ndarray:
+        family = self.family
+        if family == "blind" or (family == "null" and camera in self._unread):
+            return self._black(camera)
+        if family in ("clean", "null"):
+            return self._load(self.frame, camera)
+        if family == "blackout":
+            return self._black(camera) if camera in FAMILIES[family].value(self.severity) \
+                else self._load(self.frame, camera)
+        if family == "frame_dropout":
+            source = (self._dropout or {}).get(camera)
+            return self._black(camera) if source is None else self._load(source, camera)
+        clean = self._load(self.frame, camera)
+        start = time.perf_counter()
+        out = corrupt(clean, family, self.severity, seed=self.seed, frame=self.frame.token, camera=camera)
+        self.seconds["inject"] += time.perf_counter() - start
+        return out
+
+
+def samples(frames: list[Frame], family: str, severity: int, *, seed: int, decode: Decode,
+            unread: tuple[str, ...] = ()) -> Iterator[CellSample]:
+    """The cell's samples in frame order (frame_dropout's state runs along them)."""
+    state = DropoutState() if family == "frame_dropout" else None
+    probability = FAMILIES[family].value(severity) if state else 0.0
+    for frame in frames:
+        dropout = state.advance(frame, probability, seed, severity) if state else None
+        yield CellSample(frame, family, severity, seed=seed, decode=decode, unread=unread, dropout=dropout)

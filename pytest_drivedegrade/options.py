@@ -1,0 +1,144 @@
+"""Run options: one table of `--drivedegrade-*` flags, each also settable in `[tool.pytest.ini_options]`.
+
+Values are parsed and checked once, at start-up, into a `RunOptions`; a bad value is a usage error that
+names the option, never a traceback later in the run. Light: no heavy imports at module level.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    flag: str
+    dest: str
+    help: str
+    argparse: dict[str, Any] = field(default_factory=dict)
+
+
+ENABLE = "drivedegrade"
+OPTIONS: tuple[OptionSpec, ...] = (
+    OptionSpec("--drivedegrade", ENABLE, "certify the planner fixture of PATH (a .py file), or with no PATH the "
+               "`planner` fixture of your conftest.py", {"nargs": "?", "const": "", "metavar": "PATH"}),
+    OptionSpec("--drivedegrade-data", "drivedegrade_data", "nuScenes data root (default: the embedded world, "
+               "rendered into pytest's cache on first use)", {"metavar": "DIR"}),
+    OptionSpec("--drivedegrade-split", "drivedegrade_split", "split to score: val (default), train, mini_val, "
+               "mini_train, all", {"metavar": "SPLIT"}),
+    OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
+               "frames (default: all scorable frames)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families (default: all "
+               "sixteen)", {"metavar": "LIST"}),
+    OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
+               "all five)", {"metavar": "LIST"}),
+    OptionSpec("--drivedegrade-seed", "drivedegrade_seed", "seed of every random corruption (default 0)",
+               {"metavar": "INT"}),
+    OptionSpec("--drivedegrade-report", "drivedegrade_report", "folder for <planner>/cells.csv, report.html and "
+               "certificate.json (default reports)", {"metavar": "DIR"}),
+    OptionSpec("--drivedegrade-baseline", "drivedegrade_baseline", "a stored certificate.json: fail cells and axes "
+               "whose retention regressed", {"metavar": "FILE"}),
+    OptionSpec("--drivedegrade-tolerance", "drivedegrade_tolerance", "allowed retention drop below the baseline "
+               "(default 0.02)", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-flat", "drivedegrade_flat", "retention at or above which an axis counts as flat "
+               "(default 0.95)", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
+               "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
+)
+_BY_DEST = {spec.dest: spec for spec in OPTIONS}
+
+
+def value(config: pytest.Config, dest: str) -> Any:
+    """The command-line value, else the ini value, else None."""
+    got = config.getoption(dest, default=None)
+    if got is None:
+        got = config.getini(dest) or None
+    return got
+
+
+def _fail(dest: str, text: str) -> pytest.UsageError:
+    return pytest.UsageError(f"{_BY_DEST[dest].flag}: {text}")
+
+
+def _number(config: pytest.Config, dest: str, kind: type, default: Any, low: float, high: float | None) -> Any:
+    raw = value(config, dest)
+    if raw is None:
+        return default
+    try:
+        got = kind(str(raw).strip())
+    except ValueError:
+        raise _fail(dest, f"expected {'an integer' if kind is int else 'a number'}, got {raw!r}") from None
+    if got < low or (high is not None and got > high):
+        bound = f"between {low} and {high}" if high is not None else f"at least {low}"
+        raise _fail(dest, f"must be {bound}, got {got}")
+    return got
+
+
+def _list(config: pytest.Config, dest: str) -> list[str] | None:
+    raw = value(config, dest)
+    if raw is None:
+        return None
+    items = [p.strip() for p in str(raw).replace(" ", ",").split(",") if p.strip()]
+    if not items:
+        raise _fail(dest, "is empty")
+    return items
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Everything a run depends on, checked. `planner_path` is None for a conftest planner fixture."""
+
+    planner_path: Path | None
+    data: Path | None
+    split: str
+    frames: int | None
+    families: tuple[str, ...]
+    severities: tuple[int, ...]
+    seed: int
+    report_dir: Path
+    baseline_path: Path | None
+    tolerance: float
+    flat: float
+    timeout: float
+
+
+def parse(config: pytest.Config) -> RunOptions:
+    """Read and check every option; raise pytest.UsageError naming the first bad one."""
+    from .corruptions.registry import FAMILIES, SEVERITIES
+    from .data.nuscenes import SPLITS
+
+    here = Path(config.invocation_params.dir)
+    path = value(config, ENABLE)
+    planner_path = (here / path).resolve() if path else None
+    data = value(config, "drivedegrade_data")
+    split = str(value(config, "drivedegrade_split") or "val")
+    if split not in SPLITS:
+        raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
+    families = _list(config, "drivedegrade_families") or list(FAMILIES)
+    unknown = [f for f in families if f not in FAMILIES]
+    if unknown:
+        raise _fail("drivedegrade_families", f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
+                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join(FAMILIES)}")
+    severities = []
+    for s in _list(config, "drivedegrade_severities") or [str(s) for s in SEVERITIES]:
+        if not s.isdigit() or int(s) not in SEVERITIES:
+            raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
+        severities.append(int(s))
+    baseline = value(config, "drivedegrade_baseline")
+    return RunOptions(
+        planner_path=planner_path,
+        data=(here / data).resolve() if data else None,
+        split=split,
+        frames=_number(config, "drivedegrade_frames", int, None, 1, None),
+        families=tuple(f for f in FAMILIES if f in families),
+        severities=tuple(sorted(set(severities))),
+        seed=_number(config, "drivedegrade_seed", int, 0, 0, None),
+        report_dir=(here / str(value(config, "drivedegrade_report") or "reports")).resolve(),
+        baseline_path=(here / baseline).resolve() if baseline else None,
+        tolerance=_number(config, "drivedegrade_tolerance", float, 0.02, 0.0, 1.0),
+        flat=_number(config, "drivedegrade_flat", float, 0.95, 0.0, 1.0),
+        timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
+    )

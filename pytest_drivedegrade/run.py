@@ -1,0 +1,171 @@
+"""Running one cell: stream the frames through the loader into the planner, check conformance, score.
+
+`RunContext` is built once per process (the controller, or each xdist worker): the data, the frame list,
+the result store. `run_cell` is the whole of a cell's work and returns a `CellRecord` whose per-frame
+failures are NaN rows with a message naming the frame.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .analysis import CellRecord
+from .constants import CAMERAS, HORIZON_STEPS
+from .corruptions.registry import SPEC_VERSION
+from .data.frame import Frame
+from .data.nuscenes import NuScenesReader
+from .errors import DataError, DriveDegradeError, PlannerOutputError
+from .loader import samples
+from .metrics import bit1_density, frame_metrics
+from .planning import planner_cameras, planner_fingerprint, validate_output
+
+MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
+
+
+class PlannerTimeout(Exception):
+    """predict() ran past --drivedegrade-timeout on one frame."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float) -> Iterator[None]:
+    """Raise PlannerTimeout inside the block after `seconds` (POSIX main thread; a no-op elsewhere or at 0)."""
+    usable = seconds > 0 and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+    if not usable:
+        yield
+        return
+
+    def expire(signum: int, frame: Any) -> None:
+        raise PlannerTimeout(f"predict() took longer than {seconds:g} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+@dataclass
+class PlannerInfo:
+    cameras: tuple[str, ...]
+    fingerprint: str
+
+
+@dataclass
+class RunContext:
+    """Per-process state of a certification run."""
+
+    reader: NuScenesReader
+    frames: list[Frame]
+    seed: int
+    timeout: float
+    dataset_fingerprint: str
+    planner_path: Path | None
+    _planner: dict[int, PlannerInfo] = field(default_factory=dict)
+    _clean: dict[int, CellRecord] = field(default_factory=dict)
+
+    @property
+    def frames_key(self) -> str:
+        """Which frames are scored (the --drivedegrade-frames subset changes results)."""
+        return hashlib.sha256("|".join(f.token for f in self.frames).encode()).hexdigest()[:16]
+
+    def planner_info(self, planner: Any) -> PlannerInfo:
+        key = id(planner)
+        if key not in self._planner:
+            self._planner[key] = PlannerInfo(planner_cameras(planner), planner_fingerprint(planner, self.planner_path))
+        return self._planner[key]
+
+    def run_key(self, planner: Any) -> dict[str, Any]:
+        """What a stored cell result must match to be reused by a rerun."""
+        return {"spec_version": SPEC_VERSION, "planner_fingerprint": self.planner_info(planner).fingerprint,
+                "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
+
+    def decode(self, frame: Frame, camera: str) -> np.ndarray:
+        return self.reader.load_image(frame.cameras[camera])
+
+    def clean_record(self, planner: Any) -> CellRecord:
+        """The clean cell, computed once per process: the reference for null control and the baseline gate."""
+        key = id(planner)
+        if key not in self._clean:
+            self._clean[key] = self.run_cell(planner, "clean", 0)
+        return self._clean[key]
+
+    def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None) -> CellRecord:
+        """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message."""
+        if unread is None:
+            declared = self.planner_info(planner).cameras
+            unread = tuple(c for c in CAMERAS if c not in declared)
+        n = len(self.frames)
+        plans = np.full((n, HORIZON_STEPS, 2), np.nan)
+        l2, col, vru = (np.full((n, HORIZON_STEPS), np.nan) for _ in range(3))
+        jerk, bit1 = np.full(n, np.nan), np.full(n, np.nan)
+        errors: list[str] = []
+        spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0}
+        start = time.perf_counter()
+        for i, sample in enumerate(samples(self.frames, family, severity, seed=self.seed, decode=self.decode,
+                                           unread=unread)):
+            frame = sample.frame
+            t0 = time.perf_counter()
+            try:
+                with time_limit(self.timeout):
+                    raw = planner.predict(sample, frame.ego, frame.command)
+                plan = validate_output(raw, frame.token)
+            except (PlannerOutputError, DataError) as exc:
+                errors.append(str(exc) if isinstance(exc, PlannerOutputError) else f"frame {frame.token!r}: {exc}")
+                continue
+            except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
+                errors.append(describe_failure(exc, frame.token))
+                continue
+            finally:
+                elapsed = time.perf_counter() - t0  # predict() plus the lazy decode and injection it triggered
+                spent["decode"] += sample.seconds["decode"]
+                spent["inject"] += sample.seconds["inject"]
+                spent["planner"] += elapsed - sample.seconds["decode"] - sample.seconds["inject"]
+            t1 = time.perf_counter()
+            m = frame_metrics(plan, frame)
+            plans[i], l2[i], col[i], vru[i], jerk[i] = plan, m["l2"], m["collision"], m["collision_vru"], m["jerk"]
+            bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
+            spent["metrics"] += time.perf_counter() - t1
+        spent["total"] = time.perf_counter() - start
+        return CellRecord(cell_name(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
+                          col, vru, jerk, bit1, seconds=spent, errors=errors)
+
+
+def cell_name(family: str, severity: int) -> str:
+    from .loader import cell_id
+
+    return cell_id(family, severity)
+
+
+def describe_failure(exc: BaseException, frame_token: str) -> str:
+    """One line naming the frame and what the planner did wrong."""
+    if isinstance(exc, PlannerTimeout):
+        return f"frame {frame_token!r}: {exc} (raise --drivedegrade-timeout if this planner is legitimately slow)"
+    if isinstance(exc, ValueError) and "read-only" in str(exc):
+        return (f"frame {frame_token!r}: predict() wrote to its input image ({exc}); the images are read-only: "
+                "copy before modifying (np.array(img))")
+    if isinstance(exc, TypeError) and "does not support item assignment" in str(exc):
+        return f"frame {frame_token!r}: predict() tried to modify the images mapping ({exc}); it is read-only"
+    return f"frame {frame_token!r}: predict() raised {type(exc).__name__}: {exc}"
+
+
+def open_context(*, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
+                 planner_path: Path | None) -> RunContext:
+    """Index the data and pick the scored frames; a data problem raises DataError naming the file or token."""
+    reader = NuScenesReader(data_root, split=split)
+    chosen = reader.scorable_frames(limit=frames)
+    if not chosen:
+        raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
+                                f"keyframes); skipped: {dict(reader.skipped)}")
+    return RunContext(reader, chosen, seed, timeout, reader.fingerprint(), planner_path)

@@ -1,0 +1,206 @@
+"""Shared set-up of the plugin's end-to-end tests (tests/test_plugin*.py), loaded by them as a pytest plugin.
+
+One small world (3 scenes, seed 1) and one pytest cache folder (so the ego-only floor is trained once) serve
+every `pytester` run; `Runner` builds the command line and planners are written from `planner_source`.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+# Import the heavy stages once here, before pytester's in-process runs: each run drops the modules it imported
+# itself, and a matplotlib imported twice in one process breaks (its classes no longer match).
+import jinja2  # noqa: F401
+import pytest_drivedegrade.floor  # noqa: F401
+import pytest_drivedegrade.report.html  # noqa: F401
+import pytest_drivedegrade.report.plots  # noqa: F401
+import pytest_drivedegrade.run  # noqa: F401
+
+#: Three ladder families at two severities: 3 diagnostic + 6 ladder cells, a few seconds per run.
+FAMILIES = "jpeg,blackout,gaussian_blur"
+SEVERITIES = "1,5"
+SMALL_CELLS = ("clean", "null", "blind", "gaussian_blur-s1", "gaussian_blur-s5", "jpeg-s1", "jpeg-s5", "blackout-s1",
+               "blackout-s5")  # in collection and report order: diagnostic cells, then the ladder's order
+#: Every family the two axes need at S5 (nine quality families and blackout), for the verdict tests.
+AXIS_FAMILIES = "gaussian_blur,motion_blur,gaussian_noise,low_light,jpeg,downscale,color_quant,fog,snow,blackout"
+FRAMES = 4
+
+PLANNER = '''
+import os
+import time
+
+import numpy as np
+import pytest
+
+T = 0.5 * np.arange(1, 7)
+
+
+class TestPlanner:
+    """Constant velocity, scaled by a function of the front camera's mean brightness when it reads that camera.
+
+    `faults` maps a cell id to (fault, frame token or None for every frame): how it misbehaves there.
+    """
+
+    cameras = {cameras!r}
+    name = {name!r}
+    faults = {faults!r}
+    read_back = {read_back!r}
+    count_file = {count_file!r}
+    marker = {marker!r}
+
+    def predict(self, images, ego, cmd):
+        diagnostic = images.family in ("clean", "null", "blind")
+        cell = images.family if diagnostic else f"{{images.family}}-s{{images.severity}}"
+        if self.count_file:
+            with open(self.count_file, "a") as f:
+                f.write(cell + "\\n")
+        scale = 1.0
+        if "CAM_FRONT" in self.cameras:
+            m = float(images["CAM_FRONT"].mean()) / 128.0
+            scale = {scale_expr}
+        if self.read_back:
+            scale *= 1.0 + float(images["CAM_BACK"].mean()) / 255.0
+        plan = T[:, None] * np.asarray(ego.velocity, float)[None, :] * scale
+        fault, frame = self.faults.get(cell, (None, None))
+        if fault and frame in (None, images.frame.token):
+            plan = self.misbehave(fault, images, plan)
+        return plan
+
+    def misbehave(self, fault, images, plan):
+        if fault == "raise":
+            raise RuntimeError("boom in the test planner")
+        if fault == "nan":
+            plan[3, 1] = float("nan")
+        if fault == "shape":
+            return plan[:5]
+        if fault == "write":
+            images["CAM_FRONT"][0, 0, 0] = 7
+        if fault == "hang":
+            time.sleep(5)
+        if fault == "exit" and os.path.exists(self.marker):
+            os._exit(1)
+        if fault == "interrupt" and os.path.exists(self.marker):
+            raise KeyboardInterrupt
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return TestPlanner()
+'''
+
+#: The plan's speed follows the front camera's brightness: dark or washed-out images give a wrong speed.
+REACTIVE = "m"
+#: A more fragile variant: the same reaction, amplified, and a black front camera reverses the plan.
+FRAGILE = "m ** 3 if m > 0 else -2.0"
+
+
+def planner_source(*, cameras: tuple[str, ...] = ("CAM_FRONT",), name: str | None = "testplanner",
+                   faults: dict[str, tuple[str, str | None]] | None = None, read_back: bool = False,
+                   marker: str = "", count_file: str = "", scale: str = REACTIVE) -> str:
+    """Source of a planner file; `faults` maps cell id -> (fault, frame token or None)."""
+    return PLANNER.format(cameras=tuple(cameras), name=name, faults=dict(faults or {}), read_back=read_back,
+                          marker=marker, count_file=count_file, scale_expr=scale)
+
+
+@dataclass
+class Runner:
+    """Builds `pytest --drivedegrade ...` command lines for pytester with the small world and shared cache."""
+
+    pytester: pytest.Pytester
+    world: Path
+    cache: Path
+
+    def args(self, *extra: str, planner: str | None = "myplanner.py", report: str = "rep",
+             families: str = FAMILIES, severities: str = SEVERITIES, data: Path | None = None) -> list[str]:
+        head = ["--drivedegrade"] + ([planner] if planner else [])
+        return [*head, "--drivedegrade-data", str(data or self.world), "--drivedegrade-frames", str(FRAMES),
+                "--drivedegrade-families", families, "--drivedegrade-severities", severities,
+                "--drivedegrade-report", report, "-o", f"cache_dir={self.cache}", *extra]
+
+    def run(self, *extra: str, subprocess: bool = False, **kw: Any) -> pytest.RunResult:
+        args = self.args(*extra, **kw)
+        if subprocess:
+            return self.pytester.runpytest_subprocess(*args)
+        return self.pytester.runpytest_inprocess(*args, no_reraise_ctrlc=True)
+
+    def write_planner(self, filename: str = "myplanner", **kw: Any) -> Path:
+        return self.pytester.makepyfile(**{filename: planner_source(**kw)})
+
+    def folder(self, name: str = "testplanner", report: str = "rep") -> Path:
+        return self.pytester.path / report / name
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO(path.read_text())))
+
+
+def by_cell(rows: list[dict[str, str]]) -> dict[str, dict[str, str]]:
+    return {r["cell"]: r for r in rows}
+
+
+def verify_cli(path: Path) -> subprocess.CompletedProcess:
+    """`drivedegrade verify PATH`, the command a CI job runs."""
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify", str(path)],
+                          capture_output=True, text=True, check=False)
+
+
+def no_traceback(result: pytest.RunResult) -> None:
+    text = result.stdout.str() + result.stderr.str()
+    assert "Traceback" not in text, text
+
+
+def load_json(path: Path) -> Any:
+    return json.loads(path.read_text())
+
+
+def _warm_up_matplotlib() -> None:
+    """Render one small chart, so matplotlib's lazily imported parts are loaded outside the runs too."""
+    import io
+
+    from pytest_drivedegrade.report.plots import _figure
+
+    fig = _figure(1, 1)
+    fig.add_subplot().plot([0, 1], [0, 1], label="x")
+    fig.savefig(io.BytesIO(), format="png")
+
+
+_warm_up_matplotlib()
+
+
+@pytest.fixture(scope="session")
+def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """2 train scenes and 1 val scene with rendered val images (a few seconds, once)."""
+    from pytest_drivedegrade.data.world import write_world
+
+    return write_world(tmp_path_factory.mktemp("w"), scenes=3, seed=1)
+
+
+@pytest.fixture(scope="session")
+def shared_cache(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One pytest cache folder for every run, so the ego-only floor is trained on the small world once; kept in
+    this test session's own cache when it has one (the world is deterministic, so later sessions reuse it)."""
+    cache = getattr(request.config, "cache", None)
+    return Path(cache.mkdir("drivedegrade-plugin-tests")) if cache is not None else tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def scored_tokens(small_world: Path) -> list[str]:
+    """The tokens of the frames a run scores, in order."""
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+    return [f.token for f in NuScenesReader(small_world, split="val").scorable_frames(limit=FRAMES)]
+
+
+@pytest.fixture
+def dd(pytester: pytest.Pytester, small_world: Path, shared_cache: Path) -> Runner:
+    return Runner(pytester, small_world, shared_cache)

@@ -1,0 +1,183 @@
+"""End-to-end runs of the pytest plugin under `pytester`: cells as items, outputs, verdicts, JUnit, CI gate.
+
+Faults and bad input are in test_plugin_faults.py. Every run uses one small world and a shared cache
+(tests/plugin_support.py), a few frames and a family subset, so each takes seconds.
+"""
+
+from __future__ import annotations
+
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import (AXIS_FAMILIES, FRAGILE, SMALL_CELLS, by_cell, load_json, no_traceback, planner_source,
+                            read_csv, verify_cli)
+
+pytest_plugins = ["plugin_support"]
+
+
+def junit(path: Path) -> tuple[dict[str, str], dict[str, dict[str, str]]]:
+    """(suite properties, testcase name -> its properties) of a JUnit XML file."""
+    root = ET.parse(path).getroot()
+    suite = root.find("testsuite") if root.tag == "testsuites" else root
+    props = {p.get("name"): p.get("value") for p in suite.findall("./properties/property")}
+    cases = {tc.get("name"): {p.get("name"): p.get("value") for p in tc.findall("./properties/property")}
+             for tc in suite.iter("testcase")}
+    return props, cases
+
+
+def test_without_the_flag_nothing_extra_is_collected(dd):
+    dd.write_planner()
+    dd.pytester.makepyfile(test_plain="def test_one():\n    assert 1 + 1 == 2\n")
+    result = dd.pytester.runpytest_inprocess("-p", "no:cacheprovider")
+    result.assert_outcomes(passed=1)
+    assert not (dd.pytester.path / "reports").exists()
+    assert "= drivedegrade =" not in result.stdout.str()
+
+
+def test_serial_and_xdist_runs_agree(dd):
+    """The cells are items named by cell id; -n 0 and -n 2 write identical cells.csv and the same figures."""
+    dd.write_planner()
+    serial = dd.run("-v", "--junitxml=serial.xml", report="rep0")
+    serial.assert_outcomes(passed=len(SMALL_CELLS))
+    serial.stdout.fnmatch_lines([f"myplanner.py::{c} PASSED*" for c in SMALL_CELLS], consecutive=False)
+    parallel = dd.run("-n", "2", "--junitxml=parallel.xml", report="rep2")
+    parallel.assert_outcomes(passed=len(SMALL_CELLS))
+    assert serial.ret == parallel.ret == 0
+    one, two = dd.folder(report="rep0"), dd.folder(report="rep2")
+    for folder in (one, two):
+        assert {p.name for p in folder.iterdir()} >= {"cells.csv", "report.html", "certificate.json", "cells"}
+        assert sorted(p.stem for p in (folder / "cells").glob("*.json")) == sorted(SMALL_CELLS)
+    assert (one / "cells.csv").read_text() == (two / "cells.csv").read_text()
+
+    rows = by_cell(read_csv(one / "cells.csv"))
+    assert list(rows) == list(SMALL_CELLS)
+    assert {r["frames"] for r in rows.values()} == {"4"}
+    assert (rows["null"]["family"], rows["null"]["severity"]) == ("null", "0")
+    assert (rows["jpeg-s5"]["family"], rows["jpeg-s5"]["severity"]) == ("jpeg", "5")
+    assert float(rows["clean"]["retention"]) == 1.0
+    assert float(rows["blackout-s1"]["retention"]) == 1.0  # CAM_BACK out, the planner reads CAM_FRONT only
+    assert float(rows["blackout-s5"]["retention"]) < 0.9  # CAM_FRONT out: the plan stops
+    assert float(rows["blackout-s5"]["retention_ci_low"]) <= float(rows["blackout-s5"]["retention"]) \
+        <= float(rows["blackout-s5"]["retention_ci_high"])
+
+    certs = [load_json(f / "certificate.json") for f in (one, two)]
+    for key in ("spec_version", "planner", "dataset", "cells", "thresholds", "axes", "floor", "null_control",
+                "verdict"):
+        assert certs[0][key] == certs[1][key], key
+    assert certs[0]["null_control"]["passed"] is True
+    assert certs[0]["floor"]["l2_avg"] > 0
+    for folder in (one, two):
+        done = verify_cli(folder / "certificate.json")
+        assert done.returncode == 0 and "OK" in done.stdout, done.stderr
+
+    for xml in ("serial.xml", "parallel.xml"):
+        suite, cases = junit(dd.pytester.path / xml)
+        assert suite["drivedegrade_verdict"] == certs[0]["verdict"]["label"]
+        assert "drivedegrade_axis_quality" in suite and suite["drivedegrade_null_control_passed"] == "true"
+        assert set(cases) == set(SMALL_CELLS)
+        assert cases["jpeg-s5"]["cell"] == "jpeg-s5" and cases["jpeg-s5"]["frames"] == "4"
+        assert cases["jpeg-s5"]["resumed"] == "0" and cases["jpeg-s5"]["failed_frames"] == "0"
+        assert float(cases["jpeg-s5"]["l2_3s_stp3"]) == pytest.approx(float(rows["jpeg-s5"]["l2_3s_stp3"]), abs=1e-6)
+        assert float(cases["blackout-s5"]["l2_avg"]) == pytest.approx(float(rows["blackout-s5"]["l2_avg"]),
+                                                                      abs=1e-6)
+
+
+def test_k_selects_cells_and_the_store_supplies_the_rest(dd):
+    """-k jpeg runs only jpeg cells; without a stored clean cell no report is written, after a full run the
+    stored cells complete it."""
+    dd.write_planner()
+    alone = dd.run("-k", "jpeg")
+    alone.assert_outcomes(passed=2, deselected=7)
+    assert alone.ret == 0
+    alone.stdout.fnmatch_lines(["*no clean cell result*-k*"])
+    assert not (dd.folder() / "cells.csv").exists()
+    assert (dd.folder() / "cells" / "jpeg-s1.json").is_file()
+
+    dd.run().assert_outcomes(passed=9)
+    again = dd.run("-k", "jpeg", "--junitxml=k.xml")
+    again.assert_outcomes(passed=2, deselected=7)
+    assert "missing cells" not in again.stdout.str()
+    _, cases = junit(dd.pytester.path / "k.xml")
+    assert {c: p["resumed"] for c, p in cases.items()} == {"jpeg-s1": "1", "jpeg-s5": "1"}
+    assert len(read_csv(dd.folder() / "cells.csv")) == 9
+
+
+@pytest.mark.parametrize("cameras, label", [((), "not-shown-to-use-cameras"), (("CAM_FRONT",), "camera-reliant")])
+def test_verdict(dd, cameras, label):
+    dd.write_planner(cameras=cameras)
+    result = dd.run("--junitxml=verdict.xml", families=AXIS_FAMILIES, severities="5")
+    result.assert_outcomes(passed=13)
+    result.stdout.fnmatch_lines([f"verdict: {label} - *"])
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["verdict"]["label"] == label
+    suite, _ = junit(dd.pytester.path / "verdict.xml")
+    assert suite["drivedegrade_verdict"] == label
+    assert float(suite["drivedegrade_axis_quality"]) == pytest.approx(cert["axes"]["quality"], abs=1e-6)
+    retention = {c["cell"]: c["retention"] for c in cert["cells"]}
+    if not cameras:
+        assert set(retention.values()) == {1.0}
+        assert cert["axes"]["quality"] == cert["axes"]["removal"] == 1.0
+    else:
+        assert retention["blackout-s5"] < 0.9 and cert["axes"]["quality"] < 0.95
+
+
+@pytest.mark.parametrize("name, folder", [("named", "named"), (None, "planner")])
+def test_conftest_planner_is_certified_without_a_path(dd, name, folder):
+    dd.pytester.makeconftest(planner_source(name=name))
+    dd.pytester.makepyfile(test_other="def test_other():\n    assert False\n")
+    result = dd.run("-v", planner=None, families="jpeg", severities="1")
+    result.assert_outcomes(passed=4)
+    result.stdout.fnmatch_lines(["*conftest.py::jpeg-s1 PASSED*"])
+    assert "test_other" not in result.stdout.str()
+    assert (dd.folder(folder) / "certificate.json").is_file()
+    assert load_json(dd.folder(folder) / "certificate.json")["planner"]["name"] == folder
+
+
+def test_a_planner_file_wins_over_a_conftest_planner(dd):
+    dd.pytester.makeconftest(planner_source(name="from_conftest"))
+    dd.write_planner(name="from_file")
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    assert sorted(p.name for p in (dd.pytester.path / "rep").iterdir()) == ["from_file"]
+
+
+def test_ci_gate(dd):
+    """Own certificate as baseline passes; a more fragile variant fails the regressed cells and the session."""
+    dd.write_planner()
+    families, severities = "low_light,blackout", "5"
+    dd.run(families=families, severities=severities).assert_outcomes(passed=5)
+    baseline = dd.pytester.path / "baseline.json"
+    baseline.write_text((dd.folder() / "certificate.json").read_text())
+
+    same = dd.run("--drivedegrade-baseline", str(baseline), families=families, severities=severities)
+    same.assert_outcomes(passed=5)
+    same.stdout.fnmatch_lines(["*baseline: 0 cell and 0 axis regression(s) beyond tolerance 0.02*"])
+
+    dd.write_planner(scale=FRAGILE)
+    worse = dd.run("--drivedegrade-baseline", str(baseline), families=families, severities=severities,
+                   report="rep_fragile")
+    assert worse.ret == 1
+    no_traceback(worse)
+    out = worse.stdout.str()
+    failed = set(re.findall(r"FAILED myplanner.py::(\S+)", out))
+    assert "blackout-s5" in failed and "clean" not in failed and "null" not in failed
+    assert re.search(r"blackout-s5: retention 0\.\d{3} vs baseline 0\.\d{3} \(drop 0\.\d{3}\)", out)
+    worse.stdout.fnmatch_lines(["*REGRESSION axis:removal: retention * vs baseline * (drop *)"])
+
+
+def test_baseline_from_another_dataset_is_a_clear_error(dd):
+    from pytest_drivedegrade.report.certificate import seal, write_certificate
+
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    cert = load_json(dd.folder() / "certificate.json")
+    cert["dataset"]["fingerprint"] = "0" * 32
+    write_certificate(dd.pytester.path / "other.json", seal(cert))
+    result = dd.run("--drivedegrade-baseline", "other.json", families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines(["*--drivedegrade-baseline*dataset fingerprint*0000*"])
+    assert "passed" not in result.stdout.str()  # refused before any cell ran

@@ -1,0 +1,177 @@
+"""End-to-end runs of the pytest plugin under faults (SPEC section 7): a misbehaving planner, a null control
+that catches an undeclared camera, bad input, a killed worker and Ctrl-C. Each fault fails what it touches,
+says where, and loses nothing already computed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import SMALL_CELLS, by_cell, load_json, no_traceback, read_csv  # noqa: E402
+
+pytest_plugins = ["plugin_support"]
+
+
+def failed_cells(result: pytest.RunResult) -> set[str]:
+    return set(re.findall(r"^FAILED \S+?::(\S+)", result.stdout.str(), re.M))
+
+
+def test_conformance_faults_fail_only_their_cells(dd, scored_tokens):
+    """One planner, five faults in five cells (one frame each); the other cells pass and the outputs are written."""
+    frame = scored_tokens[1]
+    faults = {"gaussian_blur-s1": "raise", "gaussian_blur-s5": "nan", "jpeg-s1": "shape", "jpeg-s5": "write",
+              "blackout-s1": "hang"}
+    dd.write_planner(faults={cell: (fault, frame) for cell, fault in faults.items()})
+    result = dd.run("--drivedegrade-timeout", "0.5")
+    result.assert_outcomes(passed=4, failed=5)
+    assert failed_cells(result) == set(faults)
+    no_traceback(result)
+    head = f"cell {{}}: 1 of 4 frames failed the planner contract"
+    where = f"*frame '{frame}'*"
+    result.stdout.fnmatch_lines([
+        head.format("gaussian_blur-s1"), f"{where}: predict() raised RuntimeError: boom in the test planner",
+        head.format("gaussian_blur-s5"), f"{where} is not finite (first at step 3, coordinate 1)*Got ndarray*nan*",
+        head.format("jpeg-s1"), f"{where} has shape (5, 2), not (6, 2)*",
+        head.format("jpeg-s5"), f"{where}: predict() wrote to its input image*read-only*",
+        head.format("blackout-s1"), f"{where}: predict() took longer than 0.5 s*--drivedegrade-timeout*",
+    ], consecutive=False)
+    rows = by_cell(read_csv(dd.folder() / "cells.csv"))
+    assert list(rows) == list(SMALL_CELLS)
+    assert {c: rows[c]["conformance_errors"] for c in faults} == {c: "1" for c in faults}
+    assert {c: rows[c]["frames"] for c in faults} == {c: "3" for c in faults}  # the failed frame is left out
+    assert rows["clean"]["conformance_errors"] == "0" and rows["clean"]["frames"] == "4"
+
+
+def test_null_control_names_the_undeclared_camera(dd):
+    """cameras=("CAM_FRONT",) but CAM_BACK is read: null and blackout-s3 (the rear control) fail naming it."""
+    dd.write_planner(read_back=True)
+    result = dd.run(families="blackout", severities="3")
+    result.assert_outcomes(passed=2, failed=2)
+    assert failed_cells(result) == {"null", "blackout-s3"}
+    no_traceback(result)
+    result.stdout.fnmatch_lines([
+        "null control failed in cell null: plans are not bit-identical to clean (max abs difference *)",
+        "*declared-unread camera(s) that change the plan: CAM_BACK; add them to planner.cameras",
+        "null control failed in cell blackout-s3*",
+        "*declared-unread camera(s) that change the plan: CAM_BACK; add them to planner.cameras",
+    ], consecutive=False)
+    assert load_json(dd.folder() / "certificate.json")["null_control"]["passed"] is False
+
+
+def test_blackout_s3_is_a_null_control_for_a_front_only_planner(dd):
+    dd.write_planner()
+    result = dd.run(families="blackout", severities="3")
+    result.assert_outcomes(passed=4)
+    rows = by_cell(read_csv(dd.folder() / "cells.csv"))
+    assert rows["blackout-s3"]["retention"] == "1.0" and rows["blackout-s3"]["endpoint_shift"] == "0.0"
+
+
+@pytest.mark.parametrize("planner, options, expected", [
+    ("nothere.py", [], "*--drivedegrade: planner file *nothere.py does not exist*"),
+    ("broken.py", [], "*--drivedegrade: *broken.py:3: syntax error*"),
+    ("nofixture.py", [], "*nofixture.py defines no `planner` fixture*"),
+    ("myplanner.py", ["--drivedegrade-families", "jpeg,fgo"],
+     "*--drivedegrade-families: unknown family 'fgo'; valid families: gaussian_blur, motion_blur*lens_dirt*"),
+    ("myplanner.py", ["--drivedegrade-severities", "0,6"], "*--drivedegrade-severities: severity '0' is not one of*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "notjson.json"],
+     "*--drivedegrade-baseline: *notjson.json: not valid JSON*line 1*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "edited.json"],
+     "*--drivedegrade-baseline: *edited.json: digest mismatch*edited section(s): axes*"),
+    ("myplanner.py", ["--drivedegrade-data", "nowhere"], "*--drivedegrade: nuScenes data root *nowhere does not "
+                                                         "exist*"),
+    ("myplanner.py", ["--drivedegrade-report", "notjson.json/rep"], "*--drivedegrade-report: cannot create the "
+                                                                     "report folder *notjson.json/rep: Not a dir*"),
+], ids=["missing", "syntax", "no-fixture", "family", "severity", "baseline-not-json", "baseline-edited", "no-data",
+        "report-not-a-folder"])
+def test_bad_input_is_a_usage_error(dd, planner, options, expected):
+    from pytest_drivedegrade.report.certificate import seal
+
+    dd.write_planner()
+    dd.pytester.makepyfile(broken="import pytest\n\ndef planner(:\n    pass\n",
+                           nofixture="def not_a_planner():\n    pass\n")
+    (dd.pytester.path / "notjson.json").write_text("{not json")
+    cert = seal({"schema": "drivedegrade-certificate/1", "axes": {"quality": 0.9}})
+    cert["axes"]["quality"] = 0.99
+    (dd.pytester.path / "edited.json").write_text(json.dumps(cert))
+    result = dd.pytester.runpytest_inprocess(*dd.args(*options, planner=planner))
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    result.stderr.fnmatch_lines([expected])
+    no_traceback(result)
+
+
+def test_truncated_jpeg_fails_the_cells_that_read_it(dd, small_world, scored_tokens, tmp_path):
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+    data = tmp_path / "world"
+    shutil.copytree(small_world, data)
+    frame = next(f for f in NuScenesReader(data, split="val").scorable_frames(limit=4) if f.token == scored_tokens[1])
+    image = Path(frame.cameras["CAM_FRONT"].path)
+    image.write_bytes(image.read_bytes()[:2000])
+    dd.write_planner()
+    result = dd.run(data=data, families="jpeg,blackout", severities="5")
+    # Every cell that decodes CAM_FRONT of that frame fails; blind and blackout-s5 (front camera black) do not.
+    assert failed_cells(result) == {"clean", "null", "jpeg-s5"}
+    result.assert_outcomes(passed=2, failed=3)
+    no_traceback(result)
+    result.stdout.fnmatch_lines([f"*frame '{frame.token}': truncated JPEG {image}*no end-of-image marker*"])
+    rows = by_cell(read_csv(dd.folder() / "cells.csv"))
+    assert rows["clean"]["frames"] == "3" and rows["jpeg-s5"]["conformance_errors"] == "1"
+
+    image.write_bytes((small_world / image.relative_to(data)).read_bytes())  # the data set is repaired
+    again = dd.run(data=data, families="jpeg,blackout", severities="5")
+    again.assert_outcomes(passed=5)  # the failed cells are computed again, the others reused
+    assert by_cell(read_csv(dd.folder() / "cells.csv"))["clean"]["frames"] == "4"
+
+
+def test_malformed_planner_attributes_fail_with_a_message(dd):
+    dd.write_planner(cameras=("CAM_FRNT",))
+    result = dd.run(families="jpeg", severities="1")
+    result.assert_outcomes(failed=4)
+    no_traceback(result)
+    assert "cell clean: planner.cameras names unknown camera(s) ['CAM_FRNT']; valid names are CAM_FRONT, " \
+        "CAM_FRONT_RIGHT" in result.stdout.str()
+    result.stdout.fnmatch_lines(["*no cell finished: nothing to analyse*"])
+
+
+def test_killed_worker_is_reported_and_the_rerun_resumes(dd):
+    marker, calls = dd.pytester.path / "die", dd.pytester.path / "calls.txt"
+    marker.touch()
+    dd.write_planner(faults={"jpeg-s5": ("exit", None)}, marker=str(marker), count_file=str(calls))
+    first = dd.run("-n", "2")
+    assert first.ret == 1
+    first.stdout.fnmatch_lines(["*worker*crashed while running*jpeg-s5*",
+                                "*missing cells (1): jpeg-s5; rerun the same command*"], consecutive=False)
+    stored = sorted(p.stem for p in (dd.folder() / "cells").glob("*.json"))
+    assert stored == sorted(set(SMALL_CELLS) - {"jpeg-s5"})
+    assert (dd.folder() / "cells.csv").is_file()  # what finished is reported
+
+    marker.unlink()
+    calls.write_text("")
+    again = dd.run("--junitxml=again.xml")
+    again.assert_outcomes(passed=9)
+    assert "missing cells" not in again.stdout.str()
+    assert set(calls.read_text().split()) == {"jpeg-s5"}  # only the missing cell is computed
+    assert len(read_csv(dd.folder() / "cells.csv")) == 9
+
+
+def test_ctrl_c_keeps_finished_cells_and_the_rerun_resumes(dd):
+    marker, calls = dd.pytester.path / "stop", dd.pytester.path / "calls.txt"
+    marker.touch()
+    dd.write_planner(faults={"jpeg-s1": ("interrupt", None)}, marker=str(marker), count_file=str(calls))
+    first = dd.run()
+    assert first.ret == pytest.ExitCode.INTERRUPTED
+    first.stdout.fnmatch_lines(["*KeyboardInterrupt*"])
+    done = ("clean", "null", "blind", "gaussian_blur-s1", "gaussian_blur-s5")
+    assert sorted(p.stem for p in (dd.folder() / "cells").glob("*.json")) == sorted(done)
+
+    marker.unlink()
+    calls.write_text("")
+    again = dd.run()
+    again.assert_outcomes(passed=9)
+    assert set(calls.read_text().split()) == set(SMALL_CELLS) - set(done)
