@@ -52,11 +52,33 @@ def ours(image: np.ndarray, family: str, severity: int, counter: list[int]):
     return run
 
 
+def _skimage_shim() -> None:
+    """imagecorruptions 1.1.2 calls skimage's gaussian(..., multichannel=True), which scikit-image 0.19 renamed
+    to channel_axis; map the old keyword so the reference runs on a current scikit-image."""
+    import inspect
+
+    import skimage.filters
+
+    original = skimage.filters.gaussian
+    if "multichannel" in inspect.signature(original).parameters:
+        return
+
+    def gaussian(image, *args, multichannel=None, **kwargs):
+        if multichannel:
+            kwargs.setdefault("channel_axis", -1)
+        return original(image, *args, **kwargs)
+
+    skimage.filters.gaussian = gaussian
+
+
 def reference(image: np.ndarray, family: str, severity: int):
     try:
+        _skimage_shim()
+        import imagecorruptions.corruptions as ic_module
         from imagecorruptions import corrupt as ic_corrupt
     except ImportError:
         return None
+    ic_module.gaussian = __import__("skimage.filters", fromlist=["gaussian"]).gaussian
     name = NEAREST.get(family)
     return None if name is None else (lambda: ic_corrupt(image, corruption_name=name, severity=severity))
 

@@ -35,26 +35,30 @@ def _drop_list(rng: np.random.Generator, h: int, w: int, fraction: float, scale:
     return drops, covered
 
 
-def _paint_drop(maps: np.ndarray, drop: tuple, step: float) -> None:
-    """Write one drop into the layer `maps` (source x, source y, shade, alpha planes on a grid of `step`
-    full-resolution pixels): an inverted, magnified view of the scene above it, with a darker rim."""
-    _, gh, gw = maps.shape
-    cx, cy, rx, ry = (v / step for v in drop)
-    x0, x1 = max(0, int(cx - rx)), min(gw, int(cx + rx) + 2)
-    y0, y1 = max(0, int(cy - ry)), min(gh, int(cy + ry) + 2)
-    if x0 >= x1 or y0 >= y1:
-        return
-    dx = (np.arange(x0, x1, dtype=np.float32) + 0.5 - cx)[None, :] / rx
-    dy = (np.arange(y0, y1, dtype=np.float32) + 0.5 - cy)[:, None] / ry
+def _drop_layer(drops: list[tuple], gh: int, gw: int, step: float) -> np.ndarray:
+    """The drop layer on a grid of `step` full-resolution pixels: planes (source x, source y, shade, alpha).
+
+    Each drop is filled into a label image (later drops cover earlier ones); then every covered pixel gets
+    its drop's inverted, magnified view of the scene above it and a darker rim, all in one vectorised pass.
+    """
+    labels = np.zeros((gh, gw), np.int32)
+    for k, (cx, cy, rx, ry) in enumerate(drops, start=1):
+        cv2.ellipse(labels, (round(cx / step), round(cy / step)), (max(1, round(rx / step)), max(1, round(ry / step))),
+                    0, 0, 360, k, -1)
+    maps = np.zeros((4, gh, gw), np.float32)
+    ys, xs = np.nonzero(labels)
+    if ys.size == 0:
+        return maps
+    params = np.asarray(drops, np.float32)[labels[ys, xs] - 1] / step  # (N, 4): cx, cy, rx, ry on the grid
+    cx, cy, rx, ry = params.T
+    dx, dy = (xs + 0.5 - cx) / rx, (ys + 0.5 - cy) / ry
     rho2 = dx * dx + dy * dy
-    alpha = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
     lens = _DROP_MAGNIFICATION * (1.0 + 0.35 * rho2)  # stronger bending towards the rim
-    inside = alpha > 0
-    roi = maps[:, y0:y1, x0:x1]
-    roi[0][inside] = ((cx - dx * rx * lens) * step)[inside]
-    roi[1][inside] = ((cy - 1.5 * ry - dy * ry * lens) * step)[inside]  # looks up and through, inverted
-    roi[2][inside] = (1.0 - 0.45 * rho2**3)[inside]
-    roi[3][inside] = np.maximum(roi[3], alpha)[inside]
+    maps[0, ys, xs] = (cx - dx * rx * lens) * step
+    maps[1, ys, xs] = (cy - 1.5 * ry - dy * ry * lens) * step  # looks up and through, inverted
+    maps[2, ys, xs] = 1.0 - 0.45 * np.minimum(rho2, 1.0) ** 3
+    maps[3, ys, xs] = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
+    return maps
 
 
 @register("raindrop", group="contamination", axis="contamination", parameter="frame fraction under drops",
@@ -68,9 +72,7 @@ def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale
     small = cv2.resize(image, (max(1, w // 4), max(1, h // 4)), interpolation=cv2.INTER_AREA)
     source = cv2.GaussianBlur(small, (0, 0), sigmaX=max(0.5, scaled(8.0, scale) / 4))
     gh, gw = max(1, h // 2), max(1, w // 2)
-    maps = np.zeros((4, gh, gw), np.float32)
-    for drop in drops:
-        _paint_drop(maps, drop, w / gw)
+    maps = _drop_layer(drops, gh, gw, w / gw)
     to_source = source.shape[1] / w
     view = cv2.remap(source, maps[0] * to_source, maps[1] * to_source, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REFLECT_101)
@@ -113,8 +115,9 @@ def _deposit_field(rng: np.random.Generator, h: int, w: int, blobs: int, bottom_
 
 def _deposit_alpha(rng: np.random.Generator, h: int, w: int, fraction: float, blobs: int,
                    bottom_bias: float) -> tuple[np.ndarray, tuple[slice, slice]]:
-    """Float32 coverage in [0, 1] over about `fraction` of the frame, cropped to its bounding box, and
-    that box (row slice, column slice) in full-resolution pixels."""
+    """Coverage in [0, 1] over about `fraction` of the frame, cropped to its bounding box, at half resolution
+    (float32), and that box (row slice, column slice) in full-resolution pixels. The deposit's edge is soft
+    over about two full-resolution pixels; callers upsample what they need once."""
     field = _deposit_field(rng, h, w, blobs, bottom_bias)
     mask = coverage_mask(field, fraction)
     gh, gw = mask.shape
@@ -124,15 +127,23 @@ def _deposit_alpha(rng: np.random.Generator, h: int, w: int, fraction: float, bl
     # one coarse cell of margin for the soft edge, mapped to full-resolution pixels
     r0, r1 = max(0, rows[0] - 1), min(gh, rows[-1] + 2)
     c0, c1 = max(0, cols[0] - 1), min(gw, cols[-1] + 2)
-    full = cv2.resize(mask.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
     box = (slice(r0 * h // gh, r1 * h // gh), slice(c0 * w // gw, c1 * w // gw))
-    return np.clip(full[box] * 1.6 - 0.3, 0.0, 1.0), box
+    bh, bw = box[0].stop - box[0].start, box[1].stop - box[1].start
+    half = cv2.resize(mask[r0:r1, c0:c1].astype(np.float32), (max(1, bw // 2), max(1, bh // 2)),
+                      interpolation=cv2.INTER_LINEAR)
+    return np.clip(half * 1.6 - 0.3, 0.0, 1.0), box
 
 
-def _texture(rng: np.random.Generator, shape: tuple[int, int], cells: int) -> np.ndarray:
+def _up(array: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    return cv2.resize(array, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def _tinted(rng: np.random.Generator, shape: tuple[int, int], rgb: np.ndarray, cells: int, spread: float) -> np.ndarray:
+    """A uint8 colour texture of `shape`: `rgb` modulated by value noise, made at quarter resolution."""
     h, w = shape
-    coarse = smooth_field(rng, max(8, h // 4), max(8, w // 4), cells=cells, octaves=2)
-    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    grain = smooth_field(rng, max(8, h // 4), max(8, w // 4), cells=cells, octaves=2)
+    small = np.clip(rgb * (1.0 - spread / 2 + spread * grain)[..., None], 0, 255).astype(np.uint8)
+    return _up(small, shape)
 
 
 _MUD_RGB = np.array([92.0, 68.0, 44.0], np.float32)
@@ -146,9 +157,10 @@ def mud_splash(image: np.ndarray, fraction: float, rng: np.random.Generator, sca
     alpha, box = _deposit_alpha(rng, h, w, fraction, blobs=int(rng.integers(2, 5)), bottom_bias=0.35)
     out = image.copy()
     if alpha.size:
-        grain = _texture(rng, alpha.shape, cells=40)
-        mud = np.clip(_MUD_RGB * (0.7 + 0.6 * grain)[..., None], 0, 255).astype(np.uint8)
-        out[box] = cv2.blendLinear(image[box], mud, 1.0 - alpha, alpha)
+        region = image[box]
+        full = _up(alpha, region.shape[:2])
+        mud = _tinted(rng, region.shape[:2], _MUD_RGB, cells=40, spread=0.6)
+        out[box] = cv2.blendLinear(region, mud, 1.0 - full, full)
     return out
 
 
@@ -161,21 +173,26 @@ _VEIL_GREY = 215.0
           unit="fraction", values=(0.05, 0.10, 0.20, 0.30, 0.45), random=True, spatial=True)
 def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
     """Semi-transparent dirt on the lens: under it the scene is defocused and dimmed behind a grey-brown
-    film; light scattered by the dirt veils the whole frame in proportion to the dirty fraction."""
+    film; light scattered by the dirt veils the whole frame in proportion to the dirty fraction.
+
+    The film (defocused scene behind the dirt) is composed at quarter resolution, where it has no detail
+    left to lose, and blended over the sharp frame once at full resolution.
+    """
     h, w = image.shape[:2]
     alpha, box = _deposit_alpha(rng, h, w, fraction, blobs=int(rng.integers(4, 9)), bottom_bias=0.0)
     out = image.copy()
     if alpha.size:
         region = image[box]
         rh, rw = region.shape[:2]
-        small = cv2.resize(region, (max(1, rw // 4), max(1, rh // 4)), interpolation=cv2.INTER_AREA)
-        sigma = max(0.5, scaled(10.0, scale) / 4)
-        blurred = cv2.resize(cv2.GaussianBlur(small, (0, 0), sigma), (rw, rh), interpolation=cv2.INTER_LINEAR)
-        opacity = alpha * (0.35 + 0.3 * _texture(rng, alpha.shape, cells=5))
-        dirt = np.empty_like(region)
+        qshape = (max(1, rh // 4), max(1, rw // 4))
+        small = cv2.resize(region, (qshape[1], qshape[0]), interpolation=cv2.INTER_AREA)
+        blurred = cv2.GaussianBlur(small, (0, 0), max(0.5, scaled(10.0, scale) / 4))
+        opacity = cv2.resize(alpha, (qshape[1], qshape[0]), interpolation=cv2.INTER_AREA)
+        opacity *= 0.35 + 0.3 * smooth_field(rng, qshape[0], qshape[1], cells=5, octaves=2)
+        dirt = np.empty_like(small)
         dirt[:] = _DIRT_RGB.astype(np.uint8)
-        film = cv2.blendLinear(blurred, dirt, 1.0 - opacity, opacity)
-        soft = np.minimum(alpha * 2.0, 1.0)
+        film = _up(cv2.blendLinear(blurred, dirt, 1.0 - opacity, opacity), (rh, rw))
+        soft = _up(np.minimum(alpha * 2.0, 1.0), (rh, rw))
         out[box] = cv2.blendLinear(region, film, 1.0 - soft, soft)
     veil = _DIRT_VEIL_PER_FRACTION * fraction
     return cv2.addWeighted(out, 1.0 - veil, out, 0.0, _VEIL_GREY * veil)
