@@ -103,9 +103,9 @@ def finish_run(plugin: Any, session: pytest.Session) -> Outcome | None:
                            seed=plugin.options.seed, floor_l2=floor_l2)
     from .outputs import write_outputs
 
-    cert = write_outputs(plugin, session, context, name, key, payloads, analysis, out)
+    cert = write_outputs(plugin, session, context, name, key, payloads, analysis, out, missing)
     _gate(plugin, cert, out)
-    _summary(analysis, missing, out)
+    out.lines = _summary(analysis, missing) + out.lines
     return out
 
 
@@ -132,22 +132,40 @@ def _fmt(value: Any) -> str:
     return "n/a" if value is None or (isinstance(value, float) and not math.isfinite(value)) else f"{value:.3f}"
 
 
-def _summary(analysis: Any, missing: list[str], out: Outcome) -> None:
+def _retention_table(analysis: Any) -> list[str]:
+    """Family x severity retention, with s*10 / s*25, as fixed-width lines."""
+    by_family: dict[str, dict[int, float]] = {}
+    for summary in analysis.summaries:
+        if summary.severity > 0:
+            by_family.setdefault(summary.family, {})[summary.severity] = summary.retention
+    if not by_family:
+        return []
+    severities = sorted({s for row in by_family.values() for s in row})
+    head = f"{'retention':15s}" + "".join(f"{'S' + str(s):>7s}" for s in severities) + f"{'s*10':>7s}{'s*25':>7s}"
+    lines = [head]
+    for family, row in by_family.items():
+        t = analysis.thresholds.get(family, {})
+        cells = "".join(f"{_fmt(row.get(s)):>7s}" for s in severities)
+        marks = "".join(f"{('-' if t.get(k) is None else format(t[k], '.2f')):>7s}" for k in ("s10", "s25"))
+        lines.append(f"{family:15s}{cells}{marks}")
+    return lines
+
+
+def _summary(analysis: Any, missing: list[str]) -> list[str]:
+    """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells."""
     ax, verdict = analysis.axes, analysis.verdict
-    out.lines.insert(0, f"verdict: {verdict['label']} - {verdict['text']}")
-    out.lines.insert(1, f"axes: quality {_fmt(ax.get('quality'))}  removal {_fmt(ax.get('removal'))}  "
-                        f"gap {_fmt(ax.get('gap'))}  mean {_fmt(ax.get('mean'))}")
+    lines = [f"verdict: {verdict['label']} - {verdict['text']}",
+             f"axes: quality {_fmt(ax.get('quality'))}  removal {_fmt(ax.get('removal'))}  "
+             f"gap {_fmt(ax.get('gap'))}  mean {_fmt(ax.get('mean'))}"]
     nc = analysis.null_control
     if nc is not None:
-        out.lines.insert(2, f"null control: {'passed' if nc['passed'] else 'FAILED'} "
-                            f"(max abs diff {nc['max_abs_diff']:.3g} m)")
-    floor = analysis.floor or {}
-    if floor.get("l2_avg") is not None:
-        out.lines.append(f"ego-only floor: l2_avg {_fmt(floor['l2_avg'])} m")
-    reached = {f: t for f, t in analysis.thresholds.items() if t.get("s10") is not None}
-    if reached:
-        out.lines.append("s*10 (severity where retention first falls below 0.90): "
-                         + ", ".join(f"{f} {t['s10']:.2f}" for f, t in sorted(reached.items(), key=lambda x: x[1]["s10"])))
+        lines.append(f"null control: {'passed' if nc['passed'] else 'FAILED'} (max abs diff {nc['max_abs_diff']:.3g} m)")
+    clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
+    floor = (analysis.floor or {}).get("l2_avg")
+    if clean is not None:
+        lines.append(f"clean l2_avg {_fmt(clean.l2_avg)} m; ego-only floor l2_avg {_fmt(floor)} m")
+    lines += _retention_table(analysis)
     if missing:
-        out.lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
-                         "compute only these (finished cells are reused)")
+        lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
+                     "compute only these (finished cells are reused)")
+    return lines

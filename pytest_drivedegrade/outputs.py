@@ -37,8 +37,10 @@ def _montage(context: Any, seed: int) -> np.ndarray | None:
 
 
 def write_outputs(plugin: Any, session: Any, context: Any, name: str, key: dict[str, Any],
-                  payloads: dict[str, dict[str, Any]], analysis: Any, out: Any) -> dict[str, Any]:
-    """Write the three files into <report>/<planner>/ and return the sealed certificate."""
+                  payloads: dict[str, dict[str, Any]], analysis: Any, out: Any,
+                  missing: list[str]) -> dict[str, Any]:
+    """Write the three files into <report>/<planner>/ and return the sealed certificate. A run with missing
+    cells (a crash, Ctrl-C, -k) says so in the certificate, so it is not mistaken for a complete baseline."""
     from .analysis import CellRecord
     from .report.cells import write_cells_csv
     from .report.certificate import build_certificate, seal, write_certificate
@@ -47,7 +49,9 @@ def write_outputs(plugin: Any, session: Any, context: Any, name: str, key: dict[
 
     folder = Path(plugin.options.report_dir) / name
     prov = _provenance(plugin, context, name, key, session)
-    cert = seal(build_certificate(analysis, prov))
+    cert = build_certificate(analysis, prov)
+    cert["completeness"] = {"complete": not missing, "missing_cells": list(missing)}
+    cert = seal(cert)
     write_certificate(folder / "certificate.json", cert)
     write_cells_csv(folder / "cells.csv", analysis, prov)
     records = {c: CellRecord.from_builtins(p["record"]) for c, p in payloads.items()}

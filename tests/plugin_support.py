@@ -38,6 +38,7 @@ PLANNER = '''
 import os
 import time
 
+import cv2
 import numpy as np
 import pytest
 
@@ -45,7 +46,7 @@ T = 0.5 * np.arange(1, 7)
 
 
 class TestPlanner:
-    """Constant velocity, scaled by a function of the front camera's mean brightness when it reads that camera.
+    """Ground truth plus 0.5 m, drifting sideways with the damage to the front camera when it reads that camera.
 
     `faults` maps a cell id to (fault, frame token or None for every frame): how it misbehaves there.
     """
@@ -63,13 +64,15 @@ class TestPlanner:
         if self.count_file:
             with open(self.count_file, "a") as f:
                 f.write(cell + "\\n")
-        scale = 1.0
+        # Test-only shortcut: the ground truth and the clean image come from the frame record, so the plan's
+        # error is a known function of how much the delivered front image differs from the clean one.
+        plan = np.array(images.frame.gt_future, dtype=float) + [0.5, 0.0]
         if "CAM_FRONT" in self.cameras:
-            m = float(images["CAM_FRONT"].mean()) / 128.0
-            scale = {scale_expr}
+            clean = cv2.imread(images.frame.cameras["CAM_FRONT"].path)[..., ::-1]
+            d = float(np.abs(images["CAM_FRONT"].astype(np.int16) - clean).mean()) / 255.0
+            plan[:, 1] += {scale_expr}
         if self.read_back:
-            scale *= 1.0 + float(images["CAM_BACK"].mean()) / 255.0
-        plan = T[:, None] * np.asarray(ego.velocity, float)[None, :] * scale
+            plan[:, 1] += float(images["CAM_BACK"].mean()) / 255.0
         fault, frame = self.faults.get(cell, (None, None))
         if fault and frame in (None, images.frame.token):
             plan = self.misbehave(fault, images, plan)
@@ -98,10 +101,11 @@ def planner():
     return TestPlanner()
 '''
 
-#: The plan's speed follows the front camera's brightness: dark or washed-out images give a wrong speed.
-REACTIVE = "m"
-#: A more fragile variant: the same reaction, amplified, and a black front camera reverses the plan.
-FRAGILE = "m ** 3 if m > 0 else -2.0"
+#: The plan drifts sideways in proportion to the damage d (mean absolute difference of the delivered front
+#: image from the clean one, in [0, 1]); 0.5 m off the ground truth when the image is clean.
+REACTIVE = "10.0 * d"
+#: A more fragile variant: the same reaction, four times as strong.
+FRAGILE = "40.0 * d"
 
 
 def planner_source(*, cameras: tuple[str, ...] = ("CAM_FRONT",), name: str | None = "testplanner",
