@@ -15,6 +15,8 @@ from pytest_drivedegrade.data import geometry as geo
 from pytest_drivedegrade.data.frame import command_from_future
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
 from pytest_drivedegrade.data.world import WORLD_VERSION, build, ensure_default_world, write_world
+from pytest_drivedegrade.data.world import agents, expert
+from pytest_drivedegrade.data.world.roads import Path as LanePath
 from pytest_drivedegrade.data.world.scene import KEYFRAMES, make_scene
 
 
@@ -97,10 +99,52 @@ def test_generation_is_deterministic(world, tmp_path):
 
 
 def test_event_fraction_over_many_scenes():
-    kinds = [e for i in range(12) for e in make_scene(0, i, "s").events[: KEYFRAMES - 6]]
+    """At least 30 % of keyframes leave what the ego status predicts, for vehicles and pedestrians alike."""
+    scenes = [make_scene(0, i, "s") for i in range(12)]
+    kinds = [e for s in scenes for e in s.events[: KEYFRAMES - 6]]
     fraction = sum(1 for k in kinds if k) / len(kinds)
     assert fraction >= 0.30
-    assert {"brake", "vru"} <= set(kinds)
+    assert {"brake", "vru", "bend"} <= set(kinds)
+    for s in scenes:  # physically plausible: no contact, braking within B_MAX, speeds of urban traffic
+        assert s.ego.min_gap >= 0.5
+        assert s.ego.accel.min() >= -expert.B_MAX - 0.1 and 0.0 <= s.ego.speed.min() <= s.ego.speed.max() <= 15.0
+
+
+def _straight_lane() -> LanePath:
+    return LanePath.from_points(np.stack([np.linspace(0.0, 600.0, 1201), np.zeros(1201)], 1))
+
+
+def test_expert_keeps_cruising_until_a_standing_truck_needs_firm_braking_then_stops_behind_it():
+    lane, v = _straight_lane(), 12.0
+    truck = agents.along(lane, 200.0, np.zeros(agents.SIM_STEPS), "truck", np.random.default_rng(0), "stopped")
+    ego = expert.drive(lane, [truck], v, v, 70.0)
+    onset = int(np.argmax(ego.accel < -0.5))
+    gap = 200.0 - truck.size[0] / 2 - expert.EGO_LENGTH / 2 - ego.s
+    assert np.all(ego.speed[: onset - 1] > v - 0.05)  # no early, IDM-style anticipation
+    need = v**2 / (2 * (gap[onset - 2] - expert.S0))
+    assert need == pytest.approx(expert.B_TRIGGER, abs=0.3)  # it waits until stopping needs B_TRIGGER
+    assert ego.accel[onset + 2] <= -expert.B_TRIGGER + 0.1  # then brakes firmly
+    assert ego.speed[-1] < 0.05 and expert.S0 - 0.5 < gap[-1] < expert.S0 + 1.0
+    assert ego.react[onset + 2] == expert.REACT_VEHICLE
+
+
+def test_expert_sees_a_lead_vehicle_brake_one_reaction_time_late():
+    lane, v = _straight_lane(), 10.0
+    speed = agents.speed_profile(v, [(5.0, -4.0, 0.0)])
+    lead = agents.along(lane, 70.0 + 35.0, speed, "car", np.random.default_rng(1), "lead")
+    ego = expert.drive(lane, [lead], v, v, 70.0)
+    onset = int(np.argmax(ego.accel < -0.5))
+    assert onset * agents.DT >= 5.0 + expert.REACTION * agents.DT - 0.15  # the brake lights come first
+    assert ego.min_gap > 0.5
+
+
+def test_events_measure_departures_from_the_ego_status_extrapolation():
+    lane = _straight_lane()
+    steady = expert.drive(lane, [], 10.0, 10.0, 70.0)  # cruising: exactly what the ego status predicts
+    assert expert.keyframe_events(lane, steady, 30) == [""] * 30
+    truck = agents.along(lane, 200.0, np.zeros(agents.SIM_STEPS), "truck", np.random.default_rng(0), "stopped")
+    stop = expert.drive(lane, [truck], 10.0, 10.0, 70.0)
+    assert "brake" in expert.keyframe_events(lane, stop, 30)
 
 
 def test_ensure_default_world_builds_once_atomically(tmp_path, monkeypatch):

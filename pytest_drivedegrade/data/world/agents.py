@@ -6,7 +6,7 @@ Agents are scripted along lane or sidewalk paths on the simulation clock (`DT`, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,7 +36,7 @@ class Agent:
     xy: np.ndarray  # (SIM_STEPS, 2)
     yaw: np.ndarray  # (SIM_STEPS,)
     speed: np.ndarray  # (SIM_STEPS,) m/s, signed along the heading
-    role: str = "traffic"  # lead, follower, oncoming, parked, waiting, walker, crossing, cyclist
+    role: str = "traffic"  # lead, stopped, follower, oncoming, parked, waiting, walker, crossing, cyclist
     parked: bool = False
 
     @property
@@ -92,20 +92,31 @@ def along(path: Path, s0: float, speed: np.ndarray, kind: str, rng, role: str, *
 
 
 def lead_vehicle(rng, lane: Path, v_cruise: float) -> Agent:
-    """The vehicle ahead in the ego lane: slower, braking to a stop, or queued then departing."""
-    mode = rng.choice(["follow", "brake", "queue"], p=[0.25, 0.45, 0.30])
-    kind = str(rng.choice(["car", "car", "car", "truck", "bus"]))
+    """The vehicle ahead in the ego lane: slower, braking to a stop (and going again), or standing in the lane
+    (queued, broken down, delivering: role "stopped") until the scene releases it with `depart`."""
+    mode = rng.choice(["follow", "brake", "stopped"], p=[0.2, 0.35, 0.45])
     if mode == "follow":
+        kind = str(rng.choice(["car", "car", "car", "truck", "bus"]))
         v = rng.uniform(3.0, 0.75 * v_cruise)
         return along(lane, EGO_START_S + rng.uniform(18, 35), speed_profile(v, []), kind, rng, "lead")
     if mode == "brake":
+        kind = str(rng.choice(["car", "car", "car", "truck", "bus"]))
         v, tb, b = rng.uniform(0.7, 1.0) * v_cruise, rng.uniform(1.5, 11.0), rng.uniform(2.5, 5.0)
         go = tb + v / b + rng.uniform(2.0, 6.0)
         prof = speed_profile(v, [(tb, -b, 0.0), (go, 1.6, v)])
         return along(lane, EGO_START_S + rng.uniform(15, 30), prof, kind, rng, "lead")
-    s_q = EGO_START_S + rng.uniform(v_cruise ** 2 / 5 + 25, 120)
-    prof = speed_profile(0.0, [(rng.uniform(6.0, 16.0), 1.8, 9.0)])
-    return along(lane, s_q, prof, kind, rng, "lead")
+    kind = str(rng.choice(["car", "truck", "truck", "bus"]))
+    s_q = EGO_START_S + 20.0 + v_cruise * rng.uniform(2.5, 11.0)
+    return along(lane, s_q, np.zeros(SIM_STEPS), kind, rng, "stopped")
+
+
+def depart(agent: Agent, lane: Path, t_go: float, v_go: float = 9.0, accel: float = 1.8) -> Agent:
+    """The same standing agent, pulling away along `lane` from time `t_go` (s)."""
+    s0 = float(lane.project(agent.xy[:1])[0][0])
+    speed = speed_profile(0.0, [(t_go, accel, v_go)])
+    s = s0 + np.concatenate([[0.0], np.cumsum(speed[:-1] * DT)])
+    x, y, yaw = lane.at(s)
+    return replace(agent, xy=np.stack([x, y], 1), yaw=yaw, speed=speed)
 
 
 def crossing_walker(rng, net: RoadNet, lane_d: float, v_cruise: float, kind: str = "pedestrian"):

@@ -17,19 +17,20 @@ from . import export
 from .rig import Rig
 from .scene import KEYFRAMES, make_scene
 
-GENERATOR_VERSION = "1.0.0"
+GENERATOR_VERSION = "2.0.0"
 WORLD_VERSION = "v1.0-ddworld"
 MANIFEST = "drivedegrade_world.json"
-DEFAULT_SCENES = 50  # 45 train scenes (1530 scorable frames) and 5 val scenes (170 scorable frames)
+DEFAULT_SCENES = 100  # 94 train scenes (3196 scorable frames) and 6 val scenes (204 scorable frames)
+MAX_VAL_SCENES = 6  # val is what a certification scores (83 cells x its frames): enough, and bounded
 SCORABLE_PER_SCENE = KEYFRAMES - 6
 
 Progress = Callable[[str], None] | None
 
 
 def split_names(n: int) -> tuple[list[str], list[str]]:
-    """Scene names of the train and val splits: the last tenth (at least one scene) is val."""
+    """Scene names of the train and val splits: the last tenth (at least one, at most MAX_VAL_SCENES) is val."""
     names = [f"scene-{i + 1:04d}" for i in range(n)]
-    n_val = max(1, -(-n // 10))
+    n_val = min(max(1, -(-n // 10)), MAX_VAL_SCENES)
     return names[: n - n_val], names[n - n_val:]
 
 
@@ -80,10 +81,15 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
     return root
 
 
+EVENT_DEFINITION = ("keyframes whose ground-truth position at 3 s lies more than 1 m from the constant-acceleration, "
+                    "constant-yaw-rate extrapolation of the ego status")
+
+
 def _event_stats(kinds: list[str]) -> dict:
     n = max(len(kinds), 1)
     out = {"frames": len(kinds), "fraction": round(sum(1 for k in kinds if k) / n, 4)}
-    out.update({k: sum(1 for x in kinds if x == k) for k in ("brake", "vru", "bend")})
+    out.update({k: sum(1 for x in kinds if x == k) for k in ("brake", "vru", "bend", "other")})
+    out["definition"] = EVENT_DEFINITION
     return out
 
 

@@ -1,9 +1,11 @@
 """The expert driver: keeps its lane, slows for bends and turns, follows and brakes for what is ahead.
 
-Longitudinal control is the Intelligent Driver Model (IDM) against the nearest obstacle in the ego lane
-corridor (a vehicle, or a pedestrian / cyclist in or about to enter the corridor); the free-road target speed
-is capped ahead of curves so that lateral acceleration stays under `A_LAT`. Also measures, per keyframe,
-whether an event only the cameras can show changes the next 3 s.
+It reacts late, as a human does, so that its future depends on what only the cameras show at the current frame:
+it keeps cruising toward an obstacle in its lane corridor (a vehicle, or a pedestrian / cyclist in or about to
+enter the corridor) until stopping behind it (or matching its speed) needs `B_TRIGGER`, then brakes firmly and
+follows it with the Intelligent Driver Model (IDM); it sees a vehicle's change of speed only `REACTION` steps
+late (the brake lights show it at once); it brakes for a bend only when the bend's speed needs `B_CURVE`.
+Also measures, per keyframe, whether the next 3 s leave what the ego status alone predicts, and why.
 """
 
 from __future__ import annotations
@@ -15,9 +17,15 @@ import numpy as np
 from .agents import DT, EGO_START_S, SIM_STEPS, Agent, along
 from .roads import Path
 
-A_MAX, B_COMF, T_HEAD, S0, A_LAT, B_CURVE = 1.6, 2.5, 1.3, 3.0, 2.0, 1.6
+A_MAX, B_COMF, T_HEAD, S0, A_LAT, B_CURVE = 1.6, 2.5, 1.3, 3.0, 2.0, 2.8
+B_TRIGGER = 3.0  # m/s^2: the deceleration an obstacle must demand before the expert reacts to it
+B_MAX = 6.0  # m/s^2: the firmest braking the expert uses
+REACTION = 10  # sim steps (1 s): how late a vehicle's change of speed reaches the expert
+VRU_LOOKAHEAD = 5  # sim steps (0.5 s): a pedestrian or cyclist this close to entering the corridor counts
 EGO_LENGTH, EGO_WIDTH = 4.084, 1.85
 KEY_EVERY = 5  # sim steps per keyframe (2 Hz)
+#: Reasons the expert leaves its free-road acceleration, logged per step (EgoLog.react).
+REACT_NONE, REACT_VEHICLE, REACT_VRU, REACT_BEND = 0, 1, 2, 3
 
 
 @dataclass
@@ -27,11 +35,16 @@ class EgoLog:
     speed: np.ndarray
     accel: np.ndarray
     s: np.ndarray
-    obstacle_brake: np.ndarray  # (SIM_STEPS,) bool: an obstacle holds the ego below its free-road acceleration
+    react: np.ndarray  # (SIM_STEPS,) int: REACT_* that held the ego below its free-road acceleration
+    min_gap: float = np.inf  # smallest bumper gap to anything in the corridor ahead (m)
+
+    @property
+    def obstacle_brake(self) -> np.ndarray:
+        return (self.react == REACT_VEHICLE) | (self.react == REACT_VRU)
 
 
 def allowed_speed(lane: Path, v_cruise: float) -> np.ndarray:
-    """Per lane sample, the speed from which the ego can still slow down for every bend ahead."""
+    """Per lane sample, the speed from which the ego can still slow down (at `B_CURVE`) for every bend ahead."""
     kappa = np.abs(lane.curvature())
     kappa = np.convolve(kappa, np.ones(9) / 9, mode="same")
     v = np.minimum(v_cruise, np.sqrt(A_LAT / np.maximum(kappa, 1e-5)))
@@ -48,9 +61,9 @@ def corridor_obstacles(lane: Path, agents: list[Agent]) -> tuple[np.ndarray, np.
     for i, a in enumerate(agents):
         s, d = lane.project(a.xy)
         inside = (np.abs(d) < EGO_WIDTH / 2 + a.size[1] / 2 + 0.4) & (s > 0) & (s < lane.length)
-        if a.kind in ("pedestrian", "cyclist"):  # anticipate someone about to step into the lane
-            soon = np.zeros_like(inside)
-            for k in range(0, 25):
+        if a.kind in ("pedestrian", "cyclist"):  # about to step into the lane: a short look ahead only
+            soon = inside.copy()
+            for k in range(1, VRU_LOOKAHEAD + 1):
                 soon[: SIM_STEPS - k] |= inside[k:]
             inside = soon
         s_all[i], v_all[i], block[i] = s, np.gradient(s, DT), inside
@@ -66,29 +79,62 @@ def idm(v: float, v0: float, gap: float | None, dv: float) -> float:
     return free - A_MAX * (s_star / max(gap, 0.2)) ** 2
 
 
+def required_decel(v: float, gap: float, v_obs: float) -> float:
+    """Constant deceleration that brings speed `v` down to `v_obs` at the desired gap behind the obstacle."""
+    if v <= v_obs:
+        return 0.0
+    room = gap - S0 - T_HEAD * max(v_obs, 0.0)
+    return (v - v_obs) ** 2 / (2 * max(room, 0.1))
+
+
+def perceived(s_obs: np.ndarray, v_obs: np.ndarray, vehicle: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where the expert believes each agent is at step t: vehicles as seen `REACTION` steps ago, extrapolated at
+    the speed seen then (a driver who has not yet reacted to brake lights); pedestrians and cyclists as they are."""
+    t_seen = max(t - REACTION, 0)
+    s_seen = s_obs[:, t_seen] + v_obs[:, t_seen] * (t - t_seen) * DT
+    s = np.where(vehicle, s_seen, s_obs[:, t])
+    v = np.where(vehicle, v_obs[:, t_seen], v_obs[:, t])
+    return s, np.maximum(v, 0.0)
+
+
 def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float) -> EgoLog:
     """Simulate the ego along `lane` on the sim clock; returns its log."""
     v_allow = allowed_speed(lane, v_cruise)
     s_obs, v_obs, block = corridor_obstacles(lane, agents)
+    vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
     half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2
-    s, v = s_start, v_start
-    log_s, log_v, log_a, log_b = (np.zeros(SIM_STEPS) for _ in range(4))
+    engaged = np.zeros(len(agents), bool)
+    s, v, min_gap = s_start, v_start, np.inf
+    log_s, log_v, log_r = np.zeros(SIM_STEPS), np.zeros(SIM_STEPS), np.zeros(SIM_STEPS, int)
     for t in range(SIM_STEPS):
-        v0 = float(np.interp(s, lane.s, v_allow))
+        free = idm(v, v_cruise, None, 0.0)
+        a, why = free, REACT_NONE
+        v_next_allowed = float(np.interp(s + v * DT, lane.s, v_allow))
+        if v > v_next_allowed + 1e-3:  # a bend ahead needs it now: brake along the allowed profile
+            a, why = (v_next_allowed - v) / DT, REACT_BEND
         ahead = block[:, t] & (s_obs[:, t] > s)
-        gap, dv = None, 0.0
+        true_gap = s_obs[:, t] - s - half_len
         if ahead.any():
-            gaps = np.where(ahead, s_obs[:, t] - s - half_len, np.inf)
-            i = int(gaps.argmin())
-            gap, dv = float(gaps[i]), v - max(float(v_obs[i, t]), 0.0)
-        a = max(idm(v, v0, gap, dv), -8.0)
-        log_b[t] = gap is not None and a < idm(v, v0, None, 0.0) - 0.7
-        log_s[t], log_v[t], log_a[t] = s, v, a
+            min_gap = min(min_gap, float(true_gap[ahead].min()))
+        s_seen, v_seen = perceived(s_obs, v_obs, vehicle, t)
+        engaged &= ahead
+        for i in np.flatnonzero(ahead):
+            gap = float(s_seen[i] - s - half_len[i])
+            need = required_decel(v, gap, float(v_seen[i]))
+            if not engaged[i] and (need > B_TRIGGER or gap < S0 + 0.5 * v):
+                engaged[i] = True
+            if engaged[i]:
+                a_i = -need if v > v_seen[i] + 0.5 else idm(v, v_cruise, gap, v - float(v_seen[i]))
+                if a_i < a:
+                    a, why = a_i, (REACT_VEHICLE if vehicle[i] else REACT_VRU)
+        a = max(a, -B_MAX)
+        log_r[t] = why if a < free - 0.3 else REACT_NONE
+        log_s[t], log_v[t] = s, v
         v_next = max(v + a * DT, 0.0)
         s += 0.5 * (v + v_next) * DT
         v = v_next
     x, y, yaw = lane.at(log_s)
-    return EgoLog(np.stack([x, y], 1), yaw, log_v, np.gradient(log_v, DT), log_s, log_b.astype(bool))
+    return EgoLog(np.stack([x, y], 1), yaw, log_v, np.gradient(log_v, DT), log_s, log_r, min_gap)
 
 
 def follower(rng, lane: Path, ego: EgoLog) -> Agent:
@@ -104,27 +150,37 @@ def follower(rng, lane: Path, ego: EgoLog) -> Agent:
     return along(lane, s0, speeds, "car", rng, "follower")
 
 
-def keyframe_events(lane: Path, ego: EgoLog, n_keys: int, walker_block: np.ndarray) -> list[str]:
-    """Per keyframe: the event ('brake', 'vru', 'bend') that bends the next 3 s away from what ego status
-    alone predicts (constant speed and yaw rate, deviation over 1 m at 3 s), or '' when there is none."""
+def status_extrapolation(ego: EgoLog, t0: int, n: int) -> np.ndarray:
+    """What the ego status at step t0 alone predicts for the next `n` steps: constant acceleration (never below
+    standstill) and constant yaw rate. (n, 2) world positions."""
+    yaw_rate = (ego.yaw[t0] - ego.yaw[max(t0 - 1, 0)]) / DT if t0 else 0.0
+    tt = np.arange(1, n + 1) * DT
+    speed = np.maximum(ego.speed[t0] + ego.accel[t0] * tt, 0.0)
+    head = ego.yaw[t0] + yaw_rate * tt
+    return ego.xy[t0] + np.cumsum(speed[:, None] * DT * np.stack([np.cos(head), np.sin(head)], 1), axis=0)
+
+
+def keyframe_events(lane: Path, ego: EgoLog, n_keys: int) -> list[str]:
+    """Per keyframe: the event ('brake', 'vru', 'bend') that takes the next 3 s more than 1 m away from what the
+    ego status predicts (constant acceleration and yaw rate), or '' when there is none."""
     kappa = np.abs(lane.curvature())
     out = []
     for k in range(n_keys):
         t0, t1 = k * KEY_EVERY, min(k * KEY_EVERY + 30, SIM_STEPS - 1)
-        yaw_rate = (ego.yaw[t0] - ego.yaw[max(t0 - 1, 0)]) / DT if t0 else 0.0
-        tt = np.arange(1, t1 - t0 + 1) * DT
-        head = ego.yaw[t0] + yaw_rate * tt
-        pred = ego.xy[t0] + np.cumsum(ego.speed[t0] * DT * np.stack([np.cos(head), np.sin(head)], 1), axis=0)
+        pred = status_extrapolation(ego, t0, t1 - t0)
         deviation = float(np.linalg.norm(pred[-1] - ego.xy[t1]))
         seg = (lane.s >= ego.s[t0]) & (lane.s <= ego.s[t1] + 5.0)
+        why = ego.react[t0:t1 + 1]
         kind = ""
         if deviation > 1.0:
-            if walker_block[t0:t1].any():
+            if (why == REACT_VRU).any():
                 kind = "vru"
-            elif ego.obstacle_brake[t0:t1].any():
+            elif (why == REACT_VEHICLE).any():
                 kind = "brake"
-            elif seg.any() and kappa[seg].max() > 1 / 150:
+            elif (why == REACT_BEND).any() or (seg.any() and kappa[seg].max() > 1 / 300):
                 kind = "bend"
+            else:
+                kind = "other"  # e.g. pulling away after a stop
         out.append(kind)
     return out
 

@@ -146,7 +146,10 @@ def build_roads(rng: np.random.Generator, total: float = 560.0) -> RoadNet:
         elif not parts or rng.random() < 0.55:
             pts, p, h = _straight(p, h, rng.uniform(30.0, 90.0) if parts else 70.0)
         else:
-            radius, angle = rng.uniform(35.0, 110.0), rng.uniform(0.35, 1.1) * rng.choice([-1, 1])
+            if rng.random() < 0.6:  # a bend the command shows (more than 2 m of lateral offset within 3 s)
+                radius, angle = rng.uniform(35.0, 110.0), rng.uniform(0.35, 1.1) * rng.choice([-1, 1])
+            else:  # a gentle bend the command mostly leaves at STRAIGHT: only the cameras show it
+                radius, angle = rng.uniform(120.0, 320.0), rng.uniform(0.25, 0.6) * rng.choice([-1, 1])
             pts, p, h = _arc(p, h, radius, angle)
         parts.append(pts)
         length += float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())

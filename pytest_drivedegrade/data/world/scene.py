@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .agents import (SIM_STEPS, Agent, Prop, background_traffic, crossing_walker, lead_vehicle, scenery)
-from .expert import KEY_EVERY, EgoLog, corridor_obstacles, drive, follower, keyframe_events, start_state
+from .agents import DT, Agent, Prop, background_traffic, crossing_walker, depart, lead_vehicle, scenery
+from .expert import KEY_EVERY, REACT_VEHICLE, allowed_speed, EgoLog, drive, follower, keyframe_events, start_state
 from .roads import LANE_WIDTH, Path, RoadNet, build_roads
 
 KEYFRAMES = 40  # 20 s at 2 Hz, as a nuScenes scene
@@ -70,6 +70,10 @@ class Scene:
         return np.arange(KEYFRAMES) * KEY_EVERY
 
 
+MAX_TRIES = 8  # draws of a scene's scenario before it falls back to background traffic only
+MIN_GAP = 0.5  # m: the expert must keep at least this bumper gap to everything in its corridor
+
+
 def make_scene(seed: int, index: int, name: str) -> Scene:
     """Generate scene `index` of the world with `seed`: deterministic for a given (seed, index)."""
     rng = np.random.default_rng([seed, index, 0x5EED])
@@ -81,23 +85,48 @@ def make_scene(seed: int, index: int, name: str) -> Scene:
     lane = net.route.center.offset(lane_d)
     v_cruise = float(rng.uniform(8.0, 14.0))
     style = Style.draw(rng)
+    background = background_traffic(rng, net, k)
+    s0, v0 = start_state(rng, v_cruise)
+    v0 = min(v0, float(np.interp(s0, lane.s, allowed_speed(lane, v_cruise))))  # not already too fast for a bend
+    for _ in range(MAX_TRIES):  # redraw a scenario the expert cannot drive safely (too late to stop)
+        scenario, crosswalks = _scenario(rng, net, lane, lane_d, v_cruise)
+        agents, ego = _drive_and_release(rng, lane, scenario + background, v_cruise, v0, s0)
+        if ego.min_gap >= MIN_GAP:
+            break
+    else:
+        crosswalks = []
+        agents, ego = _drive_and_release(rng, lane, background, v_cruise, v0, s0)
+    if rng.random() < 0.5:
+        agents.append(follower(rng, lane, ego))
+    events = keyframe_events(lane, ego, KEYFRAMES)
+    return Scene(index, seed, name, net, lane, agents, ego, style, events, crosswalks, v_cruise)
+
+
+def _scenario(rng, net: RoadNet, lane: Path, lane_d: float, v_cruise: float) -> tuple[list[Agent], list[float]]:
+    """The agents the expert must react to: a lead or standing vehicle, crossing pedestrians and cyclists."""
     agents: list[Agent] = []
-    if rng.random() < 0.8:
+    if rng.random() < 0.85:
         agents.append(lead_vehicle(rng, lane, v_cruise))
     crosswalks: list[float] = []
-    for kind, p in (("pedestrian", 0.6), ("pedestrian", 0.25), ("cyclist", 0.2)):
+    for kind, p in (("pedestrian", 0.6), ("pedestrian", 0.3), ("cyclist", 0.25)):
         if rng.random() < p:
             walker, s_c = crossing_walker(rng, net, lane_d, v_cruise, kind)
             if walker is not None:
                 agents.append(walker)
                 if kind == "pedestrian" and rng.random() < 0.7:
                     crosswalks.append(float(s_c))
-    agents += background_traffic(rng, net, k)
-    s0, v0 = start_state(rng, v_cruise)
+    return agents, crosswalks
+
+
+def _drive_and_release(rng, lane: Path, agents: list[Agent], v_cruise: float, v0: float, s0: float):
+    """Drive the expert; a standing vehicle it has stopped behind pulls away a few seconds later (drive again)."""
     ego = drive(lane, agents, v_cruise, v0, s0)
-    if rng.random() < 0.5:
-        agents.append(follower(rng, lane, ego))
-    vru = [a for a in agents if a.role == "crossing"]
-    walker_block = corridor_obstacles(lane, vru)[2].any(0) if vru else np.zeros(SIM_STEPS, bool)
-    events = keyframe_events(lane, ego, KEYFRAMES, walker_block)
-    return Scene(index, seed, name, net, lane, agents, ego, style, events, crosswalks, v_cruise)
+    stopped = [i for i, a in enumerate(agents) if a.role == "stopped"]
+    if not stopped:
+        return agents, ego
+    agents = list(agents)
+    halted = np.flatnonzero((ego.speed < 0.3) & (ego.react == REACT_VEHICLE))
+    t_go = (halted[0] * DT if len(halted) else float(rng.uniform(4.0, 14.0))) + float(rng.uniform(1.0, 6.0))
+    for i in stopped:
+        agents[i] = depart(agents[i], lane, t_go)
+    return agents, drive(lane, agents, v_cruise, v0, s0)
