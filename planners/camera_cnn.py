@@ -1,0 +1,154 @@
+"""Reference planner: a small camera CNN. Reads the three front cameras together with ego status and command.
+
+Design: the ego-only floor's prediction (an MLP on ego status and command) plus a residual that a small
+convolutional encoder computes from the front cameras. The residual is what the cameras add: a stopped car or a
+crossing pedestrian ahead (braking), a bend or a junction (turning). Each camera is reduced to 160 x 90 with
+``cv2.INTER_AREA`` inside ``predict`` (an integer factor of 5 at the default 800 x 450, OpenCV's fast path), and a
+fourth view zooms on the middle of CAM_FRONT (the central 40 % x 40 % around the horizon, a factor of 2), where
+a car 40 m ahead or a pedestrian at the curb is otherwise only a few pixels; all are normalised by the
+network's own buffers.
+
+Weights are committed beside this file (``camera_cnn.pt``, with ``camera_cnn.json`` holding the data set
+fingerprint and the training settings) and load without any download. Retrain with
+``python planners/train_camera_cnn.py``.
+
+    pytest --drivedegrade planners/camera_cnn.py -n 2
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from pytest_drivedegrade.constants import HORIZON_STEPS
+from pytest_drivedegrade.floor import FEATURE_SIZE, OUTPUT_SIZE, ego_features
+from pytest_drivedegrade.planning import Command, EgoStatus
+
+WEIGHTS = Path(__file__).with_name("camera_cnn.pt")
+SIDECAR = WEIGHTS.with_suffix(".json")
+#: The cameras this planner reads, in the order the network stacks them.
+CNN_CAMERAS: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT")
+#: Network input size per view (width, height).
+INPUT_SIZE: tuple[int, int] = (160, 90)
+#: The views the network stacks: (camera, crop as fractions (x0, x1, y0, y1) of the image, or None for all of it).
+VIEWS: tuple[tuple[str, tuple[float, float, float, float] | None], ...] = (
+    ("CAM_FRONT", None), ("CAM_FRONT_LEFT", None), ("CAM_FRONT_RIGHT", None),
+    ("CAM_FRONT", (0.3, 0.7, 1 / 3, 11 / 15)),  # 320 x 180 at 800 x 450: the road 10-80 m ahead, zoomed x2
+)
+
+
+def _view(image: np.ndarray, crop: tuple[float, float, float, float] | None) -> np.ndarray:
+    if crop is not None:
+        h, w = image.shape[:2]
+        image = image[round(crop[2] * h): round(crop[3] * h), round(crop[0] * w): round(crop[1] * w)]
+    return cv2.resize(image, INPUT_SIZE, interpolation=cv2.INTER_AREA)
+
+
+def preprocess(images: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The views, downsampled with INTER_AREA: uint8 (len(VIEWS), H, W, 3). Never writes its inputs."""
+    return np.stack([_view(images[cam], crop) for cam, crop in VIEWS])
+
+
+def _conv(c_in: int, c_out: int, k: int, stride: int, pad: int) -> list[nn.Module]:
+    return [nn.Conv2d(c_in, c_out, k, stride, pad, bias=False), nn.BatchNorm2d(c_out), nn.ReLU()]
+
+
+#: What the cameras must tell the planner, as a few numbers (trained against annotations, see
+#: ``train_camera_cnn.perception_targets``): the vehicle ahead in the ego lane (present, distance), the nearest
+#: pedestrian or cyclist at or in the lane ahead (present, distance, lateral offset, in the lane), and where the
+#: road goes (lateral offset of the path at 1.5 s and 3 s).
+PERCEPTS: tuple[str, ...] = ("vehicle", "vehicle_x", "vru", "vru_x", "vru_y", "vru_in_lane", "path_y15", "path_y30")
+
+
+class CameraCNN(nn.Module):
+    """Floor MLP on ego features plus a camera residual; ``forward(pix, feats)`` -> (N, 12) metres.
+
+    `pix` is uint8 (N, C, H, W, 3) as ``preprocess`` returns; `feats` are ``ego_features`` rows (N, F). The
+    cameras reach the residual only through ``perceive``'s few numbers (``PERCEPTS``): a bottleneck that keeps a
+    network trained on a hundred scenes from memorising their looks instead of reading the road.
+    """
+
+    def __init__(self, hidden: int = 128, cam_dim: int = 48, dropout: float = 0.1) -> None:
+        super().__init__()
+        self.drop = nn.Dropout(dropout)  # training only
+        n_cams = len(VIEWS)
+        # A 4 x 4 patchify stem keeps the cost at a few million MACs per view (>= 50 frames/s on one core).
+        self.encoder = nn.Sequential(
+            *_conv(3, 24, 4, 4, 0), *_conv(24, 32, 3, 2, 1), *_conv(32, 64, 3, 2, 1), *_conv(64, 24, 1, 1, 0),
+        )
+        w, h = INPUT_SIZE
+        cells = (-(-(h // 4) // 4)) * (-(-(w // 4) // 4))  # 90 x 160 -> 22 x 40 -> 11 x 20 -> 6 x 10
+        self.project = nn.ModuleList(nn.Linear(24 * cells, cam_dim) for _ in range(n_cams))
+        self.percept = nn.Sequential(
+            nn.Linear(n_cams * cam_dim + FEATURE_SIZE, hidden), nn.ReLU(), nn.Linear(hidden, len(PERCEPTS))
+        )
+        self.base = nn.Sequential(
+            nn.Linear(FEATURE_SIZE, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+            nn.Linear(hidden, OUTPUT_SIZE),
+        )
+        self.head = nn.Sequential(
+            nn.Linear(len(PERCEPTS) + FEATURE_SIZE, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+            nn.Linear(hidden, OUTPUT_SIZE),
+        )
+        for name, size in (("x_mean", FEATURE_SIZE), ("x_std", FEATURE_SIZE), ("y_mean", OUTPUT_SIZE),
+                           ("y_std", OUTPUT_SIZE), ("pix_mean", 3), ("pix_std", 3)):
+            self.register_buffer(name, torch.zeros(size) if "mean" in name else torch.ones(size))
+
+    def perceive(self, pix: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """(N, len(PERCEPTS)) scene facts from the views and the normalised ego features `z`."""
+        n, c = pix.shape[:2]
+        x = pix.reshape(n * c, *pix.shape[2:]).permute(0, 3, 1, 2).float() / 255.0
+        x = (x - self.pix_mean.view(1, 3, 1, 1)) / self.pix_std.view(1, 3, 1, 1)
+        maps = self.encoder(x).reshape(n, c, -1)
+        cams = torch.cat([torch.relu(proj(maps[:, i])) for i, proj in enumerate(self.project)], dim=1)
+        return self.percept(torch.cat([self.drop(cams), z], dim=1))
+
+    def plan(self, facts: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Waypoints (N, 12) in metres from scene facts and normalised ego features."""
+        out = self.base(z) + self.head(torch.cat([facts, z], dim=1))
+        return out * self.y_std + self.y_mean
+
+    def forward(self, pix: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
+        z = (feats - self.x_mean) / self.x_std
+        return self.plan(self.perceive(pix, z), z)
+
+
+class CameraCNNPlanner:
+    """The planner contract around ``CameraCNN``: reads CAM_FRONT, CAM_FRONT_LEFT and CAM_FRONT_RIGHT."""
+
+    cameras: tuple[str, ...] = CNN_CAMERAS
+    name = "camera_cnn"
+
+    def __init__(self, weights: Path = WEIGHTS) -> None:
+        self.model = CameraCNN()
+        self.model.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+        self.model.eval()
+        sidecar = Path(weights).with_suffix(".json")
+        self.trained_on = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+
+    def predict_many(self, pix: np.ndarray, feats: np.ndarray) -> np.ndarray:
+        """Waypoints (N, 6, 2) float64 from preprocessed pixels (N, C, H, W, 3) and ego features (N, F)."""
+        with torch.inference_mode():
+            out = self.model(torch.from_numpy(np.ascontiguousarray(pix)), torch.from_numpy(feats))
+        return out.numpy().astype(np.float64).reshape(-1, HORIZON_STEPS, 2)
+
+    def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
+        return self.predict_many(preprocess(images)[None], ego_features(ego, cmd)[None])[0]
+
+
+@pytest.fixture(scope="session")
+def planner() -> CameraCNNPlanner:
+    """The planner the suite certifies; the weights load once per worker.
+
+    One torch thread per process: under -n 2 the two workers already fill both cores, and the same thread
+    count in every layout keeps the plans bit-identical between -n 0 and -n 2.
+    """
+    torch.set_num_threads(1)
+    return CameraCNNPlanner()
