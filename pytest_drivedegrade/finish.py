@@ -50,7 +50,7 @@ def _floor_l2(config: pytest.Config, context: Any, split: str, lines: list[str])
 
     try:
         train = NuScenesReader(context.reader.root, split=train_split_for(split))
-        if not train.scorable_frames(limit=1):
+        if not any(f.scorable for f in train.frames()):  # lazily: stops at the first scorable frame
             lines.append(f"ego-only floor: skipped, split {train_split_for(split)!r} has no scorable frames")
             return None
         model = load_or_train_floor(train, cache_root(config) / "floor")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .kernels import coverage_mask, scaled, smooth_field
+from .kernels import blend, coverage_mask, scaled, smooth_field, to_alpha8
 from .registry import register
 
 #: Raindrop radius range (px at 1600 px width), drawn log-uniform; the drop is a little taller than wide.
@@ -16,49 +16,46 @@ _DROP_ASPECT = 1.15
 _DROP_MAGNIFICATION = 2.6
 
 
-def _drop_list(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float):
-    """Drops (cx, cy, rx, ry) added until their union covers `fraction` of the frame, and that union."""
-    covered = np.zeros((h, w), np.uint8)
-    target = fraction * h * w
-    drops = []
+def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float,
+                 step: float) -> np.ndarray:
+    """Drops added in batches until their union covers `fraction` of the frame, painted into a 4-channel
+    float32 grid of `step` px: each covered cell holds its drop's (cx, cy, rx, ry) in grid units (a later
+    drop covers an earlier one); rx = 0 where the lens is dry."""
+    gh, gw = max(1, round(h / step)), max(1, round(w / step))
+    params = np.zeros((gh, gw, 4), np.float32)
+    target = fraction * gh * gw
     lo, hi = np.log(scaled(_DROP_RADIUS[0], scale)), np.log(scaled(_DROP_RADIUS[1], scale))
-    area = 0
-    while area < target and len(drops) < 5000:
-        batch = max(1, int((target - area) / (np.pi * np.exp(lo + hi) * _DROP_ASPECT)))
-        for _ in range(batch):
-            rx = max(1.0, float(np.exp(rng.uniform(lo, hi))))
-            ry = rx * _DROP_ASPECT
-            cx, cy = float(rng.uniform(0, w)), float(rng.uniform(0, h))
-            drops.append((cx, cy, rx, ry))
-            cv2.ellipse(covered, (round(cx), round(cy)), (round(rx), round(ry)), 0, 0, 360, 1, -1)
-        area = int(covered.sum())
-    return drops, covered
+    count = area = 0
+    while area < target and count < 5000:
+        batch = max(1, int((target - area) * step * step / (np.pi * np.exp(lo + hi) * _DROP_ASPECT)))
+        rx = np.maximum(1.0, np.exp(rng.uniform(lo, hi, batch)))
+        new = np.stack([rng.uniform(0, w, batch), rng.uniform(0, h, batch), rx, rx * _DROP_ASPECT], axis=1) / step
+        for cx, cy, ax, ay in new:
+            cv2.ellipse(params, (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay))), 0, 0, 360,
+                        (float(cx), float(cy), float(ax), float(ay)), -1)
+        count += batch
+        area = int(np.count_nonzero(params[..., 2]))
+    return params
 
 
-def _drop_layer(drops: list[tuple], gh: int, gw: int, step: float) -> np.ndarray:
-    """The drop layer on a grid of `step` full-resolution pixels: planes (source x, source y, shade, alpha).
-
-    Each drop is filled into a label image (later drops cover earlier ones); then every covered pixel gets
-    its drop's inverted, magnified view of the scene above it and a darker rim, all in one vectorised pass.
-    """
-    labels = np.zeros((gh, gw), np.int32)
-    for k, (cx, cy, rx, ry) in enumerate(drops, start=1):
-        cv2.ellipse(labels, (round(cx / step), round(cy / step)), (max(1, round(rx / step)), max(1, round(ry / step))),
-                    0, 0, 360, k, -1)
-    maps = np.zeros((4, gh, gw), np.float32)
-    ys, xs = np.nonzero(labels)
-    if ys.size == 0:
-        return maps
-    params = np.asarray(drops, np.float32)[labels[ys, xs] - 1] / step  # (N, 4): cx, cy, rx, ry on the grid
-    cx, cy, rx, ry = params.T
-    dx, dy = (xs + 0.5 - cx) / rx, (ys + 0.5 - cy) / ry
+def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(source x, source y in full-resolution px, shade, alpha) on the drop grid: each drop shows an
+    inverted, magnified view of the scene above it, with a darker rim. Dense: no per-drop work."""
+    gh, gw = params.shape[:2]
+    cx, cy, rx, ry = cv2.split(params)
+    wet = rx > 0
+    rx, ry = np.where(wet, rx, 1.0), np.where(wet, ry, 1.0)
+    dx = (np.arange(gw, dtype=np.float32)[None, :] + 0.5 - cx) / rx
+    dy = (np.arange(gh, dtype=np.float32)[:, None] + 0.5 - cy) / ry
     rho2 = dx * dx + dy * dy
     lens = _DROP_MAGNIFICATION * (1.0 + 0.35 * rho2)  # stronger bending towards the rim
-    maps[0, ys, xs] = (cx - dx * rx * lens) * step
-    maps[1, ys, xs] = (cy - 1.5 * ry - dy * ry * lens) * step  # looks up and through, inverted
-    maps[2, ys, xs] = 1.0 - 0.45 * np.minimum(rho2, 1.0) ** 3
-    maps[3, ys, xs] = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
-    return maps
+    # dry cells read pixel (0, 0): they are never shown (alpha 0), and far-off coordinates would make
+    # remap's border handling crawl
+    map_x = np.where(wet, (cx - dx * rx * lens) * step, 0.0).astype(np.float32)
+    map_y = np.where(wet, (cy - 1.5 * ry - dy * ry * lens) * step, 0.0).astype(np.float32)  # looks up, inverted
+    shade = (1.0 - 0.45 * np.minimum(rho2, 1.0) ** 3).astype(np.float32)
+    alpha = np.where(wet, np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0), 0.0).astype(np.float32)
+    return map_x, map_y, shade, alpha
 
 
 @register("raindrop", group="contamination", axis="contamination", parameter="frame fraction under drops",
@@ -68,18 +65,15 @@ def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale
     (the drop sits far in front of the focal plane). The drop layer is built at half resolution (its
     content is defocused anyway) and composited over the sharp frame."""
     h, w = image.shape[:2]
-    drops, _ = _drop_list(rng, h, w, fraction, scale)
+    map_x, map_y, shade, alpha = _drop_layer(_drop_params(rng, h, w, fraction, scale, step=2.0), 2.0)
     small = cv2.resize(image, (max(1, w // 4), max(1, h // 4)), interpolation=cv2.INTER_AREA)
     source = cv2.GaussianBlur(small, (0, 0), sigmaX=max(0.5, scaled(8.0, scale) / 4))
-    gh, gw = max(1, h // 2), max(1, w // 2)
-    maps = _drop_layer(drops, gh, gw, w / gw)
     to_source = source.shape[1] / w
-    view = cv2.remap(source, maps[0] * to_source, maps[1] * to_source, cv2.INTER_LINEAR,
+    view = cv2.remap(source, map_x * to_source, map_y * to_source, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REFLECT_101)
-    view = (view * maps[2][..., None]).astype(np.uint8)
+    view = cv2.multiply(view, cv2.merge([shade, shade, shade]), dtype=cv2.CV_8U)
     view = cv2.resize(view, (w, h), interpolation=cv2.INTER_LINEAR)
-    alpha = cv2.resize(maps[3], (w, h), interpolation=cv2.INTER_LINEAR)
-    return cv2.blendLinear(image, view, 1.0 - alpha, alpha)
+    return blend(image, view, cv2.resize(to_alpha8(alpha), (w, h), interpolation=cv2.INTER_LINEAR))
 
 
 @register("occlusion", group="contamination", axis="removal", parameter="frame fraction under one black box",
@@ -158,9 +152,8 @@ def mud_splash(image: np.ndarray, fraction: float, rng: np.random.Generator, sca
     out = image.copy()
     if alpha.size:
         region = image[box]
-        full = _up(alpha, region.shape[:2])
         mud = _tinted(rng, region.shape[:2], _MUD_RGB, cells=40, spread=0.6)
-        out[box] = cv2.blendLinear(region, mud, 1.0 - full, full)
+        out[box] = blend(region, mud, _up(to_alpha8(alpha), region.shape[:2]))
     return out
 
 
@@ -191,8 +184,7 @@ def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scal
         opacity *= 0.35 + 0.3 * smooth_field(rng, qshape[0], qshape[1], cells=5, octaves=2)
         dirt = np.empty_like(small)
         dirt[:] = _DIRT_RGB.astype(np.uint8)
-        film = _up(cv2.blendLinear(blurred, dirt, 1.0 - opacity, opacity), (rh, rw))
-        soft = _up(np.minimum(alpha * 2.0, 1.0), (rh, rw))
-        out[box] = cv2.blendLinear(region, film, 1.0 - soft, soft)
+        film = _up(blend(blurred, dirt, to_alpha8(opacity)), (rh, rw))
+        out[box] = blend(region, film, _up(to_alpha8(np.minimum(alpha * 2.0, 1.0)), (rh, rw)))
     veil = _DIRT_VEIL_PER_FRACTION * fraction
     return cv2.addWeighted(out, 1.0 - veil, out, 0.0, _VEIL_GREY * veil)

@@ -53,6 +53,20 @@ def discrete_normal(rng: np.random.Generator, shape: tuple[int, ...], sigma: flo
     return out.reshape(shape)
 
 
+def blend(base: np.ndarray, over: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Per-pixel mix of two uint8 images: base * (1 - a) + over * a, with `alpha` a uint8 H x W map where 255
+    means all `over`. Two saturating 8-bit multiplies (within one level of the exact mix), about twice as fast
+    as a float blend."""
+    a3 = cv2.merge([alpha, alpha, alpha]) if base.ndim == 3 else alpha
+    return cv2.add(cv2.multiply(base, cv2.bitwise_not(a3), scale=1 / 255),
+                   cv2.multiply(over, a3, scale=1 / 255))
+
+
+def to_alpha8(alpha: np.ndarray) -> np.ndarray:
+    """A float coverage in [0, 1] as the uint8 alpha map `blend` takes."""
+    return cv2.convertScaleAbs(alpha, alpha=255.0)
+
+
 def add_noise(image: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """Saturating uint8 + int16 noise."""
     return cv2.add(image.astype(np.int16), noise, dtype=cv2.CV_8U)
