@@ -1,6 +1,6 @@
 """Per-frame planning metrics and their aggregation conventions.
 
-Every function here is pure (numpy; OpenCV for the byte popcount). A plan and a ground truth are ``(6, 2)`` arrays of waypoints at
+Every function here is pure and numpy-only. A plan and a ground truth are ``(6, 2)`` arrays of waypoints at
 t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres); the ego sits at the origin at t = 0.
 
 Conventions (SPEC section 5):
@@ -203,19 +203,24 @@ def endpoint_shift(plan: Any, reference_plan: Any) -> float:
     return float(np.linalg.norm(_as_plan(plan, "plan")[-1] - _as_plan(reference_plan, "reference_plan")[-1]))
 
 
+def _ones(raw: np.ndarray) -> int:
+    """Number of 1 bits in a flat uint8 array: a hardware popcount over 64-bit words (numpy >= 2), the
+    remaining bytes through a 256-entry table."""
+    words = raw.size // 8 * 8 if hasattr(np, "bitwise_count") else 0
+    ones = int(np.bitwise_count(raw[:words].view(np.uint64)).sum()) if words else 0
+    return ones + int(_POPCOUNT_U8[raw[words:]].sum(dtype=np.int64))
+
+
 def bit1_density(images: Mapping[str, np.ndarray]) -> float:
     """Fraction of 1 bits among all bytes of all images: the energy proxy (divide by clean's for relative).
 
-    Each byte's popcount comes from a 256-entry table (an OpenCV LUT) and is summed exactly, about a
-    millisecond for three 800 x 450 images. Returns 0.0 when there are no bytes.
+    About 0.15 ms for an 800 x 450 image. Returns 0.0 when there are no bytes.
     """
-    import cv2
-
     ones = 0
     total = 0
     for image in images.values():
-        raw = np.ascontiguousarray(image).view(np.uint8).reshape(-1, 1)
-        ones += int(round(cv2.sumElems(cv2.LUT(raw, _POPCOUNT_U8))[0]))
+        raw = np.ascontiguousarray(image).view(np.uint8).reshape(-1)
+        ones += _ones(raw)
         total += raw.size * 8
     return ones / total if total else 0.0
 

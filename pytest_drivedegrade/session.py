@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from .loader import DIAGNOSTIC, cell_id
+from .loader import cell_id
 from .options import RunOptions, parse
 from .store import ResultStore
 
@@ -145,8 +145,11 @@ class DriveDegradeSession:
     # --- collection ------------------------------------------------------------------------------------------
 
     def cells(self) -> list[tuple[str, int]]:
-        diagnostic = [(d, 0) for d in DIAGNOSTIC]
-        return diagnostic + [(f, s) for f in self.options.families for s in self.options.severities]
+        """Cells in run order: clean first and the null control last, so that under xdist the clean result
+        is already stored when the null control (and the baseline gate) compare against it, and no worker
+        computes clean twice."""
+        ladder = [(f, s) for f in self.options.families for s in self.options.severities]
+        return [("clean", 0), *ladder, ("blind", 0), ("null", 0)]
 
     def pytest_collect_file(self, file_path: Path, parent: pytest.Collector):
         if file_path == self.collect_path:
