@@ -29,7 +29,9 @@ import pytest_drivedegrade.run  # noqa: F401
 FAMILIES = "jpeg,blackout,gaussian_blur"
 SEVERITIES = "1,5"
 SMALL_CELLS = ("clean", "null", "blind", "gaussian_blur-s1", "gaussian_blur-s5", "jpeg-s1", "jpeg-s5", "blackout-s1",
-               "blackout-s5")  # in collection and report order: diagnostic cells, then the ladder's order
+               "blackout-s5")  # in report order: diagnostic cells, then the ladder's order
+#: The same cells in collection (run) order: clean first, the null control last (see DriveDegradeSession.cells).
+RUN_ORDER = ("clean", *SMALL_CELLS[3:], "blind", "null")
 #: Every family the two axes need at S5 (nine quality families and blackout), for the verdict tests.
 AXIS_FAMILIES = "gaussian_blur,motion_blur,gaussian_noise,low_light,jpeg,downscale,color_quant,fog,snow,blackout"
 FRAMES = 4

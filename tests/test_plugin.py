@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import (AXIS_FAMILIES, FRAGILE, SMALL_CELLS, by_cell, load_json, no_traceback, planner_source,
+from plugin_support import (AXIS_FAMILIES, FRAGILE, RUN_ORDER, SMALL_CELLS, by_cell, load_json, no_traceback, planner_source,
                             read_csv, verify_cli)
 
 pytest_plugins = ["plugin_support"]
@@ -43,7 +43,7 @@ def test_serial_and_xdist_runs_agree(dd):
     dd.write_planner()
     serial = dd.run("-v", "--junitxml=serial.xml", report="rep0")
     serial.assert_outcomes(passed=len(SMALL_CELLS))
-    serial.stdout.fnmatch_lines([f"myplanner.py::{c} PASSED*" for c in SMALL_CELLS], consecutive=False)
+    serial.stdout.fnmatch_lines([f"myplanner.py::{c} PASSED*" for c in RUN_ORDER], consecutive=False)
     parallel = dd.run("-n", "2", "--junitxml=parallel.xml", report="rep2")
     parallel.assert_outcomes(passed=len(SMALL_CELLS))
     assert serial.ret == parallel.ret == 0
