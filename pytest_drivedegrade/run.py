@@ -30,6 +30,9 @@ from .metrics import bit1_density, frame_metrics
 from .planning import planner_cameras, planner_fingerprint, validate_output
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
+#: Decoded clean images kept per process for reuse by later cells (a fixed budget, so memory is flat in the
+#: number of frames): 512 MB holds about 500 images at 800 x 450.
+DECODE_CACHE_BYTES = 512 * 2**20
 
 
 class PlannerTimeout(Exception):
@@ -73,6 +76,8 @@ class RunContext:
     dataset_fingerprint: str
     planner_path: Path | None
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
+    _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    _decoded_bytes: int = 0
     _clean: dict[int, CellRecord] = field(default_factory=dict)
 
     @property
@@ -92,7 +97,21 @@ class RunContext:
                 "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
 
     def decode(self, frame: Frame, camera: str) -> np.ndarray:
-        return self.reader.load_image(frame.cameras[camera])
+        """The clean image; the first DECODE_CACHE_BYTES of decoded images stay in memory for the next cells.
+
+        Fill-once, never evict: every cell reads the frames in the same order, so an LRU would miss every
+        time, while a fixed set hits every time. Memory stays bounded whatever the number of frames. Cached
+        arrays are read-only, so no cell can change what another one reads.
+        """
+        key = (frame.token, camera)
+        image = self._decoded.get(key)
+        if image is None:
+            image = self.reader.load_image(frame.cameras[camera])
+            if self._decoded_bytes + image.nbytes <= DECODE_CACHE_BYTES:
+                image.setflags(write=False)
+                self._decoded[key] = image
+                self._decoded_bytes += image.nbytes
+        return image
 
     def clean_record(self, planner: Any) -> CellRecord:
         """The clean cell, computed once per process: the reference for null control and the baseline gate."""
