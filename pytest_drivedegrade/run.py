@@ -25,7 +25,7 @@ from .corruptions.registry import SPEC_VERSION
 from .data.frame import Frame
 from .data.nuscenes import NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
-from .loader import samples
+from .loader import cell_id, samples
 from .metrics import bit1_density, frame_metrics
 from .planning import planner_cameras, planner_fingerprint, validate_output
 
@@ -157,14 +157,8 @@ class RunContext:
             bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
             spent["metrics"] += time.perf_counter() - t1
         spent["total"] = time.perf_counter() - start
-        return CellRecord(cell_name(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
+        return CellRecord(cell_id(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
                           col, vru, jerk, bit1, seconds=spent, errors=errors)
-
-
-def cell_name(family: str, severity: int) -> str:
-    from .loader import cell_id
-
-    return cell_id(family, severity)
 
 
 def describe_failure(exc: BaseException, frame_token: str) -> str:

@@ -7,7 +7,6 @@ outputs. Results cross the xdist boundary as plain builtins attached to the test
 from __future__ import annotations
 
 import importlib.util
-import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -116,7 +115,6 @@ class DriveDegradeSession:
         self.planner_module: Any = None  # the imported planner file; None in conftest mode
         self.context = None  # RunContext, opened lazily per process
         self.records: dict[str, dict[str, Any]] = {}  # controller: cell -> {"key", "planner", "record"}
-        self.collected: list[str] = []
         self.outcome: Any = None  # finish.Outcome on the controller
 
     @classmethod
@@ -162,9 +160,6 @@ class DriveDegradeSession:
         if module_path == self.collect_path:
             return _Nothing.from_parent(parent, path=module_path)
         return None
-
-    def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
-        self.collected = [i.name for i in items if hasattr(i, "drivedegrade_cell")]
 
     # --- the run ---------------------------------------------------------------------------------------------
 
@@ -288,7 +283,3 @@ class DriveDegradeSession:
 class _Nothing(pytest.File):
     def collect(self):
         return []
-
-
-def dump(payload: dict[str, Any]) -> str:
-    return json.dumps(payload, allow_nan=True)
