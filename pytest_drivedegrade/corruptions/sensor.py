@@ -8,7 +8,7 @@ from math import ceil
 import cv2
 import numpy as np
 
-from .kernels import add_noise, discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
+from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
 
 
@@ -41,28 +41,68 @@ def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> n
     return cv2.resize(blurred, (w, h), interpolation=cv2.INTER_LINEAR)
 
 
-def _line_blur_x_major(image: np.ndarray, n: int, slope: float) -> np.ndarray:
-    """Average n pixels along the digital lines y = c + round(slope * x), |slope| <= 1.
+#: Rows per block of the box filter in `_line_blur`: each block filters only the band of the canvas its
+#: lines occupy, so the work stays near the image size at any angle instead of growing with the shear.
+_LINE_BLOCK = 192
 
-    Every pixel lies on exactly one such line. Shearing column x by round(slope * x) rows lays each line
-    out as a row of a taller canvas; a box filter averages along the rows in O(1) per pixel, and the
-    inverse shear (the same integer offsets) puts every pixel back. Exact, no 2-D kernel.
+
+def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
+    """(start, stop, offset) for each run of equal values in the 1-D array `offsets`."""
+    change = np.flatnonzero(np.diff(offsets)) + 1
+    starts = [0, *change.tolist()]
+    stops = [*change.tolist(), len(offsets)]
+    return [(a, b, int(offsets[a])) for a, b in zip(starts, stops)]
+
+
+def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
+    """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated).
+
+    OpenCV 5.0's `blur` is off by one level for a 2-tap window (a zero image comes back as 1), so two
+    taps are summed exactly in 16 bits and halved (round half to even); and it misreads the replicated
+    border of a view shorter than the window, so such a view is padded first."""
+    border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
+    if view.shape[0] < n:
+        before = n // 2
+        padded = cv2.copyMakeBorder(view, before, n - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
+        return _box_rows(padded, n)[before:before + view.shape[0]]
+    if n != 2:
+        return cv2.blur(view, (1, n), borderType=border)
+    total = cv2.boxFilter(view, cv2.CV_16U, (1, 2), normalize=False, borderType=border)
+    return cv2.convertScaleAbs(total, alpha=0.5)
+
+
+def _line_blur(image: np.ndarray, n: int, slope: float) -> np.ndarray:
+    """Average n pixels along the digital lines {(i, c + round(slope * i))}, |slope| <= 1: lines advance
+    one row per step and drift sideways by the rounded slope.
+
+    Every pixel lies on exactly one such line. Shifting row i by -round(slope * i) columns lays each line
+    out as a column of a wider canvas (a row shift is one contiguous copy per run of equal shifts); a box
+    filter down the columns averages along the lines in O(1) per pixel, and the same integer shifts put
+    every pixel back. Exact, no 2-D kernel. Lines leaving the image continue on its edge pixels (the
+    canvas margins replicate each row's end pixels as deep as a window can reach).
     """
-    h, w = image.shape[:2]
-    offset = np.round(slope * np.arange(w)).astype(np.int16)
-    top, bottom = int(offset.max()), int(offset.min())
-    canvas = cv2.remap(image, _shear_map(h + top - bottom, w, offset - top), None, cv2.INTER_NEAREST,
-                       borderMode=cv2.BORDER_REPLICATE)
-    blurred = cv2.blur(canvas, (n, 1), borderType=cv2.BORDER_REPLICATE)
-    return cv2.remap(blurred, _shear_map(h, w, top - offset), None, cv2.INTER_NEAREST)
-
-
-def _shear_map(rows: int, w: int, shift: np.ndarray) -> np.ndarray:
-    """A CV_16SC2 remap table reading row r of column x from row r + shift[x] (integer, exact)."""
-    table = np.empty((rows, w, 2), np.int16)
-    table[..., 0] = np.arange(w, dtype=np.int16)[None, :]
-    table[..., 1] = np.arange(rows, dtype=np.int16)[:, None] + shift[None, :]
-    return table
+    rows, cols = image.shape[:2]
+    shift = -np.round(slope * np.arange(rows)).astype(np.int64)
+    shift -= shift.min()
+    margin = int(ceil(abs(slope) * n)) + 1
+    canvas = np.empty((rows, cols + int(shift.max()) + 2 * margin) + image.shape[2:], image.dtype)
+    for a, b, s in _runs(shift):
+        left = margin + s
+        canvas[a:b, left:left + cols] = image[a:b]
+        canvas[a:b, left - margin:left] = image[a:b, :1]
+        canvas[a:b, left + cols:left + cols + margin] = image[a:b, cols - 1:]
+    out = np.empty_like(image)
+    before = n // 2
+    for first in range(0, rows, _LINE_BLOCK):
+        last = min(rows, first + _LINE_BLOCK)
+        hi = min(rows, last + n - 1 - before)  # the block and its window's reach (at least n rows)
+        lo = max(0, min(first - before, hi - n))
+        band = shift[first:last]
+        left = margin + int(band.min())
+        blurred = _box_rows(canvas[lo:hi, left:margin + int(band.max()) + cols], n)
+        for a, b, s in _runs(band):
+            out[first + a:first + b] = blurred[first - lo + a:first - lo + b, margin + s - left:][:, :cols]
+    return out
 
 
 @register("motion_blur", group="sensor", axis="quality", parameter="blur length", unit="px",
@@ -70,24 +110,24 @@ def _shear_map(rows: int, w: int, shift: np.ndarray) -> np.ndarray:
 def motion_blur(image: np.ndarray, length: float, rng: np.random.Generator, scale: float) -> np.ndarray:
     """Linear motion blur of the given length in a random direction.
 
-    Each output pixel averages the pixels on a rasterised line through it (see `_line_blur_x_major`);
-    mostly vertical motion is handled on the transposed image. No large 2-D kernel is convolved.
+    Each output pixel averages the n pixels on a rasterised line through it (see `_line_blur`); mostly
+    horizontal motion is handled on the transposed image. No large 2-D kernel is convolved.
     """
     n = max(1, int(round(scaled(length, scale))))
     angle = rng.uniform(0.0, np.pi)
     if n == 1:
         return image.copy()
     c, s = np.cos(angle), np.sin(angle)
-    if abs(c) >= abs(s):
-        return _line_blur_x_major(image, n, s / c)
-    return cv2.transpose(_line_blur_x_major(cv2.transpose(image), n, c / s))
+    if abs(c) >= abs(s):  # lines advance along x: make x the row axis
+        return cv2.transpose(_line_blur(cv2.transpose(image), n, s / c))
+    return _line_blur(image, n, c / s)
 
 
 @register("gaussian_noise", group="sensor", axis="quality", parameter="noise sigma", unit="8-bit levels",
           values=(4, 8, 16, 28, 45), random=True)
 def gaussian_noise(image: np.ndarray, sigma: float, rng: np.random.Generator, scale: float) -> np.ndarray:
     """Additive white Gaussian read noise, per pixel and channel: clip(round(v + sigma * z))."""
-    return add_noise(image, discrete_normal(rng, image.shape, sigma))
+    return add_discrete_normal(image, rng, sigma)
 
 
 #: Photo-electrons collected by a pixel at nominal exposure for a white (linear 1.0) scene point.
@@ -122,8 +162,7 @@ def low_light(image: np.ndarray, exposure: float, rng: np.random.Generator, scal
     sigma/3, then decoded to sRGB. No auto-gain: the image darkens as a fixed-exposure camera's would.
     """
     encode, decode = _low_light_tables(float(exposure))
-    noise = discrete_normal(rng, image.shape, _ANSCOMBE_STEPS, limit=_NOISE_LIMIT)
-    noisy = cv2.add(cv2.LUT(image, encode), noise, dtype=cv2.CV_8U)
+    noisy = add_discrete_normal(cv2.LUT(image, encode), rng, _ANSCOMBE_STEPS, limit=_NOISE_LIMIT)
     return cv2.LUT(noisy, decode)
 
 
