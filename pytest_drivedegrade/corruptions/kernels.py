@@ -11,6 +11,8 @@ import cv2
 import numpy as np
 
 _U32 = float(2**32)
+#: The bucket-table value of a 16-bit bucket that a CDF step cuts (resolved with 16 more bits).
+_AMBIGUOUS = -32768
 
 
 @lru_cache(maxsize=64)
@@ -29,47 +31,98 @@ def _discrete_normal_tables(sigma: float, limit: int) -> tuple[np.ndarray, np.nd
     lo = np.searchsorted(thresholds, np.arange(2**16, dtype=np.uint64) << np.uint64(16), side="right")
     hi = np.searchsorted(thresholds, (np.arange(2**16, dtype=np.uint64) << np.uint64(16)) + np.uint64(2**16 - 1),
                          side="right")
-    bucket = np.where(lo == hi, values[np.minimum(lo, len(values) - 1)], -32768).astype(np.int16)
+    bucket = np.where(lo == hi, values[np.minimum(lo, len(values) - 1)], _AMBIGUOUS).astype(np.int16)
     return values.astype(np.int16), thresholds, bucket
+
+
+#: Samples per chunk of the noise kernels: a chunk's random bits, indices and noise stay in cache instead
+#: of making passes over image-sized temporaries (a 1600x900 RGB image is 33 chunks).
+_CHUNK = 1 << 17
+
+
+def _sample_chunks(rng: np.random.Generator, count: int, tables, consume) -> tuple[np.ndarray, np.ndarray]:
+    """Draw `count` samples chunk by chunk: `consume(start, stop, noise)` receives each chunk's int16
+    noise, with the ambiguous samples still at the sentinel. Returns their flat positions and resolved
+    values. The random stream is consumed as by one call: every sample's 16 bits in order, then 16 more
+    for each ambiguous sample in order, so the chunk size never changes a realisation."""
+    values, thresholds, bucket = tables
+    noise = np.empty(min(_CHUNK, count), np.int16)
+    indices = np.empty(noise.size, np.intp)
+    positions, high = [], []
+    for start in range(0, count, _CHUNK):
+        stop = min(start + _CHUNK, count)
+        raw = rng.bit_generator.random_raw((stop - start + 3) // 4).view(np.uint16)[: stop - start]
+        chunk = noise[: stop - start]
+        index = indices[: stop - start]
+        index[...] = raw  # widened here, once: `take` would convert the uint16 indices more slowly itself
+        bucket.take(index, out=chunk, mode="wrap")  # always in range; "wrap" is take's fastest mode
+        consume(start, stop, chunk)
+        ambiguous = np.flatnonzero(chunk == _AMBIGUOUS)
+        if ambiguous.size:
+            positions.append(ambiguous + start)
+            high.append(raw[ambiguous])
+    if not positions:
+        return np.empty(0, np.intp), np.empty(0, np.int16)
+    high16 = np.concatenate(high)
+    low16 = rng.bit_generator.random_raw((high16.size + 3) // 4).view(np.uint16)[: high16.size]
+    u32 = (high16.astype(np.uint64) << np.uint64(16)) | low16.astype(np.uint64)
+    return np.concatenate(positions), values[np.searchsorted(thresholds, u32, side="right")]
 
 
 def discrete_normal(rng: np.random.Generator, shape: tuple[int, ...], sigma: float, limit: int = 255) -> np.ndarray:
     """int16 samples of round(sigma * z), z standard normal, clipped to [-limit, limit].
 
     Exact to 32-bit probability resolution (the resolution of a float32 uniform), yet it draws only 16
-    random bits for ~99% of samples and needs no floating-point normal: the high 16 bits index a bucket
+    random bits for ~99.8% of samples and needs no floating-point normal: the high 16 bits index a bucket
     table; the few samples whose bucket straddles a CDF step draw 16 more bits and are resolved on the
     32-bit thresholds. For adding noise to 8-bit pixels, the clip at +-255 changes nothing.
     """
-    values, thresholds, bucket = _discrete_normal_tables(float(sigma), int(limit))
-    count = int(np.prod(shape))
-    raw = rng.bit_generator.random_raw((count + 3) // 4).view(np.uint16)[:count]
-    out = bucket.take(raw)
-    ambiguous = np.flatnonzero(out == -32768)
-    if ambiguous.size:
-        low = rng.bit_generator.random_raw((ambiguous.size + 3) // 4).view(np.uint16)[: ambiguous.size]
-        u32 = (raw[ambiguous].astype(np.uint64) << np.uint64(16)) | low.astype(np.uint64)
-        out[ambiguous] = values[np.searchsorted(thresholds, u32, side="right")]
+    tables = _discrete_normal_tables(float(sigma), int(limit))
+    out = np.empty(int(np.prod(shape)), np.int16)
+
+    def keep(start: int, stop: int, noise: np.ndarray) -> None:
+        out[start:stop] = noise
+
+    positions, resolved = _sample_chunks(rng, out.size, tables, keep)
+    out[positions] = resolved
     return out.reshape(shape)
+
+
+def add_discrete_normal(base: np.ndarray, rng: np.random.Generator, sigma: float, limit: int = 255) -> np.ndarray:
+    """clip(base + discrete_normal(rng, base.shape, sigma, limit), 0, 255) as a new uint8 array.
+
+    Bit-identical to adding `discrete_normal`'s samples (the same random stream), but fused chunk by
+    chunk, so no image-sized int16 noise is ever materialised: about 1.7x faster.
+    """
+    tables = _discrete_normal_tables(float(sigma), int(limit))
+    flat = np.ascontiguousarray(base).reshape(-1)
+    out = np.empty_like(flat)
+
+    def add(start: int, stop: int, noise: np.ndarray) -> None:
+        # 1 x m rows: OpenCV would read a short 1-D array as a scalar
+        cv2.add(flat[start:stop].reshape(1, -1), noise.reshape(1, -1), dst=out[start:stop].reshape(1, -1),
+                dtype=cv2.CV_8U)
+
+    positions, resolved = _sample_chunks(rng, flat.size, tables, add)
+    out[positions] = np.clip(flat[positions] + resolved, 0, 255)
+    return out.reshape(base.shape)
 
 
 def blend(base: np.ndarray, over: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """Per-pixel mix of two uint8 images: base * (1 - a) + over * a, with `alpha` a uint8 H x W map where 255
     means all `over`. Two saturating 8-bit multiplies (within one level of the exact mix), about twice as fast
-    as a float blend."""
-    a3 = cv2.merge([alpha, alpha, alpha]) if base.ndim == 3 else alpha
-    return cv2.add(cv2.multiply(base, cv2.bitwise_not(a3), scale=1 / 255),
-                   cv2.multiply(over, a3, scale=1 / 255))
+    as a float blend; the products reuse the two alpha buffers (each fresh image-sized array costs as much as
+    a pass over it in page faults)."""
+    a3 = cv2.merge([alpha, alpha, alpha]) if base.ndim == 3 else alpha.copy()
+    keep = cv2.bitwise_not(a3)
+    cv2.multiply(base, keep, dst=keep, scale=1 / 255)
+    cv2.multiply(over, a3, dst=a3, scale=1 / 255)
+    return cv2.add(keep, a3, dst=a3)
 
 
 def to_alpha8(alpha: np.ndarray) -> np.ndarray:
     """A float coverage in [0, 1] as the uint8 alpha map `blend` takes."""
     return cv2.convertScaleAbs(alpha, alpha=255.0)
-
-
-def add_noise(image: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """Saturating uint8 + int16 noise."""
-    return cv2.add(image.astype(np.int16), noise, dtype=cv2.CV_8U)
 
 
 @lru_cache(maxsize=1)
