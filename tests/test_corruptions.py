@@ -10,8 +10,9 @@ from hypothesis.extra.numpy import arrays
 
 from pytest_drivedegrade import FAMILIES, corrupt, corrupt_sample
 from pytest_drivedegrade.constants import CAMERAS
-from pytest_drivedegrade.corruptions.kernels import discrete_normal
+from pytest_drivedegrade.corruptions.kernels import _discrete_normal_tables, add_discrete_normal, discrete_normal
 from pytest_drivedegrade.corruptions.memory import flip_positions
+from pytest_drivedegrade.corruptions.sensor import _line_blur
 
 IMAGE_FAMILIES = [n for n, f in FAMILIES.items() if f.scope == "image"]
 RANDOM_IMAGE = [n for n in IMAGE_FAMILIES if FAMILIES[n].random]
@@ -173,6 +174,79 @@ def test_discrete_normal_matches_rounded_gaussian(sigma):
 
     p0 = erf(0.5 / sigma / sqrt(2))
     assert abs((x == 0).mean() - p0) < 4 * np.sqrt(p0 * (1 - p0) / x.size)
+
+
+def test_discrete_normal_follows_the_exact_pmf():
+    """Chi-square of one million draws against the pmf of round(sigma z), bins with >= 20 expected."""
+    from math import erf, sqrt
+
+    sigma, count = 5.5, 1_000_000
+    x = discrete_normal(np.random.default_rng(1), (count,), sigma)
+    values, counts = np.unique(x, return_counts=True)
+    observed = dict(zip(values.tolist(), counts.tolist()))
+    cdf = lambda v: 0.5 * (1 + erf((v + 0.5) / sigma / sqrt(2)))  # noqa: E731
+    chi2, bins = 0.0, 0
+    for v in range(-40, 41):
+        expected = count * (cdf(v) - cdf(v - 1))
+        if expected >= 20:
+            chi2 += (observed.get(v, 0) - expected) ** 2 / expected
+            bins += 1
+    # 99.9% quantile of chi-square with ~40 degrees of freedom is ~73.4
+    assert bins > 30 and chi2 < 73.4, (chi2, bins)
+
+
+@settings(max_examples=20, deadline=None)
+@given(h=st.integers(1, 300), w=st.integers(1, 700), sigma=st.sampled_from([3.0, 4.0, 16.0, 45.0]),
+       seed=st.integers(0, 2**32))
+def test_fused_noise_equals_clipped_sum(h, w, sigma, seed):
+    """The chunked, fused noise adder is clip(base + discrete_normal) for the same random stream,
+    across chunk boundaries (up to 630k samples)."""
+    base = np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    noise = discrete_normal(np.random.default_rng(seed + 1), base.shape, sigma)
+    fused = add_discrete_normal(base, np.random.default_rng(seed + 1), sigma)
+    assert fused.dtype == np.uint8 and fused.shape == base.shape
+    np.testing.assert_array_equal(fused, np.clip(base.astype(int) + noise, 0, 255))
+
+
+def test_noise_tables_resolve_almost_every_draw_in_16_bits():
+    """The bucket table leaves at most ~1% of the probability to the 32-bit refinement."""
+    for sigma in (4.0, 16.0, 45.0):
+        bucket = _discrete_normal_tables(sigma, 255)[2]
+        assert (bucket == -32768).mean() < 0.01
+
+
+def _line_mean(image: np.ndarray, n: int, slope: float) -> np.ndarray:
+    """Brute force: mean of the n samples on the digital line through each pixel, advancing along axis 0
+    (window [i - n//2, i + n - 1 - n//2]), the line's column shifted by round(slope * i), both clamped."""
+    rows, cols = image.shape[:2]
+    i = np.arange(rows)[:, None]
+    j = np.arange(cols)[None, :]
+    total = np.zeros(image.shape, float)
+    for k in range(-(n // 2), n - n // 2):
+        q = np.clip(i + k, 0, rows - 1)
+        col = np.clip(j - np.round(slope * i) + np.round(slope * q), 0, cols - 1).astype(int)
+        total += image[q, col]
+    return total / n
+
+
+@settings(max_examples=40, deadline=None)
+@given(rows=st.integers(1, 420), cols=st.integers(1, 90), n=st.integers(2, 40),
+       slope=st.floats(-1.0, 1.0), seed=st.integers(0, 1000))
+def test_line_blur_is_the_mean_along_the_digital_line(rows, cols, n, slope, seed):
+    """Exact up to rounding, across the filter's row blocks and at every edge. OpenCV's 8-bit box filter
+    rounds through fixed point (up to 0.75 of a level off for n = 4); two taps are rounded exactly."""
+    image = np.random.default_rng(seed).integers(0, 256, (rows, cols, 3), dtype=np.uint8)
+    error = np.abs(_line_blur(image, n, slope) - _line_mean(image, n, slope)).max()
+    assert error <= 0.5 + 1e-9 if n == 2 else error < 1.0
+
+
+@pytest.mark.parametrize("width", [1600, 800, 400, 200])
+def test_motion_blur_keeps_a_flat_image_flat(width):
+    """A constant image is a fixed point of every blur length (OpenCV 5.0's 2-tap box filter is not)."""
+    image = np.full((width * 9 // 16, width, 3), 97, np.uint8)
+    for severity in range(1, 6):
+        for frame in ("a", "b"):
+            assert np.unique(corrupt(image, "motion_blur", severity, frame=frame)).tolist() == [97]
 
 
 @pytest.mark.parametrize("bad, match", [
