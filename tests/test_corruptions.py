@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -161,6 +162,22 @@ def test_occlusion_covers_the_nominal_fraction(severity, shape):
         out = corrupt(image, "occlusion", severity, frame=frame)
         covered = (out.sum(axis=2) == 0).mean()
         assert abs(covered - fraction) <= 0.01, (covered, fraction)
+
+
+@pytest.mark.parametrize("family, blobs, bias", [("mud_splash", 3, 0.35), ("lens_dirt", 6, 0.0)])
+@pytest.mark.parametrize("shape", [(900, 1600), (450, 800)])
+def test_deposits_cover_the_nominal_fraction(family, blobs, bias, shape):
+    """Mud and dirt cover their severity's frame fraction (alpha >= 0.5) within 0.5 % of the frame."""
+    from pytest_drivedegrade.corruptions.contamination import _deposit_alpha
+
+    h, w = shape
+    for severity in range(1, 6):
+        fraction = FAMILIES[family].value(severity)
+        for seed in range(4):
+            alpha, box = _deposit_alpha(np.random.default_rng(seed), h, w, fraction, blobs, bias)
+            covered = np.count_nonzero(cv2.resize(alpha, (box[1].stop - box[1].start, box[0].stop - box[0].start))
+                                       >= 0.5) / (h * w)
+            assert abs(covered - fraction) < 0.005, (severity, seed, covered)
 
 
 @pytest.mark.parametrize("sigma", [4, 16, 45])

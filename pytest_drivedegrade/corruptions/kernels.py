@@ -108,15 +108,18 @@ def add_discrete_normal(base: np.ndarray, rng: np.random.Generator, sigma: float
     return out.reshape(base.shape)
 
 
-def blend(base: np.ndarray, over: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+def blend(base: np.ndarray, over: np.ndarray | int, alpha: np.ndarray) -> np.ndarray:
     """Per-pixel mix of two uint8 images: base * (1 - a) + over * a, with `alpha` a uint8 H x W map where 255
-    means all `over`. Two saturating 8-bit multiplies (within one level of the exact mix), about twice as fast
-    as a float blend; the products reuse the two alpha buffers (each fresh image-sized array costs as much as
-    a pass over it in page faults)."""
+    means all `over`; `over` may be one grey level. Two saturating 8-bit multiplies (within one level of the
+    exact mix), about twice as fast as a float blend; the products reuse the two alpha buffers (each fresh
+    image-sized array costs as much as a pass over it in page faults)."""
     a3 = cv2.merge([alpha, alpha, alpha]) if base.ndim == 3 else alpha.copy()
     keep = cv2.bitwise_not(a3)
     cv2.multiply(base, keep, dst=keep, scale=1 / 255)
-    cv2.multiply(over, a3, dst=a3, scale=1 / 255)
+    if isinstance(over, np.ndarray):
+        cv2.multiply(over, a3, dst=a3, scale=1 / 255)
+    else:  # the same rounding as multiplying by a constant image, without one
+        cv2.convertScaleAbs(a3, dst=a3, alpha=int(over) / 255)
     return cv2.add(keep, a3, dst=a3)
 
 

@@ -163,7 +163,7 @@ def low_light(image: np.ndarray, exposure: float, rng: np.random.Generator, scal
     """
     encode, decode = _low_light_tables(float(exposure))
     noisy = add_discrete_normal(cv2.LUT(image, encode), rng, _ANSCOMBE_STEPS, limit=_NOISE_LIMIT)
-    return cv2.LUT(noisy, decode)
+    return cv2.LUT(noisy, decode, dst=noisy)
 
 
 @register("color_quant", group="sensor", axis="quality", parameter="bits per channel", unit="bits",

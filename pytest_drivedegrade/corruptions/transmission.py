@@ -7,6 +7,8 @@ import numpy as np
 
 from .registry import register
 
+_IMREAD_COLOR_RGB = getattr(cv2, "IMREAD_COLOR_RGB", None)
+
 
 @register("jpeg", group="transmission", axis="quality", parameter="JPEG quality", unit="quality",
           values=(75, 45, 25, 12, 6), random=False)
@@ -16,6 +18,8 @@ def jpeg(image: np.ndarray, quality: int, rng: None, scale: float) -> np.ndarray
     ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:  # pragma: no cover - libjpeg does not fail on a valid uint8 image
         raise RuntimeError("JPEG encoding failed")
+    if _IMREAD_COLOR_RGB is not None:  # OpenCV >= 4.10 decodes straight to RGB: one pass less
+        return cv2.imdecode(buf, _IMREAD_COLOR_RGB)
     return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
