@@ -225,11 +225,28 @@ def test_fused_noise_equals_clipped_sum(h, w, sigma, seed):
     np.testing.assert_array_equal(fused, np.clip(base.astype(int) + noise, 0, 255))
 
 
+@pytest.mark.parametrize("sigma, limit", [(3.0, 18), (4.0, 255), (16.0, 255), (45.0, 255)])
+def test_refinement_equals_a_search_of_the_32_bit_thresholds(sigma, limit):
+    """The per-bucket step table gives the value a binary search of the 32-bit thresholds gives, for
+    every ambiguous bucket (single- and multi-step) and random low halves, including both ends."""
+    from pytest_drivedegrade.corruptions.kernels import _resolve
+
+    tables = _discrete_normal_tables(sigma, limit)
+    ambiguous = np.flatnonzero(tables.bucket == -32768).astype(np.uint16)
+    assert (tables.steps[ambiguous] > 1).any()  # the far tails are cut by several steps
+    rng = np.random.default_rng(0)
+    high = np.concatenate([np.repeat(ambiguous, 2), rng.choice(ambiguous, 50_000)])
+    low = np.concatenate([np.tile(np.array([0, 65535], np.uint16), ambiguous.size),
+                          rng.integers(0, 2**16, 50_000, dtype=np.uint16)])
+    u32 = (high.astype(np.uint64) << np.uint64(16)) | low.astype(np.uint64)
+    expected = tables.values[np.searchsorted(tables.thresholds, u32, side="right")]
+    np.testing.assert_array_equal(_resolve(tables, high, low), expected)
+
+
 def test_noise_tables_resolve_almost_every_draw_in_16_bits():
     """The bucket table leaves at most ~1% of the probability to the 32-bit refinement."""
     for sigma in (4.0, 16.0, 45.0):
-        bucket = _discrete_normal_tables(sigma, 255)[2]
-        assert (bucket == -32768).mean() < 0.01
+        assert (_discrete_normal_tables(sigma, 255).bucket == -32768).mean() < 0.01
 
 
 def _line_mean(image: np.ndarray, n: int, slope: float) -> np.ndarray:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from math import erf, sqrt
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -15,24 +16,44 @@ _U32 = float(2**32)
 _AMBIGUOUS = -32768
 
 
-@lru_cache(maxsize=64)
-def _discrete_normal_tables(sigma: float, limit: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Inverse-CDF tables of n = round(sigma * z), z ~ N(0, 1), with n clipped to [-limit, limit].
+class _NormalTables(NamedTuple):
+    """Inverse-CDF tables of n = round(sigma * z), z ~ N(0, 1), with n clipped to [-limit, limit]."""
 
-    Returns (values, thresholds, bucket): `thresholds[i]` is P(n <= values[i]) scaled to 2**32;
-    `bucket[b]` is the value for a 16-bit bucket b that no threshold cuts, else the sentinel -32768.
-    """
+    values: np.ndarray  #: int16, -limit..limit
+    thresholds: np.ndarray  #: uint64: thresholds[i] = P(n <= values[i]) scaled to 2**32
+    bucket: np.ndarray  #: int16 per 16-bit bucket b: the value if no threshold cuts it, else _AMBIGUOUS
+    base: np.ndarray  #: intp per bucket: the index of the value at the bucket's first 32-bit point
+    cut: np.ndarray  #: uint16 per bucket: where (low 16 bits) its first step lies
+    steps: np.ndarray  #: int per bucket: how many steps cut it (1 for almost every ambiguous bucket)
+
+
+@lru_cache(maxsize=64)
+def _discrete_normal_tables(sigma: float, limit: int) -> _NormalTables:
+    """The tables of `discrete_normal`: bucket b covers the 32-bit uniforms [b * 2**16, (b + 1) * 2**16)."""
     values = np.arange(-limit, limit + 1)
     upper = (values + 0.5) / sigma
     cdf = np.array([0.5 * (1.0 + erf(u / sqrt(2.0))) for u in upper])
     cdf[-1] = 1.0  # the tail beyond +limit folds into +limit (the clip)
     thresholds = np.minimum(np.round(cdf * _U32), _U32).astype(np.uint64)
-    # bucket b covers u32 in [b*2^16, (b+1)*2^16): resolved by 16 bits if one value owns it whole
-    lo = np.searchsorted(thresholds, np.arange(2**16, dtype=np.uint64) << np.uint64(16), side="right")
-    hi = np.searchsorted(thresholds, (np.arange(2**16, dtype=np.uint64) << np.uint64(16)) + np.uint64(2**16 - 1),
-                         side="right")
+    first = np.arange(2**16, dtype=np.uint64) << np.uint64(16)
+    lo = np.searchsorted(thresholds, first, side="right")
+    hi = np.searchsorted(thresholds, first + np.uint64(2**16 - 1), side="right")
     bucket = np.where(lo == hi, values[np.minimum(lo, len(values) - 1)], _AMBIGUOUS).astype(np.int16)
-    return values.astype(np.int16), thresholds, bucket
+    cut = np.where(hi > lo, thresholds[np.minimum(lo, len(values) - 1)] - first, 0).astype(np.uint16)
+    return _NormalTables(values.astype(np.int16), thresholds, bucket, lo.astype(np.intp), cut, hi - lo)
+
+
+def _resolve(tables: _NormalTables, high: np.ndarray, low: np.ndarray) -> np.ndarray:
+    """The values of the 32-bit uniforms (high << 16 | low) whose 16-bit bucket `high` is ambiguous: the
+    bucket's base value, one up past its single step; the rare buckets cut by several steps (far tails)
+    search the thresholds."""
+    b = high.astype(np.intp)
+    index = tables.base[b] + (low >= tables.cut[b])
+    several = np.flatnonzero(tables.steps[b] > 1)
+    if several.size:
+        u32 = (high[several].astype(np.uint64) << np.uint64(16)) | low[several].astype(np.uint64)
+        index[several] = np.searchsorted(tables.thresholds, u32, side="right")
+    return tables.values[index]
 
 
 #: Samples per chunk of the noise kernels: a chunk's random bits, indices and noise stay in cache instead
@@ -40,12 +61,12 @@ def _discrete_normal_tables(sigma: float, limit: int) -> tuple[np.ndarray, np.nd
 _CHUNK = 1 << 17
 
 
-def _sample_chunks(rng: np.random.Generator, count: int, tables, consume) -> tuple[np.ndarray, np.ndarray]:
+def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables,
+                   consume) -> tuple[np.ndarray, np.ndarray]:
     """Draw `count` samples chunk by chunk: `consume(start, stop, noise)` receives each chunk's int16
     noise, with the ambiguous samples still at the sentinel. Returns their flat positions and resolved
     values. The random stream is consumed as by one call: every sample's 16 bits in order, then 16 more
     for each ambiguous sample in order, so the chunk size never changes a realisation."""
-    values, thresholds, bucket = tables
     noise = np.empty(min(_CHUNK, count), np.int16)
     indices = np.empty(noise.size, np.intp)
     positions, high = [], []
@@ -55,7 +76,7 @@ def _sample_chunks(rng: np.random.Generator, count: int, tables, consume) -> tup
         chunk = noise[: stop - start]
         index = indices[: stop - start]
         index[...] = raw  # widened here, once: `take` would convert the uint16 indices more slowly itself
-        bucket.take(index, out=chunk, mode="wrap")  # always in range; "wrap" is take's fastest mode
+        tables.bucket.take(index, out=chunk, mode="wrap")  # always in range; "wrap" is take's fastest mode
         consume(start, stop, chunk)
         ambiguous = np.flatnonzero(chunk == _AMBIGUOUS)
         if ambiguous.size:
@@ -65,8 +86,7 @@ def _sample_chunks(rng: np.random.Generator, count: int, tables, consume) -> tup
         return np.empty(0, np.intp), np.empty(0, np.int16)
     high16 = np.concatenate(high)
     low16 = rng.bit_generator.random_raw((high16.size + 3) // 4).view(np.uint16)[: high16.size]
-    u32 = (high16.astype(np.uint64) << np.uint64(16)) | low16.astype(np.uint64)
-    return np.concatenate(positions), values[np.searchsorted(thresholds, u32, side="right")]
+    return np.concatenate(positions), _resolve(tables, high16, low16)
 
 
 def discrete_normal(rng: np.random.Generator, shape: tuple[int, ...], sigma: float, limit: int = 255) -> np.ndarray:
