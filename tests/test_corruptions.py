@@ -225,6 +225,17 @@ def test_fused_noise_equals_clipped_sum(h, w, sigma, seed):
     np.testing.assert_array_equal(fused, np.clip(base.astype(int) + noise, 0, 255))
 
 
+@settings(max_examples=15, deadline=None)
+@given(h=st.integers(1, 300), w=st.integers(1, 700), seed=st.integers(0, 2**32))
+def test_shifted_noise_is_the_unclipped_sum_plus_the_margin(h, w, seed):
+    """With headroom (base <= 255 - 2 limit) the 8-bit shifted adder gives base + noise + limit exactly."""
+    limit = 18
+    base = np.random.default_rng(seed).integers(0, 256 - 2 * limit, (h, w, 3), dtype=np.uint8)
+    noise = discrete_normal(np.random.default_rng(seed + 1), base.shape, 3.0, limit)
+    shifted = add_discrete_normal(base, np.random.default_rng(seed + 1), 3.0, limit, shifted=True)
+    np.testing.assert_array_equal(shifted, base.astype(int) + noise + limit)
+
+
 @pytest.mark.parametrize("sigma, limit", [(3.0, 18), (4.0, 255), (16.0, 255), (45.0, 255)])
 def test_refinement_equals_a_search_of_the_32_bit_thresholds(sigma, limit):
     """The per-bucket step table gives the value a binary search of the 32-bit thresholds gives, for

@@ -22,6 +22,7 @@ class _NormalTables(NamedTuple):
     values: np.ndarray  #: int16, -limit..limit
     thresholds: np.ndarray  #: uint64: thresholds[i] = P(n <= values[i]) scaled to 2**32
     bucket: np.ndarray  #: int16 per 16-bit bucket b: the value if no threshold cuts it, else _AMBIGUOUS
+    shifted: np.ndarray  #: int16: bucket + limit (0..2 limit), the sentinel kept
     base: np.ndarray  #: intp per bucket: the index of the value at the bucket's first 32-bit point
     cut: np.ndarray  #: uint16 per bucket: where (low 16 bits) its first step lies
     steps: np.ndarray  #: int per bucket: how many steps cut it (1 for almost every ambiguous bucket)
@@ -40,7 +41,8 @@ def _discrete_normal_tables(sigma: float, limit: int) -> _NormalTables:
     hi = np.searchsorted(thresholds, first + np.uint64(2**16 - 1), side="right")
     bucket = np.where(lo == hi, values[np.minimum(lo, len(values) - 1)], _AMBIGUOUS).astype(np.int16)
     cut = np.where(hi > lo, thresholds[np.minimum(lo, len(values) - 1)] - first, 0).astype(np.uint16)
-    return _NormalTables(values.astype(np.int16), thresholds, bucket, lo.astype(np.intp), cut, hi - lo)
+    shifted = np.where(bucket == _AMBIGUOUS, _AMBIGUOUS, bucket + limit).astype(np.int16)
+    return _NormalTables(values.astype(np.int16), thresholds, bucket, shifted, lo.astype(np.intp), cut, hi - lo)
 
 
 def _resolve(tables: _NormalTables, high: np.ndarray, low: np.ndarray) -> np.ndarray:
@@ -61,12 +63,14 @@ def _resolve(tables: _NormalTables, high: np.ndarray, low: np.ndarray) -> np.nda
 _CHUNK = 1 << 17
 
 
-def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables,
-                   consume) -> tuple[np.ndarray, np.ndarray]:
+def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables, consume,
+                   table: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Draw `count` samples chunk by chunk: `consume(start, stop, noise)` receives each chunk's int16
-    noise, with the ambiguous samples still at the sentinel. Returns their flat positions and resolved
-    values. The random stream is consumed as by one call: every sample's 16 bits in order, then 16 more
-    for each ambiguous sample in order, so the chunk size never changes a realisation."""
+    noise looked up in `table` (`tables.bucket` by default, or `tables.shifted`), with the ambiguous
+    samples still at the sentinel. Returns their flat positions and resolved (unshifted) values. The
+    random stream is consumed as by one call: every sample's 16 bits in order, then 16 more for each
+    ambiguous sample in order, so neither the chunk size nor the table changes a realisation."""
+    table = tables.bucket if table is None else table
     noise = np.empty(min(_CHUNK, count), np.int16)
     indices = np.empty(noise.size, np.intp)
     positions, high = [], []
@@ -76,7 +80,7 @@ def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables,
         chunk = noise[: stop - start]
         index = indices[: stop - start]
         index[...] = raw  # widened here, once: `take` would convert the uint16 indices more slowly itself
-        tables.bucket.take(index, out=chunk, mode="wrap")  # always in range; "wrap" is take's fastest mode
+        table.take(index, out=chunk, mode="wrap")  # always in range; "wrap" is take's fastest mode
         consume(start, stop, chunk)
         ambiguous = np.flatnonzero(chunk == _AMBIGUOUS)
         if ambiguous.size:
@@ -108,23 +112,34 @@ def discrete_normal(rng: np.random.Generator, shape: tuple[int, ...], sigma: flo
     return out.reshape(shape)
 
 
-def add_discrete_normal(base: np.ndarray, rng: np.random.Generator, sigma: float, limit: int = 255) -> np.ndarray:
+def add_discrete_normal(base: np.ndarray, rng: np.random.Generator, sigma: float, limit: int = 255, *,
+                        shifted: bool = False) -> np.ndarray:
     """clip(base + discrete_normal(rng, base.shape, sigma, limit), 0, 255) as a new uint8 array.
 
     Bit-identical to adding `discrete_normal`'s samples (the same random stream), but fused chunk by
-    chunk, so no image-sized int16 noise is ever materialised: about 1.7x faster.
+    chunk, so no image-sized int16 noise is ever materialised: about 1.8x faster.
+
+    `shifted=True` adds the noise plus `limit` (0..2 limit) instead, for callers whose base leaves that much
+    headroom (base <= 255 - 2 limit), so that nothing clips: the sum is then formed in 8-bit arithmetic,
+    4x cheaper than OpenCV's mixed-type add.
     """
     tables = _discrete_normal_tables(float(sigma), int(limit))
     flat = np.ascontiguousarray(base).reshape(-1)
     out = np.empty_like(flat)
+    narrow = np.empty((1, min(_CHUNK, flat.size)), np.uint8)
 
     def add(start: int, stop: int, noise: np.ndarray) -> None:
         # 1 x m rows: OpenCV would read a short 1-D array as a scalar
-        cv2.add(flat[start:stop].reshape(1, -1), noise.reshape(1, -1), dst=out[start:stop].reshape(1, -1),
-                dtype=cv2.CV_8U)
+        dst = out[start:stop].reshape(1, -1)
+        if shifted:  # 0..2 limit fits a byte (the sentinels' garbage is overwritten below)
+            small = narrow[:, : stop - start]
+            np.copyto(small, noise.reshape(1, -1), casting="unsafe")
+            cv2.add(flat[start:stop].reshape(1, -1), small, dst=dst)
+        else:
+            cv2.add(flat[start:stop].reshape(1, -1), noise.reshape(1, -1), dst=dst, dtype=cv2.CV_8U)
 
-    positions, resolved = _sample_chunks(rng, flat.size, tables, add)
-    out[positions] = np.clip(flat[positions] + resolved, 0, 255)
+    positions, resolved = _sample_chunks(rng, flat.size, tables, add, tables.shifted if shifted else None)
+    out[positions] = np.clip(flat[positions] + resolved + (limit if shifted else 0), 0, 255)
     return out.reshape(base.shape)
 
 

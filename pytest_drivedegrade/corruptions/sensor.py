@@ -141,11 +141,12 @@ _NOISE_LIMIT = 6 * _ANSCOMBE_STEPS  # the unit-variance noise is clipped at 6 si
 
 @lru_cache(maxsize=8)
 def _low_light_tables(exposure: float) -> tuple[np.ndarray, np.ndarray]:
-    """(encode, decode): encode[v] is the Anscombe grid coordinate (+ the noise margin) of input code v
-    at this exposure; decode maps a noisy grid coordinate back to an sRGB code. Both are 8-bit LUTs."""
+    """(encode, decode): encode[v] is the Anscombe grid coordinate of input code v at this exposure;
+    decode maps a noisy grid coordinate plus the noise margin (the shifted noise of `add_discrete_normal`)
+    back to an sRGB code. Both are 8-bit LUTs."""
     photons = srgb_to_linear_table().astype(np.float64) * exposure * PHOTONS_AT_WHITE
-    encode = np.round(_ANSCOMBE_STEPS * 2.0 * np.sqrt(photons + 3.0 / 8.0)) + _NOISE_LIMIT
-    if encode.max() + _NOISE_LIMIT > 255:  # pragma: no cover - guarded by the ladder's exposures
+    encode = np.round(_ANSCOMBE_STEPS * 2.0 * np.sqrt(photons + 3.0 / 8.0))
+    if encode.max() + 2 * _NOISE_LIMIT > 255:  # pragma: no cover - guarded by the ladder's exposures
         raise AssertionError(f"exposure {exposure} exceeds the 8-bit Anscombe grid")
     y = (np.arange(256) - _NOISE_LIMIT) / _ANSCOMBE_STEPS
     counts = np.maximum((y / 2.0) ** 2 - 3.0 / 8.0, 0.0)
@@ -162,7 +163,7 @@ def low_light(image: np.ndarray, exposure: float, rng: np.random.Generator, scal
     sigma/3, then decoded to sRGB. No auto-gain: the image darkens as a fixed-exposure camera's would.
     """
     encode, decode = _low_light_tables(float(exposure))
-    noisy = add_discrete_normal(cv2.LUT(image, encode), rng, _ANSCOMBE_STEPS, limit=_NOISE_LIMIT)
+    noisy = add_discrete_normal(cv2.LUT(image, encode), rng, _ANSCOMBE_STEPS, limit=_NOISE_LIMIT, shifted=True)
     return cv2.LUT(noisy, decode, dst=noisy)
 
 
