@@ -11,7 +11,6 @@ import numpy as np
 from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
 
-
 #: From this defocus sigma up, the blur runs at half resolution (see `gaussian_blur`).
 _PYRAMID_SIGMA = 3.0
 #: Per-axis variance (full-resolution px^2) that a 2x area downsampling and a 2x bilinear upsampling add.
@@ -84,7 +83,7 @@ def _line_blur(image: np.ndarray, n: int, slope: float) -> np.ndarray:
     rows, cols = image.shape[:2]
     shift = -np.round(slope * np.arange(rows)).astype(np.int64)
     shift -= shift.min()
-    margin = int(ceil(abs(slope) * n)) + 1
+    margin = ceil(abs(slope) * n) + 1
     canvas = np.empty((rows, cols + int(shift.max()) + 2 * margin) + image.shape[2:], image.dtype)
     for a, b, s in _runs(shift):
         left = margin + s
