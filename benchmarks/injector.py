@@ -20,8 +20,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pytest_drivedegrade import FAMILIES, corrupt, corrupt_sample  # noqa: E402
-from pytest_drivedegrade.corruptions.preview import read_rgb  # noqa: E402
+from pytest_drivedegrade import FAMILIES  # noqa: E402
+from pytest_drivedegrade.corruptions.preview import read_rgb, render  # noqa: E402
 
 DEFAULT_IMAGE = next((Path(__file__).resolve().parents[1] / "tests" / "data" / "nuscenes").glob("*__CAM_FRONT__*.jpg"))
 #: our family -> imagecorruptions' nearest corruption
@@ -47,9 +47,7 @@ def median_ms(fn, repeats: int) -> float:
 def ours(image: np.ndarray, family: str, severity: int, counter: list[int]):
     def run():
         counter[0] += 1  # a new realisation each call, as in a run over frames
-        if FAMILIES[family].scope == "image":
-            return corrupt(image, family, severity, frame=str(counter[0]))
-        return corrupt_sample({"CAM_FRONT": image}, family, severity, frame=str(counter[0]))
+        return render(image, family, severity, seed=0, frame=str(counter[0]), camera="CAM_FRONT")
     return run
 
 

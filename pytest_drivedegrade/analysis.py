@@ -14,17 +14,16 @@ from typing import Any
 
 import numpy as np
 
-from .constants import HORIZON_STEPS, REPORT_HORIZONS_S
+from .constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, HORIZON_STEPS, REPORT_HORIZONS_S
 from .errors import DriveDegradeError, InvalidInput
-from .metrics import at_horizons
+from .metrics import CONVENTIONS, at_horizons, l2_avg
 
 #: Cells that are not ladder families, in the order they are reported.
 DIAGNOSTIC_CELLS: tuple[str, ...] = ("clean", "null", "blind")
-CONVENTIONS: tuple[str, ...] = ("stp3", "uniad")
 #: Retention levels of the two tolerance thresholds s*10 and s*25.
 THRESHOLD_LEVELS: dict[str, float] = {"s10": 0.90, "s25": 0.75}
 VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
-DEFAULT_FLAT, DEFAULT_TOLERANCE, DEFAULT_RESAMPLES = 0.95, 0.02, 1000
+DEFAULT_RESAMPLES = 1000
 
 
 class BaselineError(DriveDegradeError):
@@ -86,9 +85,13 @@ class CellRecord:
             raise InvalidInput(f"cell record lacks the field {exc.args[0]!r}") from None
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])))
 
+    def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
+        """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
+        return np.linalg.norm(self.plans[:, -1] - clean.plans[:, -1], axis=-1)
+
     def l2_avg_per_frame(self, convention: str = "stp3") -> np.ndarray:
         """Per-frame mean of the 1/2/3 s L2 under `convention`: the M of retention, one value per frame."""
-        return at_horizons(self.l2, convention).mean(axis=-1)
+        return np.asarray(l2_avg(self.l2, convention))
 
 
 @dataclass(frozen=True)
@@ -209,6 +212,12 @@ def horizon_metrics(record: CellRecord) -> dict[str, float]:
     return out
 
 
+def paired_retention(m_clean: np.ndarray, m_cell: np.ndarray, kind: str = "error") -> float:
+    """Retention over the frames finite in both the cell and clean (the bootstrap's frames); NaN when none."""
+    paired = np.isfinite(m_clean) & np.isfinite(m_cell)
+    return float(retention(_finite_mean(m_clean[paired]), _finite_mean(m_cell[paired]), kind))
+
+
 def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "stp3", kind: str = "error",
                    n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0) -> CellSummary:
     """A cell's metrics, its retention against `clean` and the paired bootstrap CI."""
@@ -216,14 +225,12 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
         raise InvalidInput(f"cell {record.cell!r} was scored on other frames than the clean cell")
     m_clean, m_cell = clean.l2_avg_per_frame(convention), record.l2_avg_per_frame(convention)
     metrics = horizon_metrics(record)
-    shift = np.linalg.norm(record.plans[:, -1] - clean.plans[:, -1], axis=-1)
-    metrics["endpoint_shift"] = _finite_mean(shift)
+    metrics["endpoint_shift"] = _finite_mean(record.endpoint_shift(clean))
     metrics["energy"] = float(retention(_finite_mean(clean.bit1), _finite_mean(record.bit1), "reward"))
     if record.cell == clean.cell:
         r, ci = 1.0, (1.0, 1.0)
     else:
-        paired = np.isfinite(m_clean) & np.isfinite(m_cell)  # the same frames as the bootstrap
-        r = float(retention(_finite_mean(m_clean[paired]), _finite_mean(m_cell[paired]), kind))
+        r = paired_retention(m_clean, m_cell, kind)
         ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed)
     return CellSummary(record.cell, record.family, record.severity, int(np.isfinite(m_cell).sum()),
                        _finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors))

@@ -10,28 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from .analysis import CellRecord, cell_regression, retention
-from .constants import CAMERAS
+from .analysis import CellRecord, cell_regression, paired_retention
 from .loader import cell_id, samples
 from .planning import planner_name
 from .run import MAX_MESSAGES, RunContext
 from .store import ResultStore
 
 REAR = ("CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
-
-
-def _l2_avg(record: CellRecord) -> float:
-    values = record.l2_avg_per_frame()
-    return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
-
-
-def _retention(clean: CellRecord, record: CellRecord) -> float:
-    """The cell's retention as the analysis computes it: over the frames finite in both the cell and clean."""
-    m_clean, m_cell = clean.l2_avg_per_frame(), record.l2_avg_per_frame()
-    paired = np.isfinite(m_clean) & np.isfinite(m_cell)
-    if not paired.any():
-        return float("nan")
-    return float(retention(float(m_clean[paired].mean()), float(m_cell[paired].mean())))
 
 
 def properties(record: CellRecord, resumed: bool) -> list[tuple[str, Any]]:
@@ -47,7 +32,7 @@ def properties(record: CellRecord, resumed: bool) -> list[tuple[str, Any]]:
     props: list[tuple[str, Any]] = [
         ("cell", record.cell), ("family", record.family), ("severity", int(record.severity)),
         ("frames", len(record.frames)), ("failed_frames", int(np.isnan(record.l2).any(axis=1).sum())),
-        ("l2_avg", _l2_avg(record))]
+        ("l2_avg", metrics["l2_avg_stp3"])]
     props += [(k, metrics[k]) for k in ("l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad",
                                         "l2_3s_uniad", "collision_3s_stp3", "vru_3s_stp3", "jerk")]
     props.append(("resumed", int(resumed)))
@@ -110,19 +95,27 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
     name = planner_name(planner, default)
     key = context.run_key(planner)
     cell = cell_id(family, severity)
-    stored = _reusable(store.read(name, cell, key))
-    record = CellRecord.from_builtins(stored["record"]) if stored else context.run_cell(planner, family, severity)
+    def stored_record(which: str) -> CellRecord | None:
+        found = _reusable(store.read(name, which, key))
+        return CellRecord.from_builtins(found["record"]) if found else None
+
+    stored = stored_record(cell)
+    if cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
+        record = context.clean_record(planner, lambda: stored)
+    else:
+        record = stored or context.run_cell(planner, family, severity)
     failures = _conformance(record)
-    unread = tuple(c for c in CAMERAS if c not in context.planner_info(planner).cameras)
+    unread = context.planner_info(planner).unread
     needs_clean = cell == "null" or (cell == "blackout-s3" and set(REAR) <= set(unread)) or baseline is not None
     if needs_clean and cell != "clean":
-        stored_clean = _reusable(store.read(name, "clean", key))
-        clean = CellRecord.from_builtins(stored_clean["record"]) if stored_clean else context.clean_record(planner)
+        clean = context.clean_record(planner, lambda: stored_record("clean"))
         if cell == "null" or cell == "blackout-s3":
             failures += _identity(context, planner, record, clean, unread if cell == "null" else REAR)
         if baseline is not None:
-            reg = cell_regression(cell, _retention(clean, record), baseline, tolerance)
+            retention = paired_retention(clean.l2_avg_per_frame(), record.l2_avg_per_frame())
+            reg = cell_regression(cell, retention, baseline, tolerance)
             if reg:
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")
-    payload = {"key": key, "planner": name, "record": record.to_builtins(), "properties": properties(record, bool(stored))}
+    payload = {"key": key, "planner": name, "record": record.to_builtins(),
+               "properties": properties(record, stored is not None)}
     return payload, failures

@@ -31,3 +31,7 @@ REPORT_HORIZONS_S: tuple[int, ...] = (1, 2, 3)
 
 #: Agent categories that count as vulnerable road users for the VRU collision rate.
 VRU_CATEGORIES: tuple[str, ...] = ("pedestrian", "cyclist")
+#: Defaults of the verdict's flat line (an axis at or above it counts as flat) and of the baseline gate's
+#: allowed retention drop; run options and the analysis share them.
+DEFAULT_FLAT: float = 0.95
+DEFAULT_TOLERANCE: float = 0.02

@@ -42,68 +42,63 @@ def open_run_context(config: pytest.Config, options: RunOptions):
 
 def _floor_l2(config: pytest.Config, context: Any, split: str, lines: list[str]) -> float | None:
     """The ego-only floor's clean l2_avg on the scored frames (trained on the train split once, cached)."""
-    import numpy as np
-
-    from .data.nuscenes import NuScenesReader
+    from .analysis import _finite_mean
     from .errors import DriveDegradeError
     from .floor import load_or_train_floor, train_split_for
 
     try:
-        train = NuScenesReader(context.reader.root, split=train_split_for(split))
+        train = context.reader.with_split(train_split_for(split))
         if not any(f.scorable for f in train.frames()):  # lazily: stops at the first scorable frame
-            lines.append(f"ego-only floor: skipped, split {train_split_for(split)!r} has no scorable frames")
+            lines.append(f"ego-only floor: skipped, split {train.split!r} has no scorable frames")
             return None
         model = load_or_train_floor(train, cache_root(config) / "floor")
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
-    values = context.run_cell(model, "clean", 0).l2_avg_per_frame()
-    return float(np.nanmean(values))
+    return _finite_mean(context.run_cell(model, "clean", 0).l2_avg_per_frame())
 
 
-def _gather(plugin: Any, context: Any) -> tuple[str | None, dict[str, Any], dict[str, dict[str, Any]]]:
-    """(planner name, run key, cell -> payload): this session's cells plus stored ones of the same run."""
+def _gather(plugin: Any) -> tuple[str | None, dict[str, Any], dict[str, dict[str, Any]], list[str]]:
+    """(planner name, run key, cell -> payload, missing cells): this session's cells plus stored ones of the
+    same run, and the expected cells that neither has."""
     from .loader import cell_id
     from .store import ResultStore
 
     payloads = dict(plugin.records)
     if not payloads:
-        return None, {}, {}
+        return None, {}, {}, []
     first = payloads.get("clean") or next(iter(payloads.values()))
     name, key = first["planner"], first["key"]
     payloads = {c: p for c, p in payloads.items() if p["key"] == key}
     expected = [cell_id(f, s) for f, s in plugin.cells()]
     stored = ResultStore(plugin.options.report_dir).read_all(name, key, [c for c in expected if c not in payloads])
-    return name, key, {**stored, **payloads}
+    payloads = {**stored, **payloads}
+    return name, key, payloads, [c for c in expected if c not in payloads]
 
 
 def finish_run(plugin: Any, session: pytest.Session) -> Outcome | None:
     """Analyse and write everything the run has; an Outcome whose lines go into the terminal summary."""
-    from .loader import cell_id
-
     out = Outcome()
     context = plugin.context
     if context is None:
         return None
-    name, key, payloads = _gather(plugin, context)
+    name, key, payloads, missing = _gather(plugin)
     if name is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
-    expected = [cell_id(f, s) for f, s in plugin.cells()]
-    missing = [c for c in expected if c not in payloads]
     if "clean" not in payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
                          "clean")
         return out
-    from .analysis import analyse_run
-
-    floor_l2 = _floor_l2(plugin.config, context, plugin.options.split, out.lines)
-    analysis = analyse_run([p["record"] for p in payloads.values()], flat=plugin.options.flat,
-                           seed=plugin.options.seed, floor_l2=floor_l2)
+    from .analysis import CellRecord, analyse_run
     from .outputs import write_outputs
 
-    cert = write_outputs(plugin, session, context, name, key, payloads, analysis, out, missing)
+    floor_l2 = _floor_l2(plugin.config, context, plugin.options.split, out.lines)
+    records = {c: CellRecord.from_builtins(p["record"]) for c, p in payloads.items()}
+    analysis = analyse_run(records.values(), flat=plugin.options.flat, seed=plugin.options.seed,
+                           floor_l2=floor_l2)
+    cert = write_outputs(plugin, session, context, name, key, records, analysis, out, missing)
     _gate(plugin, cert, out)
     out.lines = _summary(analysis, missing) + out.lines
     return out

@@ -12,6 +12,8 @@ from typing import Any
 
 import pytest
 
+from .constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+
 
 @dataclass(frozen=True)
 class OptionSpec:
@@ -42,9 +44,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-baseline", "drivedegrade_baseline", "a stored certificate.json: fail cells and axes "
                "whose retention regressed", {"metavar": "FILE"}),
     OptionSpec("--drivedegrade-tolerance", "drivedegrade_tolerance", "allowed retention drop below the baseline "
-               "(default 0.02)", {"metavar": "X"}),
+               f"(default {DEFAULT_TOLERANCE:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-flat", "drivedegrade_flat", "retention at or above which an axis counts as flat "
-               "(default 0.95)", {"metavar": "X"}),
+               f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
 )
@@ -138,7 +140,7 @@ def parse(config: pytest.Config) -> RunOptions:
         seed=_number(config, "drivedegrade_seed", int, 0, 0, None),
         report_dir=(here / str(value(config, "drivedegrade_report") or "reports")).resolve(),
         baseline_path=(here / baseline).resolve() if baseline else None,
-        tolerance=_number(config, "drivedegrade_tolerance", float, 0.02, 0.0, 1.0),
-        flat=_number(config, "drivedegrade_flat", float, 0.95, 0.0, 1.0),
+        tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
+        flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
     )

@@ -14,13 +14,12 @@ from .corruptions.registry import SPEC_VERSION
 def _provenance(plugin: Any, context: Any, name: str, key: dict[str, Any], session: Any):
     from .report.certificate import Provenance
 
-    unscored = sum(1 for f in context.reader.frames() if not f.scorable)
     source = "embedded world" if plugin.options.data is None else str(plugin.options.data)
     args = " ".join(str(a) for a in session.config.invocation_params.args)
     return Provenance(planner_name=name, planner_fingerprint=key["planner_fingerprint"],
                       dataset_fingerprint=key["dataset_fingerprint"], split=plugin.options.split,
                       spec_version=SPEC_VERSION, seed=plugin.options.seed, frames=len(context.frames),
-                      frames_unscored=unscored, data_source=source, command=f"pytest {args}",
+                      frames_unscored=context.frames_unscored, data_source=source, command=f"pytest {args}",
                       tool_version=__version__)
 
 
@@ -37,14 +36,14 @@ def _montage(context: Any, seed: int) -> np.ndarray | None:
 
 
 def write_outputs(plugin: Any, session: Any, context: Any, name: str, key: dict[str, Any],
-                  payloads: dict[str, dict[str, Any]], analysis: Any, out: Any,
-                  missing: list[str]) -> dict[str, Any]:
+                  records: dict[str, Any], analysis: Any, out: Any, missing: list[str]) -> dict[str, Any]:
     """Write the three files into <report>/<planner>/ and return the sealed certificate. A run with missing
-    cells (a crash, Ctrl-C, -k) says so in the certificate, so it is not mistaken for a complete baseline."""
-    from .analysis import CellRecord
+    cells (a crash, Ctrl-C, -k) says so in the certificate, so it is not mistaken for a complete baseline.
+    `records`: cell -> CellRecord."""
     from .report.cells import write_cells_csv
-    from .report.certificate import build_certificate, seal, write_certificate
+    from .report.certificate import build_certificate, certificate_text, seal
     from .report.html import trajectory_examples, write_report
+    from .report.io import atomic_write_text
     from .report.junit import suite_properties
 
     folder = Path(plugin.options.report_dir) / name
@@ -52,9 +51,8 @@ def write_outputs(plugin: Any, session: Any, context: Any, name: str, key: dict[
     cert = build_certificate(analysis, prov)
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing)}
     cert = seal(cert)
-    write_certificate(folder / "certificate.json", cert)
+    atomic_write_text(folder / "certificate.json", certificate_text(cert))
     write_cells_csv(folder / "cells.csv", analysis, prov)
-    records = {c: CellRecord.from_builtins(p["record"]) for c, p in payloads.items()}
     gt = {f.token: f.gt_future for f in context.frames}
     write_report(folder / "report.html", analysis, prov, montage=_montage(context, plugin.options.seed),
                  trajectories=trajectory_examples(records, gt, analysis.summaries),

@@ -12,7 +12,7 @@ import hashlib
 import signal
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +23,7 @@ from .analysis import CellRecord
 from .constants import CAMERAS, HORIZON_STEPS
 from .corruptions.registry import SPEC_VERSION
 from .data.frame import Frame
-from .data.nuscenes import NuScenesReader
+from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import cell_id, samples
 from .metrics import bit1_density, frame_metrics
@@ -64,6 +64,15 @@ class PlannerInfo:
     cameras: tuple[str, ...]
     fingerprint: str
 
+    @property
+    def unread(self) -> tuple[str, ...]:
+        return unread_cameras(self.cameras)
+
+
+def unread_cameras(cameras: tuple[str, ...]) -> tuple[str, ...]:
+    """The cameras a planner declares it does not read (blacked out by the null control, never decoded)."""
+    return tuple(c for c in CAMERAS if c not in cameras)
+
 
 @dataclass
 class RunContext:
@@ -75,6 +84,7 @@ class RunContext:
     timeout: float
     dataset_fingerprint: str
     planner_path: Path | None
+    frames_unscored: int = 0  #: keyframes of the split read but not scored (fewer than six future keyframes)
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -113,18 +123,18 @@ class RunContext:
                 self._decoded_bytes += image.nbytes
         return image
 
-    def clean_record(self, planner: Any) -> CellRecord:
-        """The clean cell, computed once per process: the reference for null control and the baseline gate."""
+    def clean_record(self, planner: Any, stored: Callable[[], CellRecord | None] = lambda: None) -> CellRecord:
+        """The clean cell, once per process: the clean item's result and the reference of the null control and
+        the baseline gate. `stored` is asked first (a reusable stored result), then it is computed."""
         key = id(planner)
         if key not in self._clean:
-            self._clean[key] = self.run_cell(planner, "clean", 0)
+            self._clean[key] = stored() or self.run_cell(planner, "clean", 0)
         return self._clean[key]
 
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None) -> CellRecord:
         """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message."""
-        if unread is None:
-            declared = self.planner_info(planner).cameras
-            unread = tuple(c for c in CAMERAS if c not in declared)
+        if unread is None:  # the cameras only: the floor model needs no fingerprint
+            unread = unread_cameras(planner_cameras(planner))
         n = len(self.frames)
         plans = np.full((n, HORIZON_STEPS, 2), np.nan)
         l2, col, vru = (np.full((n, HORIZON_STEPS), np.nan) for _ in range(3))
@@ -181,4 +191,5 @@ def open_context(*, data_root: Path, split: str, frames: int | None, seed: int, 
     if not chosen:
         raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
                                 f"keyframes); skipped: {dict(reader.skipped)}")
-    return RunContext(reader, chosen, seed, timeout, reader.fingerprint(), planner_path)
+    return RunContext(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
+                      frames_unscored=reader.skipped[UNSCORED])

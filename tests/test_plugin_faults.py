@@ -48,6 +48,16 @@ def test_conformance_faults_fail_only_their_cells(dd, scored_tokens):
     assert rows["clean"]["conformance_errors"] == "0" and rows["clean"]["frames"] == "4"
 
 
+def test_clean_with_a_failed_frame_is_run_once_for_its_item_and_the_null_control(dd, scored_tokens):
+    """The null control compares against the clean item's own record, also when a clean frame failed (a
+    stored result with failures is not reused by a rerun, but within the run it is the reference)."""
+    calls = dd.pytester.path / "calls.txt"
+    dd.write_planner(faults={"clean": ("raise", scored_tokens[1])}, count_file=str(calls))
+    result = dd.run(families="jpeg", severities="1")
+    assert "clean" in failed_cells(result) and "jpeg-s1" not in failed_cells(result)
+    assert calls.read_text().split().count("clean") == 4  # the four scored frames, once
+
+
 def test_null_control_names_the_undeclared_camera(dd):
     """cameras=("CAM_FRONT",) but CAM_BACK is read: null and blackout-s3 (the rear control) fail naming it."""
     dd.write_planner(read_back=True)

@@ -140,6 +140,21 @@ def test_limit_gives_evenly_spaced_stable_subset(fixture_root):
     assert reader.fingerprint() != NuScenesReader(fixture_root, split="mini_val").fingerprint()
 
 
+def test_with_split_reads_another_split_without_rereading_the_tables(fixture_root):
+    """The floor's train split comes from the val reader's tables: the same frames, counts and fingerprint as
+    a reader opened on that split, and the val reader is left as it was."""
+    val = NuScenesReader(fixture_root, split="mini_val")
+    before = [f.token for f in val.frames()]
+    train = val.with_split("mini_train")
+    fresh = NuScenesReader(fixture_root, split="mini_train")
+    assert [f.token for f in train.frames()] == [f.token for f in fresh.frames()]
+    assert train.skipped == fresh.skipped and train.fingerprint() == fresh.fingerprint()
+    assert train.samples is val.samples  # shared, not re-read
+    assert [f.token for f in val.frames()] == before and val.split == "mini_val"
+    with pytest.raises(DataError, match="unknown split 'test-ish'"):
+        val.with_split("test-ish")
+
+
 @pytest.mark.parametrize("name,category", [("vehicle.car", "vehicle"), ("vehicle.bus.rigid", "vehicle"),
                                            ("human.pedestrian.child", "pedestrian"),
                                            ("vehicle.bicycle", "cyclist"), ("vehicle.motorcycle", "cyclist"),

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .kernels import blend, coverage_mask, scaled, smooth_field, to_alpha8
+from .kernels import blend, coverage_mask, scaled, smooth_field, to_alpha8, veiled
 from .registry import register
 
 #: Raindrop radius range (px at 1600 px width), drawn log-uniform; the drop is a little taller than wide.
@@ -189,7 +189,7 @@ def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scal
     alpha, box = _deposit_alpha(rng, h, w, fraction, blobs=int(rng.integers(4, 9)), bottom_bias=0.0)
     veil = _DIRT_VEIL_PER_FRACTION * fraction
     # the veil is affine and the film blend convex, so veiling both layers equals veiling the result
-    out = _veiled(image, veil)
+    out = veiled(image, veil, _VEIL_GREY)
     if alpha.size:
         region = out[box]
         rh, rw = region.shape[:2]
@@ -206,7 +206,3 @@ def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scal
         out[box] = blend(region, film, _up(to_alpha8(np.minimum(alpha * 2.0, 1.0)), (rh, rw)))
     return out
 
-
-def _veiled(image: np.ndarray, veil: float) -> np.ndarray:
-    """Veiling glare: a uniform grey `veil` of _VEIL_GREY over the frame, as a new array (one pass)."""
-    return cv2.convertScaleAbs(image, alpha=1.0 - veil, beta=_VEIL_GREY * veil)

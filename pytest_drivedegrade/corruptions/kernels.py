@@ -158,6 +158,12 @@ def blend(base: np.ndarray, over: np.ndarray | int, alpha: np.ndarray) -> np.nda
     return cv2.add(keep, a3, dst=a3)
 
 
+def veiled(image: np.ndarray, opacity: float, grey: float) -> np.ndarray:
+    """A uniform veil of `grey` at `opacity` over the image (scattered light, snow-filled air), as a new
+    array in one pass: v * (1 - opacity) + grey * opacity, rounded."""
+    return cv2.convertScaleAbs(image, alpha=1.0 - opacity, beta=grey * opacity)
+
+
 def to_alpha8(alpha: np.ndarray) -> np.ndarray:
     """A float coverage in [0, 1] as the uint8 alpha map `blend` takes."""
     return cv2.convertScaleAbs(alpha, alpha=255.0)

@@ -31,7 +31,7 @@ def flip_positions(rng: np.random.Generator, n_bits: int, rate: float) -> np.nda
           unit="per bit", values=(1e-7, 1e-6, 1e-5, 1e-4, 1e-3), random=True)
 def bit_error(image: np.ndarray, rate: float, rng: np.random.Generator, scale: float) -> np.ndarray:
     """Flip each bit of the image's stored bytes (row-major, RGB interleaved) independently at `rate`."""
-    out = np.ascontiguousarray(image).copy()
+    out = image.copy()  # C-ordered, whatever the input's layout
     flat = out.reshape(-1)
     pos = flip_positions(rng, flat.size * 8, float(rate))
     np.bitwise_xor.at(flat, pos >> 3, np.left_shift(1, pos & 7).astype(np.uint8))

@@ -7,7 +7,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from .kernels import blend, linear_to_srgb, scaled, srgb_to_linear_table, to_alpha8
+from .kernels import blend, linear_to_srgb, scaled, srgb_to_linear_table, to_alpha8, veiled
 from .registry import register
 
 #: Depth prior: camera height over the ground plane (nuScenes cameras sit about 1.5 m up), the height of
@@ -90,5 +90,4 @@ def snow(image: np.ndarray, level: int, rng: np.random.Generator, scale: float) 
     near = _flake_layer(rng, (hh, hw), int(count * _NEAR_SHARE), scaled(_NEAR_SIZE * sigma, scale) / 2,
                         (0.35, 0.7))
     alpha = cv2.resize(to_alpha8(np.minimum(far + near, 1.0)), (w, h), interpolation=cv2.INTER_LINEAR)
-    veiled = cv2.addWeighted(image, 1.0 - veil, image, 0.0, _SNOW_WHITE * veil)
-    return blend(veiled, int(_SNOW_WHITE), alpha)
+    return blend(veiled(image, veil, _SNOW_WHITE), int(_SNOW_WHITE), alpha)

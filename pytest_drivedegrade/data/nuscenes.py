@@ -9,6 +9,7 @@ scored or built are skipped and counted in `skipped` (reason -> count), with mes
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from collections import Counter, defaultdict
@@ -26,6 +27,8 @@ REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sen
                    "sample_annotation", "instance", "category")
 OPTIONAL_TABLES = ("log", "visibility", "attribute", "map")
 WORLD_MANIFEST = "drivedegrade_world.json"
+#: The `skipped` reason of keyframes that are read but not scored (fewer than six future keyframes).
+UNSCORED = "fewer than six future keyframes (not scored)"
 SPLITS = ("train", "val", "mini_train", "mini_val", "all")
 
 
@@ -109,6 +112,15 @@ class NuScenesReader:
             self.annotations[r["sample_token"]].append(
                 (r["translation"], r["size"], r["rotation"], inst.get(r["instance_token"], "other")))
         self.split_scenes = self._select_scenes()
+
+    def with_split(self, split: str) -> NuScenesReader:
+        """The same data root read as another split, sharing the indexed tables (no second read)."""
+        if split not in SPLITS:
+            raise DataError(f"unknown split {split!r}: choose one of {', '.join(SPLITS)}")
+        other = copy.copy(self)
+        other.split, other.skipped, other.problems = split, Counter(), []
+        other.split_scenes = other._select_scenes()
+        return other
 
     def _select_scenes(self) -> list[dict]:
         if self.split == "all":
@@ -234,7 +246,7 @@ class NuScenesReader:
                 agents.append(self._agents(tokens[i], xy[k], yaw[k]))
         command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
         if not valid.all():
-            self.skipped["fewer than six future keyframes (not scored)"] += 1
+            self.skipped[UNSCORED] += 1
         return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
                      future, valid, tuple(agents), scene["name"])
 

@@ -53,7 +53,7 @@ def trajectory_examples(records: Mapping[str, CellRecord], gt: Mapping[str, Any]
     cells = [s.cell for s in most_damaging(summaries, n_cells) if s.cell in records]
     if clean is None or not cells:
         return []
-    shift = sum(np.nan_to_num(np.linalg.norm(records[c].plans[:, -1] - clean.plans[:, -1], axis=-1)) for c in cells)
+    shift = sum(np.nan_to_num(records[c].endpoint_shift(clean)) for c in cells)
     order = [i for i in np.argsort(-shift, kind="stable") if clean.frames[i] in gt][:n_frames]
     return [TrajectoryExample(clean.frames[i], np.asarray(gt[clean.frames[i]], dtype=float),
                               {"clean": clean.plans[i], **{c: records[c].plans[i] for c in cells}}) for i in order]

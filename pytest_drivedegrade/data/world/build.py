@@ -13,13 +13,14 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ...errors import DataError
+from ..nuscenes import WORLD_MANIFEST
 from . import export
 from .rig import Rig
 from .scene import KEYFRAMES, make_scene
 
 GENERATOR_VERSION = "2.0.0"
 WORLD_VERSION = "v1.0-ddworld"
-MANIFEST = "drivedegrade_world.json"
+MANIFEST = WORLD_MANIFEST  # the file the reader looks for
 DEFAULT_SCENES = 100  # 94 train scenes (3196 scorable frames) and 6 val scenes (204 scorable frames)
 MAX_VAL_SCENES = 6  # val is what a certification scores (83 cells x its frames): enough, and bounded
 SCORABLE_PER_SCENE = KEYFRAMES - 6
