@@ -180,6 +180,24 @@ def test_deposits_cover_the_nominal_fraction(family, blobs, bias, shape):
             assert abs(covered - fraction) < 0.005, (severity, seed, covered)
 
 
+def test_snow_covers_the_same_share_of_the_frame_at_any_width():
+    """A spatial family is defined at 1600 px and scales with the width: the share of a grey frame that the
+    flakes whiten (beyond the veil) is the same at 1600 and 800 px, level by level, within 10 % (level 1's
+    far flakes are at the half-resolution layer's smallest blur at 800 px, so it is left out)."""
+    from pytest_drivedegrade.corruptions.kernels import veiled
+    from pytest_drivedegrade.corruptions.weather import _SNOW, _SNOW_WHITE
+
+    def share(width: int, level: int) -> float:
+        image = np.full((width * 9 // 16, width, 3), 60, np.uint8)
+        base = veiled(image, _SNOW[level][2], _SNOW_WHITE).astype(int)
+        return float(np.mean([((corrupt(image, "snow", level, frame=f) - base).mean(axis=2) > 40).mean()
+                              for f in "abcd"]))
+
+    for level in (2, 3, 5):
+        full, half = share(1600, level), share(800, level)
+        assert abs(half / full - 1) < 0.10, (level, full, half)
+
+
 @pytest.mark.parametrize("sigma", [4, 16, 45])
 def test_discrete_normal_matches_rounded_gaussian(sigma):
     x = discrete_normal(np.random.default_rng(0), (400_000,), sigma)

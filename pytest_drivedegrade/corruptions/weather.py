@@ -85,7 +85,9 @@ def snow(image: np.ndarray, level: int, rng: np.random.Generator, scale: float) 
     per_mp, sigma, veil = _SNOW[int(level)]
     h, w = image.shape[:2]
     hh, hw = max(1, h // 2), max(1, w // 2)
-    count = per_mp * (w / scale) * (h / scale) / 1e6 * (scale * scale)  # per reference megapixel
+    # per reference megapixel: the same number of flakes in the same field of view at any resolution (each
+    # flake's size scales with the width), so the snow covers the same share of the frame at 800 and 1600 px
+    count = per_mp * (w / scale) * (h / scale) / 1e6
     far = _flake_layer(rng, (hh, hw), int(count), scaled(sigma, scale) / 2, (0.55, 1.0))
     near = _flake_layer(rng, (hh, hw), int(count * _NEAR_SHARE), scaled(_NEAR_SIZE * sigma, scale) / 2,
                         (0.35, 0.7))
