@@ -120,9 +120,10 @@ def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
     ax = fig.add_subplot(1, 1, 1)
     im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdYlGn", vmin=0.5, vmax=1.0, aspect="auto")
     for (i, j), v in np.ndenumerate(grid):
-        if math.isfinite(v):
+        if math.isfinite(v):  # white on the dark ends of the scale (deep red and deep green), ink elsewhere
+            r, g, b, _ = im.cmap(im.norm(v))
             ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=8,
-                    color="white" if v < 0.62 else INK)
+                    color="white" if 0.299 * r + 0.587 * g + 0.114 * b < 0.5 else INK)
     ax.set_xticks(range(5), [f"S{k}" for k in range(1, 6)])
     ax.set_yticks(range(len(fams)), fams)
     ax.tick_params(labelsize=8.5, length=0)
@@ -188,7 +189,11 @@ def trajectory_panels(examples: Sequence[Mapping[str, Any]]) -> str | None:
         colors = iter(CELL_COLORS)
         for cell, plan in ex["plans"].items():
             handles[_label(cell, 28)] = _bev_line(ax, plan, ACCENT if cell == "clean" else next(colors, MUTED), "-")
-        ax.set_aspect("equal", adjustable="datalim")
+        # plans mostly differ in how far they go, so the lateral axis is not drawn to scale: at least +-3 m,
+        # wide enough for every line, so sideways deviations stay visible
+        reach = max(3.0, 1.15 * max(float(np.nanmax(np.abs(np.asarray(p, dtype=float)[:, 1]), initial=0.0))
+                                    for p in [ex["gt"], *ex["plans"].values()]))
+        ax.set_xlim(-reach, reach)
         ax.set_title(f"frame {_label(ex['frame'], 18)}", fontsize=8.5, color=INK, loc="left")
         ax.set_xlabel("lateral (m, left is left)", fontsize=7.5)
         ax.set_ylabel("forward (m)", fontsize=7.5)
@@ -201,4 +206,5 @@ def trajectory_panels(examples: Sequence[Mapping[str, Any]]) -> str | None:
 def _bev_line(ax: Any, plan: Any, color: str, style: str) -> Any:
     """Draw one trajectory from the ego origin in bird's-eye axes (horizontal = -y, vertical = x)."""
     pts = np.vstack([np.zeros((1, 2)), np.asarray(plan, dtype=float).reshape(-1, 2)])
+    ax.plot(-pts[-1, 1], pts[-1, 0], marker="D", color=color, markersize=6, markeredgecolor="white", zorder=4)
     return ax.plot(-pts[:, 1], pts[:, 0], style, color=color, linewidth=1.8, marker="o", markersize=2.8)[0]
