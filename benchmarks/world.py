@@ -51,7 +51,8 @@ def main() -> None:
             reader.load_image(cam)
     dt = time.perf_counter() - t0
     print(f"val reader with six decoded images per frame: {len(frames) / dt:.1f} frames/s")
-    print(f"world at {out}; {sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs) / 1e6:.0f} MB")
+    size = sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(out) for f in fs)
+    print(f"world at {out}; {size / 1e6:.0f} MB")
 
 
 if __name__ == "__main__":

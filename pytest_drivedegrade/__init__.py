@@ -13,8 +13,8 @@ __version__ = "0.1.0"
 _LAZY = {
     "corrupt": "pytest_drivedegrade.corruptions.api",
     "corrupt_sample": "pytest_drivedegrade.corruptions.api",
-    "FAMILIES": "pytest_drivedegrade.corruptions.registry",
-    "SPEC_VERSION": "pytest_drivedegrade.corruptions.registry",
+    "FAMILIES": "pytest_drivedegrade.corruptions.ladder",
+    "SPEC_VERSION": "pytest_drivedegrade.corruptions.ladder",
     "inject_loader": "pytest_drivedegrade.corruptions.hooks",
     "patch_loader": "pytest_drivedegrade.corruptions.hooks",
     "Injection": "pytest_drivedegrade.corruptions.hooks",
@@ -25,7 +25,7 @@ __all__ = ["__version__", *_LAZY]
 if TYPE_CHECKING:  # pragma: no cover
     from .corruptions.api import corrupt, corrupt_sample
     from .corruptions.hooks import Injection, inject_loader, patch_loader
-    from .corruptions.registry import FAMILIES, SPEC_VERSION
+    from .corruptions.ladder import FAMILIES, SPEC_VERSION
 
 
 def __getattr__(name: str) -> Any:

@@ -18,7 +18,7 @@ def _spec(args: argparse.Namespace) -> int:
 
     text = render_spec(args.format)
     if args.out:
-        from .report.io import atomic_write_text
+        from .atomic import atomic_write_text
 
         atomic_write_text(args.out, text)
         print(f"wrote {args.out}", file=sys.stderr)

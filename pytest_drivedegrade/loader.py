@@ -13,22 +13,15 @@ from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
+from .cells import cell_id
 from .constants import CAMERAS
 from .corruptions.api import corrupt
-from .corruptions.registry import FAMILIES
+from .corruptions.ladder import FAMILIES
 from .corruptions.seeding import rng_for
 from .corruptions.temporal import frame_lost
 from .data.frame import Frame
 
-#: Diagnostic cells and what they deliver: clean (severity 0), null (the cameras the planner does not read
-#: blacked out; an untouched rerun for a planner that reads all six) and blind (all six black).
-DIAGNOSTIC = ("clean", "null", "blind")
-
 Decode = Callable[[Frame, str], np.ndarray]
-
-
-def cell_id(family: str, severity: int) -> str:
-    return family if family in DIAGNOSTIC else f"{family}-s{severity}"
 
 
 class DropoutState:
@@ -39,7 +32,7 @@ class DropoutState:
     """
 
     def __init__(self) -> None:
-        self.scene = None
+        self.scene: str | None = None
         self.source: dict[str, Frame | None] = {}
 
     def advance(self, frame: Frame, probability: float, seed: int, severity: int) -> dict[str, Frame | None]:

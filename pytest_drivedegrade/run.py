@@ -19,15 +19,15 @@ from typing import Any
 
 import numpy as np
 
-from .analysis import CellRecord
+from .cells import CellRecord, cell_id
 from .constants import CAMERAS, HORIZON_STEPS
-from .corruptions.registry import SPEC_VERSION
+from .corruptions.ladder import SPEC_VERSION
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
-from .loader import cell_id, samples
-from .metrics import bit1_density, frame_metrics
+from .loader import samples
 from .planning import planner_cameras, planner_fingerprint, validate_output
+from .scoring.metrics import bit1_density, frame_metrics
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
 #: Decoded clean images kept per process for reuse by later cells (a fixed budget, so memory is flat in the
@@ -90,6 +90,18 @@ class RunContext:
     _decoded_bytes: int = 0
     _clean: dict[int, CellRecord] = field(default_factory=dict)
 
+    @classmethod
+    def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
+             planner_path: Path | None) -> RunContext:
+        """Index the data and pick the scored frames; a data problem raises DataError naming the file or token."""
+        reader = NuScenesReader(data_root, split=split)
+        chosen = reader.scorable_frames(limit=frames)
+        if not chosen:
+            raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
+                                    f"keyframes); skipped: {dict(reader.skipped)}")
+        return cls(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
+                   frames_unscored=reader.skipped[UNSCORED])
+
     @property
     def frames_key(self) -> str:
         """Which frames are scored (the --drivedegrade-frames subset changes results)."""
@@ -131,7 +143,8 @@ class RunContext:
             self._clean[key] = stored() or self.run_cell(planner, "clean", 0)
         return self._clean[key]
 
-    def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None) -> CellRecord:
+    def run_cell(self, planner: Any, family: str, severity: int, *,
+                 unread: tuple[str, ...] | None = None) -> CellRecord:
         """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message."""
         if unread is None:  # the cameras only: the floor model needs no fingerprint
             unread = unread_cameras(planner_cameras(planner))
@@ -181,15 +194,3 @@ def describe_failure(exc: BaseException, frame_token: str) -> str:
     if isinstance(exc, TypeError) and "does not support item assignment" in str(exc):
         return f"frame {frame_token!r}: predict() tried to modify the images mapping ({exc}); it is read-only"
     return f"frame {frame_token!r}: predict() raised {type(exc).__name__}: {exc}"
-
-
-def open_context(*, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
-                 planner_path: Path | None) -> RunContext:
-    """Index the data and pick the scored frames; a data problem raises DataError naming the file or token."""
-    reader = NuScenesReader(data_root, split=split)
-    chosen = reader.scorable_frames(limit=frames)
-    if not chosen:
-        raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
-                                f"keyframes); skipped: {dict(reader.skipped)}")
-    return RunContext(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
-                      frames_unscored=reader.skipped[UNSCORED])

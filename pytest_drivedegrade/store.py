@@ -1,17 +1,20 @@
 """Cell results on disk: `<report>/<planner>/cells/<cell>.json`, written atomically as each cell finishes.
 
-A stored result carries the run key (spec version, planner and dataset fingerprints, scored frames, seed);
-a rerun reuses exactly the results whose key matches, so an interrupted run resumes and a changed planner,
-data set or ladder recomputes.
+A stored result is a `CellPayload` with its run key (spec version, planner and dataset fingerprints, scored
+frames, seed); a rerun reuses exactly the results whose key matches, so an interrupted run resumes and a changed
+planner, data set or ladder recomputes.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from .report.io import atomic_write_text
+from .atomic import atomic_write_text
+from .cells import CellPayload
+from .errors import InvalidInput
 
 
 class ResultStore:
@@ -21,20 +24,20 @@ class ResultStore:
     def path(self, planner: str, cell: str) -> Path:
         return self.report_dir / planner / "cells" / f"{cell}.json"
 
-    def write(self, payload: dict[str, Any]) -> Path:
-        record = payload["record"]
-        return atomic_write_text(self.path(payload["planner"], record["cell"]), json.dumps(payload, allow_nan=True))
+    def write(self, payload: CellPayload) -> Path:
+        return atomic_write_text(self.path(payload.planner, payload.cell),
+                                 json.dumps(payload.to_builtins(), allow_nan=True))
 
-    def read(self, planner: str, cell: str, key: dict[str, Any]) -> dict[str, Any] | None:
+    def read(self, planner: str, cell: str, key: Mapping[str, Any]) -> CellPayload | None:
         """The stored payload of `cell` when its run key equals `key`; None when absent, stale or unreadable."""
-        path = self.path(planner, cell)
         try:
-            payload = json.loads(path.read_text())
-        except (OSError, ValueError):
+            data = json.loads(self.path(planner, cell).read_text())
+            payload = CellPayload.from_builtins(data)
+        except (OSError, ValueError, InvalidInput):
             return None
-        if not isinstance(payload, dict) or payload.get("key") != key or "record" not in payload:
+        if dict(payload.key) != dict(key) or payload.cell != cell:
             return None
         return payload
 
-    def read_all(self, planner: str, key: dict[str, Any], cells: list[str]) -> dict[str, dict[str, Any]]:
+    def read_all(self, planner: str, key: Mapping[str, Any], cells: Iterable[str]) -> dict[str, CellPayload]:
         return {c: p for c in cells if (p := self.read(planner, c, key)) is not None}

@@ -5,6 +5,6 @@ numpy + OpenCV only. `registry` holds the declarations, one module per family gr
 """
 
 from .api import corrupt, corrupt_sample
-from .registry import FAMILIES, QUALITY_FAMILIES, SEVERITIES, SPEC_VERSION
+from .ladder import FAMILIES, QUALITY_FAMILIES, SEVERITIES, SPEC_VERSION
 
 __all__ = ["FAMILIES", "QUALITY_FAMILIES", "SEVERITIES", "SPEC_VERSION", "corrupt", "corrupt_sample"]

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..constants import CAMERAS, REFERENCE_WIDTH
 from ..errors import InvalidInput
-from .registry import FAMILIES, Family
+from .ladder import FAMILIES, Family
 from .seeding import rng_for
 
 #: Cells that are not on the ladder: the clean image (severity 0) and all six cameras black.

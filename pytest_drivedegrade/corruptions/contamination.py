@@ -63,7 +63,7 @@ def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
     map_y[wet] = (cy - 1.5 * ry - dy * ry * lens) * step  # looks up, inverted
     shade[wet] = 1.0 - 0.45 * np.minimum(rho2, 1.0) ** 3
     alpha[wet] = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
-    return tuple(a.reshape(gh, gw) for a in (map_x, map_y, shade, alpha))
+    return map_x.reshape(gh, gw), map_y.reshape(gh, gw), shade.reshape(gh, gw), alpha.reshape(gh, gw)
 
 
 @register("raindrop", group="contamination", axis="contamination", parameter="frame fraction under drops",
@@ -198,7 +198,7 @@ def lens_dirt(image: np.ndarray, fraction: float, rng: np.random.Generator, scal
         small = cv2.resize(region[:qh * 4, :qw * 4] if rh >= 4 and rw >= 4 else region, (qw, qh),
                            interpolation=cv2.INTER_AREA)
         blurred = cv2.GaussianBlur(small, (0, 0), max(0.5, scaled(10.0, scale) / 4))
-        opacity = cv2.resize(alpha, (qw, qh), interpolation=cv2.INTER_AREA)
+        opacity: np.ndarray = cv2.resize(alpha, (qw, qh), interpolation=cv2.INTER_AREA)
         opacity *= 0.35 + 0.3 * smooth_field(rng, qh, qw, cells=5, octaves=2)
         dirt = np.empty_like(small)
         dirt[:] = np.round(_DIRT_RGB * (1.0 - veil) + _VEIL_GREY * veil).astype(np.uint8)

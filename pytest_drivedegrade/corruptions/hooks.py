@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import PurePath
@@ -34,10 +35,17 @@ from typing import Any
 
 import numpy as np
 
+from ..constants import CAMERAS
 from .api import check_family, check_severity, corrupt_sample
-from .preview import camera_of
 
 _ORDERS = ("RGB", "BGR")
+_CAMERA_IN_NAME = re.compile(r"(CAM_(?:FRONT|BACK)(?:_LEFT|_RIGHT)?)")
+
+
+def camera_of(path: str | os.PathLike[str]) -> str:
+    """The nuScenes camera named in a file path (`..__CAM_FRONT__..` or `samples/CAM_FRONT/`), else CAM_FRONT."""
+    found = _CAMERA_IN_NAME.findall(os.fspath(path))
+    return found[-1] if found and found[-1] in CAMERAS else "CAM_FRONT"
 
 
 def frame_key(path: object) -> tuple[str, str]:

@@ -4,6 +4,7 @@ and a smooth random field for irregular deposits. Pure numpy / OpenCV, vectorise
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import lru_cache
 from math import erf, sqrt
 from typing import NamedTuple
@@ -63,7 +64,8 @@ def _resolve(tables: _NormalTables, high: np.ndarray, low: np.ndarray) -> np.nda
 _CHUNK = 1 << 17
 
 
-def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables, consume,
+def _sample_chunks(rng: np.random.Generator, count: int, tables: _NormalTables,
+                   consume: Callable[[int, int, np.ndarray], None],
                    table: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Draw `count` samples chunk by chunk: `consume(start, stop, noise)` receives each chunk's int16
     noise looked up in `table` (`tables.bucket` by default, or `tables.shifted`), with the ambiguous

@@ -3,19 +3,17 @@ family across S1..S5, as a labelled PNG montage."""
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from ..constants import CAMERAS
+from ..atomic import atomic_write_bytes
 from ..errors import InvalidInput
 from .api import check_family, check_severity, corrupt, corrupt_sample
-from .registry import FAMILIES
-
-_CAMERA_IN_NAME = re.compile(r"(CAM_(?:FRONT|BACK)(?:_LEFT|_RIGHT)?)")
+from .hooks import camera_of
+from .ladder import FAMILIES
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
@@ -29,12 +27,6 @@ def read_rgb(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
-def camera_of(path: str | Path) -> str:
-    """The nuScenes camera named in a file path (`..__CAM_FRONT__..` or `samples/CAM_FRONT/`), else CAM_FRONT."""
-    found = _CAMERA_IN_NAME.findall(str(path))
-    return found[-1] if found and found[-1] in CAMERAS else "CAM_FRONT"
-
-
 def render(image: np.ndarray, family: str, severity: int, *, seed: int, frame: str, camera: str) -> np.ndarray:
     """One family on one image; stream families go through the sample API with this camera alone."""
     if FAMILIES[family].scope == "image":
@@ -42,11 +34,30 @@ def render(image: np.ndarray, family: str, severity: int, *, seed: int, frame: s
     return corrupt_sample({camera: image}, family, severity, seed=seed, frame=frame)[camera]
 
 
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_LINE_PX = 18  # height of one label line
+_MARGIN_PX = 6
+
+
+def _fit_scale(text: str, width: int, largest: float = 0.45) -> float:
+    """The largest font scale (at most `largest`) at which `text` fits in `width` minus the margins."""
+    room = max(1, width - 2 * _MARGIN_PX)
+    scale = largest
+    while scale > 0.1 and cv2.getTextSize(text, _FONT, scale, 1)[0][0] > room:  # glyph widths round: not linear
+        scale *= 0.95
+    return scale
+
+
 def _tile(image: np.ndarray, label: str, width: int) -> np.ndarray:
+    """The image resized to `width` under a label bar: "family S4" on the first line and the parameter on the
+    second, each scaled down to fit the tile (a long label never runs into the next tile)."""
     h = round(image.shape[0] * width / image.shape[1])
     tile = cv2.resize(image, (width, h), interpolation=cv2.INTER_AREA)
-    bar = np.full((24, width, 3), 20, np.uint8)
-    cv2.putText(bar, label, (6, 17), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (235, 235, 235), 1, cv2.LINE_AA)
+    lines = [part.strip() for part in label.split(":", 1)]
+    bar = np.full((_LINE_PX * 2 + 6, width, 3), 20, np.uint8)  # two lines for every tile, so rows align
+    for i, text in enumerate(lines):
+        cv2.putText(bar, text, (_MARGIN_PX, _LINE_PX * (i + 1) - 4), _FONT, _fit_scale(text, width),
+                    (235, 235, 235), 1, cv2.LINE_AA)
     return np.vstack([bar, tile])
 
 
@@ -91,6 +102,4 @@ def write_preview(images: Sequence[str], *, severity: int = 4, family: str | Non
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.vstack(panels), cv2.COLOR_RGB2BGR))
     if not ok:  # pragma: no cover
         raise InvalidInput(f"could not encode the montage as PNG for {out}")
-    from ..report.io import atomic_write_bytes
-
     return atomic_write_bytes(target, buf.tobytes())

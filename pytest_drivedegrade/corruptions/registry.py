@@ -1,7 +1,8 @@
-"""The corruption registry: each family declares its parameter, unit and five values beside its code.
+"""The corruption registry: the `Family` declaration and the `register` decorator each operator uses to state
+its parameter, unit and five values beside its code.
 
-`FAMILIES` maps a family name to its `Family` record, in the order of SPEC section 3. The spec file
-(`spec/ladder.yaml`) is emitted from these records, so specification and code cannot diverge.
+The family modules import `register` from here; `ladder` imports the family modules and builds the ordered
+table `FAMILIES`, so nothing imports back into this module's importers (no cycle).
 """
 
 from __future__ import annotations
@@ -63,7 +64,8 @@ class Family:
         return f"{self.parameter} = {value}{unit}"
 
 
-_REGISTRY: dict[str, Family] = {}
+#: Filled by `register` as the family modules are imported (by `ladder`).
+REGISTERED: dict[str, Family] = {}
 
 
 def register(name: str, *, group: str, axis: str, parameter: str, unit: str, values: tuple[Any, ...],
@@ -73,18 +75,8 @@ def register(name: str, *, group: str, axis: str, parameter: str, unit: str, val
         raise AssertionError(f"{name}: a family needs exactly five values, got {len(values)}")
 
     def decorate(op: ImageOp) -> ImageOp:
-        _REGISTRY[name] = Family(name, group, axis, parameter, unit, tuple(values), random, scope, op,
+        REGISTERED[name] = Family(name, group, axis, parameter, unit, tuple(values), random, scope, op,
                                  spatial)
         return op
 
     return decorate
-
-
-# Importing the group modules fills the registry (they import `register` from this module).
-from . import contamination, memory, sensor, temporal, transmission, weather  # noqa: E402,F401
-
-FAMILIES: dict[str, Family] = {name: _REGISTRY[name] for name in ORDER}
-QUALITY_FAMILIES: tuple[str, ...] = tuple(n for n in ORDER if FAMILIES[n].axis == "quality")
-
-if set(_REGISTRY) != set(ORDER):  # pragma: no cover - a programming error, caught by every test run
-    raise AssertionError(f"registry and ORDER differ: {sorted(set(_REGISTRY) ^ set(ORDER))}")

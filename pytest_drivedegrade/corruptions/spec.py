@@ -7,7 +7,7 @@ from typing import Any
 
 from ..constants import CAMERAS, REFERENCE_WIDTH
 from ..errors import InvalidInput
-from .registry import FAMILIES, SPEC_VERSION
+from .ladder import FAMILIES, SPEC_VERSION
 
 SEEDING = "numpy PCG64 seeded with int(blake2b(f'{seed}|{frame}|{camera}|{family}|{severity}').digest())"
 
@@ -42,7 +42,8 @@ def spec_dict() -> dict[str, Any]:
 
 
 def _table() -> str:
-    rows = [("family", "group", "axis", "parameter (unit)", "S1", "S2", "S3", "S4", "S5", "random")]
+    rows: list[tuple[str, ...]] = [
+        ("family", "group", "axis", "parameter (unit)", "S1", "S2", "S3", "S4", "S5", "random")]
     for f in FAMILIES.values():
         values = ["+".join(c.replace("CAM_", "") for c in v) if isinstance(v, tuple) else str(v) for v in f.values]
         rows.append((f.name, f.group, f.axis, f"{f.parameter} ({f.unit})", *values, "yes" if f.random else "no"))

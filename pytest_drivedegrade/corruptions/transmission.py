@@ -19,8 +19,12 @@ def jpeg(image: np.ndarray, quality: int, rng: None, scale: float) -> np.ndarray
     if not ok:  # pragma: no cover - libjpeg does not fail on a valid uint8 image
         raise RuntimeError("JPEG encoding failed")
     if _IMREAD_COLOR_RGB is not None:  # OpenCV >= 4.10 decodes straight to RGB: one pass less
-        return cv2.imdecode(buf, _IMREAD_COLOR_RGB)
-    return cv2.cvtColor(cv2.imdecode(buf, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        rgb = cv2.imdecode(buf, _IMREAD_COLOR_RGB)
+        assert rgb is not None  # decoding the buffer imencode just wrote
+        return rgb
+    decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+    assert decoded is not None  # decoding the buffer imencode just wrote
+    return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
 
 
 @register("downscale", group="transmission", axis="quality", parameter="linear downscale factor",

@@ -83,7 +83,7 @@ class AgentBoxes:
     category: tuple[str, ...]  # coarse class per box: vehicle, pedestrian, cyclist, other
 
     @staticmethod
-    def empty() -> "AgentBoxes":
+    def empty() -> AgentBoxes:
         return AgentBoxes(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0,)), ())
 
     def __len__(self) -> int:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 #: Rotation taking camera axes (x right, y down, z forward) to ego axes for a camera looking along ego +x.
 CAM_TO_EGO_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -89,19 +90,19 @@ def apply(t: np.ndarray, points: np.ndarray) -> np.ndarray:
     return p @ t[:3, :3].T + t[:3, 3]
 
 
-def ego_to_global(points: np.ndarray, ego_rotation, ego_translation) -> np.ndarray:
+def ego_to_global(points: np.ndarray, ego_rotation: Sequence[float], ego_translation: Sequence[float]) -> np.ndarray:
     return apply(transform(ego_rotation, ego_translation), points)
 
 
-def global_to_ego(points: np.ndarray, ego_rotation, ego_translation) -> np.ndarray:
+def global_to_ego(points: np.ndarray, ego_rotation: Sequence[float], ego_translation: Sequence[float]) -> np.ndarray:
     return apply(invert(transform(ego_rotation, ego_translation)), points)
 
 
-def ego_to_camera(points: np.ndarray, cam_rotation, cam_translation) -> np.ndarray:
+def ego_to_camera(points: np.ndarray, cam_rotation: Sequence[float], cam_translation: Sequence[float]) -> np.ndarray:
     return apply(invert(transform(cam_rotation, cam_translation)), points)
 
 
-def camera_to_ego(points: np.ndarray, cam_rotation, cam_translation) -> np.ndarray:
+def camera_to_ego(points: np.ndarray, cam_rotation: Sequence[float], cam_translation: Sequence[float]) -> np.ndarray:
     return apply(transform(cam_rotation, cam_translation), points)
 
 
@@ -146,13 +147,13 @@ def clip_polygon_near(poly: np.ndarray, near: float = NEAR_PLANE) -> np.ndarray:
     return np.asarray(out).reshape(-1, 3)
 
 
-def se2_to_ego(xy: np.ndarray, origin_xy: Sequence[float], origin_yaw: float) -> np.ndarray:
+def se2_to_ego(xy: np.ndarray, origin_xy: np.ndarray | Sequence[float], origin_yaw: float) -> np.ndarray:
     """(N, 2) global planar points into the frame of a pose at `origin_xy` with heading `origin_yaw`."""
     c, s = np.cos(origin_yaw), np.sin(origin_yaw)
     d = np.asarray(xy, dtype=float).reshape(-1, 2) - np.asarray(origin_xy, dtype=float)[:2]
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
 
 
-def wrap_angle(a):
+def wrap_angle(a: npt.ArrayLike) -> np.ndarray:
     """Angle(s) wrapped into [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi

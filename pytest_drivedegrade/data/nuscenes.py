@@ -12,8 +12,9 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
 from collections import Counter, defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,8 @@ def _load_table(path: Path) -> list[dict]:
 class NuScenesReader:
     """Frames of one split of a nuScenes-format data root."""
 
-    def __init__(self, root, version: str | None = None, split: str = "val", strict: bool = False):
+    def __init__(self, root: str | os.PathLike[str], version: str | None = None, split: str = "val",
+                 strict: bool = False):
         self.root = Path(root)
         if not self.root.is_dir():
             raise DataError(f"nuScenes data root {self.root} does not exist or is not a folder")
@@ -145,7 +147,7 @@ class NuScenesReader:
                 self._skip("sample points at a missing record", problem, len(tokens))
                 continue
             can = self._can_bus(scene["name"])
-            for k, token in enumerate(tokens):
+            for k in range(len(tokens)):
                 frame = self._frame(scene, tokens, poses, k, can)
                 if frame is not None:
                     yield frame
@@ -185,7 +187,8 @@ class NuScenesReader:
         self.problems.append(detail)
 
     def _scene_samples(self, scene: dict) -> list[str]:
-        tokens, token, seen = [], scene.get("first_sample_token", ""), set()
+        tokens: list[str] = []
+        token, seen = scene.get("first_sample_token", ""), set()
         while token and token not in seen:
             if token not in self.samples:
                 self._skip("sample points at a missing record",
@@ -200,7 +203,7 @@ class NuScenesReader:
                                                    f"keyframes in {self.table_dir / 'sample.json'}")
         return tokens
 
-    def _poses(self, tokens: list[str]) -> tuple[tuple, str]:
+    def _poses(self, tokens: list[str]) -> tuple[Sequence[np.ndarray], str]:
         """The ego pose of every keyframe (of its LIDAR_TOP record when present, else CAM_FRONT)."""
         out = []
         for tok in tokens:
@@ -228,7 +231,8 @@ class NuScenesReader:
             return None
         return records or None
 
-    def _frame(self, scene, tokens, poses, k, can) -> Frame | None:
+    def _frame(self, scene: dict, tokens: list[str], poses: Sequence[np.ndarray], k: int,
+               can: list[dict] | None) -> Frame | None:
         token = tokens[k]
         cameras, problem = self._cameras(token)
         if problem:
@@ -276,10 +280,11 @@ class NuScenesReader:
         return AgentBoxes(centre, size, yaw, tuple(a[3] for a in anns))
 
 
-def _ego_status(xy: np.ndarray, yaw: np.ndarray, stamps: np.ndarray, k: int, can) -> EgoStatus:
+def _ego_status(xy: np.ndarray, yaw: np.ndarray, stamps: np.ndarray, k: int, can: list[dict] | None) -> EgoStatus:
     """Ego status at keyframe k: past positions in the current frame (oldest first) and motion terms."""
     dt = np.maximum(np.diff(stamps) * 1e-6, 1e-3)
-    def vel(i):  # backward difference in the frame of keyframe i; forward difference at the first keyframe
+    # backward difference in the frame of keyframe i; forward difference at the first keyframe
+    def vel(i: int) -> np.ndarray:
         j0, j1 = (i - 1, i) if i > 0 else (0, min(1, len(xy) - 1))
         if j0 == j1:
             return np.zeros(2)

@@ -1,7 +1,7 @@
 """cells.csv: one row per cell with every metric, retention and its CI, and what makes the row traceable.
 
-Written with the csv module (pandas is not needed to write a table). Column names up to ``retention_ci_high``
-are stable (SPEC section 6); more may be added, never renamed. Floats are rounded to six decimals like the
+Written with the csv module (pandas is not needed to write a table). The columns come from `columns.CSV`
+(names up to ``retention_ci_high`` are stable, SPEC section 6). Floats are rounded to six decimals like the
 certificate; a missing or non-finite value is an empty field; booleans are ``true`` / ``false``.
 """
 
@@ -14,21 +14,10 @@ import os
 from pathlib import Path
 from typing import Any
 
-from ..analysis import CONVENTIONS, RunAnalysis
-from ..constants import REPORT_HORIZONS_S
+from ..atomic import atomic_write_text
+from ..scoring.records import RunAnalysis
 from .certificate import DIGITS, Provenance
-from .io import atomic_write_text
-
-STABLE_COLUMNS = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
-                  "retention_ci_high")
-METRIC_COLUMNS = (
-    *(f"l2_avg_{c}" for c in CONVENTIONS),
-    *(f"{k}_{h}s_{c}" for k in ("l2", "collision", "vru") for c in CONVENTIONS for h in REPORT_HORIZONS_S),
-    "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
-)
-PROVENANCE_COLUMNS = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed",
-                      "convention")
-CSV_COLUMNS: tuple[str, ...] = (*STABLE_COLUMNS, *METRIC_COLUMNS, *PROVENANCE_COLUMNS)
+from .columns import CSV as CSV_COLUMNS
 
 
 def _field(value: Any) -> str:

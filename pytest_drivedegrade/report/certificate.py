@@ -9,7 +9,6 @@ verification failure can name the section that was edited, and two runs can be c
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
@@ -19,24 +18,21 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from ..analysis import VERDICT_LABELS, RunAnalysis
+from ..atomic import atomic_write_text
 from ..errors import DriveDegradeError
-from .io import atomic_write_text
+from ..scoring.records import RunAnalysis
+from ..scoring.verdict import VERDICT_LABELS
+from .columns import CERTIFICATE_CELL
 
 SCHEMA = "drivedegrade-certificate/1"
 DIGITS = 6
 #: Top-level keys every certificate has (SPEC section 6 stable names, plus this tool's additions).
 REQUIRED_KEYS = ("schema", "spec_version", "planner", "dataset", "cells", "thresholds", "axes", "floor",
                  "null_control", "verdict", "settings", "created", "section_digests", "digest")
-#: Per-cell fields copied into the certificate (the CSV carries every metric).
-CERT_CELL_FIELDS = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
-                    "retention_ci_high", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
-                    "l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad", "l2_3s_uniad",
-                    "collision_1s_stp3", "collision_2s_stp3", "collision_3s_stp3", "vru_3s_stp3", "jerk")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -103,7 +99,7 @@ def compute_digest(cert: Mapping[str, Any]) -> str:
 
 def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC."""
-    cells = [{k: row[k] for k in CERT_CELL_FIELDS if k in row} for row in (s.flat() for s in analysis.summaries)]
+    cells = [{k: row[k] for k in CERTIFICATE_CELL if k in row} for row in (s.flat() for s in analysis.summaries)]
     nc = analysis.null_control or {"passed": None, "max_abs_diff": None, "max_l2_change": None}
     return {
         "schema": SCHEMA,
@@ -189,7 +185,7 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
         for k in ("s10", "s25"):
             v = t.get(k) if isinstance(t, dict) else t
             expect(f"thresholds.{fam}.{k}", v, isinstance(t, dict) and _num(v), "a number or null")
-    axes = cert.get("axes") if isinstance(cert.get("axes"), dict) else {}
+    axes = cast("dict[str, Any]", cert.get("axes") if isinstance(cert.get("axes"), dict) else {})
     for k in ("quality", "removal", "gap", "mean"):
         expect(f"axes.{k}", axes.get(k), _num(axes.get(k)), "a number or null")
     label = (cert.get("verdict") or {}).get("label") if isinstance(cert.get("verdict"), dict) else None
@@ -210,7 +206,8 @@ def verify_data(cert: Mapping[str, Any], where: str = "certificate") -> dict[str
         if problems:  # sealed as is: written by something else, not edited afterwards
             raise CertificateError(f"{where}: digest verifies but the content is malformed: {'; '.join(problems)}")
         return dict(cert)
-    recorded_sections = cert.get("section_digests") if isinstance(cert.get("section_digests"), dict) else {}
+    recorded_sections = cast("dict[str, Any]",
+                             cert.get("section_digests") if isinstance(cert.get("section_digests"), dict) else {})
     sections = sorted(k for k, v in cert.items() if k not in ("digest", "section_digests")
                       and recorded_sections.get(k) != _sha256(v))
     msg = f"{where}: digest mismatch: recorded {recorded}, content hashes to {computed}"
@@ -224,40 +221,3 @@ def verify_data(cert: Mapping[str, Any], where: str = "certificate") -> dict[str
 def verify(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Load and verify a certificate file; returns it when intact (see ``verify_data`` for the errors)."""
     return verify_data(load_certificate(path), where=os.fspath(path))
-
-
-# --- argparse gates: a bad value is a usage error at start-up (pytest-benchmark style) ---------------------
-
-
-def parse_baseline(text: str) -> dict[str, Any]:
-    """argparse ``type=`` for ``--drivedegrade-baseline``: a readable, sealed, intact certificate file.
-
-    Any problem becomes ``argparse.ArgumentTypeError`` naming the file and what is wrong (a usage error at
-    start-up rather than a failure at the end of a long run).
-    """
-    if not Path(text).is_file():
-        raise argparse.ArgumentTypeError(f"baseline certificate {text!r} does not exist or is not a file")
-    try:
-        return verify(text)
-    except CertificateError as exc:
-        raise argparse.ArgumentTypeError(f"baseline certificate is unusable: {exc}") from None
-
-
-def _unit_float(text: str, what: str) -> float:
-    try:
-        value = float(text)
-    except (TypeError, ValueError):
-        raise argparse.ArgumentTypeError(f"{what} must be a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"{what} must be a number in [0, 1], got {text!r}")
-    return value
-
-
-def parse_tolerance(text: str) -> float:
-    """argparse ``type=`` for ``--drivedegrade-tolerance``: a float in [0, 1] (retention points)."""
-    return _unit_float(text, "--drivedegrade-tolerance")
-
-
-def parse_flat(text: str) -> float:
-    """argparse ``type=`` for ``--drivedegrade-flat``: a float in [0, 1]."""
-    return _unit_float(text, "--drivedegrade-flat")

@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from ..analysis import DIAGNOSTIC_CELLS, CellRecord, CellSummary, RunAnalysis
+from ..atomic import atomic_write_text
+from ..cells import DIAGNOSTIC, CellRecord
+from ..scoring.records import CellSummary, RunAnalysis, format_value
 from .certificate import Provenance
-from .io import atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
@@ -39,7 +40,7 @@ class TrajectoryExample:
 
 def most_damaging(summaries: Sequence[CellSummary], n: int = 3) -> list[CellSummary]:
     """The `n` ladder cells with the lowest retention (ties broken by cell id, so the choice is stable)."""
-    ladder = [s for s in summaries if s.family not in DIAGNOSTIC_CELLS and math.isfinite(s.retention)]
+    ladder = [s for s in summaries if s.family not in DIAGNOSTIC and math.isfinite(s.retention)]
     return sorted(ladder, key=lambda s: (s.retention, s.cell))[:n]
 
 
@@ -60,20 +61,17 @@ def trajectory_examples(records: Mapping[str, CellRecord], gt: Mapping[str, Any]
 
 
 def _fmt(value: Any, digits: int = 3) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
-    if isinstance(value, bool):
-        return "yes" if value else "no"
-    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+    return format_value(value, digits, missing="—")
 
 
 def _family_info(families: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:
     """group / axis / S5 parameter per family, from the registry when it is importable."""
     if families is None:
         try:
-            from ..corruptions.registry import FAMILIES as families  # noqa: N811
+            from ..corruptions.ladder import FAMILIES
         except ImportError:
             return {}
+        families = FAMILIES
     out = {}
     for name, fam in families.items():
         try:

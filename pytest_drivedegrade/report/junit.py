@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from ..analysis import CellSummary, RunAnalysis
+from ..scoring.records import CellSummary, RunAnalysis
+from .columns import STABLE, per_horizon
 
-#: Testcase properties, in the order they appear in the XML.
-CELL_PROPERTIES = ("cell", "family", "severity", "frames", "l2_avg", "retention", "retention_ci_low",
-                   "retention_ci_high", "l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad",
-                   "l2_3s_uniad", "collision_3s_stp3", "vru_3s_stp3", "jerk", "endpoint_shift", "energy",
-                   "separable_from_null", "conformance_errors")
+#: Testcase properties of a finished summary, in the order they appear in the XML.
+CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"), "collision_3s_stp3",
+                   "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors")
+
 SUITE_PREFIX = "drivedegrade_"
 
 

@@ -17,8 +17,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from ..analysis import DIAGNOSTIC_CELLS, THRESHOLD_LEVELS, CellSummary
+from ..cells import DIAGNOSTIC
 from ..constants import EGO_LENGTH, EGO_WIDTH
+from ..scoring.records import CellSummary
+from ..scoring.retention import THRESHOLD_LEVELS
 
 INK, MUTED, ACCENT, GRID = "#1f2933", "#7b8794", "#2463eb", "#e4e7eb"
 LEVEL_COLORS = {"s10": "#d97706", "s25": "#dc2626"}
@@ -69,7 +71,7 @@ def image_data_uri(rgb: np.ndarray) -> str:
 def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
     out: dict[str, list[CellSummary]] = {}
     for s in summaries:
-        if s.family not in DIAGNOSTIC_CELLS:
+        if s.family not in DIAGNOSTIC:
             out.setdefault(s.family, []).append(s)
     return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
 
@@ -154,7 +156,7 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
     ax.add_patch(Rectangle((flat, lo - 1), 2, flat - lo + 1, color="#fde68a", alpha=0.5, linewidth=0))
     ax.add_patch(Rectangle((lo - 1, lo - 1), flat - lo + 1, 3, color="#fecaca", alpha=0.45, linewidth=0))
-    kw = dict(fontsize=7.5, color=MUTED, style="italic")
+    kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
     ax.text(flat + 0.005, 1.075, "not shown to\nuse cameras", va="top", **kw)
     ax.text(flat + 0.005, lo + 0.01, "quality-insensitive", va="bottom", **kw)
     ax.text(lo + 0.01, lo + 0.01, "camera-reliant", va="bottom", **kw)

@@ -7,8 +7,7 @@ ego drives), `render.py` (the cameras) and `export.py` (the tables).
 
 from __future__ import annotations
 
-from .build import (DEFAULT_SCENES, GENERATOR_VERSION, WORLD_VERSION, cli_world, ensure_default_world,
-                    write_world)
+from .build import DEFAULT_SCENES, GENERATOR_VERSION, WORLD_VERSION, cli_world, ensure_default_world, write_world
 
 __all__ = ["DEFAULT_SCENES", "GENERATOR_VERSION", "WORLD_VERSION", "cli_world", "ensure_default_world",
            "write_world"]

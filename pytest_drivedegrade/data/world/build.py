@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 from ...errors import DataError
 from ..nuscenes import WORLD_MANIFEST
@@ -88,7 +90,7 @@ EVENT_DEFINITION = ("keyframes whose ground-truth position at 3 s lies more than
 
 def _event_stats(kinds: list[str]) -> dict:
     n = max(len(kinds), 1)
-    out = {"frames": len(kinds), "fraction": round(sum(1 for k in kinds if k) / n, 4)}
+    out: dict[str, Any] = {"frames": len(kinds), "fraction": round(sum(1 for k in kinds if k) / n, 4)}
     out.update({k: sum(1 for x in kinds if x == k) for k in ("brake", "vru", "bend", "other")})
     out["definition"] = EVENT_DEFINITION
     return out
@@ -112,6 +114,7 @@ def add_train_images(root: Path, progress: Progress = None) -> None:
 @contextmanager
 def _locked(path: Path):
     """An exclusive inter-process lock on `path` (fcntl where available; else an O_EXCL lock file)."""
+    fcntl: ModuleType | None  # the module, or None where it does not exist
     try:
         import fcntl
     except ImportError:  # pragma: no cover - Windows

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ...constants import EGO_LENGTH, EGO_WIDTH
 from .agents import DT, EGO_START_S, SIM_STEPS, Agent, along
 from .roads import Path
 
@@ -22,7 +23,6 @@ B_TRIGGER = 3.0  # m/s^2: the deceleration an obstacle must demand before the ex
 B_MAX = 6.0  # m/s^2: the firmest braking the expert uses
 REACTION = 10  # sim steps (1 s): how late a vehicle's change of speed reaches the expert
 VRU_LOOKAHEAD = 5  # sim steps (0.5 s): a pedestrian or cyclist this close to entering the corridor counts
-EGO_LENGTH, EGO_WIDTH = 4.084, 1.85
 KEY_EVERY = 5  # sim steps per keyframe (2 Hz)
 #: Reasons the expert leaves its free-road acceleration, logged per step (EgoLog.react).
 REACT_NONE, REACT_VEHICLE, REACT_VRU, REACT_BEND = 0, 1, 2, 3

@@ -85,7 +85,7 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
         t["ego_pose"].append({"token": pose_tok, "timestamp": ts, "rotation": list(yaw_to_quat(scene.ego.yaw[step])),
                               "translation": [float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), 0.0]})
         for cam in CAMERAS:
-            sd = lambda j: token(seed, "sd", scene.index, cam, j) if 0 <= j < KEYFRAMES else ""  # noqa: E731
+            sd = lambda j, cam=cam: token(seed, "sd", scene.index, cam, j) if 0 <= j < KEYFRAMES else ""  # noqa: E731
             t["sample_data"].append({"token": sd(k), "sample_token": st, "ego_pose_token": pose_tok,
                                      "calibrated_sensor_token": token(seed, "calib", cam), "timestamp": ts,
                                      "fileformat": "jpg", "is_key_frame": True, "height": rig.cameras[cam].height,

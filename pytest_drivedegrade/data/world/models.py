@@ -20,7 +20,7 @@ class Parts:
     colours: list[np.ndarray] = field(default_factory=list)  # (5, 3) per box
     decals: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
 
-    def add(self, cx, cy, yaw, z0, z1, l, w, colour, faces: dict[int, tuple] | None = None) -> int:
+    def add(self, cx, cy, yaw, z0, z1, l, w, colour, faces: dict[int, tuple | np.ndarray] | None = None) -> int:
         col = np.tile(np.asarray(colour, np.float32), (5, 1))
         for f, c in (faces or {}).items():
             col[f] = c

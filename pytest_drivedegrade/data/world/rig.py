@@ -32,7 +32,7 @@ class Rig:
     cameras: dict[str, CameraInfo]
 
     @staticmethod
-    def nuscenes_like(full_size: bool = False) -> "Rig":
+    def nuscenes_like(full_size: bool = False) -> Rig:
         """The rig at 800 x 450 (default) or 1600 x 900."""
         width, height = FULL_SIZE if full_size else DEFAULT_SIZE
         scale = width / REFERENCE_WIDTH

@@ -25,7 +25,7 @@ class Path:
     s: np.ndarray
 
     @staticmethod
-    def from_points(xy: np.ndarray) -> "Path":
+    def from_points(xy: np.ndarray) -> Path:
         """Resample a dense polyline to uniform arc length and compute headings."""
         seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
         keep = np.concatenate([[True], seg > 1e-6])
@@ -50,12 +50,12 @@ class Path:
         over = s - sc
         return x + over * np.cos(yaw), y + over * np.sin(yaw), yaw
 
-    def offset(self, d: float) -> "Path":
+    def offset(self, d: float) -> Path:
         """The parallel path `d` metres to the left (negative: right)."""
         n = np.stack([-np.sin(self.yaw), np.cos(self.yaw)], axis=1)
         return Path.from_points(self.xy + d * n)
 
-    def reversed(self) -> "Path":
+    def reversed(self) -> Path:
         return Path.from_points(self.xy[::-1].copy())
 
     def curvature(self) -> np.ndarray:
@@ -129,10 +129,11 @@ def build_roads(rng: np.random.Generator, total: float = 560.0) -> RoadNet:
     lanes = int(rng.choice([1, 2], p=[0.55, 0.45]))
     hw = lanes * LANE_WIDTH + SHOULDER
     p, h = np.zeros(2), 0.0
-    parts, built, length = [], [], 0.0
+    parts: list[np.ndarray] = []
+    length = 0.0
     has_junction = rng.random() < 0.7
     junction_at = rng.uniform(120.0, 230.0) if has_junction else np.inf
-    junctions_spec = []
+    junctions_spec: list[tuple[np.ndarray, float, str, float, float]] = []
     while length < total:
         if length + 40.0 >= junction_at and not junctions_spec:
             turn = str(rng.choice(["left", "right", "straight"], p=[0.36, 0.36, 0.28]))

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .agents import DT, Agent, Prop, background_traffic, crossing_walker, depart, lead_vehicle, scenery
-from .expert import KEY_EVERY, REACT_VEHICLE, allowed_speed, EgoLog, drive, follower, keyframe_events, start_state
+from .expert import KEY_EVERY, REACT_VEHICLE, EgoLog, allowed_speed, drive, follower, keyframe_events, start_state
 from .roads import LANE_WIDTH, Path, RoadNet, build_roads
 
 KEYFRAMES = 40  # 20 s at 2 Hz, as a nuScenes scene
@@ -31,7 +31,7 @@ class Style:
     urban: float
 
     @staticmethod
-    def draw(rng: np.random.Generator) -> "Style":
+    def draw(rng: np.random.Generator) -> Style:
         overcast = rng.random() < 0.35
         top = np.array([150, 160, 170]) if overcast else np.array([60, 110, 200]) + rng.normal(0, 12, 3)
         horizon = np.array([200, 205, 210]) if overcast else np.array([185, 205, 230]) + rng.normal(0, 8, 3)

@@ -14,8 +14,7 @@ from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.data import geometry as geo
 from pytest_drivedegrade.data.frame import command_from_future
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
-from pytest_drivedegrade.data.world import WORLD_VERSION, build, ensure_default_world, write_world
-from pytest_drivedegrade.data.world import agents, expert
+from pytest_drivedegrade.data.world import WORLD_VERSION, agents, build, ensure_default_world, expert, write_world
 from pytest_drivedegrade.data.world.roads import Path as LanePath
 from pytest_drivedegrade.data.world.scene import KEYFRAMES, make_scene
 

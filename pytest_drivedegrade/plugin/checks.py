@@ -1,42 +1,36 @@
 """What one cell item asserts: conformance on every frame, the null control, and the baseline gate.
 
-`certify` returns the payload that travels to the controller (plain builtins) and the failure messages;
-a stored result with the same run key is reused instead of recomputed (resume).
+Runs in every process that runs cells (each xdist worker, or the only process). `certify` returns the
+`CellPayload` that travels to the controller and the failure messages; a stored result with the same run key is
+reused instead of recomputed (resume).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
-from .analysis import CellRecord, cell_regression, paired_retention
-from .loader import cell_id, samples
-from .planning import planner_name
-from .run import MAX_MESSAGES, RunContext
-from .store import ResultStore
+from ..cells import CellPayload, CellRecord, Property, cell_id, differing_frames, identical_plans, rear_cameras
+from ..loader import samples
+from ..planning import planner_name
+from ..report.columns import TESTCASE
+from ..report.junit import plain
+from ..run import MAX_MESSAGES, RunContext
+from ..scoring.baseline import cell_regression
+from ..scoring.records import horizon_metrics
+from ..scoring.retention import paired_retention
+from ..store import ResultStore
 
-REAR = ("CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 
-
-def properties(record: CellRecord, resumed: bool) -> list[tuple[str, Any]]:
-    """The cell's own figures as JUnit testcase properties, named like the cells.csv columns.
-
-    Values go through ``report.junit.plain``: builtins only (xdist serialises them), six decimals, "none" for a
-    metric no frame produced.
-    """
-    from .analysis import horizon_metrics
-    from .report.junit import plain
-
-    metrics = horizon_metrics(record)
-    props: list[tuple[str, Any]] = [
-        ("cell", record.cell), ("family", record.family), ("severity", int(record.severity)),
-        ("frames", len(record.frames)), ("failed_frames", int(np.isnan(record.l2).any(axis=1).sum())),
-        ("l2_avg", metrics["l2_avg_stp3"])]
-    props += [(k, metrics[k]) for k in ("l2_1s_stp3", "l2_2s_stp3", "l2_3s_stp3", "l2_1s_uniad", "l2_2s_uniad",
-                                        "l2_3s_uniad", "collision_3s_stp3", "vru_3s_stp3", "jerk")]
-    props.append(("resumed", int(resumed)))
-    return [(name, plain(value)) for name, value in props]
+def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
+    """The cell's own figures as JUnit testcase properties (`report.columns.TESTCASE`), plain builtins."""
+    row: dict[str, Any] = {**horizon_metrics(record), "cell": record.cell, "family": record.family,
+                           "severity": int(record.severity), "frames": len(record.frames),
+                           "failed_frames": int(np.isnan(record.l2).any(axis=1).sum()), "resumed": int(resumed)}
+    row["l2_avg"] = row["l2_avg_stp3"]
+    return tuple((name, plain(row[name])) for name in TESTCASE)
 
 
 def _conformance(record: CellRecord) -> list[str]:
@@ -55,19 +49,20 @@ def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, 
         sample = next(samples([context.frames[index]], "null", 0, seed=context.seed, decode=context.decode,
                               unread=(cam,)))
         plan = np.asarray(planner.predict(sample, sample.frame.ego, sample.frame.command), dtype=float)
-        if not np.array_equal(plan, clean):
+        if not identical_plans(plan, clean):
             found.append(cam)
     return found
 
 
 def _identity(context: RunContext, planner: Any, record: CellRecord, clean: CellRecord,
               unread: tuple[str, ...]) -> list[str]:
-    """The null control: plans bit-identical to clean, else how far they wandered and who moved them."""
-    if np.array_equal(record.plans, clean.plans, equal_nan=True):
+    """The null control: plans bit-identical to clean (`cells.identical_plans`), else how far they wandered and
+    who moved them."""
+    if identical_plans(record.plans, clean.plans):
         return []
     diff = np.abs(record.plans - clean.plans)
     l2 = np.linalg.norm(record.plans - clean.plans, axis=-1)
-    first = int(np.flatnonzero(np.nan_to_num(diff, nan=np.inf).reshape(len(diff), -1).max(axis=1) > 0)[0])
+    first = int(differing_frames(record.plans, clean.plans)[0])
     head = (f"null control failed in cell {record.cell}: plans are not bit-identical to clean "
             f"(max abs difference {np.nanmax(diff):.6g} m, max L2 change {np.nanmax(l2):.6g} m; first at frame "
             f"{record.frames[first]!r})")
@@ -80,24 +75,24 @@ def _identity(context: RunContext, planner: Any, record: CellRecord, clean: Cell
     return [head, why]
 
 
-def _reusable(stored: dict[str, Any] | None) -> dict[str, Any] | None:
-    """A stored result a rerun may reuse: one without per-frame failures. A failed frame may have been a fixed
+def _reusable(stored: CellPayload | None) -> CellRecord | None:
+    """A stored record a rerun may reuse: one without per-frame failures. A failed frame may have been a fixed
     data file (a re-extracted JPEG keeps the data set's fingerprint) or a transient hang, so it is run again."""
-    if stored is None or stored["record"].get("errors"):
+    if stored is None or stored.record.errors:
         return None
-    return stored
+    return stored.record
 
 
 def certify(context: RunContext, planner: Any, family: str, severity: int, *, store: ResultStore,
-            baseline: dict[str, Any] | None, tolerance: float) -> tuple[dict[str, Any], list[str]]:
+            baseline: Mapping[str, Any] | None, tolerance: float) -> tuple[CellPayload, list[str]]:
     """Run (or resume) one cell and check it; returns (payload for the controller, failure messages)."""
     default = context.planner_path.stem if context.planner_path else "planner"
     name = planner_name(planner, default)
     key = context.run_key(planner)
     cell = cell_id(family, severity)
+
     def stored_record(which: str) -> CellRecord | None:
-        found = _reusable(store.read(name, which, key))
-        return CellRecord.from_builtins(found["record"]) if found else None
+        return _reusable(store.read(name, which, key))
 
     stored = stored_record(cell)
     if cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
@@ -106,16 +101,16 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         record = stored or context.run_cell(planner, family, severity)
     failures = _conformance(record)
     unread = context.planner_info(planner).unread
-    needs_clean = cell == "null" or (cell == "blackout-s3" and set(REAR) <= set(unread)) or baseline is not None
-    if needs_clean and cell != "clean":
+    rear = rear_cameras()
+    rear_is_null = cell == cell_id("blackout", 3) and set(rear) <= set(unread)
+    if (cell == "null" or rear_is_null or baseline is not None) and cell != "clean":
         clean = context.clean_record(planner, lambda: stored_record("clean"))
-        if cell == "null" or cell == "blackout-s3":
-            failures += _identity(context, planner, record, clean, unread if cell == "null" else REAR)
+        if cell == "null" or rear_is_null:
+            failures += _identity(context, planner, record, clean, unread if cell == "null" else rear)
         if baseline is not None:
             retention = paired_retention(clean.l2_avg_per_frame(), record.l2_avg_per_frame())
             reg = cell_regression(cell, retention, baseline, tolerance)
             if reg:
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")
-    payload = {"key": key, "planner": name, "record": record.to_builtins(),
-               "properties": properties(record, stored is not None)}
-    return payload, failures
+    resumed = stored is not None
+    return CellPayload(key, name, record, properties(record, resumed), resumed), failures

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from .constants import EGO_LENGTH, EGO_WIDTH, HORIZON_STEPS, REPORT_HORIZONS_S, STEP_SECONDS, VRU_CATEGORIES
-from .data.frame import AgentBoxes, Frame
+from ..constants import EGO_LENGTH, EGO_WIDTH, HORIZON_STEPS, REPORT_HORIZONS_S, STEP_SECONDS, VRU_CATEGORIES
+from ..data.frame import AgentBoxes, Frame
 
 #: Step index (0-based, into the six waypoints) of each reported horizon: 1 s -> 1, 2 s -> 3, 3 s -> 5.
 HORIZON_INDEX: tuple[int, ...] = tuple(int(round(h / STEP_SECONDS)) - 1 for h in REPORT_HORIZONS_S)
@@ -76,7 +76,10 @@ def _overlap_pairs(c0: np.ndarray, size0: np.ndarray, yaw0: np.ndarray, c1: np.n
     h0, h1 = size0 / 2.0, size1 / 2.0
     delta = c1 - c0
     separated = np.zeros(len(c0), dtype=bool)
-    dot = lambda a, b: np.abs(np.sum(a * b, axis=1))  # noqa: E731
+
+    def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.abs(np.sum(a * b, axis=1))
+
     for axis in (u0, v0, u1, v1):
         r0 = h0[:, 0] * dot(axis, u0) + h0[:, 1] * dot(axis, v0)
         r1 = h1[:, 0] * dot(axis, u1) + h1[:, 1] * dot(axis, v1)
@@ -112,7 +115,10 @@ def _flatten(agents: Sequence[AgentBoxes]) -> tuple[np.ndarray, ...] | None:
     counts = [len(b) for b in steps]
     if not sum(counts):
         return None
-    cat = lambda b: np.asarray(b, np.float64)  # noqa: E731
+
+    def cat(b: Any) -> np.ndarray:
+        return np.asarray(b, np.float64)
+
     return (np.repeat(np.arange(len(steps)), counts),
             np.concatenate([cat(b.center).reshape(-1, 2) for b in steps]),
             np.concatenate([cat(b.size).reshape(-1, 2) for b in steps]),

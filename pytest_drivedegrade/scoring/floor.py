@@ -9,9 +9,8 @@ set fingerprint and the code version, and written atomically.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
-import os
-import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -21,8 +20,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from .constants import HORIZON_STEPS
-from .data.frame import Command, EgoStatus, Frame
+from ..atomic import atomic_write_bytes
+from ..constants import HORIZON_STEPS
+from ..data.frame import Command, EgoStatus, Frame
 
 #: Bump when features, network or training change: it is part of the cache key and the fingerprint.
 FLOOR_VERSION = "ego_mlp-1"
@@ -57,6 +57,11 @@ class EgoMLP(nn.Module):
 
     cameras: tuple[str, ...] = ()
     name: str = "ego_mlp"
+    # the buffers registered in __init__, declared for the type checker (Module.__getattr__ types them loosely)
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
+    y_mean: torch.Tensor
+    y_std: torch.Tensor
 
     def __init__(self, hidden: int = SETTINGS["hidden"]) -> None:
         super().__init__()
@@ -137,7 +142,7 @@ def fit_arrays(
             err = (model(xt[idx]) - yt[idx]).view(-1, HORIZON_STEPS, 2)
             loss = torch.sqrt((err**2).sum(-1) + 1e-6).mean()
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            loss.backward()  # type: ignore[no-untyped-call]  # torch's Tensor.backward is unannotated
             opt.step()
             sched.step()
         model.eval()
@@ -159,17 +164,10 @@ def cache_key(dataset_fingerprint: str, seed: int = 0) -> str:
 
 
 def save_atomic(model: nn.Module, path: Path) -> None:
-    """Write a state_dict to `path` via a temporary file in the same folder and a rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(model.state_dict(), tmp)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a cache or committed weights file is world-readable
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    """Write a state_dict to `path` atomically (see `atomic.atomic_write_bytes`)."""
+    buffer = io.BytesIO()
+    torch.save(model.state_dict(), buffer)
+    atomic_write_bytes(path, buffer.getvalue())
 
 
 def train_split_for(split: str) -> str:

@@ -2,27 +2,28 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 import pytest
 from test_analysis import GROUPS, synthetic_run
 
-from pytest_drivedegrade import analysis as an
 from pytest_drivedegrade.cli import main
 from pytest_drivedegrade.report import certificate as cf
+from pytest_drivedegrade.scoring import baseline as bl
+from pytest_drivedegrade.scoring import records as rc
+from pytest_drivedegrade.scoring import verdict as vd
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
 
 
 @pytest.fixture(scope="module")
-def run() -> an.RunAnalysis:
-    return an.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+def run() -> rc.RunAnalysis:
+    return vd.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=100, floor_l2=5.0)
 
 
 @pytest.fixture()
-def cert_file(tmp_path: Path, run: an.RunAnalysis) -> Path:
+def cert_file(tmp_path: Path, run: rc.RunAnalysis) -> Path:
     return cf.write_certificate(tmp_path / "certificate.json",
                                 cf.build_certificate(run, PROV, created="2025-01-01T00:00:00+00:00"))
 
@@ -45,7 +46,7 @@ def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
     assert set(cert["thresholds"]["fog"]) == {"s10", "s25"}
     assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
     assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
-    assert cert["verdict"]["label"] in an.VERDICT_LABELS and cert["settings"]["flat"] == 0.95
+    assert cert["verdict"]["label"] in vd.VERDICT_LABELS and cert["settings"]["flat"] == 0.95
     assert cf.check_schema(cert) == []
 
 
@@ -59,7 +60,7 @@ def test_digest_is_sha256_over_canonical_json_with_rounded_floats(cert_file: Pat
     assert all(len(repr(c["retention"]).split(".")[-1]) <= 6 for c in cert["cells"])
 
 
-def test_seal_is_idempotent_and_layout_free(run: an.RunAnalysis) -> None:
+def test_seal_is_idempotent_and_layout_free(run: rc.RunAnalysis) -> None:
     sealed = cf.seal(cf.build_certificate(run, PROV, created="x"))
     assert cf.seal(sealed) == sealed
     assert cf.verify_data(json.loads(json.dumps(sealed))) == sealed  # compact JSON verifies as well
@@ -107,36 +108,19 @@ def test_cli_verify_exit_codes(cert_file: Path, tmp_path: Path, capsys) -> None:
     assert "no digest" in capsys.readouterr().err
 
 
-def test_baseline_passes_on_itself_and_catches_a_regression(cert_file: Path, run: an.RunAnalysis) -> None:
-    base = cf.parse_baseline(str(cert_file))
+def test_baseline_passes_on_itself_and_catches_a_regression(cert_file: Path, run: rc.RunAnalysis) -> None:
+    base = cf.verify(cert_file)
     now = cf.seal(cf.build_certificate(run, PROV))
-    assert an.compare_to_baseline(now, base) == {"cells": [], "axes": []}
+    assert bl.compare_to_baseline(now, base) == {"cells": [], "axes": []}
     worse = json.loads(json.dumps(now))
     worse["cells"][10]["retention"] -= 0.05
     worse["axes"]["removal"] -= 0.03
-    out = an.compare_to_baseline(worse, base, 0.02)
+    out = bl.compare_to_baseline(worse, base, 0.02)
     assert [r.name for r in out["cells"]] == [worse["cells"][10]["cell"]]
     assert [r.name for r in out["axes"]] == ["axis:removal"]
 
 
-@pytest.mark.parametrize(("content", "message"), [
-    (None, "does not exist"),
-    ("{not json", "not valid JSON"),
-    ('{"cells": []}', "no digest"),
-])
-def test_bad_baseline_is_a_usage_error_naming_the_file(tmp_path: Path, capsys, content, message) -> None:
-    path = tmp_path / "baseline.json"
-    if content is not None:
-        path.write_text(content)
-    parser = argparse.ArgumentParser(prog="pytest")
-    parser.add_argument("--drivedegrade-baseline", type=cf.parse_baseline)
-    with pytest.raises(SystemExit) as exc:
-        parser.parse_args(["--drivedegrade-baseline", str(path)])
-    err = capsys.readouterr().err
-    assert exc.value.code == 2 and message in err and "baseline.json" in err
-
-
-def test_edited_baseline_is_a_usage_error(cert_file: Path) -> None:
+def test_edited_baseline_is_refused_naming_the_section(cert_file: Path) -> None:
     edit(cert_file, lambda d: d["axes"].__setitem__("quality", 1.0))
-    with pytest.raises(argparse.ArgumentTypeError, match="digest mismatch"):
-        cf.parse_baseline(str(cert_file))
+    with pytest.raises(cf.CertificateMismatch, match="digest mismatch.*edited section.*axes"):
+        cf.verify(cert_file)

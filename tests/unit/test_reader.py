@@ -34,7 +34,7 @@ def _write_fixture(root):
     t["instance"] = [{"token": "inst-car", "category_token": "cat-car", "nbr_annotations": N_SAMPLES,
                       "first_annotation_token": "", "last_annotation_token": ""}]
     red = cv2.imencode(".jpg", np.full((90, 160, 3), (0, 0, 255), np.uint8))[1].tobytes()  # BGR red
-    for ci, cam in enumerate(CAMERAS):
+    for cam in CAMERAS:
         t["sensor"].append({"token": f"sensor-{cam}", "channel": cam, "modality": "camera"})
         t["calibrated_sensor"].append({"token": f"cal-{cam}", "sensor_token": f"sensor-{cam}",
                                        "translation": [1.7, 0.0, 1.5], "rotation": [0.5, -0.5, 0.5, -0.5],

@@ -6,7 +6,6 @@ import it from here.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import random
@@ -16,9 +15,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pytest_drivedegrade import analysis as an
-from pytest_drivedegrade.analysis import CellRecord, FamilyGroups
-from pytest_drivedegrade.report.certificate import parse_flat, parse_tolerance
+from pytest_drivedegrade.cells import CellRecord
+from pytest_drivedegrade.errors import InvalidInput
+from pytest_drivedegrade.scoring import baseline as bl
+from pytest_drivedegrade.scoring import records as rc
+from pytest_drivedegrade.scoring import retention as rt
+from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.verdict import FamilyGroups
 
 ORDER = ("gaussian_blur", "motion_blur", "gaussian_noise", "low_light", "jpeg", "downscale", "color_quant", "fog",
          "snow", "frame_dropout", "blackout", "bit_error", "raindrop", "occlusion", "mud_splash", "lens_dirt")
@@ -77,7 +80,7 @@ def test_record_round_trips_through_json_bit_exactly() -> None:
 
 
 def test_record_rejects_wrong_shapes_by_name() -> None:
-    with pytest.raises(an.InvalidInput, match="plans has shape"):
+    with pytest.raises(InvalidInput, match="plans has shape"):
         CellRecord("x", "x", 1, ["a"], np.zeros((1, 5, 2)), np.zeros((1, 6)), np.zeros((1, 6)), np.zeros((1, 6)),
                    [0.0], [0.5])
 
@@ -86,19 +89,19 @@ def test_record_rejects_wrong_shapes_by_name() -> None:
 
 
 def test_retention_known_answers() -> None:
-    assert an.retention(1.0, 2.0) == 0.5
-    assert an.retention(1.0, 2.0, "reward") == 2.0
-    assert an.retention(0.0, 0.0) == 1.0
-    assert an.retention(1.0, 0.0) == math.inf
-    np.testing.assert_allclose(an.retention(np.array([1.0, 3.0]), np.array([4.0, 3.0])), [0.25, 1.0])
-    with pytest.raises(an.InvalidInput):
-        an.retention(1.0, 1.0, "loss")
+    assert rt.retention(1.0, 2.0) == 0.5
+    assert rt.retention(1.0, 2.0, "reward") == 2.0
+    assert rt.retention(0.0, 0.0) == 1.0
+    assert rt.retention(1.0, 0.0) == math.inf
+    np.testing.assert_allclose(rt.retention(np.array([1.0, 3.0]), np.array([4.0, 3.0])), [0.25, 1.0])
+    with pytest.raises(InvalidInput):
+        rt.retention(1.0, 1.0, "loss")
 
 
 def test_summary_retention_is_clean_over_cell_l2_avg() -> None:
     recs, _ = synthetic_run(10)
     clean, cell = recs[0], recs[8]
-    s = an.summarise_cell(cell, clean, n_resamples=200)
+    s = rt.summarise_cell(cell, clean, n_resamples=200)
     m_clean = clean.l2_avg_per_frame().mean()
     assert s.retention == pytest.approx(m_clean / cell.l2_avg_per_frame().mean())
     assert s.l2_avg == pytest.approx(s.metrics["l2_avg_stp3"])
@@ -115,33 +118,33 @@ def test_bootstrap_is_deterministic_and_contains_the_estimate() -> None:
     rng = np.random.default_rng(1)
     a = rng.gamma(2.0, 1.0, 200)
     b = a * 1.3 + rng.gamma(1.0, 0.3, 200)
-    ci = an.bootstrap_retention_ci(a, b, seed=7)
-    assert ci == an.bootstrap_retention_ci(a, b, seed=7)
-    assert ci != an.bootstrap_retention_ci(a, b, seed=8)
-    assert ci[0] < an.retention(a.mean(), b.mean()) < ci[1]
-    assert an.bootstrap_retention_ci(a, b, seed=7, chunk_elems=1000) == ci  # chunking does not change it
+    ci = rt.bootstrap_retention_ci(a, b, seed=7)
+    assert ci == rt.bootstrap_retention_ci(a, b, seed=7)
+    assert ci != rt.bootstrap_retention_ci(a, b, seed=8)
+    assert ci[0] < rt.retention(a.mean(), b.mean()) < ci[1]
+    assert rt.bootstrap_retention_ci(a, b, seed=7, chunk_elems=1000) == ci  # chunking does not change it
 
 
 def test_bootstrap_ci_shrinks_with_more_frames() -> None:
     rng = np.random.default_rng(2)
     a, noise = rng.gamma(2.0, 1.0, 2000), rng.gamma(2.0, 0.5, 2000)
-    widths = [np.diff(an.bootstrap_retention_ci(a[:n], a[:n] + noise[:n])).item() for n in (25, 400)]
+    widths = [np.diff(rt.bootstrap_retention_ci(a[:n], a[:n] + noise[:n])).item() for n in (25, 400)]
     assert widths[1] < widths[0] / 2.5  # ~ 1 / sqrt(16) = 1/4 in theory
 
 
 def test_bootstrap_drops_nan_frames_and_handles_none_left() -> None:
     a, b = np.array([1.0, np.nan, 2.0, 3.0]), np.array([2.0, 5.0, np.nan, 6.0])
-    assert an.bootstrap_retention_ci(a, b, n_resamples=50) == an.bootstrap_retention_ci(a[[0, 3]], b[[0, 3]],
+    assert rt.bootstrap_retention_ci(a, b, n_resamples=50) == rt.bootstrap_retention_ci(a[[0, 3]], b[[0, 3]],
                                                                                          n_resamples=50)
-    assert all(math.isnan(v) for v in an.bootstrap_retention_ci([np.nan], [1.0]))
+    assert all(math.isnan(v) for v in rt.bootstrap_retention_ci([np.nan], [1.0]))
 
 
 @settings(max_examples=30, deadline=None)
 @given(st.lists(st.floats(0.01, 50.0), min_size=1, max_size=40))
 def test_identical_cells_retain_everything(values: list[float]) -> None:
     arr = np.array(values)
-    assert an.retention(arr.mean(), arr.mean()) == 1.0
-    assert an.bootstrap_retention_ci(arr, arr, n_resamples=100) == pytest.approx((1.0, 1.0))
+    assert rt.retention(arr.mean(), arr.mean()) == 1.0
+    assert rt.bootstrap_retention_ci(arr, arr, n_resamples=100) == pytest.approx((1.0, 1.0))
 
 
 # --- tolerance thresholds ------------------------------------------------------------------------------------
@@ -160,7 +163,7 @@ def test_identical_cells_retain_everything(values: list[float]) -> None:
     ({1: 0.95, 2: float("nan"), 3: 0.85}, 0.90, 2.0),  # NaN skipped: between S1 and S3
 ])
 def test_tolerance_threshold_known_answers(curve, level, expected) -> None:
-    got = an.tolerance_threshold(curve, level)
+    got = rt.tolerance_threshold(curve, level)
     assert got == (None if expected is None else pytest.approx(expected))
 
 
@@ -172,8 +175,8 @@ def test_thresholds_monotone(upper: list[float], drop: list[float]) -> None:
     low = {s: r - d for (s, r), d in zip(high.items(), drop)}
     inf = lambda v: math.inf if v is None else v  # noqa: E731
     for level in (0.90, 0.75):
-        assert inf(an.tolerance_threshold(low, level)) <= inf(an.tolerance_threshold(high, level)) + 1e-9
-    assert inf(an.tolerance_threshold(high, 0.90)) <= inf(an.tolerance_threshold(high, 0.75)) + 1e-9
+        assert inf(rt.tolerance_threshold(low, level)) <= inf(rt.tolerance_threshold(high, level)) + 1e-9
+    assert inf(rt.tolerance_threshold(high, 0.90)) <= inf(rt.tolerance_threshold(high, 0.75)) + 1e-9
 
 
 # --- axes and verdict ----------------------------------------------------------------------------------------
@@ -187,7 +190,7 @@ def s5(quality: float, removal: float, other: float = 1.0) -> dict[str, float]:
 def test_axes_known_answer() -> None:
     values = s5(0.9, 0.6, 0.8)
     values["gaussian_blur"] = 0.0  # mean of nine: (8 * 0.9 + 0) / 9 = 0.8
-    ax = an.compute_axes(values, GROUPS)
+    ax = vd.compute_axes(values, GROUPS)
     assert ax["quality"] == pytest.approx(0.8) and ax["removal"] == pytest.approx(0.6)
     assert ax["gap"] == pytest.approx(0.2)
     assert ax["mean"] == pytest.approx((0.8 * 9 + 0.8 + 0.6 + 0.8) / 12)
@@ -198,10 +201,10 @@ def test_axes_known_answer() -> None:
 def test_missing_family_makes_its_axis_none() -> None:
     values = s5(0.99, 0.5)
     del values["fog"], values["occlusion"]
-    ax = an.compute_axes(values, GROUPS)
+    ax = vd.compute_axes(values, GROUPS)
     assert ax["quality"] is None and ax["gap"] is None and ax["mean"] is None
     assert ax["removal"] == 0.5 and ax["occlusion"] is None and ax["missing"] == ["fog", "occlusion"]
-    assert an.verdict(ax)["label"] == "undetermined"
+    assert vd.verdict(ax)["label"] == "undetermined"
 
 
 @pytest.mark.parametrize(("q", "r", "label", "case"), [
@@ -212,7 +215,7 @@ def test_missing_family_makes_its_axis_none() -> None:
     (0.80, 0.99, "camera-reliant", "quality-only"),
 ])
 def test_verdict_labels(q, r, label, case) -> None:
-    v = an.verdict(an.compute_axes(s5(q, r), GROUPS), flat=0.95)
+    v = vd.verdict(vd.compute_axes(s5(q, r), GROUPS), flat=0.95)
     assert (v["label"], v["case"], v["flat"]) == (label, case, 0.95)
     assert f"{q:.3f}" in v["text"] and f"{r:.3f}" in v["text"]
     assert v["negative_gap"] is (q < r)
@@ -220,9 +223,9 @@ def test_verdict_labels(q, r, label, case) -> None:
 
 
 def test_flat_is_a_parameter() -> None:
-    ax = an.compute_axes(s5(0.93, 0.92), GROUPS)
-    assert an.verdict(ax, flat=0.95)["label"] == "camera-reliant"
-    assert an.verdict(ax, flat=0.90)["label"] == "not-shown-to-use-cameras"
+    ax = vd.compute_axes(s5(0.93, 0.92), GROUPS)
+    assert vd.verdict(ax, flat=0.95)["label"] == "camera-reliant"
+    assert vd.verdict(ax, flat=0.90)["label"] == "not-shown-to-use-cameras"
 
 
 def test_family_groups_from_the_registry_match_the_spec() -> None:
@@ -236,42 +239,42 @@ def test_family_groups_from_the_registry_match_the_spec() -> None:
 
 def test_null_control_identical_and_wandering() -> None:
     plans = np.random.default_rng(0).normal(size=(4, 6, 2))
-    assert an.null_control(plans, plans.copy()) == {"passed": True, "max_abs_diff": 0.0, "max_l2_change": 0.0,
+    assert vd.null_control(plans, plans.copy()) == {"passed": True, "max_abs_diff": 0.0, "max_l2_change": 0.0,
                                                     "frames_changed": 0}
     moved = plans.copy()
     moved[2, 5] += [0.3, 0.4]
-    nc = an.null_control(plans, moved)
+    nc = vd.null_control(plans, moved)
     assert nc["passed"] is False and nc["frames_changed"] == 1
     assert nc["max_abs_diff"] == pytest.approx(0.4) and nc["max_l2_change"] == pytest.approx(0.5)
 
 
 def test_cells_within_the_null_wander_are_not_separable() -> None:
     recs, _ = synthetic_run(8, null_wander=0.5)
-    res = an.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
     sep = {s.cell: s.separable_from_null for s in res.summaries}
     assert res.null_control["passed"] is False
     assert sep["clean"] is None and sep["null"] is None
     assert sep["blind"] is True and sep["gaussian_blur-s1"] is False
-    clean_run = an.analyse_run(synthetic_run(8)[0], groups=GROUPS, n_resamples=50)
+    clean_run = vd.analyse_run(synthetic_run(8)[0], groups=GROUPS, n_resamples=50)
     assert clean_run.null_control["passed"] is True
     assert all(s.separable_from_null for s in clean_run.summaries if s.cell not in ("clean", "null"))
 
 
 def test_floor_comparison() -> None:
-    summaries = [an.CellSummary("blackout-s5", "blackout", 5, 3, 1.2, 0.5, 0.4, 0.6),
-                 an.CellSummary("blind", "blind", 0, 3, 2.5, 0.3, 0.2, 0.4)]
-    floor = an.floor_comparison(2.0, summaries)
+    summaries = [rc.CellSummary("blackout-s5", "blackout", 5, 3, 1.2, 0.5, 0.4, 0.6),
+                 rc.CellSummary("blind", "blind", 0, 3, 2.5, 0.3, 0.2, 0.4)]
+    floor = vd.floor_comparison(2.0, summaries)
     assert floor == {"l2_avg": 2.0, "blackout_s5_l2_avg": 1.2, "blackout_s5_below_floor": True,
                      "blind_l2_avg": 2.5, "blind_below_floor": False}
-    assert an.floor_comparison(None, summaries)["blind_below_floor"] is None
+    assert vd.floor_comparison(None, summaries)["blind_below_floor"] is None
 
 
 def test_analyse_run_is_order_independent_and_complete() -> None:
     recs, _ = synthetic_run(12)
-    res = an.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0)
     shuffled = recs[:]
     random.Random(3).shuffle(shuffled)
-    again = an.analyse_run([r.to_builtins() for r in shuffled], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    again = vd.analyse_run([r.to_builtins() for r in shuffled], groups=GROUPS, n_resamples=100, floor_l2=5.0)
     assert json.dumps(again.to_builtins()) == json.dumps(res.to_builtins())
     assert [s.cell for s in res.summaries][:4] == ["clean", "null", "blind", "gaussian_blur-s1"]
     assert res.summaries[0].retention == 1.0 and len(res.summaries) == 3 + 16 * 5
@@ -283,17 +286,17 @@ def test_failed_frames_drop_out_of_that_cells_comparison_only() -> None:
     recs, _ = synthetic_run(6)
     clean, cell = recs[0], recs[5]
     cell.l2[2] = np.nan
-    s = an.summarise_cell(cell, clean, n_resamples=50)
+    s = rt.summarise_cell(cell, clean, n_resamples=50)
     keep = [0, 1, 3, 4, 5]
     expected = clean.l2_avg_per_frame()[keep].mean() / cell.l2_avg_per_frame()[keep].mean()
     assert s.frames == 5 and s.retention == pytest.approx(expected)
-    assert len(an.analyse_run(recs + [recs[5]], groups=GROUPS, n_resamples=20).summaries) == len(recs)
+    assert len(vd.analyse_run(recs + [recs[5]], groups=GROUPS, n_resamples=20).summaries) == len(recs)
 
 
 def test_analyse_run_needs_clean() -> None:
     recs, _ = synthetic_run(3)
-    with pytest.raises(an.InvalidInput, match="no clean cell"):
-        an.analyse_run(recs[1:], groups=GROUPS)
+    with pytest.raises(InvalidInput, match="no clean cell"):
+        vd.analyse_run(recs[1:], groups=GROUPS)
 
 
 # --- baseline gate -------------------------------------------------------------------------------------------
@@ -306,36 +309,20 @@ def cert_like(retentions: dict[str, float], axes: dict[str, float], spec="1.0.0"
 
 def test_baseline_comparison_catches_regressions_beyond_tolerance() -> None:
     base = cert_like({"fog-s5": 0.90, "jpeg-s5": 0.80, "blur-s1": 0.99}, {"quality": 0.9, "removal": 0.7})
-    assert an.compare_to_baseline(base, base, 0.02) == {"cells": [], "axes": []}
+    assert bl.compare_to_baseline(base, base, 0.02) == {"cells": [], "axes": []}
     now = cert_like({"fog-s5": 0.85, "jpeg-s5": 0.79, "blur-s1": 0.999, "new-s1": 0.1},
                     {"quality": 0.87, "removal": 0.69})
-    out = an.compare_to_baseline(now, base, 0.02)
+    out = bl.compare_to_baseline(now, base, 0.02)
     assert [(r.name, r.baseline, r.current) for r in out["cells"]] == [("fog-s5", 0.90, 0.85)]
     assert [r.name for r in out["axes"]] == ["axis:quality"]
     assert "0.850 vs baseline 0.900" in out["cells"][0].message()
-    assert an.compare_to_baseline(now, base, 0.06)["cells"] == []
-    assert an.cell_regression("fog-s5", 0.85, base, 0.02).drop == pytest.approx(0.05)
+    assert bl.compare_to_baseline(now, base, 0.06)["cells"] == []
+    assert bl.cell_regression("fog-s5", 0.85, base, 0.02).drop == pytest.approx(0.05)
 
 
 @pytest.mark.parametrize(("spec", "data", "match"), [("2.0.0", "d1", "spec version"),
                                                       ("1.0.0", "d2", "dataset fingerprint")])
 def test_incompatible_baseline_is_a_clear_error(spec, data, match) -> None:
     base = cert_like({}, {})
-    with pytest.raises(an.BaselineError, match=match):
-        an.compare_to_baseline(cert_like({}, {}, spec, data), base)
-
-
-@pytest.mark.parametrize("bad", ["-0.1", "1.5", "abc", "", "nan"])
-def test_bad_tolerance_is_a_usage_error(bad: str, capsys) -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--drivedegrade-tolerance", type=parse_tolerance, default=0.02)
-    with pytest.raises(SystemExit) as exc:
-        parser.parse_args([f"--drivedegrade-tolerance={bad}"])
-    assert exc.value.code == 2 and "must be a number in [0, 1]" in capsys.readouterr().err
-    assert parser.parse_args(["--drivedegrade-tolerance", "0.05"]).drivedegrade_tolerance == 0.05
-
-
-def test_flat_gate() -> None:
-    assert parse_flat("0.9") == 0.9
-    with pytest.raises(argparse.ArgumentTypeError, match="--drivedegrade-flat"):
-        parse_flat("2")
+    with pytest.raises(bl.BaselineError, match=match):
+        bl.compare_to_baseline(cert_like({}, {}, spec, data), base)

@@ -15,15 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import pytest
-
 # Import the heavy stages once here, before pytester's in-process runs: each run drops the modules it imported
 # itself, and a matplotlib imported twice in one process breaks (its classes no longer match).
 import jinja2  # noqa: F401
-import pytest_drivedegrade.floor  # noqa: F401
+import pytest
+
 import pytest_drivedegrade.report.html  # noqa: F401
 import pytest_drivedegrade.report.plots  # noqa: F401
 import pytest_drivedegrade.run  # noqa: F401
+import pytest_drivedegrade.scoring.floor  # noqa: F401
 
 #: Three ladder families at two severities: 3 diagnostic + 6 ladder cells, a few seconds per run.
 FAMILIES = "jpeg,blackout,gaussian_blur"

@@ -6,13 +6,14 @@ names the option, never a traceback later in the run. Light: no heavy imports at
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from .constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,10 @@ def _fail(dest: str, text: str) -> pytest.UsageError:
     return pytest.UsageError(f"{_BY_DEST[dest].flag}: {text}")
 
 
-def _number(config: pytest.Config, dest: str, kind: type, default: Any, low: float, high: float | None) -> Any:
+def _number(config: pytest.Config, dest: str, kind: type[int] | type[float], default: Any, low: float,
+            high: float | None) -> Any:
+    """A number option within [low, high]; NaN and infinities are usage errors (a NaN tolerance would turn
+    the gate off, a NaN flat line would seal a wrong verdict)."""
     raw = value(config, dest)
     if raw is None:
         return default
@@ -73,6 +77,8 @@ def _number(config: pytest.Config, dest: str, kind: type, default: Any, low: flo
         got = kind(str(raw).strip())
     except ValueError:
         raise _fail(dest, f"expected {'an integer' if kind is int else 'a number'}, got {raw!r}") from None
+    if not math.isfinite(got):
+        raise _fail(dest, f"must be a finite number, got {raw!r}")
     if got < low or (high is not None and got > high):
         bound = f"between {low} and {high}" if high is not None else f"at least {low}"
         raise _fail(dest, f"must be {bound}, got {got}")
@@ -109,8 +115,8 @@ class RunOptions:
 
 def parse(config: pytest.Config) -> RunOptions:
     """Read and check every option; raise pytest.UsageError naming the first bad one."""
-    from .corruptions.registry import FAMILIES, SEVERITIES
-    from .data.nuscenes import SPLITS
+    from ..corruptions.ladder import FAMILIES, SEVERITIES
+    from ..data.nuscenes import SPLITS
 
     here = Path(config.invocation_params.dir)
     path = value(config, ENABLE)

@@ -32,7 +32,7 @@ def test_conformance_faults_fail_only_their_cells(dd, scored_tokens):
     result.assert_outcomes(passed=4, failed=5)
     assert failed_cells(result) == set(faults)
     no_traceback(result)
-    head = f"cell {{}}: 1 of 4 frames failed the planner contract"
+    head = "cell {}: 1 of 4 frames failed the planner contract"
     where = f"*frame '{frame}'*"
     result.stdout.fnmatch_lines([
         head.format("gaussian_blur-s1"), f"{where}: predict() raised RuntimeError: boom in the test planner",

@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 from test_analysis import GROUPS, synthetic_run
 
-from pytest_drivedegrade import analysis as an
+from pytest_drivedegrade import cells as cl
 from pytest_drivedegrade.report import cells, junit
 from pytest_drivedegrade.report.certificate import Provenance
+from pytest_drivedegrade.scoring import records as rc
+from pytest_drivedegrade.scoring import verdict as vd
 
 EVIL = '<script>alert(1)</script>'
 PROV = Provenance(EVIL, "sha256:p", "sha256:d", "val", "1.0.0", seed=3, frames=12, command="pytest --drivedegrade x")
@@ -23,7 +25,7 @@ PROV = Provenance(EVIL, "sha256:p", "sha256:d", "val", "1.0.0", seed=3, frames=1
 @pytest.fixture(scope="module")
 def run_and_records():
     recs, gt = synthetic_run(12)
-    return an.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0), recs, gt
+    return vd.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0), recs, gt
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +89,7 @@ def test_html_without_optional_parts(run_and_records) -> None:
     from pytest_drivedegrade.report.html import render_report
 
     res, _, _ = run_and_records
-    partial = an.RunAnalysis(res.summaries[:3], {}, an.compute_axes({}, GROUPS), an.verdict({}), None,
+    partial = rc.RunAnalysis(res.summaries[:3], {}, vd.compute_axes({}, GROUPS), vd.verdict({}), None,
                              res.floor, res.settings)
     page = render_report(partial, PROV)
     assert "undetermined" in page and "Null control:" in page and "not run" in page
@@ -98,7 +100,7 @@ def test_most_damaging_and_trajectory_examples(run_and_records) -> None:
 
     res, recs, gt = run_and_records
     worst = most_damaging(res.summaries, 3)
-    ladder = sorted(s.retention for s in res.summaries if s.family not in an.DIAGNOSTIC_CELLS)
+    ladder = sorted(s.retention for s in res.summaries if s.family not in cl.DIAGNOSTIC)
     assert [s.retention for s in worst] == ladder[:3]
     ex = trajectory_examples({r.cell: r for r in recs}, gt, res.summaries, n_frames=2)
     assert len(ex) == 2 and list(ex[0].plans) == ["clean"] + [s.cell for s in worst]

@@ -7,13 +7,14 @@ import sys
 from pathlib import Path
 
 import cv2
+import pytest
 import yaml
 
 from pytest_drivedegrade import FAMILIES, SPEC_VERSION
 from pytest_drivedegrade.cli import main
 from pytest_drivedegrade.corruptions.spec import render_spec, spec_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_committed_ladder_matches_the_code():
@@ -53,7 +54,7 @@ def test_cli_preview_all_families_and_one_family(tmp_path, nuscenes_frames):
     out = tmp_path / "m.png"
     assert main(["preview", front, "--severity", "4", "--out", str(out), "--width", "160"]) == 0
     montage = cv2.imread(str(out))
-    tile_h = 24 + round(900 * 160 / 1600)
+    tile_h = 42 + round(900 * 160 / 1600)  # a two-line label bar over each tile
     assert montage.shape[:2] == (3 * tile_h + 8, 6 * 160)  # clean + 16 families on a 6-wide grid
     out2 = tmp_path / "f.png"
     assert main(["preview", front, "--family", "fog", "--out", str(out2), "--width", "160"]) == 0
@@ -84,3 +85,15 @@ def test_plugin_entry_imports_nothing_heavy():
 def test_console_script_is_installed():
     out = subprocess.run(["drivedegrade", "spec", "--format", "table"], capture_output=True, text=True)
     assert out.returncode == 0 and "gaussian_blur" in out.stdout
+
+
+@pytest.mark.parametrize("width", [160, 220, 480])
+def test_montage_labels_fit_their_tiles(width):
+    """Every S4 label line (family and severity, then the parameter) fits inside its tile at the report's width."""
+    from pytest_drivedegrade.corruptions.preview import _FONT, _MARGIN_PX, _fit_scale
+
+    for name, fam in FAMILIES.items():
+        for text in (f"{name} S4", fam.describe(4)):
+            used = cv2.getTextSize(text, _FONT, _fit_scale(text, width), 1)[0][0]
+            assert used <= width - 2 * _MARGIN_PX, (name, text, used)
+

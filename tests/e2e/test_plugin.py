@@ -13,8 +13,18 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import (AXIS_FAMILIES, FRAGILE, RUN_ORDER, SMALL_CELLS, by_cell, load_json, no_traceback, planner_source,
-                            read_csv, verify_cli)
+from plugin_support import (  # noqa: E402 - after register_assert_rewrite
+    AXIS_FAMILIES,
+    FRAGILE,
+    RUN_ORDER,
+    SMALL_CELLS,
+    by_cell,
+    load_json,
+    no_traceback,
+    planner_source,
+    read_csv,
+    verify_cli,
+)
 
 pytest_plugins = ["plugin_support"]
 

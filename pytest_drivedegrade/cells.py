@@ -1,0 +1,186 @@
+"""Which cells exist and what one cell yields: cell ids, the diagnostic cells, the run order, the per-cell
+record and the payload that carries it to the controller, and the one definition of bit-identical plans.
+
+One home for "which cells exist": the plugin collects items from `run_order`, the scoring orders its summaries
+with `report_order`, the store and the certificate key everything by `cell_id`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .constants import HORIZON_STEPS
+from .errors import InvalidInput
+from .scoring.metrics import l2_avg
+
+#: Cells that are not ladder families, in report order: clean (severity 0), the null control (the cameras the
+#: planner does not read blacked out; an untouched rerun for a planner that reads all six) and blind (all six
+#: black).
+DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
+#: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
+#: that cell is the null control and is asserted bit-identical to clean too.
+REAR_BLACKOUT_SEVERITY = 3
+
+#: A JUnit property value: builtins only (xdist serialises them).
+Property = tuple[str, "str | float | int"]
+
+
+def cell_id(family: str, severity: int) -> str:
+    """The stable id of a cell: `clean`, `null`, `blind` or `<family>-s<severity>` (e.g. `jpeg-s3`)."""
+    return family if family in DIAGNOSTIC else f"{family}-s{int(severity)}"
+
+
+def run_order(families: Iterable[str], severities: Iterable[int]) -> list[tuple[str, int]]:
+    """(family, severity) of every cell in run order: clean first, the ladder, blind, and the null control last,
+    so that under xdist the clean result is already stored when the null control and the baseline gate compare
+    against it, and no worker computes clean twice."""
+    sev = list(severities)
+    return [("clean", 0), *((f, s) for f in families for s in sev), ("blind", 0), ("null", 0)]
+
+
+def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[int, int, str, int]:
+    """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
+    if family in DIAGNOSTIC:
+        return (0, DIAGNOSTIC.index(family), "", 0)
+    rank = families.index(family) if family in families else len(families)
+    return (1, rank, family, int(severity))
+
+
+def rear_cameras() -> tuple[str, ...]:
+    """The cameras blackout S3 zeroes (the rear three), read off the ladder rather than copied."""
+    from .corruptions.ladder import FAMILIES
+
+    return tuple(FAMILIES["blackout"].value(REAR_BLACKOUT_SEVERITY))
+
+
+def _plans_bytes(plans: Any) -> tuple[tuple[int, ...], bytes]:
+    arr = np.ascontiguousarray(plans, dtype=np.float64)
+    return arr.shape, arr.tobytes()
+
+
+def identical_plans(a: Any, b: Any) -> bool:
+    """The one definition of "bit-identical" plans: same shape and the same float64 bytes.
+
+    So ``-0.0`` differs from ``0.0``, a value one float step away differs, and NaN equals NaN only with the same
+    bit pattern (every failed frame is the same canonical NaN). The null-control item and the certificate's
+    ``null_control`` both use it, so a cell cannot pass while the certificate says the control failed.
+    """
+    return _plans_bytes(a) == _plans_bytes(b)
+
+
+def differing_frames(a: Any, b: Any) -> np.ndarray:
+    """Indices of the frames (first axis) whose plans are not bit-identical (see `identical_plans`)."""
+    x = np.ascontiguousarray(a, dtype=np.float64)
+    y = np.ascontiguousarray(b, dtype=np.float64)
+    if x.shape != y.shape:
+        raise InvalidInput(f"plans have shapes {x.shape} and {y.shape}")
+    xb, yb = x.reshape(len(x), -1).view(np.uint64), y.reshape(len(y), -1).view(np.uint64)
+    return np.flatnonzero((xb != yb).any(axis=1))
+
+
+@dataclass
+class CellRecord:
+    """Everything one finished cell yields, per frame; the frame order is the same in every cell of a run.
+
+    Arrays: ``plans`` (F, 6, 2) metres; ``l2``, ``collision``, ``collision_vru`` (F, 6) per step; ``jerk`` and
+    ``bit1`` (F,). A frame whose planner output failed conformance carries NaN and is left out of means.
+    """
+
+    cell: str
+    family: str
+    severity: int
+    frames: list[str]
+    plans: np.ndarray
+    l2: np.ndarray
+    collision: np.ndarray
+    collision_vru: np.ndarray
+    jerk: np.ndarray
+    bit1: np.ndarray
+    seconds: dict[str, float] = field(default_factory=dict)
+    errors: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        n = len(self.frames)
+        self.frames = [str(f) for f in self.frames]
+        self.severity = int(self.severity)
+        for name, shape in (("plans", (n, HORIZON_STEPS, 2)), ("l2", (n, HORIZON_STEPS)), ("jerk", (n,)),
+                            ("collision", (n, HORIZON_STEPS)), ("collision_vru", (n, HORIZON_STEPS)), ("bit1", (n,))):
+            arr = np.asarray(getattr(self, name), dtype=float)
+            arr = arr.reshape(shape) if arr.size == 0 else arr
+            if arr.shape != shape:
+                raise InvalidInput(f"cell {self.cell!r}: {name} has shape {arr.shape}, expected {shape}")
+            setattr(self, name, arr)
+
+    def to_builtins(self) -> dict[str, Any]:
+        """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""
+        out = {k: getattr(self, k) for k in ("cell", "family", "severity", "frames")}
+        out.update({k: getattr(self, k).tolist() for k in ("plans", "l2", "jerk", "bit1")})
+        out.update({k: [[int(v) if v == v else -1 for v in row] for row in getattr(self, k)]
+                    for k in ("collision", "collision_vru")})
+        out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
+        out["errors"] = [str(e) for e in self.errors]
+        return out
+
+    @classmethod
+    def from_builtins(cls, data: Mapping[str, Any]) -> CellRecord:
+        """Inverse of ``to_builtins``; a collision of -1 (a NaN frame) comes back as NaN."""
+        if not isinstance(data, Mapping):
+            raise InvalidInput(f"a cell record is a JSON object, found {type(data).__name__}")
+        try:
+            kw = {k: data[k] for k in ("cell", "family", "severity", "frames", "plans", "l2", "jerk", "bit1")}
+            for k in ("collision", "collision_vru"):
+                arr = np.asarray(data[k], dtype=float)
+                kw[k] = np.where(arr < 0, np.nan, arr)
+        except KeyError as exc:
+            raise InvalidInput(f"cell record lacks the field {exc.args[0]!r}") from None
+        return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])))
+
+    def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
+        """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
+        return np.linalg.norm(self.plans[:, -1] - clean.plans[:, -1], axis=-1)
+
+    def l2_avg_per_frame(self, convention: str = "stp3") -> np.ndarray:
+        """Per-frame mean of the 1/2/3 s L2 under `convention`: the M of retention, one value per frame."""
+        return np.asarray(l2_avg(self.l2, convention))
+
+
+@dataclass(frozen=True)
+class CellPayload:
+    """What one finished cell sends to the controller (on the test report under xdist) and the store keeps.
+
+    `key` is the run key a stored result must match to be reused; `properties` the cell's JUnit testcase
+    properties; `resumed` says the record was read from the store rather than computed.
+    """
+
+    key: Mapping[str, Any]
+    planner: str
+    record: CellRecord
+    properties: tuple[Property, ...] = ()
+    resumed: bool = False
+
+    @property
+    def cell(self) -> str:
+        return self.record.cell
+
+    def to_builtins(self) -> dict[str, Any]:
+        """Plain JSON builtins (the store's file and the report attribute that crosses the xdist boundary)."""
+        return {"key": dict(self.key), "planner": self.planner, "record": self.record.to_builtins(),
+                "properties": [[name, value] for name, value in self.properties], "resumed": self.resumed}
+
+    @classmethod
+    def from_builtins(cls, data: Mapping[str, Any]) -> CellPayload:
+        """Inverse of `to_builtins`; `InvalidInput` naming the missing field otherwise."""
+        if not isinstance(data, Mapping):
+            raise InvalidInput(f"a cell payload is a JSON object, found {type(data).__name__}")
+        try:
+            key, planner, record = data["key"], data["planner"], data["record"]
+        except KeyError as exc:
+            raise InvalidInput(f"cell payload lacks the field {exc.args[0]!r}") from None
+        if not isinstance(key, Mapping) or not isinstance(planner, str):
+            raise InvalidInput("cell payload: `key` must be an object and `planner` a string")
+        props = tuple((str(p[0]), p[1]) for p in data.get("properties", []))
+        return cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)))

@@ -1,0 +1,37 @@
+"""The pytest11 entry point: options, and nothing else until `--drivedegrade` is given.
+
+Thin and light: this module imports no OpenCV, torch or pandas, so every pytest run of a user who has the
+plugin installed stays fast. With `--drivedegrade` it registers the run's `DriveDegradeSession` (reached through
+``config.stash[SESSION_KEY]``) and the fixtures planner files may request (`plugin.context`).
+
+The package is the wiring of the pipeline to pytest and computes nothing itself: `options` (the flags),
+`session` (the hooks), `items` (the planner file and the cell items), `checks` (what one cell asserts; runs in
+every worker), `controller` (the end of the run; the controller process only), `context` (the run's data and
+the fixtures a planner may use), `compat` (the few pytest internals, with fallbacks).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from . import options as opt
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("drivedegrade", "DriveDegrade: certify a planner's reliance on its cameras")
+    for spec in opt.OPTIONS:
+        group.addoption(spec.flag, dest=spec.dest, default=None, help=spec.help, **spec.argparse)
+        parser.addini(spec.dest, help=spec.help, default=None)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config: pytest.Config) -> None:
+    if opt.value(config, opt.ENABLE) is None:
+        return
+    from . import context
+    from .session import DriveDegradeSession
+
+    session = DriveDegradeSession.start(config)
+    config.stash[context.SESSION_KEY] = session
+    config.pluginmanager.register(session, DriveDegradeSession.NAME)
+    config.pluginmanager.register(context, "drivedegrade-context")

@@ -1,0 +1,53 @@
+"""What a planner file may use from the run: the `drivedegrade_context` fixture and the suite's cache folder.
+
+Registered as a plugin module when `--drivedegrade` is given, so a planner fixture can request
+``drivedegrade_context`` (the run's `RunContext`: the reader, the scored frames) and build itself from the data
+under test, as `planners/ego_mlp.py` does.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import pytest
+
+from ..errors import DriveDegradeError
+from ..run import RunContext
+from .options import RunOptions
+
+if TYPE_CHECKING:
+    from .session import DriveDegradeSession
+
+# The annotation (a string at runtime, under `from __future__ import annotations`) is what uses the TYPE_CHECKING
+# import: ruff does not read the subscript's string as a reference and would drop the import as unused.
+#: Where the run's `DriveDegradeSession` lives: ``config.stash[SESSION_KEY]``.
+SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
+
+
+def cache_root(config: pytest.Config) -> Path:
+    """pytest's cache folder for the world and the floor, or a folder under rootdir with -p no:cacheprovider."""
+    cache = getattr(config, "cache", None)
+    return Path(cache.mkdir("drivedegrade")) if cache is not None else Path(config.rootpath) / ".drivedegrade-cache"
+
+
+def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
+    """The data (the embedded world unless --drivedegrade-data) indexed, and the frames to score chosen."""
+    root = options.data
+    if root is None:
+        from ..data.world import ensure_default_world
+
+        root = ensure_default_world(cache_root(config),
+                                    progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
+    return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
+                           timeout=options.timeout, planner_path=options.planner_path)
+
+
+@pytest.fixture(scope="session")
+def drivedegrade_context(request: pytest.FixtureRequest) -> RunContext:
+    """The run's context (data reader, scored frames), built once per process; a data problem fails the cell."""
+    try:
+        return request.config.stash[SESSION_KEY].run_context()
+    except DriveDegradeError as exc:
+        pytest.fail(str(exc), pytrace=False)

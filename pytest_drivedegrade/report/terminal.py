@@ -1,0 +1,47 @@
+"""The terminal summary: verdict, axes, controls, floor, the family x severity retention table, missing cells."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from ..scoring.records import RunAnalysis, format_value
+
+
+def retention_table(analysis: RunAnalysis) -> list[str]:
+    """Family x severity retention, with s*10 / s*25, as fixed-width lines."""
+    by_family: dict[str, dict[int, float]] = {}
+    for summary in analysis.summaries:
+        if summary.severity > 0:
+            by_family.setdefault(summary.family, {})[summary.severity] = summary.retention
+    if not by_family:
+        return []
+    severities = sorted({s for row in by_family.values() for s in row})
+    head = f"{'retention':15s}" + "".join(f"{'S' + str(s):>7s}" for s in severities) + f"{'s*10':>7s}{'s*25':>7s}"
+    lines = [head]
+    for family, row in by_family.items():
+        t = analysis.thresholds.get(family, {})
+        cells = "".join(f"{format_value(row.get(s)):>7s}" for s in severities)
+        marks = "".join(f"{('-' if t.get(k) is None else format(t[k], '.2f')):>7s}" for k in ("s10", "s25"))
+        lines.append(f"{family:15s}{cells}{marks}")
+    return lines
+
+
+def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
+    """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells."""
+    ax, verdict = analysis.axes, analysis.verdict
+    lines = [f"verdict: {verdict['label']} - {verdict['text']}",
+             f"axes: quality {format_value(ax.get('quality'))}  removal {format_value(ax.get('removal'))}  "
+             f"gap {format_value(ax.get('gap'))}  mean {format_value(ax.get('mean'))}"]
+    nc = analysis.null_control
+    if nc is not None:
+        state = "passed" if nc["passed"] else "FAILED"
+        lines.append(f"null control: {state} (max abs diff {nc['max_abs_diff']:.3g} m)")
+    clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
+    floor = (analysis.floor or {}).get("l2_avg")
+    if clean is not None:
+        lines.append(f"clean l2_avg {format_value(clean.l2_avg)} m; ego-only floor l2_avg {format_value(floor)} m")
+    lines += retention_table(analysis)
+    if missing:
+        lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
+                     "compute only these (finished cells are reused)")
+    return lines

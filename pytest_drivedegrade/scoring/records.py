@@ -1,0 +1,93 @@
+"""Per-cell and per-run results as plain data: a cell's summary row, the run's analysis, and the helpers that
+reduce per-frame arrays (NaN frames left out) and format numbers for people."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..cells import DIAGNOSTIC, CellRecord
+from ..constants import REPORT_HORIZONS_S
+from .metrics import CONVENTIONS, at_horizons
+
+
+def finite_mean(values: Any) -> float:
+    """Mean over finite entries (NaN frames left out); NaN when none is finite."""
+    arr = np.asarray(values, dtype=float)
+    ok = np.isfinite(arr)
+    return float(arr[ok].mean()) if ok.any() else math.nan
+
+
+def format_value(value: Any, digits: int = 3, missing: str = "n/a") -> str:
+    """A number for people: `digits` decimals, `missing` for None / NaN / inf; other values as str."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return missing
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
+@dataclass
+class CellSummary:
+    """One row of cells.csv / one certificate cell: every metric of a cell as plain builtins.
+
+    Collision rates are fractions (0..1) of frames x steps. ``endpoint_shift`` is the mean 3 s endpoint
+    distance from clean's plan; ``energy`` mean bit-1 density relative to clean's. ``separable_from_null``
+    is None for the clean and null cells themselves.
+    """
+
+    cell: str
+    family: str
+    severity: int
+    frames: int
+    l2_avg: float
+    retention: float
+    retention_ci_low: float
+    retention_ci_high: float
+    metrics: dict[str, float] = field(default_factory=dict)
+    separable_from_null: bool | None = None
+    conformance_errors: int = 0
+
+    def flat(self) -> dict[str, Any]:
+        """One flat mapping (the CSV row / certificate cell without provenance)."""
+        out = asdict(self)
+        out.update(out.pop("metrics"))
+        return out
+
+
+def horizon_metrics(record: CellRecord) -> dict[str, float]:
+    """L2, collision and VRU-collision at 1/2/3 s in both conventions, plus both L2 averages and jerk."""
+    out: dict[str, float] = {}
+    for conv in CONVENTIONS:
+        for key, arr in (("l2", record.l2), ("collision", record.collision), ("vru", record.collision_vru)):
+            per_h = at_horizons(arr, conv)  # (F, 3)
+            for j, h in enumerate(REPORT_HORIZONS_S):
+                out[f"{key}_{h}s_{conv}"] = finite_mean(per_h[:, j])
+        out[f"l2_avg_{conv}"] = finite_mean(record.l2_avg_per_frame(conv))
+    out["jerk"] = finite_mean(record.jerk)
+    return out
+
+
+@dataclass
+class RunAnalysis:
+    """Everything the reports show, as plain builtins (summaries aside, which ``to_builtins`` flattens)."""
+
+    summaries: list[CellSummary]
+    thresholds: dict[str, dict[str, float | None]]
+    axes: dict[str, Any]
+    verdict: dict[str, Any]
+    null_control: dict[str, Any] | None
+    floor: dict[str, Any]
+    settings: dict[str, Any]
+
+    def to_builtins(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["summaries"] = [s.flat() for s in self.summaries]
+        return out
+
+    def s5(self) -> dict[str, float]:
+        """S5 retention per ladder family."""
+        return {s.family: s.retention for s in self.summaries if s.severity == 5 and s.family not in DIAGNOSTIC}

@@ -1,0 +1,115 @@
+"""Retention and its paired frame bootstrap, one cell's summary, and the tolerance thresholds s*10 / s*25."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+from ..cells import DIAGNOSTIC, CellRecord
+from ..errors import InvalidInput
+from .records import CellSummary, finite_mean, horizon_metrics
+
+#: Retention levels of the two tolerance thresholds s*10 and s*25.
+THRESHOLD_LEVELS: dict[str, float] = {"s10": 0.90, "s25": 0.75}
+DEFAULT_RESAMPLES = 1000
+
+
+def retention(m_clean: Any, m_cell: Any, kind: str = "error") -> Any:
+    """r = M(clean) / M(s) for an error metric, M(s) / M(clean) for a reward metric; vectorised.
+
+    Higher is better and 1.0 means no measurable damage. Both zero -> 1.0 (nothing to lose); a zero
+    denominator otherwise -> inf. Returns a float for scalar input.
+    """
+    if kind not in ("error", "reward"):
+        raise InvalidInput(f"retention kind must be 'error' or 'reward', got {kind!r}")
+    num, den = (m_clean, m_cell) if kind == "error" else (m_cell, m_clean)
+    num, den = np.asarray(num, dtype=float), np.asarray(den, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where((num == 0) & (den == 0), 1.0, num / den)
+    return float(r) if r.ndim == 0 else r
+
+
+def bootstrap_retention_ci(clean: Any, cell: Any, *, kind: str = "error", n_resamples: int = DEFAULT_RESAMPLES,
+                           seed: int = 0, confidence: float = 0.95,
+                           chunk_elems: int = 2_000_000) -> tuple[float, float]:
+    """Paired frame-level percentile bootstrap CI of retention.
+
+    Each resample draws frame indices with replacement and applies the *same* indices to clean and the cell,
+    so per-frame difficulty cancels. Frames not finite in both are dropped first. The generator is seeded
+    with `seed` only, so every cell of a run sees the same resamples and the result is order-independent.
+    Vectorised in chunks of about `chunk_elems` indices. (NaN, NaN) when no frame is usable.
+    """
+    a, b = np.asarray(clean, dtype=float), np.asarray(cell, dtype=float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    n = len(a)
+    if n == 0 or n_resamples < 1:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    per_chunk = max(1, chunk_elems // n)
+    ratios = []
+    for start in range(0, n_resamples, per_chunk):
+        # One double per index (not ``integers``, whose 32-bit buffering depends on the chunk shape), so the
+        # resamples are the same whatever the chunk size.
+        idx = (rng.random((min(per_chunk, n_resamples - start), n)) * n).astype(np.intp)
+        ratios.append(retention(a[idx].mean(axis=1), b[idx].mean(axis=1), kind))
+    r = np.concatenate(ratios)
+    tail = 100.0 * (1.0 - confidence) / 2.0
+    low, high = np.percentile(r, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
+def paired_retention(m_clean: np.ndarray, m_cell: np.ndarray, kind: str = "error") -> float:
+    """Retention over the frames finite in both the cell and clean (the bootstrap's frames); NaN when none."""
+    paired = np.isfinite(m_clean) & np.isfinite(m_cell)
+    return float(retention(finite_mean(m_clean[paired]), finite_mean(m_cell[paired]), kind))
+
+
+def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "stp3", kind: str = "error",
+                   n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0) -> CellSummary:
+    """A cell's metrics, its retention against `clean` and the paired bootstrap CI."""
+    if record.frames != clean.frames:
+        raise InvalidInput(f"cell {record.cell!r} was scored on other frames than the clean cell")
+    m_clean, m_cell = clean.l2_avg_per_frame(convention), record.l2_avg_per_frame(convention)
+    metrics = horizon_metrics(record)
+    metrics["endpoint_shift"] = finite_mean(record.endpoint_shift(clean))
+    metrics["energy"] = float(retention(finite_mean(clean.bit1), finite_mean(record.bit1), "reward"))
+    if record.cell == clean.cell:
+        r, ci = 1.0, (1.0, 1.0)
+    else:
+        r = paired_retention(m_clean, m_cell, kind)
+        ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed)
+    return CellSummary(record.cell, record.family, record.severity, int(np.isfinite(m_cell).sum()),
+                       finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors))
+
+
+def tolerance_threshold(curve: Mapping[int, float], level: float) -> float | None:
+    """Severity at which retention first falls *below* `level`, linearly interpolated.
+
+    `curve` maps severity (1..5, any subset) to retention. Retention exactly at `level` is not below. Walking
+    up the measured severities, the first one below `level` is the crossing: interpolate between it and the
+    measured severity just before it. When the lowest measured severity is already below (S1 normally), the
+    value is that severity (1.0). None when no measured severity falls below. NaN retentions are skipped.
+    """
+    points = sorted((int(s), float(r)) for s, r in curve.items() if int(s) > 0 and math.isfinite(float(r)))
+    prev: tuple[int, float] | None = None
+    for s, r in points:
+        if r < level:
+            if prev is None:
+                return float(s)
+            s0, r0 = prev
+            return float(s0 + (r0 - level) / (r0 - r) * (s - s0))
+        prev = (s, r)
+    return None
+
+
+def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, float | None]]:
+    """family -> {"s10": x|None, "s25": x|None} for every ladder family among the summaries."""
+    curves: dict[str, dict[int, float]] = {}
+    for s in summaries:
+        if s.family not in DIAGNOSTIC:
+            curves.setdefault(s.family, {})[s.severity] = s.retention
+    return {fam: {k: tolerance_threshold(c, lvl) for k, lvl in THRESHOLD_LEVELS.items()} for fam, c in curves.items()}

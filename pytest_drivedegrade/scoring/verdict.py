@@ -1,0 +1,182 @@
+"""From cell summaries to the run's verdict: the two axes, the label and its prose, the null control, the floor
+comparison, and `analyse_run`, which computes every figure of a run from its cell records.
+
+Pure functions over plain data (SPEC section 5); nothing here reads files, imports pytest or touches a planner.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, report_order
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..errors import InvalidInput
+from .records import CellSummary, RunAnalysis, format_value
+from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
+
+VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
+
+
+@dataclass(frozen=True)
+class FamilyGroups:
+    """Which families form each axis: read off the injector registry, or given (tests, custom ladders)."""
+
+    quality: tuple[str, ...]
+    core: tuple[str, ...]
+    removal: str = "blackout"
+    beside: tuple[str, ...] = ("frame_dropout", "occlusion")
+    order: tuple[str, ...] = ()  # report order of every known family
+
+    @classmethod
+    def from_registry(cls, families: Mapping[str, Any] | None = None) -> FamilyGroups:
+        """Groups from ``FAMILIES`` (imported only now): quality = axis "quality"; core = ``.core`` when the
+        family objects carry it, else every family outside the contamination group."""
+        if families is None:
+            from ..corruptions.ladder import FAMILIES  # lazy, heavy import
+
+            families = FAMILIES
+        names = tuple(families)
+        quality = tuple(n for n in names if getattr(families[n], "axis", None) == "quality")
+        if all(hasattr(families[n], "core") for n in names):
+            core = tuple(n for n in names if families[n].core)
+        else:
+            core = tuple(n for n in names if getattr(families[n], "group", None) != "contamination")
+        return cls(quality=quality, core=core, order=names)
+
+
+def _mean_or_none(values: Mapping[str, float], names: Sequence[str]) -> float | None:
+    """Mean over `names`; None when any is missing or not finite (an axis over a subset is not that axis)."""
+    got = [values.get(n) for n in names]
+    if not names or any(v is None or not math.isfinite(v) for v in got):
+        return None
+    return math.fsum(cast("list[float]", got)) / len(got)  # no None left after the check above
+
+
+def compute_axes(s5: Mapping[str, float], groups: FamilyGroups) -> dict[str, Any]:
+    """The two axes from S5 retention per family: quality, removal, gap, mean, with dropout/occlusion beside.
+
+    An axis whose families were not all run at S5 is None (``missing`` names them), never a guess.
+    """
+    quality = _mean_or_none(s5, groups.quality)
+    removal = _mean_or_none(s5, (groups.removal,))
+    beside = {n: _mean_or_none(s5, (n,)) for n in groups.beside}
+    return {
+        "quality": quality,
+        "removal": removal,
+        "gap": None if quality is None or removal is None else quality - removal,
+        "mean": _mean_or_none(s5, groups.core),
+        "dropout": beside.get("frame_dropout"),
+        "occlusion": beside.get("occlusion"),
+        "missing": sorted({n for n in (*groups.core, groups.removal, *groups.beside) if n not in s5}),
+    }
+
+
+def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, Any]:
+    """Label the planner from its axes (SPEC section 5) and say in plain words which case applies.
+
+    quality >= flat and removal >= flat -> not-shown-to-use-cameras; quality >= flat > removal ->
+    quality-insensitive; quality < flat -> camera-reliant (case "both-below" or "quality-only").
+    "undetermined" when a missing axis leaves the label open. A negative gap is flagged.
+    """
+    # Compared at the certificate's precision (6 decimals), so a reader of the certificate reaches the same label.
+    q, r, gap = (None if v is None else round(v, 6) for v in (axes.get(k) for k in ("quality", "removal", "gap")))
+    nums = f"quality {format_value(q)}, removal {format_value(r)}, flat line {flat:.2f}"
+    if q is not None and q < flat:
+        label = "camera-reliant"
+        case, tail = (("removal-not-measured", "removal was not measured.") if r is None else
+                      ("both-below", "it also degrades when cameras are removed.") if r < flat else
+                      ("quality-only", "removing cameras leaves it flat, so it relies on what the cameras left "
+                                       "in view still show."))
+        text = f"Camera-reliant: planning degrades when image quality degrades ({nums}); {tail}"
+    elif q is not None and r is not None and r < flat:
+        label, case = "quality-insensitive", "removal-only"
+        text = (f"Quality-insensitive but camera-reliant: planning stays flat when image quality degrades "
+                f"but falls when cameras are removed ({nums}).")
+    elif q is not None and r is not None:
+        label, case = "not-shown-to-use-cameras", "both-flat"
+        text = (f"Not shown to use its cameras: planning stays within the flat line on both image quality and "
+                f"camera removal ({nums}); this suite cannot tell it apart from a planner that ignores images.")
+    else:
+        label, case = "undetermined", "axis-missing"
+        text = f"Undetermined: an axis could not be computed from the cells run ({nums}); run every family at S5."
+    negative = gap is not None and gap < 0
+    if negative:
+        text += (f" Negative gap ({gap:.3f}): degraded images hurt more than removed cameras, which usually means "
+                 "the planner is misled by corrupted pixels rather than helped by missing ones.")
+    return {"label": label, "case": case, "flat": float(flat), "text": text, "negative_gap": bool(negative)}
+
+
+def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
+    """Compare the null-control plans with clean: passed iff bit-identical (`cells.identical_plans`); otherwise
+    how far they wandered.
+
+    ``max_l2_change`` is the largest waypoint displacement (m) over frames and steps; it is the wander that
+    ``separable_from_null`` compares cells against.
+    """
+    a, b = np.asarray(clean_plans, dtype=np.float64), np.asarray(null_plans, dtype=np.float64)
+    if a.shape != b.shape:
+        raise InvalidInput(f"null-control plans have shape {b.shape}, clean plans {a.shape}")
+    passed = identical_plans(a, b)
+    diff = np.abs(a - b)
+    disp = np.linalg.norm(a - b, axis=-1) if a.size else np.zeros(0)
+    return {
+        "passed": bool(passed),
+        "max_abs_diff": 0.0 if passed else float(np.nanmax(diff, initial=0.0)),
+        "max_l2_change": 0.0 if passed else float(np.nanmax(disp, initial=0.0)),
+        "frames_changed": int(len(differing_frames(a, b))) if a.size else 0,
+    }
+
+
+def separable_from_null(endpoint_shift: float, wander: float) -> bool:
+    """A cell is separable only if its mean 3 s endpoint shift from clean exceeds the null's largest wander
+    (a mean against a maximum: conservative). With a bit-identical null, any change at all is separable."""
+    return bool(math.isfinite(endpoint_shift) and endpoint_shift > wander)
+
+
+def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], removal: str = "blackout") -> dict:
+    """Does the planner stay below the ego-only floor's clean L2 when blinded (blind) or at removal S5?"""
+    by_cell = {s.cell: s.l2_avg for s in summaries}
+    out: dict[str, Any] = {"l2_avg": floor_l2}
+    for key, cell in (("blackout_s5", cell_id(removal, 5)), ("blind", cell_id("blind", 0))):
+        value = by_cell.get(cell)
+        out[f"{key}_l2_avg"] = value
+        out[f"{key}_below_floor"] = None if value is None or floor_l2 is None else bool(value < floor_l2)
+    return out
+
+
+def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
+                convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
+                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None) -> RunAnalysis:
+    """Every figure of a run from its cell records (in any order; the result does not depend on it).
+
+    Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
+    in a cell drops out of that cell's comparison only).
+
+    Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
+    floor's clean l2_avg when it was run.
+    """
+    recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
+    by_cell = {r.cell: r for r in recs}
+    if "clean" not in by_cell:
+        raise InvalidInput("no clean cell among the results: retention needs it (was it deselected with -k?)")
+    groups = groups or FamilyGroups.from_registry()
+    clean = by_cell["clean"]
+    summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed)
+                 for r in by_cell.values()]  # a cell recorded twice (a resumed run) counts once: the last
+    summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
+    nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
+    wander = nc["max_l2_change"] if nc else 0.0
+    for s in summaries:
+        if s.cell not in ("clean", "null"):
+            s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
+    ax = compute_axes({s.family: s.retention for s in summaries if s.severity == 5}, groups)
+    settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
+                "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
+                "tolerance_default": DEFAULT_TOLERANCE}
+    return RunAnalysis(summaries, thresholds(summaries), ax, verdict(ax, flat), nc,
+                       floor_comparison(floor_l2, summaries, groups.removal), settings)
