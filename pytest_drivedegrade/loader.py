@@ -44,24 +44,52 @@ class DropoutState:
         return dict(self.source)
 
 
+def _same_bytes(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two C-contiguous arrays of one shape and dtype hold the same bytes (a word compare: about 0.05 ms
+    for an 800 x 450 image)."""
+    x, y = a.reshape(-1).view(np.uint8), b.reshape(-1).view(np.uint8)
+    if x.size % 8 == 0:
+        x, y = x.view(np.uint64), y.view(np.uint64)
+    return bool(np.array_equal(x, y))
+
+
 class CellSample(Mapping[str, np.ndarray]):
-    """The six degraded camera images of one frame for one cell, produced lazily and read-only."""
+    """The six degraded camera images of one frame for one cell, produced lazily and read-only.
+
+    The planner gets a private copy of each image it reads; the image as produced is kept beside it, so that
+    `written` can tell, after the call, whether the planner wrote into its input by any route (``setflags`` then
+    a write, an in-place op on a ``torch.from_numpy`` view, a raw memory write). A write changes only that copy:
+    it never reaches the decode cache or another cell.
+    """
 
     def __init__(self, frame: Frame, family: str, severity: int, *, seed: int, decode: Decode,
                  unread: tuple[str, ...] = (), dropout: dict[str, Frame | None] | None = None) -> None:
         self.frame, self.family, self.severity, self.seed = frame, family, severity, seed
         self._decode, self._unread, self._dropout = decode, unread, dropout
-        self._cache: dict[str, np.ndarray] = {}
-        self.seconds = {"decode": 0.0, "inject": 0.0}
+        self._made: dict[str, np.ndarray] = {}  # camera -> the image as produced (never handed out)
+        self._cache: dict[str, np.ndarray] = {}  # camera -> the planner's private copy
+        self.seconds = {"decode": 0.0, "inject": 0.0, "check": 0.0}
 
     def __getitem__(self, camera: str) -> np.ndarray:
         if camera not in self._cache:
             if camera not in CAMERAS:
                 raise KeyError(camera)
-            image = self._make(camera)
+            image = np.ascontiguousarray(self._make(camera))
             image.setflags(write=False)
-            self._cache[camera] = image
+            start = time.perf_counter()
+            copy = image.copy()
+            copy.setflags(write=False)
+            self.seconds["check"] += time.perf_counter() - start
+            self._made[camera], self._cache[camera] = image, copy
         return self._cache[camera]
+
+    def written(self) -> list[str]:
+        """The cameras whose delivered image no longer equals what was produced (the planner wrote into it)."""
+        start = time.perf_counter()
+        try:
+            return [cam for cam, copy in self._cache.items() if not _same_bytes(copy, self._made[cam])]
+        finally:
+            self.seconds["check"] += time.perf_counter() - start
 
     def __iter__(self) -> Iterator[str]:
         return iter(CAMERAS)
@@ -74,8 +102,8 @@ class CellSample(Mapping[str, np.ndarray]):
 
     @property
     def delivered(self) -> dict[str, np.ndarray]:
-        """The images the planner actually read (for the energy proxy)."""
-        return dict(self._cache)
+        """The images the planner actually read, as delivered (for the energy proxy)."""
+        return dict(self._made)
 
     def _black(self, camera: str) -> np.ndarray:
         info = self.frame.cameras[camera]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -25,9 +26,11 @@ from .data.frame import Command, EgoStatus
 from .errors import InvalidInput, PlannerOutputError
 
 __all__ = [
+    "CallStyle",
     "Command",
     "EgoStatus",
     "Planner",
+    "call_style",
     "planner_cameras",
     "planner_fingerprint",
     "planner_name",
@@ -98,6 +101,27 @@ def predict_checked(
 ) -> np.ndarray:
     """Call ``planner.predict`` and validate its output. Exceptions raised by the planner propagate unchanged."""
     return validate_output(planner.predict(images, ego, cmd), frame_token)
+
+
+@dataclass(frozen=True)
+class CallStyle:
+    """How the suite calls a planner (SPEC section 8): with the frame context when ``predict`` declares a
+    parameter named ``context``; ``reset(scene_token)`` before each scene when the planner has a ``reset``."""
+
+    takes_context: bool
+    resets: bool
+
+
+def call_style(planner: Any) -> CallStyle:
+    """Read a planner's `CallStyle` off its methods (once per planner; cheap)."""
+    predict = getattr(planner, "predict", None)
+    if not callable(predict):
+        raise InvalidInput(f"the planner ({type(planner).__name__}) has no predict() method; see planners/template.py")
+    try:
+        params = inspect.signature(predict).parameters
+    except (TypeError, ValueError):  # a builtin or C extension without a signature: the three-argument form
+        params = {}  # type: ignore[assignment]
+    return CallStyle("context" in params, callable(getattr(planner, "reset", None)))
 
 
 def planner_cameras(planner: Any) -> tuple[str, ...]:

@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,11 +22,12 @@ import numpy as np
 from .cells import CellRecord, cell_id
 from .constants import CAMERAS, HORIZON_STEPS
 from .corruptions.ladder import SPEC_VERSION
+from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
-from .loader import samples
-from .planning import planner_cameras, planner_fingerprint, validate_output
+from .loader import CellSample, samples
+from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
@@ -89,6 +90,7 @@ class RunContext:
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
     _clean: dict[int, CellRecord] = field(default_factory=dict)
+    _contexts: dict[str, FrameContext] = field(default_factory=dict)
 
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
@@ -143,6 +145,59 @@ class RunContext:
             self._clean[key] = stored() or self.run_cell(planner, "clean", 0)
         return self._clean[key]
 
+    def context_of(self, frame: Frame) -> FrameContext:
+        """The frame's read-only context, built once per process (it is the same in every cell)."""
+        found = self._contexts.get(frame.token)
+        if found is None:
+            found = self._contexts[frame.token] = FrameContext.of(frame)
+        return found
+
+    def stream(self, planner: Any, family: str, severity: int, frames: list[Frame], *,
+               unread: tuple[str, ...]) -> Iterator[tuple[CellSample, np.ndarray | str]]:
+        """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each
+        frame its sample and the validated plan, or the one-line reason the frame failed.
+
+        ``reset(scene_token)`` runs before the first frame of each scene, so no state crosses a scene or a
+        cell; the context goes in when ``predict`` takes it; each call gets private copies of its inputs, and a
+        write into an input image fails the frame naming the camera.
+        """
+        style = call_style(planner)
+        scene = None
+        for sample in samples(frames, family, severity, seed=self.seed, decode=self.decode, unread=unread):
+            frame = sample.frame
+            if style.resets and frame.scene_token != scene:
+                try:
+                    planner.reset(frame.scene_token)
+                except Exception as exc:  # noqa: BLE001 - the planner's failure, named, never a crash
+                    scene = None
+                    yield sample, (f"frame {frame.token!r}: reset({frame.scene_token!r}) raised "
+                                   f"{type(exc).__name__}: {exc}")
+                    continue
+            scene = frame.scene_token
+            yield sample, self._predict(planner, sample, style)
+
+    def _predict(self, planner: Any, sample: CellSample, style: CallStyle) -> np.ndarray | str:
+        frame = sample.frame
+        ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
+        try:
+            with time_limit(self.timeout):
+                if style.takes_context:
+                    raw = planner.predict(sample, ego, frame.command, context=self.context_of(frame))
+                else:
+                    raw = planner.predict(sample, ego, frame.command)
+            written = sample.written()
+            if written:
+                return (f"frame {frame.token!r}: predict() wrote into its input image of {', '.join(written)}; "
+                        "inputs are read-only: copy before modifying (np.array(img), or tensor.clone() after "
+                        "torch.from_numpy)")
+            return validate_output(raw, frame.token)
+        except PlannerOutputError as exc:
+            return str(exc)
+        except DataError as exc:
+            return f"frame {frame.token!r}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
+            return describe_failure(exc, frame.token)
+
     def run_cell(self, planner: Any, family: str, severity: int, *,
                  unread: tuple[str, ...] | None = None) -> CellRecord:
         """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message."""
@@ -153,35 +208,32 @@ class RunContext:
         l2, col, vru = (np.full((n, HORIZON_STEPS), np.nan) for _ in range(3))
         jerk, bit1 = np.full(n, np.nan), np.full(n, np.nan)
         errors: list[str] = []
-        spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0}
-        start = time.perf_counter()
-        for i, sample in enumerate(samples(self.frames, family, severity, seed=self.seed, decode=self.decode,
-                                           unread=unread)):
-            frame = sample.frame
-            t0 = time.perf_counter()
-            try:
-                with time_limit(self.timeout):
-                    raw = planner.predict(sample, frame.ego, frame.command)
-                plan = validate_output(raw, frame.token)
-            except (PlannerOutputError, DataError) as exc:
-                errors.append(str(exc) if isinstance(exc, PlannerOutputError) else f"frame {frame.token!r}: {exc}")
-                continue
-            except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
-                errors.append(describe_failure(exc, frame.token))
-                continue
-            finally:
-                elapsed = time.perf_counter() - t0  # predict() plus the lazy decode and injection it triggered
-                spent["decode"] += sample.seconds["decode"]
-                spent["inject"] += sample.seconds["inject"]
-                spent["planner"] += elapsed - sample.seconds["decode"] - sample.seconds["inject"]
+        spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "check": 0.0}
+        start = last = time.perf_counter()
+        for i, (sample, result) in enumerate(self.stream(planner, family, severity, self.frames, unread=unread)):
+            elapsed = time.perf_counter() - last  # predict() plus the lazy decode, injection and input check
+            for part in ("decode", "inject", "check"):
+                spent[part] += sample.seconds[part]
+            spent["planner"] += elapsed - sum(sample.seconds.values())
             t1 = time.perf_counter()
-            m = frame_metrics(plan, frame)
-            plans[i], l2[i], col[i], vru[i], jerk[i] = plan, m["l2"], m["collision"], m["collision_vru"], m["jerk"]
-            bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
-            spent["metrics"] += time.perf_counter() - t1
+            if isinstance(result, str):
+                errors.append(result)
+            else:
+                m = frame_metrics(result, sample.frame)
+                plans[i], l2[i], col[i], vru[i] = result, m["l2"], m["collision"], m["collision_vru"]
+                jerk[i] = m["jerk"]
+                bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
+            last = time.perf_counter()
+            spent["metrics"] += last - t1
         spent["total"] = time.perf_counter() - start
         return CellRecord(cell_id(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
                           col, vru, jerk, bit1, seconds=spent, errors=errors)
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    out = np.array(array, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
 
 
 def describe_failure(exc: BaseException, frame_token: str) -> str:

@@ -104,6 +104,13 @@ class Frame:
     gt_valid: np.ndarray  # (HORIZON_STEPS,) bool
     agents: tuple[AgentBoxes, ...] = ()  # one per future step, len HORIZON_STEPS when scorable
     scene_name: str = ""
+    index: int = 0  #: position of this keyframe in its scene (0 = the scene's first keyframe)
+    #: ego_pose at this keyframe: (rotation (w, x, y, z), translation (x, y, z) m), ego -> global.
+    ego_pose: tuple[tuple[float, ...], tuple[float, ...]] = ((1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    #: LIDAR_TOP's calibrated_sensor (rotation, translation), lidar -> ego; None when the data set has none.
+    lidar: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+    #: The CAN bus pose message at or before this keyframe (accel, rotation_rate, vel; 3 values each), or None.
+    can: dict[str, tuple[float, ...]] | None = None
 
     @property
     def scorable(self) -> bool:

@@ -153,11 +153,11 @@ class NuScenesReader:
                     yield frame
 
     def scorable_frames(self, limit: int | None = None) -> list[Frame]:
-        """Frames with six future keyframes; with `limit`, `limit` of them evenly spaced (deterministic)."""
+        """Frames with six future keyframes, scene by scene in timestamp order; with `limit`, a deterministic
+        subset of `limit` frames made of one contiguous run per scene (see `contiguous_subset`)."""
         frames = [f for f in self.frames() if f.scorable]
         if limit is not None and 0 < limit < len(frames):
-            idx = np.unique(np.round(np.linspace(0, len(frames) - 1, limit)).astype(int))
-            frames = [frames[i] for i in idx]
+            frames = contiguous_subset(frames, limit)
         return frames
 
     def fingerprint(self) -> str:
@@ -218,7 +218,8 @@ class NuScenesReader:
             out.append(pose)
         xy = np.array([p["translation"][:2] for p in out], dtype=float)
         yaw = geo.quat_yaws(np.array([p["rotation"] for p in out]))
-        return (xy, yaw, np.array([p["timestamp"] for p in out])), ""
+        full = np.array([[*p["rotation"], *p["translation"]] for p in out], dtype=float)  # (K, 7) w x y z tx ty tz
+        return (xy, yaw, np.array([p["timestamp"] for p in out]), full), ""
 
     def _can_bus(self, scene_name: str) -> list[dict] | None:
         path = self.root / "can_bus" / f"{scene_name}_pose.json"
@@ -238,7 +239,7 @@ class NuScenesReader:
         if problem:
             self._skip("sample points at a missing record", problem)
             return None
-        xy, yaw, stamps = poses
+        xy, yaw, stamps, full = poses
         ego = _ego_status(xy, yaw, stamps, k, can)
         fut_idx = [k + i for i in range(1, HORIZON_STEPS + 1)]
         valid = np.array([i < len(tokens) for i in fut_idx])
@@ -251,8 +252,22 @@ class NuScenesReader:
         command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
         if not valid.all():
             self.skipped[UNSCORED] += 1
+        pose = (tuple(float(v) for v in full[k, :4]), tuple(float(v) for v in full[k, 4:]))
+        can_record = None
+        if can is not None:
+            rec = _nearest(can, int(stamps[k]))
+            can_record = {key: tuple(float(v) for v in rec[key][:3]) for key in ("accel", "rotation_rate", "vel")}
         return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
-                     future, valid, tuple(agents), scene["name"])
+                     future, valid, tuple(agents), scene["name"], index=k, ego_pose=pose,
+                     lidar=self._lidar(token), can=can_record)
+
+    def _lidar(self, token: str) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+        """LIDAR_TOP's calibrated_sensor (rotation, translation) at keyframe `token`, or None without one."""
+        rec = self.key_data.get(token, {}).get("LIDAR_TOP")
+        cal = self.calib.get(rec["calibrated_sensor_token"]) if rec is not None else None
+        if cal is None:
+            return None
+        return tuple(float(v) for v in cal["rotation"]), tuple(float(v) for v in cal["translation"])
 
     def _cameras(self, token: str) -> tuple[dict[str, CameraInfo], str]:
         data = self.key_data.get(token, {})
@@ -317,3 +332,26 @@ def _nearest(records: list[dict], utime: int) -> dict:
     times = np.array([r["utime"] for r in records])
     i = int(np.searchsorted(times, utime, side="right")) - 1
     return records[max(i, 0)]
+
+
+def contiguous_subset(frames: list[Frame], limit: int) -> list[Frame]:
+    """`limit` of `frames` (scene by scene, in order) as one contiguous run per scene, so a temporal planner never
+    sees a stream with silent holes (SPEC section 8).
+
+    Each scene gets a share of `limit` proportional to its frame count (largest remainders, ties to the earlier
+    scene); its run is the middle `share` frames of the scene. Scenes whose share is 0 are left out.
+    """
+    scenes: dict[str, list[Frame]] = {}
+    for f in frames:
+        scenes.setdefault(f.scene_token, []).append(f)
+    runs = list(scenes.values())
+    quotas = [limit * len(r) / len(frames) for r in runs]
+    shares = [int(q) for q in quotas]
+    for i in sorted(range(len(runs)), key=lambda i: (-(quotas[i] - shares[i]), i))[:limit - sum(shares)]:
+        shares[i] += 1
+    out: list[Frame] = []
+    for run, share in zip(runs, shares):
+        begin = (len(run) - share) // 2
+        out += run[begin:begin + share]
+    return out
+

@@ -13,8 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..cells import CellPayload, CellRecord, Property, cell_id, differing_frames, identical_plans, rear_cameras
-from ..loader import samples
-from ..planning import planner_name
+from ..planning import call_style, planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain
 from ..run import MAX_MESSAGES, RunContext
@@ -43,13 +42,21 @@ def _conformance(record: CellRecord) -> list[str]:
 
 
 def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, ...], clean: np.ndarray) -> list[str]:
-    """Which declared-unread cameras, blacked out alone, change the plan of frame `index`."""
+    """Which declared-unread cameras, blacked out alone, change the plan of frame `index`.
+
+    A planner with ``reset`` keeps state, so its scene is replayed from the scene's first scored frame up to
+    this one (reset first), and the state is what it was when the plan moved; a stateless planner is asked
+    about this frame alone.
+    """
+    frame = context.frames[index]
+    first = index
+    if call_style(planner).resets:
+        while first > 0 and context.frames[first - 1].scene_token == frame.scene_token:
+            first -= 1
     found = []
     for cam in unread:
-        sample = next(samples([context.frames[index]], "null", 0, seed=context.seed, decode=context.decode,
-                              unread=(cam,)))
-        plan = np.asarray(planner.predict(sample, sample.frame.ego, sample.frame.command), dtype=float)
-        if not identical_plans(plan, clean):
+        *_, (_sample, result) = context.stream(planner, "null", 0, context.frames[first:index + 1], unread=(cam,))
+        if isinstance(result, str) or not identical_plans(result, clean):
             found.append(cam)
     return found
 

@@ -129,11 +129,11 @@ def test_turning_scene_gives_left_command_and_yaw_rate(fixture_root):
     assert np.hypot(*frame.ego.velocity) == pytest.approx(chord / 0.5, rel=1e-6)
 
 
-def test_limit_gives_evenly_spaced_stable_subset(fixture_root):
+def test_limit_gives_one_contiguous_run_per_scene_stable(fixture_root):
     reader = NuScenesReader(fixture_root, split="all")
-    full = reader.scorable_frames()
+    full = reader.scorable_frames()  # two scenes of two scorable frames each
     sub = reader.scorable_frames(limit=2)
-    assert [f.token for f in sub] == [full[0].token, full[-1].token]
+    assert [f.token for f in sub] == [full[0].token, full[2].token]
     assert [f.token for f in NuScenesReader(fixture_root, split="all").scorable_frames(limit=2)] == \
         [f.token for f in sub]
     assert reader.fingerprint() == NuScenesReader(fixture_root, split="all").fingerprint()
@@ -242,3 +242,17 @@ def test_can_bus_expansion_overrides_finite_differences(fixture_root):
     assert frame.ego.velocity == (7.0, 0.1)
     assert frame.ego.acceleration == (0.5, 0.2)
     assert frame.ego.yaw_rate == 0.05
+
+
+def test_contiguous_subset_shares_and_centres_runs_per_scene():
+    """Shares by largest remainder (10, 5, 3 frames; 6 wanted: 3.33, 1.67, 1.0 -> 3, 2, 1), each run centred."""
+    from types import SimpleNamespace
+
+    from pytest_drivedegrade.data.nuscenes import contiguous_subset
+
+    frames = [SimpleNamespace(scene_token=s, token=f"{s}{i}") for s, n in (("a", 10), ("b", 5), ("c", 3))
+              for i in range(n)]
+    got = [f.token for f in contiguous_subset(frames, 6)]  # type: ignore[arg-type]
+    assert got == ["a3", "a4", "a5", "b1", "b2", "c1"]
+    assert [f.token for f in contiguous_subset(frames, 2)] == ["a4", "b2"]  # type: ignore[arg-type]
+

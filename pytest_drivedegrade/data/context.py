@@ -1,0 +1,95 @@
+"""The frame context (SPEC section 8): what a temporal, calibrated planner needs to know about a keyframe
+besides its images, as UniAD / VAD / BEVFormer build it in their `img_metas`.
+
+Everything is read-only and never names the corruption applied. A planner receives it as the `context` argument
+of ``predict(images, ego, cmd, context)`` when its `predict` declares that parameter.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
+
+import numpy as np
+
+from . import geometry as geo
+from .frame import Frame
+
+#: Length of the BEVFormer / UniAD CAN-bus vector.
+CAN_BUS_SIZE = 18
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    out = np.array(array, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True)
+class CameraCalibration:
+    """One camera: `intrinsic` (3x3) for the delivered image size, `sensor2ego` (4x4, camera -> ego, metres),
+    `image_size` (width, height) in pixels."""
+
+    intrinsic: np.ndarray
+    sensor2ego: np.ndarray
+    image_size: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class FrameContext:
+    """A keyframe's identity, time, pose and calibration (nuScenes conventions: quaternions (w, x, y, z), a
+    record's transform maps its own frame into its parent's; the ego frame has x forward, y left, z up).
+
+    - `index`: position of the keyframe in its scene (0 at the scene's first keyframe).
+    - `timestamp`: microseconds.
+    - `ego2global`: 4x4, ego -> global.
+    - `calibration`: camera -> `CameraCalibration`.
+    - `lidar2img`: camera -> 4x4 projection of LIDAR_TOP points into that camera's pixels (``K @ inv(cam2ego) @
+      lidar2ego``, with K padded to 4x4), as mmdet3d builds it; None when the data set has no LIDAR_TOP.
+    - `can_bus`: BEVFormer's 18 values: ego2global translation (3), rotation quaternion (4), acceleration (3),
+      rotation rate (3), velocity (3), then the heading in radians and in degrees (0..360). From the CAN bus
+      expansion when present, else from the ego status the reader derived from `ego_pose`.
+    """
+
+    token: str
+    scene_token: str
+    scene_name: str
+    index: int
+    timestamp: int
+    ego2global: np.ndarray
+    calibration: Mapping[str, CameraCalibration]
+    lidar2img: Mapping[str, np.ndarray] | None
+    can_bus: np.ndarray | None
+
+    @classmethod
+    def of(cls, frame: Frame) -> FrameContext:
+        """The context of a reader's frame (arrays read-only, mappings immutable)."""
+        rotation, translation = frame.ego_pose
+        calibration = {name: CameraCalibration(_frozen(cam.intrinsic), _frozen(geo.transform(cam.rotation,
+                                                                                              cam.translation)),
+                                               (int(cam.width), int(cam.height)))
+                       for name, cam in frame.cameras.items()}
+        lidar2img = None
+        if frame.lidar is not None:
+            lidar2ego = geo.transform(*frame.lidar)
+            lidar2img = {}
+            for name, cal in calibration.items():
+                viewpad = np.eye(4)
+                viewpad[:3, :3] = cal.intrinsic
+                lidar2img[name] = _frozen(viewpad @ geo.invert(cal.sensor2ego) @ lidar2ego)
+        return cls(frame.token, frame.scene_token, frame.scene_name, int(frame.index), int(frame.timestamp),
+                   _frozen(geo.transform(rotation, translation)), MappingProxyType(calibration),
+                   None if lidar2img is None else MappingProxyType(lidar2img), _frozen(can_bus(frame)))
+
+
+def can_bus(frame: Frame) -> np.ndarray:
+    """BEVFormer's 18-value CAN-bus vector of a keyframe (see `FrameContext`)."""
+    rotation, translation = frame.ego_pose
+    if frame.can is not None:
+        accel, rate, vel = frame.can["accel"], frame.can["rotation_rate"], frame.can["vel"]
+    else:  # no CAN bus expansion: the motion terms of the ego status, in the ego frame
+        ego = frame.ego
+        accel, rate, vel = (*ego.acceleration, 0.0), (0.0, 0.0, ego.yaw_rate), (*ego.velocity, 0.0)
+    degrees = float(np.degrees(geo.quat_yaw(rotation))) % 360.0
+    return np.array([*translation, *rotation, *accel, *rate, *vel, np.radians(degrees), degrees], dtype=np.float64)
