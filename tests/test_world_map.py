@@ -12,8 +12,7 @@ import pytest
 from pytest_drivedegrade.data.maps import (DrivableArea, MapPolygon, expansion_path, parse_drivable_area,
                                            points_in_ring)
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
-from pytest_drivedegrade.data.world import WORLD_VERSION, write_world
-from pytest_drivedegrade.data.world import export, texture
+from pytest_drivedegrade.data.world import WORLD_VERSION, export, texture, write_world
 from pytest_drivedegrade.data.world.roads import SIDEWALK, RoadNet
 from pytest_drivedegrade.data.world.scene import make_scene
 from pytest_drivedegrade.errors import DataError
@@ -221,7 +220,8 @@ def _real_schema_map(root, location: str) -> None:
                          "holes": [{"node_tokens": ["h1", "h2", "h3", "h4"]}]},
                         {"token": "right", "exterior_node_tokens": ["p1", "p2", "p3", "p4"], "holes": []},
                         {"token": "walk", "exterior_node_tokens": ["w1", "w2", "d"], "holes": []}],
-            "drivable_area": [{"token": "da0", "polygon_tokens": ["sq"]}, {"token": "da1", "polygon_tokens": ["right"]}],
+            "drivable_area": [{"token": "da0", "polygon_tokens": ["sq"]},
+                              {"token": "da1", "polygon_tokens": ["right"]}],
             "walkway": [{"token": "w0", "polygon_token": "walk"}]}
     path = expansion_path(root, location)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,10 +17,10 @@ from ...constants import CAMERAS
 from ..geometry import yaw_to_quat
 from ..maps import EXPANSION_VERSION
 from . import models, render, texture
-from .roads import drivable_polygons
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
 from .rig import Rig
+from .roads import drivable_polygons
 from .scene import KEYFRAMES, Scene
 
 BASE_TIME = 1_533_151_600_000_000  # microseconds; scene i starts 10^8 us (100 s) after scene i - 1

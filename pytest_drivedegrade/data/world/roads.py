@@ -215,7 +215,7 @@ def drivable_polygons(net: RoadNet) -> list[np.ndarray]:
     width, so no offset edge folds over itself. Sidewalks, curbs and the verge are outside.
     """
     out: list[np.ndarray] = []
-    step = max(int(round(CHUNK_M / STEP)), 2)
+    step = max(round(CHUNK_M / STEP), 2)
     half_disc = np.linspace(0.0, np.pi, CAP_SEGMENTS + 1)[1:-1]
     for road in net.roads:
         c, hw = road.center, road.half_width
