@@ -1,0 +1,1 @@
+"""Scoring: per-frame planning metrics and the scores built on them."""
