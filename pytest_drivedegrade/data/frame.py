@@ -111,6 +111,17 @@ class Frame:
     lidar: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     #: The CAN bus pose message at or before this keyframe (accel, rotation_rate, vel; 3 values each), or None.
     can: dict[str, tuple[float, ...]] | None = None
+    location: str = ""  # the log's location, which names its map ("" when the data has no log table)
+    pose: tuple[float, float, float] | None = None  # global (x, y, yaw) of the ego at this keyframe
+
+    def to_global(self, xy: np.ndarray) -> np.ndarray:
+        """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""
+        if self.pose is None:
+            raise ValueError(f"frame {self.token} has no global ego pose")
+        x, y, yaw = self.pose
+        pts = np.asarray(xy, dtype=float)
+        c, s = np.cos(yaw), np.sin(yaw)
+        return np.stack([x + c * pts[..., 0] - s * pts[..., 1], y + s * pts[..., 0] + c * pts[..., 1]], axis=-1)
 
     @property
     def scorable(self) -> bool:

@@ -5,6 +5,9 @@ request (`load_image`), so memory does not grow with the number of frames iterat
 CAN bus expansion (`can_bus/<scene>_pose.json`) when present, else from ego_pose finite differences (past
 keyframes only; the first keyframe of a scene falls back to the forward difference). Frames that cannot be
 scored or built are skipped and counted in `skipped` (reason -> count), with messages in `problems`.
+
+Maps: a frame's `location` is its log's; `drivable_area` reads `maps/expansion/<location>.json` (real nuScenes'
+map expansion, or the world's own) once per location, and says None where the data root has no map for it.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from ..constants import CAMERAS, HORIZON_STEPS, PAST_STEPS, STEP_SECONDS
 from ..errors import DataError
 from . import geometry as geo
 from .frame import AgentBoxes, CameraInfo, Command, EgoStatus, Frame, command_from_future
+from .maps import DrivableArea, load_drivable_area
 
 REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
                    "sample_annotation", "instance", "category")
@@ -109,6 +113,11 @@ class NuScenesReader:
                 self.key_data[r["sample_token"]][channel] = r
         categories = {r["token"]: coarse_category(r["name"]) for r in t["category"]}
         inst = {r["token"]: categories.get(r["category_token"], "other") for r in t["instance"]}
+        logs = {}
+        if (self.table_dir / "log.json").is_file():
+            logs = {r["token"]: r.get("location", "") for r in _load_table(self.table_dir / "log.json")}
+        self.locations = {s["token"]: logs.get(s.get("log_token", ""), "") for s in self.scenes}
+        self._maps: dict[str, DrivableArea | None] = {}
         self.annotations: dict[str, list[tuple]] = defaultdict(list)
         for r in t["sample_annotation"]:
             self.annotations[r["sample_token"]].append(
@@ -170,6 +179,15 @@ class NuScenesReader:
             for scene in self.split_scenes:
                 h.update(f"|{scene['name']}|{scene['first_sample_token']}|{scene.get('nbr_samples')}".encode())
         return h.hexdigest()
+
+    def drivable_area(self, where: Frame | str) -> DrivableArea | None:
+        """The drivable area of a frame's location (or of a location by name): polygons in global metres and a
+        vectorised point query (`contains`, or call it). None when there is no map: no log location, or no
+        `maps/expansion/<location>.json` under the data root. Read once per location."""
+        location = where if isinstance(where, str) else where.location
+        if location not in self._maps:
+            self._maps[location] = load_drivable_area(self.root, location) if location else None
+        return self._maps[location]
 
     @staticmethod
     def load_image(camera: CameraInfo) -> np.ndarray:
@@ -259,7 +277,8 @@ class NuScenesReader:
             can_record = {key: tuple(float(v) for v in rec[key][:3]) for key in ("accel", "rotation_rate", "vel")}
         return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
                      future, valid, tuple(agents), scene["name"], index=k, ego_pose=pose,
-                     lidar=self._lidar(token), can=can_record)
+                     lidar=self._lidar(token), can=can_record, location=self.locations.get(scene["token"], ""),
+                     pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])))
 
     def _lidar(self, token: str) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
         """LIDAR_TOP's calibrated_sensor (rotation, translation) at keyframe `token`, or None without one."""

@@ -15,12 +15,13 @@ from types import ModuleType
 from typing import Any
 
 from ...errors import DataError
+from ..maps import expansion_path
 from ..nuscenes import WORLD_MANIFEST
 from . import export
 from .rig import Rig
 from .scene import KEYFRAMES, make_scene
 
-GENERATOR_VERSION = "2.0.0"
+GENERATOR_VERSION = "2.1.0"
 WORLD_VERSION = "v1.0-ddworld"
 MANIFEST = WORLD_MANIFEST  # the file the reader looks for
 DEFAULT_SCENES = 100  # 94 train scenes (3196 scorable frames) and 6 val scenes (204 scorable frames)
@@ -67,6 +68,8 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
         events[split] += scene.events[:SCORABLE_PER_SCENE]
         export.scene_tables(scene, seed, tables, rig)
         export.dump(root / "can_bus" / f"{name}_pose.json", export.can_bus(scene))
+        digest.update(export.dump(expansion_path(root, export.location(scene, seed)),
+                                  export.map_expansion(scene, seed)))
         render = (split == "val" and val_images) or (split == "train" and train_images)
         if render:
             for d in export.render_scene(scene, rig, root):

@@ -15,10 +15,12 @@ import numpy as np
 
 from ...constants import CAMERAS
 from ..geometry import yaw_to_quat
+from ..maps import EXPANSION_VERSION
 from . import models, render, texture
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
 from .rig import Rig
+from .roads import drivable_polygons
 from .scene import KEYFRAMES, Scene
 
 BASE_TIME = 1_533_151_600_000_000  # microseconds; scene i starts 10^8 us (100 s) after scene i - 1
@@ -27,6 +29,10 @@ ATTRIBUTES = ("vehicle.moving", "vehicle.stopped", "vehicle.parked", "pedestrian
               "pedestrian.standing", "cycle.with_rider")
 VISIBILITY = (("1", "v0-40"), ("2", "v40-60"), ("3", "v60-80"), ("4", "v80-100"))
 JPEG_QUALITY = 90
+MAP_TOLERANCE = 0.01  # m: the map's polygons stay this close to the painted carriageway edges
+#: Map expansion layers written empty (the world maps only its drivable area), so the file has the full schema.
+EMPTY_MAP_LAYERS = ("line", "road_segment", "road_block", "lane", "ped_crossing", "walkway", "stop_line",
+                    "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
 
 
 def token(seed: int, *parts) -> str:
@@ -39,6 +45,11 @@ def image_name(scene: Scene, cam: str, k: int) -> str:
 
 def timestamp(scene: Scene, k: int) -> int:
     return BASE_TIME + scene.index * 100_000_000 + k * KEY_EVERY * int(DT * 1e6)
+
+
+def location(scene: Scene, seed: int) -> str:
+    """The log's `location`, naming its map: every scene has its own roads around the same origin, so its own map."""
+    return f"ddworld-s{seed}-{scene.name}"
 
 
 def static_tables(seed: int, rig: Rig) -> dict[str, list[dict]]:
@@ -71,7 +82,7 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
     """Append one scene's records (log, scene, samples, poses, sample_data, annotations, instances)."""
     log_tok, scene_tok = token(seed, "log", scene.index), token(seed, "scene", scene.index)
     t["log"].append({"token": log_tok, "logfile": f"ddworld-s{seed}-{scene.name}", "vehicle": "ddworld-ego",
-                     "date_captured": "2018-08-01", "location": "ddworld"})
+                     "date_captured": "2018-08-01", "location": location(scene, seed)})
     samples = [token(seed, "sample", scene.index, k) for k in range(KEYFRAMES)]
     t["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": KEYFRAMES,
                        "first_sample_token": samples[0], "last_sample_token": samples[-1], "name": scene.name,
@@ -115,6 +126,29 @@ def _link_instances(scene, seed, t, ann_tokens) -> None:
                               "category_token": token(seed, "category", scene.agents[i].category),
                               "nbr_annotations": len(toks), "first_annotation_token": toks[0],
                               "last_annotation_token": toks[-1]})
+
+
+def map_expansion(scene: Scene, seed: int) -> dict:
+    """The scene's map in nuScenes map-expansion form: its carriageways and junctions as `drivable_area`.
+
+    Polygons come from `roads.drivable_polygons` (what the renderer paints as asphalt), simplified by
+    Douglas-Peucker within `MAP_TOLERANCE`, counter-clockwise, without holes; coordinates in the scene's world
+    frame (the frame of ego_pose and sample_annotation), rounded to 0.1 mm.
+    """
+    nodes, polygons = [], []
+    for i, ring in enumerate(drivable_polygons(scene.net)):
+        o = ring[0]
+        ring = cv2.approxPolyDP((ring - o).astype(np.float32).reshape(-1, 1, 2), MAP_TOLERANCE, True)
+        ring = ring.reshape(-1, 2).astype(np.float64) + o
+        toks = [token(seed, "map-node", scene.index, i, k) for k in range(len(ring))]
+        nodes += [{"token": t, "x": round(x, 4), "y": round(y, 4)} for t, (x, y) in zip(toks, ring.tolist())]
+        polygons.append({"token": token(seed, "map-polygon", scene.index, i), "exterior_node_tokens": toks,
+                         "holes": []})
+    out: dict = {name: [] for name in EMPTY_MAP_LAYERS}
+    out.update({"version": EXPANSION_VERSION, "node": nodes, "polygon": polygons, "arcline_path_3": {},
+                "connectivity": {}, "drivable_area": [{"token": token(seed, "map-drivable", scene.index),
+                                                       "polygon_tokens": [p["token"] for p in polygons]}]})
+    return out
 
 
 def can_bus(scene: Scene) -> list[dict]:

@@ -199,3 +199,45 @@ def in_junction(net: RoadNet, xy: np.ndarray, margin: float = 0.0) -> np.ndarray
         u, v = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
         inside |= (np.abs(u) < j.half + margin) & (np.abs(v) < j.half + margin)
     return inside
+
+
+CHUNK_M = 40.0  # m of centreline per carriageway polygon
+CAP_SEGMENTS = 48  # segments of the half disc at each end of a road (0.005 m chord error at 9.2 m)
+
+
+def drivable_polygons(net: RoadNet) -> list[np.ndarray]:
+    """The paved carriageways and junction squares as simple counter-clockwise polygons (K, 2), world metres.
+
+    Their union is what `texture._paint_roads` paints as asphalt: each road's centreline polyline buffered by
+    its half width (OpenCV draws a thick polyline with round joins and ends, so the painted band is that
+    buffer) and each junction square. A road is cut into pieces of `CHUNK_M` metres: each piece is its two
+    edges offset along the sample normals, closed straight across where it meets the next piece (both share
+    that sample, hence that edge) and by a half disc at the road's two ends. Every bend is wider than the half
+    width, so no offset edge folds over itself. Sidewalks, curbs and the verge are outside.
+    """
+    out: list[np.ndarray] = []
+    step = max(round(CHUNK_M / STEP), 2)
+    half_disc = np.linspace(0.0, np.pi, CAP_SEGMENTS + 1)[1:-1]
+    for road in net.roads:
+        c, hw = road.center, road.half_width
+        n = len(c.xy)
+        for a in range(0, max(n - 1, 1), step):
+            b = min(a + step, n - 1)
+            xy, yaw = c.xy[a:b + 1], c.yaw[a:b + 1]
+            normal = np.stack([-np.sin(yaw), np.cos(yaw)], axis=1)
+            left, right = xy + hw * normal, xy - hw * normal
+            ring = [right]
+            if b == n - 1:  # the road's far end: right -> round -> left
+                phi = yaw[-1] - np.pi / 2 + half_disc
+                ring.append(xy[-1] + hw * np.stack([np.cos(phi), np.sin(phi)], axis=1))
+            ring.append(left[::-1])
+            if a == 0:  # the road's near end: left -> round -> right
+                phi = yaw[0] + np.pi / 2 + half_disc
+                ring.append(xy[0] + hw * np.stack([np.cos(phi), np.sin(phi)], axis=1))
+            out.append(np.concatenate(ring))
+    for j in net.junctions:
+        c, s = np.cos(j.heading), np.sin(j.heading)
+        u, v = np.array([c, s]), np.array([-s, c])
+        out.append(np.array([j.center + a * j.half * u + b * j.half * v
+                             for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]))
+    return out
