@@ -12,9 +12,19 @@ the fixtures a planner may use), `compat` (the few pytest internals, with fallba
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pytest
 
 from . import options as opt
+
+if TYPE_CHECKING:
+    from .session import DriveDegradeSession
+
+#: Where the run's `DriveDegradeSession` lives: ``config.stash[SESSION_KEY]``. Defined in this entry module,
+#: which pytest loads once per process, so every module that reaches the session shares the one key (pytester's
+#: in-process runs drop and re-import the plugin's other modules).
+SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -32,6 +42,6 @@ def pytest_configure(config: pytest.Config) -> None:
     from .session import DriveDegradeSession
 
     session = DriveDegradeSession.start(config)
-    config.stash[context.SESSION_KEY] = session
+    config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, DriveDegradeSession.NAME)
     config.pluginmanager.register(context, "drivedegrade-context")

@@ -9,21 +9,13 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import pytest
 
 from ..errors import DriveDegradeError
 from ..run import RunContext
+from . import SESSION_KEY
 from .options import RunOptions
-
-if TYPE_CHECKING:
-    from .session import DriveDegradeSession
-
-# The annotation (a string at runtime, under `from __future__ import annotations`) is what uses the TYPE_CHECKING
-# import: ruff does not read the subscript's string as a reference and would drop the import as unused.
-#: Where the run's `DriveDegradeSession` lives: ``config.stash[SESSION_KEY]``.
-SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
 
 
 def cache_root(config: pytest.Config) -> Path:

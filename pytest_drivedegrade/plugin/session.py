@@ -19,7 +19,8 @@ from ..cells import CellPayload, run_order
 from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
-from .context import SESSION_KEY, build_run_context
+from . import SESSION_KEY
+from .context import build_run_context
 from .controller import Outcome
 from .items import CellCollector, CellItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse

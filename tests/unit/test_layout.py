@@ -78,7 +78,10 @@ def imports_of(path: Path) -> set[str]:
                 is_module = (PACKAGE / Path(*sub.split("."))).with_suffix(".py").exists() \
                     or (PACKAGE / Path(*sub.split("."))).is_dir()
                 found.add(sub if is_module else target)
-    return {m for m in found if m != module_name(path)}
+    me = module_name(path)
+    # A module's own ancestor packages are imported before it anyway: importing a name from one is no edge.
+    ancestors = {".".join(me.split(".")[:i]) for i in range(len(me.split(".")))}
+    return {m for m in found if m != me and m not in ancestors}
 
 
 def graph() -> dict[str, set[str]]:
