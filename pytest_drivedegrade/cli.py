@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify.
+"""The `drivedegrade` command: spec, preview, world, verify, merge.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from .errors import DriveDegradeError
 
@@ -56,6 +57,18 @@ def _verify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _merge(args: argparse.Namespace) -> int:
+    """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
+    from .report.merge import merge_shards, write_merged
+
+    command = "drivedegrade merge " + " ".join(args.shards) + f" --out {args.out}"
+    merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
+                          command=command + (" --allow-incomplete" if args.allow_incomplete else ""))
+    for line in write_merged(merged, Path(args.out)):
+        print(line)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -81,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full-size", action="store_true", help="render 1600x900 instead of 800x450")
     p.add_argument("--train-images", action="store_true", help="also render the train split's images")
     p.set_defaults(func=_world)
+
+    p = sub.add_parser("merge", help="join the shard folders of one run (--drivedegrade-shard I/N) into its outputs")
+    p.add_argument("shards", nargs="+", metavar="SHARD_DIR", help="reports/<planner>/shard-I-of-N folders")
+    p.add_argument("--out", required=True, help="output folder: writes <out>/<planner>/cells.csv, "
+                                                "certificate.json and report.html")
+    p.add_argument("--allow-incomplete", action="store_true",
+                   help="merge although shards are missing; the certificate then says completeness: false")
+    p.set_defaults(func=_merge)
 
     p = sub.add_parser("verify", help="check a certificate's digest: exit 0 intact, 1 edited, 2 unreadable")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")

@@ -29,6 +29,7 @@ from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, samples
 from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
+from .shards import Shard, shard_frames
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
 #: Decoded clean images kept per process for reuse by later cells (a fixed budget, so memory is flat in the
@@ -86,6 +87,8 @@ class RunContext:
     dataset_fingerprint: str
     planner_path: Path | None
     frames_unscored: int = 0  #: keyframes of the split read but not scored (fewer than six future keyframes)
+    shard: Shard | None = None  #: the shard of the scenes this process scores (None: all of them)
+    frames_total: int = 0  #: scored frames of the whole run (all shards)
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -94,15 +97,19 @@ class RunContext:
 
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
-             planner_path: Path | None) -> RunContext:
-        """Index the data and pick the scored frames; a data problem raises DataError naming the file or token."""
+             planner_path: Path | None, shard: Shard | None = None) -> RunContext:
+        """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
+        DataError naming the file or token."""
         reader = NuScenesReader(data_root, split=split)
         chosen = reader.scorable_frames(limit=frames)
         if not chosen:
             raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
                                     f"keyframes); skipped: {dict(reader.skipped)}")
+        total = len(chosen)
+        if shard is not None:
+            chosen = shard_frames(chosen, shard)
         return cls(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
-                   frames_unscored=reader.skipped[UNSCORED])
+                   frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total)
 
     @property
     def frames_key(self) -> str:

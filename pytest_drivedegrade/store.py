@@ -18,11 +18,17 @@ from .errors import InvalidInput
 
 
 class ResultStore:
-    def __init__(self, report_dir: Path) -> None:
-        self.report_dir = Path(report_dir)
+    """`<report>/<planner>/cells/`, or `<report>/<planner>/<shard label>/cells/` for one shard of a run."""
+
+    def __init__(self, report_dir: Path, shard: str | None = None) -> None:
+        self.report_dir, self.shard = Path(report_dir), shard
+
+    def folder(self, planner: str) -> Path:
+        """The planner's folder of this run (a shard's own subfolder for a shard)."""
+        return self.report_dir / planner / self.shard if self.shard else self.report_dir / planner
 
     def path(self, planner: str, cell: str) -> Path:
-        return self.report_dir / planner / "cells" / f"{cell}.json"
+        return self.folder(planner) / "cells" / f"{cell}.json"
 
     def write(self, payload: CellPayload) -> Path:
         return atomic_write_text(self.path(payload.planner, payload.cell),

@@ -4,13 +4,15 @@ Never raises for a user mistake."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import pytest
 
-from ..cells import CellPayload, CellRecord, cell_id
+from ..cells import CellPayload, CellRecord, cell_id, run_order
 from ..errors import DriveDegradeError
 from ..report.certificate import Provenance
 from ..run import RunContext
@@ -52,10 +54,10 @@ def gather(received: Mapping[str, CellPayload], expected: Sequence[tuple[str, in
     return Gathered(first.planner, first.key, payloads, [c for c in ids if c not in payloads])
 
 
-def floor_l2(config: pytest.Config, context: RunContext, split: str, lines: list[str]) -> float | None:
-    """The ego-only floor's clean l2_avg on the scored frames (trained on the train split once, cached)."""
+def floor_per_frame(config: pytest.Config, context: RunContext, split: str, lines: list[str]) -> np.ndarray | None:
+    """The ego-only floor's clean l2_avg per scored frame (trained on the train split once, cached); None with a
+    line saying why when there is no floor."""
     from ..scoring.floor import load_or_train_floor, train_split_for
-    from ..scoring.records import finite_mean
 
     try:
         train = context.reader.with_split(train_split_for(split))
@@ -66,7 +68,7 @@ def floor_l2(config: pytest.Config, context: RunContext, split: str, lines: list
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
-    return finite_mean(context.run_cell(model, "clean", 0).l2_avg_per_frame())
+    return context.run_cell(model, "clean", 0).l2_avg_per_frame()
 
 
 def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
@@ -85,15 +87,19 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
-               baseline: Mapping[str, Any] | None) -> Outcome | None:
-    """Analyse and write everything the run has; None when the run never opened its data."""
+               baseline: Mapping[str, Any] | None, store: ResultStore | None = None) -> Outcome | None:
+    """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
+    the run never opened its data."""
     if context is None:
         return None
     out = Outcome()
-    run = gather(received, expected, ResultStore(options.report_dir))
+    store = store or ResultStore(options.report_dir)
+    run = gather(received, expected, store)
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
+    if options.shard is not None:
+        return finish_shard(config, options, context, run, store, out)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
@@ -101,14 +107,17 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     from ..report.outputs import write_outputs
     from ..report.terminal import summary_lines
+    from ..scoring.records import finite_mean
     from ..scoring.verdict import analyse_run
 
-    floor = floor_l2(config, context, options.split, out.lines)
+    per_frame = floor_per_frame(config, context, options.split, out.lines)
+    floor = None if per_frame is None else finite_mean(per_frame)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
     analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor)
-    command = "pytest " + " ".join(str(a) for a in config.invocation_params.args)
-    prov = provenance(options, context, run.planner, run.key, command)
-    cert, written = write_outputs(options.report_dir, prov, context, records, analysis, run.missing)
+    prov = provenance(options, context, run.planner, run.key, _command(config))
+    cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
+                                  gt={f.token: f.gt_future for f in context.frames},
+                                  montage=front_montage(context, options.seed))
     out.lines.append(written)
     from .compat import junit_xml
 
@@ -120,6 +129,50 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
             xml.add_global_property(prop, value)
     gate_lines, out.failed = gate(cert, baseline, options.tolerance)
     out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
+    return out
+
+
+def _command(config: pytest.Config) -> str:
+    return "pytest " + " ".join(str(a) for a in config.invocation_params.args)
+
+
+def front_montage(context: RunContext, seed: int) -> np.ndarray | None:
+    """The report's figure: the first scored frame's front camera under every family at S4 (None when that
+    image cannot be read; the cells already reported it)."""
+    from ..report.outputs import montage_of
+
+    frame = context.frames[0]
+    try:
+        image = context.decode(frame, "CAM_FRONT")
+    except DriveDegradeError:
+        return None
+    return montage_of(image, frame.token, seed)
+
+
+def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
+                 store: ResultStore, out: Outcome) -> Outcome:
+    """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
+    from ..atomic import atomic_write_text
+    from ..report.merge import MANIFEST, shard_manifest
+
+    shard = options.shard
+    assert shard is not None
+    per_frame = floor_per_frame(config, context, options.split, out.lines)
+    prov = provenance(options, context, run.planner, run.key, _command(config))
+    manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
+                              provenance=prov, flat=options.flat, frames_total=context.frames_total,
+                              cells=[cell_id(f, s) for f, s in run_order(options.families, options.severities)],
+                              missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),
+                              gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),
+                              front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
+    path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")
+    scenes = len({f.scene_token for f in context.frames})
+    out.lines.append(f"shard {shard}: {len(context.frames)} of {context.frames_total} frames ({scenes} scene(s)), "
+                     f"{len(run.payloads)} cell(s) finished; wrote {path}")
+    if run.missing:
+        out.lines.append(f"missing cells ({len(run.missing)}): {', '.join(run.missing)}; rerun the same command")
+    out.lines.append("merge the shards with: drivedegrade merge <report>/<planner>/shard-*-of-"
+                     f"{shard.count} --out <folder>")
     return out
 
 

@@ -14,6 +14,8 @@ from typing import Any
 import pytest
 
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..errors import DriveDegradeError
+from ..shards import Shard
 
 
 @dataclass(frozen=True)
@@ -48,6 +50,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
                f"(default {DEFAULT_TOLERANCE:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-flat", "drivedegrade_flat", "retention at or above which an axis counts as flat "
                f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-shard", "drivedegrade_shard", "run shard I of N (1-based; scene-contiguous, "
+               "balanced by frame count) and write its cells for `drivedegrade merge`", {"metavar": "I/N"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
 )
@@ -111,6 +115,7 @@ class RunOptions:
     tolerance: float
     flat: float
     timeout: float
+    shard: Shard | None = None
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -136,6 +141,11 @@ def parse(config: pytest.Config) -> RunOptions:
             raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
         severities.append(int(s))
     baseline = value(config, "drivedegrade_baseline")
+    shard_text = value(config, "drivedegrade_shard")
+    try:
+        shard = Shard.parse(str(shard_text)) if shard_text is not None else None
+    except DriveDegradeError as exc:
+        raise _fail("drivedegrade_shard", str(exc)) from None
     return RunOptions(
         planner_path=planner_path,
         data=(here / data).resolve() if data else None,
@@ -149,4 +159,5 @@ def parse(config: pytest.Config) -> RunOptions:
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
+        shard=shard,
     )

@@ -55,6 +55,7 @@ class DriveDegradeSession:
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
         self.cells = run_order(options.families, options.severities)
+        self.store = ResultStore(options.report_dir, options.shard.label if options.shard else None)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
@@ -145,7 +146,7 @@ class DriveDegradeSession:
         try:
             context = self.run_context()
             payload, failures = certify(context, planner, family, severity,
-                                        store=ResultStore(self.options.report_dir), baseline=self.baseline,
+                                        store=self.store, baseline=self.baseline,
                                         tolerance=self.options.tolerance)
         except DriveDegradeError as exc:  # bad data, or planner.cameras / planner.name malformed: no traceback
             pytest.fail(f"cell {item.name}: {exc}", pytrace=False)
@@ -170,7 +171,7 @@ class DriveDegradeSession:
             return
         payload = CellPayload.from_builtins(data)
         self.received[payload.cell] = payload
-        ResultStore(self.options.report_dir).write(payload)
+        self.store.write(payload)
 
     @pytest.hookimpl(tryfirst=True)
     def pytest_sessionfinish(self, session: pytest.Session, exitstatus: int) -> None:
@@ -178,7 +179,8 @@ class DriveDegradeSession:
             return
         from .controller import finish_run
 
-        self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline)
+        self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
+                                  self.store)
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
             session.exitstatus = pytest.ExitCode.TESTS_FAILED
 

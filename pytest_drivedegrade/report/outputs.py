@@ -10,40 +10,34 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..cells import CellRecord
-from ..run import RunContext
 from ..scoring.records import RunAnalysis
 from .certificate import Provenance
 
 
-def _montage(context: RunContext, seed: int) -> np.ndarray | None:
-    """One front-camera frame under every family at S4 (the report's figure)."""
+def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
+    """One front-camera image under every family at S4 (the report's figure)."""
     from ..corruptions.preview import montage
 
-    frame = context.frames[0]
-    try:
-        image = context.decode(frame, "CAM_FRONT")
-    except Exception:  # noqa: BLE001 - the figure is optional; a bad image was already reported by the cells
-        return None
-    return montage(image, severity=4, seed=seed, frame=frame.token, camera="CAM_FRONT", width=220)
+    return montage(image, severity=4, seed=seed, frame=token, camera="CAM_FRONT", width=220)
 
 
-def write_outputs(report_dir: Path, prov: Provenance, context: RunContext, records: Mapping[str, CellRecord],
-                  analysis: RunAnalysis, missing: Sequence[str]) -> tuple[dict[str, Any], str]:
+def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
+                  missing: Sequence[str], *, gt: Mapping[str, Any], montage: np.ndarray | None,
+                  completeness: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files and return (the sealed certificate, a line saying what was written). A run with
-    missing cells (a crash, Ctrl-C, -k) says so in the certificate, so it is not mistaken for a complete
-    baseline."""
+    missing cells (a crash, Ctrl-C, -k) or shards says so in the certificate, so it is not mistaken for a
+    complete baseline. `gt`: frame token -> ground truth (the trajectory panels)."""
     from .cells import write_cells_csv
     from .certificate import build_certificate, certificate_text, seal
     from .html import trajectory_examples, write_report
 
     folder = Path(report_dir) / prov.planner_name
     cert = build_certificate(analysis, prov)
-    cert["completeness"] = {"complete": not missing, "missing_cells": list(missing)}
+    cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     cert = seal(cert)
     atomic_write_text(folder / "certificate.json", certificate_text(cert))
     write_cells_csv(folder / "cells.csv", analysis, prov)
-    gt = {f.token: f.gt_future for f in context.frames}
-    write_report(folder / "report.html", analysis, prov, montage=_montage(context, prov.seed),
+    write_report(folder / "report.html", analysis, prov, montage=montage,
                  trajectories=trajectory_examples(records, gt, analysis.summaries),
                  created=cert.get("created", ""), digest=cert["digest"])
     return cert, f"wrote {folder / 'report.html'}, cells.csv and certificate.json"

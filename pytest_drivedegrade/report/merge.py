@@ -1,0 +1,216 @@
+"""`drivedegrade merge SHARD_DIR... --out DIR`: join the cell results of scene shards into the outputs of one run.
+
+Each shard run (`--drivedegrade-shard I/N`) leaves `<report>/<planner>/shard-I-of-N/` with `shard.json` (what the
+shard scored, its run key, the floor's per-frame L2, the ground truth for the trajectory panels) and `cells/`.
+The merge reads every shard's per-frame results into one pandas table, checks that the shards belong to one run
+and that none is missing, joins them in shard order (which is scene order, the order of an unsharded run) and
+computes and writes exactly what an unsharded run writes. A missing shard is an error naming it, unless
+`allow_incomplete`, when the certificate says `completeness: false`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..cells import CellPayload, CellRecord
+from ..constants import HORIZON_STEPS
+from ..errors import DriveDegradeError
+from ..scoring.records import finite_mean
+from .certificate import Provenance
+
+SHARD_SCHEMA = "drivedegrade-shard/1"
+MANIFEST = "shard.json"
+#: Manifest fields every shard of one run shares.
+SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "count",
+            "flat", "frames_total", "cells")
+
+
+@dataclass(frozen=True)
+class ShardResult:
+    folder: Path
+    manifest: dict[str, Any]
+    payloads: dict[str, CellPayload]
+
+
+def find_manifest(folder: Path) -> Path:
+    """`folder/shard.json`, or the one shard folder below `folder` (a planner's report folder)."""
+    direct = folder / MANIFEST
+    if direct.is_file():
+        return direct
+    found = sorted(folder.glob(f"shard-*-of-*/{MANIFEST}"))
+    if len(found) == 1:
+        return found[0]
+    if not found:
+        raise DriveDegradeError(f"{folder}: no {MANIFEST}: pass the folders that --drivedegrade-shard runs wrote "
+                                "(reports/<planner>/shard-I-of-N)")
+    raise DriveDegradeError(f"{folder} holds several shards ({', '.join(str(p.parent.name) for p in found)}): "
+                            "pass each shard folder")
+
+
+def load_shard(folder: Path) -> ShardResult:
+    path = find_manifest(Path(folder))
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DriveDegradeError(f"{path}: unreadable shard manifest ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("schema") != SHARD_SCHEMA:
+        raise DriveDegradeError(f"{path}: not a drivedegrade shard manifest (schema {SHARD_SCHEMA})")
+    payloads: dict[str, CellPayload] = {}
+    for cell in manifest["cells"]:
+        file = path.parent / "cells" / f"{cell}.json"
+        try:
+            payload = CellPayload.from_builtins(json.loads(file.read_text()))
+        except (OSError, ValueError):
+            continue  # a missing or broken cell file: reported as a missing cell of this shard
+        if dict(payload.key) == manifest["key"] and payload.cell == cell:
+            payloads[cell] = payload
+    return ShardResult(path.parent, manifest, payloads)
+
+
+def _table(shards: Sequence[ShardResult]) -> Any:
+    """One row per (cell, frame) of every shard: the long table the records are rebuilt from."""
+    import pandas as pd
+
+    frames = []
+    for shard in shards:
+        for cell, payload in shard.payloads.items():
+            r = payload.record
+            n = len(r.frames)
+            cols: dict[str, Any] = {"shard": shard.manifest["index"], "cell": cell, "pos": np.arange(n),
+                                    "token": r.frames, "jerk": r.jerk, "bit1": r.bit1}
+            for j in range(HORIZON_STEPS):
+                cols[f"x{j}"], cols[f"y{j}"] = r.plans[:, j, 0], r.plans[:, j, 1]
+                cols[f"l2_{j}"], cols[f"col_{j}"], cols[f"vru_{j}"] = r.l2[:, j], r.collision[:, j], \
+                    r.collision_vru[:, j]
+            frames.append(pd.DataFrame(cols))
+    return pd.concat(frames, ignore_index=True)
+
+
+def _records(table: Any, shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, CellRecord]:
+    """Each cell's record over the shards in order, for the cells every given shard has."""
+    records = {}
+    for cell, rows in table.sort_values(["shard", "pos"], kind="stable").groupby("cell", sort=False):
+        parts = [s.payloads[cell] for s in shards if cell in s.payloads]
+        if len(parts) != len(shards):
+            continue
+        first = parts[0].record
+        steps = range(HORIZON_STEPS)
+        plans = np.stack([np.stack([rows[f"x{j}"], rows[f"y{j}"]], axis=-1) for j in steps], axis=1)
+        seconds: dict[str, float] = {}
+        for p in parts:
+            for k, v in p.record.seconds.items():
+                seconds[k] = seconds.get(k, 0.0) + float(v)
+        records[str(cell)] = CellRecord(
+            str(cell), first.family, first.severity, [str(t) for t in rows["token"]], plans,
+            np.stack([rows[f"l2_{j}"] for j in steps], axis=1), np.stack([rows[f"col_{j}"] for j in steps], axis=1),
+            np.stack([rows[f"vru_{j}"] for j in steps], axis=1), rows["jerk"].to_numpy(),
+            rows["bit1"].to_numpy(), seconds=seconds, errors=[e for p in parts for e in p.record.errors])
+    return {c: records[c] for c in cells if c in records}
+
+
+@dataclass(frozen=True)
+class Merged:
+    records: dict[str, CellRecord]
+    provenance: Provenance
+    key: dict[str, Any]
+    floor_l2: float | None
+    gt: dict[str, np.ndarray]
+    flat: float
+    missing_cells: list[str]
+    missing_shards: list[int]
+    data_root: str
+    front: tuple[str, str] | None  #: (token, CAM_FRONT image path) of the first shard's first frame
+
+
+def write_merged(merged: Merged, out: Path) -> list[str]:
+    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`;
+    the lines to print."""
+    from ..scoring.verdict import analyse_run
+    from .outputs import montage_of, write_outputs
+
+    analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
+                           floor_l2=merged.floor_l2)
+    montage = None
+    if merged.front is not None and Path(merged.front[1]).is_file():
+        from ..data.images import decode_rgb
+
+        try:
+            montage = montage_of(decode_rgb(merged.front[1], merged.front[0]), merged.front[0],
+                                 merged.provenance.seed)
+        except DriveDegradeError:
+            montage = None
+    extra: dict[str, Any] = {"complete": False, "missing_shards": merged.missing_shards} \
+        if merged.missing_shards else {}
+    _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
+                               montage=montage, completeness=extra)
+    from .terminal import summary_lines
+
+    lines = summary_lines(analysis, merged.missing_cells)
+    if merged.missing_shards:
+        lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, merged.missing_shards))} missing; the certificate "
+                     "says completeness: false")
+    return [*lines, written]
+
+
+def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> Merged:
+    """Join shard folders into one run's records; DriveDegradeError when they are not one run or a shard is
+    missing (unless `allow_incomplete`)."""
+    if not folders:
+        raise DriveDegradeError("no shard folders given")
+    shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
+    first = shards[0].manifest
+    for s in shards[1:]:
+        diff = [k for k in SAME_RUN if s.manifest.get(k) != first.get(k)]
+        if diff:
+            raise DriveDegradeError(f"{s.folder} is not from the same run as {shards[0].folder}: they differ in "
+                                    f"{', '.join(diff)}")
+    indices = [s.manifest["index"] for s in shards]
+    if len(set(indices)) != len(indices):
+        raise DriveDegradeError(f"shard(s) given twice: {sorted(i for i in set(indices) if indices.count(i) > 1)}")
+    missing_shards = sorted(set(range(1, first["count"] + 1)) - set(indices))
+    if missing_shards and not allow_incomplete:
+        names = ", ".join(f"{i}/{first['count']}" for i in missing_shards)
+        raise DriveDegradeError(f"missing shard(s) {names}: run them (--drivedegrade-shard I/N) and merge again, or "
+                                "pass --allow-incomplete to write a certificate that says completeness: false")
+    cells = list(first["cells"])
+    records = _records(_table(shards), shards, cells)
+    if "clean" not in records:
+        raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
+                                "shard (finished cells are reused)")
+    floors = [s.manifest.get("floor_l2") for s in shards]
+    floor = None if any(f is None for f in floors) else \
+        finite_mean(np.concatenate([np.asarray(f, dtype=float) for f in floors]))
+    frames = len(records["clean"].frames)
+    prov = Provenance(planner_name=first["planner"], planner_fingerprint=first["planner_fingerprint"],
+                      dataset_fingerprint=first["dataset_fingerprint"], split=first["split"],
+                      spec_version=first["spec_version"], seed=int(first["seed"]), frames=frames,
+                      frames_unscored=first.get("frames_unscored"), data_source=first.get("data_source", ""),
+                      command=command, tool_version=first.get("tool_version", ""))
+    gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
+    key = {k: v for k, v in first["key"].items() if k != "frames_key"}
+    front = shards[0].manifest.get("front")
+    return Merged(records, prov, key, floor, gt, float(first["flat"]), [c for c in cells if c not in records],
+                  missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None)
+
+
+def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
+                   flat: float, frames_total: int, cells: Sequence[str], missing: Sequence[str],
+                   floor_l2: Sequence[float] | None, gt: Mapping[str, Any], data_root: str,
+                   front: tuple[str, str] | None = None) -> dict[str, Any]:
+    """What a shard run writes beside its cells for the merge."""
+    return {"schema": SHARD_SCHEMA, "index": index, "count": count, "planner": planner, "key": dict(key),
+            "planner_fingerprint": provenance.planner_fingerprint,
+            "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
+            "spec_version": provenance.spec_version, "seed": provenance.seed, "flat": flat,
+            "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
+            "data_source": provenance.data_source, "tool_version": provenance.tool_version,
+            "cells": list(cells), "missing_cells": list(missing),
+            "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
+            "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,
+            "front": list(front) if front else None}
