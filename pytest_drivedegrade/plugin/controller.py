@@ -105,7 +105,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
     floor = floor_l2(config, context, options.split, out.lines)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
-    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor)
+    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
+                           seeds=options.seeds)
     command = "pytest " + " ".join(str(a) for a in config.invocation_params.args)
     prov = provenance(options, context, run.planner, run.key, command)
     cert, written = write_outputs(options.report_dir, prov, context, records, analysis, run.missing)

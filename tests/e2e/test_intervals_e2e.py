@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import load_json, read_csv, verify_cli  # noqa: E402 - after register_assert_rewrite
+from plugin_support import load_json, read_csv  # noqa: E402 - after register_assert_rewrite
 
 pytest_plugins = ["plugin_support"]
 
