@@ -231,3 +231,23 @@ def test_baseline_with_another_seed_count_is_refused_with_a_clear_message():
     bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", seeds=1)
     with pytest.raises(bl.BaselineError, match="seed"):
         bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", seeds=2)
+
+
+# --- the report and the terminal show them ----------------------------------------------------------------------
+
+
+def test_report_terminal_and_junit_show_the_intervals():
+    from pytest_drivedegrade.report.certificate import Provenance
+    from pytest_drivedegrade.report.html import render_report
+    from pytest_drivedegrade.report.junit import suite_properties
+    from pytest_drivedegrade.report.terminal import summary_lines
+
+    res = vd.analyse_run(flat_line_run(40, removal=0.5), groups=GROUPS, n_resamples=300)
+    lines = summary_lines(res, [])
+    assert any(line.startswith("axes 95% intervals: quality [0.9") for line in lines)
+    assert any(line.startswith("verdict confidence: 0.") and "BORDERLINE" in line for line in lines)
+    page = render_report(res, Provenance("demo", "p", "d", "val", "2.0.0"))
+    assert "borderline</b>" in page and "Verdict\n    confidence 0." in page and "95%: 0.9" in page
+    props = dict(suite_properties(res))
+    assert 0.3 < props["drivedegrade_verdict_confidence"] < 0.7
+    assert props["drivedegrade_axis_removal_ci_low"] == pytest.approx(0.5)
