@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import subprocess
 import sys
@@ -25,6 +26,7 @@ FAMILIES = "gaussian_noise,snow,jpeg,fog,blackout"
 
 
 def analysis_times(repeat: int, frames: int) -> tuple[float, float]:
+    """Median seconds of the analysis without and with intervals, the two interleaved so drift hits both."""
     from test_analysis import synthetic_run
 
     from pytest_drivedegrade.scoring.verdict import FamilyGroups, analyse_run
@@ -32,18 +34,17 @@ def analysis_times(repeat: int, frames: int) -> tuple[float, float]:
     recs, _ = synthetic_run(frames)
     groups = FamilyGroups.from_registry()
     analyse_run(recs, groups=groups)  # warm up imports and caches
-    out = []
-    for intervals in (False, True):
-        times = []
-        for _ in range(repeat):
+    times: dict[bool, list[float]] = {False: [], True: []}
+    for _ in range(repeat):
+        for intervals in (False, True):
             start = time.perf_counter()
             analyse_run(recs, groups=groups, intervals=intervals)
-            times.append(time.perf_counter() - start)
-        out.append(statistics.median(times))
-    return out[0], out[1]
+            times[intervals].append(time.perf_counter() - start)
+    return statistics.median(times[False]), statistics.median(times[True])
 
 
-def run_time(planner: str, seeds: int, frames: int) -> float:
+def run_time(planner: str, seeds: int, frames: int) -> tuple[float, float]:
+    """(wall seconds, summed cell seconds over every seed run) of one run in a fresh report folder."""
     with tempfile.TemporaryDirectory() as tmp:
         cmd = [sys.executable, "-m", "pytest", "--drivedegrade", planner, "-q", "-p", "no:randomly",
                "--drivedegrade-report", tmp, "--drivedegrade-frames", str(frames), "--drivedegrade-families",
@@ -53,7 +54,11 @@ def run_time(planner: str, seeds: int, frames: int) -> float:
         wall = time.perf_counter() - start
         if proc.returncode not in (0, 1):
             sys.exit(f"run failed ({proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
-    return wall
+        cells = 0.0
+        for path in Path(tmp).glob("*/cells/*.json"):
+            record = json.loads(path.read_text())["record"]
+            cells += sum(r["seconds"].get("total", 0.0) for r in [record, *record.get("seed_runs", [])])
+    return wall, cells
 
 
 def main() -> None:
@@ -72,10 +77,15 @@ def main() -> None:
     subprocess.run([sys.executable, "-m", "pytest", "--drivedegrade", args.planner, "--co", "-q"], cwd=ROOT,
                    capture_output=True)  # render the world into the cache first, outside the timing
     runs = max(1, args.repeat // 2)
-    one = statistics.median(run_time(args.planner, 1, args.run_frames) for _ in range(runs))
-    three = statistics.median(run_time(args.planner, 3, args.run_frames) for _ in range(runs))
+    got: dict[int, list[tuple[float, float]]] = {1: [], 3: []}
+    for _ in range(runs):
+        for seeds in (1, 3):
+            got[seeds].append(run_time(args.planner, seeds, args.run_frames))
+    (w1, c1), (w3, c3) = ((statistics.median(w for w, _ in got[s]), statistics.median(c for _, c in got[s]))
+                          for s in (1, 3))
     print(f"run, {args.run_frames} frames, {FAMILIES} at S1/S5 (median of {runs}): --drivedegrade-seeds 1 "
-          f"{one:.1f} s, 3 {three:.1f} s, ratio {three / one:.2f}x")
+          f"wall {w1:.1f} s (cells {c1:.2f} s), 3 wall {w3:.1f} s (cells {c3:.2f} s); ratio wall {w3 / w1:.2f}x, "
+          f"cells {c3 / c1:.2f}x")
 
 
 if __name__ == "__main__":
