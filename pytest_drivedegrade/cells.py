@@ -102,6 +102,8 @@ class CellRecord:
     bit1: np.ndarray
     seconds: dict[str, float] = field(default_factory=dict)
     errors: list[str] = field(default_factory=list)
+    seed_runs: list[CellRecord] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = len(self.frames)
@@ -114,6 +116,16 @@ class CellRecord:
             if arr.shape != shape:
                 raise InvalidInput(f"cell {self.cell!r}: {name} has shape {arr.shape}, expected {shape}")
             setattr(self, name, arr)
+        self.seeds = [int(s) for s in self.seeds]
+        for run in self.seed_runs:
+            if run.frames != self.frames:
+                raise InvalidInput(f"cell {self.cell!r}: a seed run was scored on other frames")
+        if self.seed_runs and len(self.seeds) != 1 + len(self.seed_runs):
+            raise InvalidInput(f"cell {self.cell!r}: {len(self.seeds)} seeds for {1 + len(self.seed_runs)} runs")
+
+    def runs(self) -> list[CellRecord]:
+        """Every seed's run of this cell: this record first, then ``seed_runs`` (one entry for a single seed)."""
+        return [self, *self.seed_runs]
 
     def to_builtins(self) -> dict[str, Any]:
         """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""
@@ -123,6 +135,9 @@ class CellRecord:
                     for k in ("collision", "collision_vru")})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
+        if self.seed_runs:  # only then: a one-seed record keeps its pre-seeds form byte for byte
+            out["seeds"] = list(self.seeds)
+            out["seed_runs"] = [run.to_builtins() for run in self.seed_runs]
         return out
 
     @classmethod
@@ -137,7 +152,9 @@ class CellRecord:
                 kw[k] = np.where(arr < 0, np.nan, arr)
         except KeyError as exc:
             raise InvalidInput(f"cell record lacks the field {exc.args[0]!r}") from None
-        return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])))
+        runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
+        return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
+                   seed_runs=runs, seeds=list(data.get("seeds", [])))
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""

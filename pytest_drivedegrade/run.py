@@ -21,7 +21,7 @@ import numpy as np
 
 from .cells import CellRecord, cell_id
 from .constants import CAMERAS, HORIZON_STEPS
-from .corruptions.ladder import SPEC_VERSION
+from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
@@ -89,6 +89,7 @@ class RunContext:
     frames_unscored: int = 0  #: keyframes of the split read but not scored (fewer than six future keyframes)
     shard: Shard | None = None  #: the shard of the scenes this process scores (None: all of them)
     frames_total: int = 0  #: scored frames of the whole run (all shards)
+    seeds: int = 1  #: --drivedegrade-seeds: random families run under seed, seed + 1, ..., seed + seeds - 1
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -97,7 +98,7 @@ class RunContext:
 
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
-             planner_path: Path | None, shard: Shard | None = None) -> RunContext:
+             planner_path: Path | None, shard: Shard | None = None, seeds: int = 1) -> RunContext:
         """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
         DataError naming the file or token."""
         reader = NuScenesReader(data_root, split=split)
@@ -109,7 +110,8 @@ class RunContext:
         if shard is not None:
             chosen = shard_frames(chosen, shard)
         return cls(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
-                   frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total)
+                   frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total,
+                   seeds=seeds)
 
     @property
     def frames_key(self) -> str:
@@ -123,9 +125,27 @@ class RunContext:
         return self._planner[key]
 
     def run_key(self, planner: Any) -> dict[str, Any]:
-        """What a stored cell result must match to be reused by a rerun."""
-        return {"spec_version": SPEC_VERSION, "planner_fingerprint": self.planner_info(planner).fingerprint,
-                "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
+        """What a stored cell result must match to be reused by a rerun (the seed count only when above one, so
+        a one-seed run keeps the key, and the stored cells, of runs before seeds existed)."""
+        key = {"spec_version": SPEC_VERSION, "planner_fingerprint": self.planner_info(planner).fingerprint,
+               "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
+        return {**key, "seeds": self.seeds} if self.seeds > 1 else key
+
+    def seeds_for(self, family: str) -> list[int]:
+        """The corruption seeds a cell of `family` runs under: seed .. seed + seeds - 1 for a random family,
+        the run's seed alone for a deterministic one (it would repeat itself) and for the diagnostic cells."""
+        if self.seeds > 1 and family in FAMILIES and FAMILIES[family].random:
+            return [self.seed + k for k in range(self.seeds)]
+        return [self.seed]
+
+    def run_seeded_cell(self, planner: Any, family: str, severity: int) -> CellRecord:
+        """A ladder cell under every seed of `seeds_for`: the first seed's record carrying the others' runs."""
+        seeds = self.seeds_for(family)
+        first = self.run_cell(planner, family, severity, seed=seeds[0])
+        if len(seeds) > 1:
+            first.seed_runs = [self.run_cell(planner, family, severity, seed=s) for s in seeds[1:]]
+            first.seeds = seeds
+        return first
 
     def decode(self, frame: Frame, camera: str) -> np.ndarray:
         """The clean image; the first DECODE_CACHE_BYTES of decoded images stay in memory for the next cells.
@@ -160,7 +180,7 @@ class RunContext:
         return found
 
     def stream(self, planner: Any, family: str, severity: int, frames: list[Frame], *,
-               unread: tuple[str, ...]) -> Iterator[tuple[CellSample, np.ndarray | str]]:
+               unread: tuple[str, ...], seed: int | None = None) -> Iterator[tuple[CellSample, np.ndarray | str]]:
         """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each
         frame its sample and the validated plan, or the one-line reason the frame failed.
 
@@ -170,7 +190,8 @@ class RunContext:
         """
         style = call_style(planner)
         scene = None
-        for sample in samples(frames, family, severity, seed=self.seed, decode=self.decode, unread=unread):
+        seed = self.seed if seed is None else seed
+        for sample in samples(frames, family, severity, seed=seed, decode=self.decode, unread=unread):
             frame = sample.frame
             if style.resets and frame.scene_token != scene:
                 try:
@@ -205,9 +226,10 @@ class RunContext:
         except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
             return describe_failure(exc, frame.token)
 
-    def run_cell(self, planner: Any, family: str, severity: int, *,
-                 unread: tuple[str, ...] | None = None) -> CellRecord:
-        """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message."""
+    def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
+                 seed: int | None = None) -> CellRecord:
+        """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message.
+        `seed` overrides the run's seed (one of `seeds_for`)."""
         if unread is None:  # the cameras only: the floor model needs no fingerprint
             unread = unread_cameras(planner_cameras(planner))
         n = len(self.frames)
@@ -217,7 +239,8 @@ class RunContext:
         errors: list[str] = []
         spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "check": 0.0}
         start = last = time.perf_counter()
-        for i, (sample, result) in enumerate(self.stream(planner, family, severity, self.frames, unread=unread)):
+        for i, (sample, result) in enumerate(self.stream(planner, family, severity, self.frames, unread=unread,
+                                                                   seed=seed)):
             elapsed = time.perf_counter() - last  # predict() plus the lazy decode, injection and input check
             for part in ("decode", "inject", "check"):
                 spent[part] += sample.seconds[part]

@@ -19,7 +19,7 @@ from ..report.junit import plain
 from ..run import MAX_MESSAGES, RunContext
 from ..scoring.baseline import cell_regression
 from ..scoring.records import horizon_metrics
-from ..scoring.retention import paired_retention
+from ..scoring.retention import record_retention
 from ..store import ResultStore
 
 
@@ -32,12 +32,16 @@ def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
     return tuple((name, plain(row[name])) for name in TESTCASE)
 
 
-def _conformance(record: CellRecord) -> list[str]:
+def _conformance(record: CellRecord, seed: int | None = None) -> list[str]:
+    if seed is None and record.seed_runs:  # one block per seed run that failed
+        return [line for run, s in zip(record.runs(), record.seeds) for line in _conformance(run, s)]
     if not record.errors:
         return []
     shown = record.errors[:MAX_MESSAGES]
     more = len(record.errors) - len(shown)
-    head = f"cell {record.cell}: {len(record.errors)} of {len(record.frames)} frames failed the planner contract"
+    under = "" if seed is None else f" (corruption seed {seed})"
+    head = (f"cell {record.cell}{under}: {len(record.errors)} of {len(record.frames)} frames failed the planner "
+            "contract")
     return [head, *(f"  {e}" for e in shown), *([f"  ... and {more} more"] if more else [])]
 
 
@@ -85,7 +89,7 @@ def _identity(context: RunContext, planner: Any, record: CellRecord, clean: Cell
 def _reusable(stored: CellPayload | None) -> CellRecord | None:
     """A stored record a rerun may reuse: one without per-frame failures. A failed frame may have been a fixed
     data file (a re-extracted JPEG keeps the data set's fingerprint) or a transient hang, so it is run again."""
-    if stored is None or stored.record.errors:
+    if stored is None or any(run.errors for run in stored.record.runs()):
         return None
     return stored.record
 
@@ -105,7 +109,7 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
     if cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
         record = context.clean_record(planner, lambda: stored)
     else:
-        record = stored or context.run_cell(planner, family, severity)
+        record = stored or context.run_seeded_cell(planner, family, severity)
     failures = _conformance(record)
     unread = context.planner_info(planner).unread
     rear = rear_cameras()
@@ -115,7 +119,7 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         if cell == "null" or rear_is_null:
             failures += _identity(context, planner, record, clean, unread if cell == "null" else rear)
         if baseline is not None:
-            retention = paired_retention(clean.l2_avg_per_frame(), record.l2_avg_per_frame())
+            retention = record_retention(clean, record)
             reg = cell_regression(cell, retention, baseline, tolerance)
             if reg:
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")

@@ -33,7 +33,8 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
         root = ensure_default_world(cache_root(config),
                                     progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
     return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
-                           timeout=options.timeout, planner_path=options.planner_path, shard=options.shard)
+                           timeout=options.timeout, planner_path=options.planner_path, shard=options.shard,
+                           seeds=options.seeds)
 
 
 @pytest.fixture(scope="session")

@@ -113,7 +113,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     per_frame = floor_per_frame(config, context, options.split, out.lines)
     floor = None if per_frame is None else finite_mean(per_frame)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
-    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor)
+    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
+                           seeds=options.seeds)
     prov = provenance(options, context, run.planner, run.key, _command(config))
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
@@ -160,7 +161,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     per_frame = floor_per_frame(config, context, options.split, out.lines)
     prov = provenance(options, context, run.planner, run.key, _command(config))
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
-                              provenance=prov, flat=options.flat, frames_total=context.frames_total,
+                              provenance=prov, flat=options.flat, seeds=options.seeds,
+                              frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in run_order(options.families, options.severities)],
                               missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),
                               gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),

@@ -42,6 +42,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "all five)", {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-seed", "drivedegrade_seed", "seed of every random corruption (default 0)",
                {"metavar": "INT"}),
+    OptionSpec("--drivedegrade-seeds", "drivedegrade_seeds", "run each random family's cells under N corruption "
+               "seeds (seed, seed+1, ...) and fold them into the intervals (default 1)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-report", "drivedegrade_report", "folder for <planner>/cells.csv, report.html and "
                "certificate.json (default reports)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-baseline", "drivedegrade_baseline", "a stored certificate.json: fail cells and axes "
@@ -116,6 +118,7 @@ class RunOptions:
     flat: float
     timeout: float
     shard: Shard | None = None
+    seeds: int = 1
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -160,4 +163,5 @@ def parse(config: pytest.Config) -> RunOptions:
         flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
         shard=shard,
+        seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
     )

@@ -135,7 +135,7 @@ class DriveDegradeSession:
 
         try:
             check_baseline_compatible(self.baseline, spec_version=SPEC_VERSION,
-                                      dataset_fingerprint=context.dataset_fingerprint)
+                                      dataset_fingerprint=context.dataset_fingerprint, seeds=self.options.seeds)
         except BaselineError as exc:
             raise pytest.UsageError(f"--drivedegrade-baseline: {self.options.baseline_path}: {exc}") from None
 

@@ -64,6 +64,17 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return format_value(value, digits, missing="—")
 
 
+def _range(ci: Any, digits: int = 3, never: str = "never") -> str:
+    """"low – high" of a [low, high] interval; an open (null) bound reads `never`; "—" without an interval."""
+    if not ci:
+        return "—"
+    return " – ".join(never if v is None else f"{v:.{digits}f}" for v in ci)
+
+
+def _share(value: Any) -> str:
+    return "—" if value is None else f"{100 * value:.0f} %"
+
+
 def _family_info(families: Mapping[str, Any] | None) -> dict[str, dict[str, str]]:
     """group / axis / S5 parameter per family, from the registry when it is importable."""
     if families is None:
@@ -87,6 +98,8 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
     info = _family_info(families)
     s5 = {s.family: s for s in analysis.summaries if s.severity == 5}
     thresholds = [{"family": fam, **info.get(fam, {}), "s10": _fmt(t["s10"], 2), "s25": _fmt(t["s25"], 2),
+                   "s10_ci": _range(t.get("s10_ci"), 2), "s25_ci": _range(t.get("s25_ci"), 2),
+                   "s10_never": _share(t.get("s10_never")), "s25_never": _share(t.get("s25_never")),
                    "r5": _fmt(s5[fam].retention) if fam in s5 else "—",
                    "ci5": (f"{_fmt(s5[fam].retention_ci_low)} – {_fmt(s5[fam].retention_ci_high)}"
                            if fam in s5 else "—")} for fam, t in analysis.thresholds.items()]
@@ -95,9 +108,12 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
               "shift": _fmt(s.metrics.get("endpoint_shift")), "energy": _fmt(s.metrics.get("energy")),
               "sep": _fmt(s.separable_from_null), "errors": s.conformance_errors,
               "low": math.isfinite(s.retention) and s.retention < 0.9} for s in analysis.summaries]
-    axes = {k: _fmt(v) for k, v in analysis.axes.items() if k != "missing"}
+    axes = {k: _fmt(v) for k, v in analysis.axes.items() if k != "missing" and not k.endswith("_ci")}
+    ranges = {k: _range(analysis.axes.get(f"{k}_ci")) for k in ("quality", "removal", "gap", "mean")}
     return {"p": provenance, "verdict": analysis.verdict, "label_class": LABEL_CLASS.get(analysis.verdict["label"]),
-            "axes": axes, "missing": analysis.axes.get("missing", []), "null": analysis.null_control,
+            "axes": axes, "ranges": ranges, "confidence": analysis.verdict.get("confidence"),
+            "borderline": bool(analysis.verdict.get("borderline")), "missing": analysis.axes.get("missing", []),
+            "null": analysis.null_control,
             "floor": {k: _fmt(v) for k, v in analysis.floor.items()}, "settings": analysis.settings,
             "thresholds": thresholds, "cells": cells, "charts": charts, **extra}
 

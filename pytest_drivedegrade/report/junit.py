@@ -51,7 +51,11 @@ def suite_properties(analysis: RunAnalysis | Mapping[str, Any]) -> list[tuple[st
                                   for k in ("quality", "removal", "gap", "mean", "dropout", "occlusion")]
     verdict = data["verdict"]
     out += [("verdict", verdict["label"]), ("verdict_flat", verdict["flat"]),
-            ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"])]
+            ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"]),
+            ("verdict_confidence", verdict.get("confidence"))]
+    for k in ("quality", "removal", "gap", "mean"):
+        ci = data["axes"].get(f"{k}_ci") or (None, None)
+        out += [(f"axis_{k}_ci_low", ci[0]), (f"axis_{k}_ci_high", ci[1])]
     nc = data.get("null_control") or {}
     out += [("null_control_passed", nc.get("passed")), ("null_control_max_abs_diff", nc.get("max_abs_diff"))]
     out += [("floor_l2_avg", (data.get("floor") or {}).get("l2_avg"))]

@@ -27,8 +27,8 @@ from .certificate import Provenance
 SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
 #: Manifest fields every shard of one run shares.
-SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "count",
-            "flat", "frames_total", "cells")
+SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "seeds",
+            "count", "flat", "frames_total", "cells")
 
 
 @dataclass(frozen=True)
@@ -178,6 +178,9 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         names = ", ".join(f"{i}/{first['count']}" for i in missing_shards)
         raise DriveDegradeError(f"missing shard(s) {names}: run them (--drivedegrade-shard I/N) and merge again, or "
                                 "pass --allow-incomplete to write a certificate that says completeness: false")
+    if int(first.get("seeds", 1)) > 1:
+        raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
+                                "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
     records = _records(_table(shards), shards, cells)
     if "clean" not in records:
@@ -200,14 +203,14 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
-                   flat: float, frames_total: int, cells: Sequence[str], missing: Sequence[str],
+                   flat: float, seeds: int, frames_total: int, cells: Sequence[str], missing: Sequence[str],
                    floor_l2: Sequence[float] | None, gt: Mapping[str, Any], data_root: str,
                    front: tuple[str, str] | None = None) -> dict[str, Any]:
     """What a shard run writes beside its cells for the merge."""
     return {"schema": SHARD_SCHEMA, "index": index, "count": count, "planner": planner, "key": dict(key),
             "planner_fingerprint": provenance.planner_fingerprint,
             "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
-            "spec_version": provenance.spec_version, "seed": provenance.seed, "flat": flat,
+            "spec_version": provenance.spec_version, "seed": provenance.seed, "seeds": seeds, "flat": flat,
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "data_source": provenance.data_source, "tool_version": provenance.tool_version,
             "cells": list(cells), "missing_cells": list(missing),

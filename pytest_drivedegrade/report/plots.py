@@ -99,12 +99,30 @@ def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, 
             x = thresholds.get(fam, {}).get(key)
             if x is not None:
                 ax.plot([x], [level], marker="v", color=LEVEL_COLORS[key], markersize=6)
+            span = _span(thresholds.get(fam, {}).get(f"{key}_ci"), x, hi=5.2)
+            if span is not None:  # the threshold's 95 % interval (to the edge when some resamples never cross)
+                ax.plot(span, [level, level], color=LEVEL_COLORS[key], linewidth=3.2, alpha=0.45,
+                        solid_capstyle="butt")
         ax.set_title(fam, fontsize=9.5, color=INK, loc="left", fontweight="bold")
         ax.set_xlim(-0.2, 5.2)
         ax.set_xticks(range(6), ["clean", "S1", "S2", "S3", "S4", "S5"])
         ax.set_ylim(ymin, 1.08)
     fig.tight_layout(h_pad=1.2, w_pad=1.0)
     return to_data_uri(fig)
+
+
+def _span(ci: Any, point: float | None, hi: float) -> tuple[float, float] | None:
+    """An interval to draw: an open (null) upper bound runs to `hi`; None when there is nothing to draw."""
+    if not ci or ci[0] is None:
+        return None
+    return float(ci[0]), float(hi if ci[1] is None else ci[1])
+
+
+def _yerr(point: float, ci: Any) -> list[list[float]] | None:
+    """matplotlib's asymmetric error for one point from its [low, high]; None without a finite interval."""
+    if not ci or ci[0] is None or ci[1] is None:
+        return None
+    return [[max(0.0, point - float(ci[0]))], [max(0.0, float(ci[1]) - point)]]
 
 
 def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
@@ -148,7 +166,8 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     q, r = axes.get("quality"), axes.get("removal")
     if q is None or r is None:
         return None
-    pts = [v for v in (q, r, blind, *floor) if v is not None and math.isfinite(v)]
+    bounds = [v for k in ("quality_ci", "removal_ci") for v in (axes.get(k) or ()) if v is not None]
+    pts = [v for v in (q, r, blind, *floor, *bounds) if v is not None and math.isfinite(v)]
     lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
     fig = _figure(5.2, 4.6)
     ax = fig.add_subplot(1, 1, 1)
@@ -164,6 +183,10 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     ax.scatter([floor[0]], [floor[1]], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
     if blind is not None and math.isfinite(blind):
         ax.scatter([blind], [blind], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")
+    xerr, yerr = _yerr(q, axes.get("quality_ci")), _yerr(r, axes.get("removal_ci"))
+    if xerr is not None or yerr is not None:  # the axes' 95 % intervals from the joint bootstrap
+        ax.errorbar([q], [r], xerr=xerr, yerr=yerr, fmt="none", ecolor=ACCENT, elinewidth=1.4, capsize=4,
+                    zorder=3.5)
     ax.scatter([q], [r], marker="o", s=90, color=ACCENT, edgecolor="white", zorder=4, label=_label(planner))
     ax.set_xlim(lo, 1.08)
     ax.set_ylim(lo, 1.08)

@@ -7,6 +7,38 @@ from collections.abc import Sequence
 from ..scoring.records import RunAnalysis, format_value
 
 
+def format_interval(ci: Sequence[float | None] | None, digits: int = 3, never: str = "never") -> str:
+    """[low, high] for people; an open (null) bound reads `never` (a threshold not reached in those resamples)."""
+    if not ci:
+        return "n/a"
+    low, high = (never if v is None else f"{v:.{digits}f}" for v in ci)
+    return f"[{low}, {high}]"
+
+
+def interval_lines(analysis: RunAnalysis) -> list[str]:
+    """The intervals of the axes, the verdict's confidence and the thresholds' intervals (issue 15)."""
+    ax, verdict = analysis.axes, analysis.verdict
+    if verdict.get("confidence") is None and all(ax.get(f"{k}_ci") is None for k in ("quality", "removal")):
+        return []
+    n = analysis.settings.get("n_resamples")
+    seeds = analysis.settings.get("seeds", 1)
+    how = f"{n} paired resamples" + (f" over frames and {seeds} seeds" if seeds and seeds > 1 else " of frames")
+    lines = ["axes 95% intervals: " + "  ".join(f"{k} {format_interval(ax.get(f'{k}_ci'))}"
+                                                  for k in ("quality", "removal", "gap", "mean"))]
+    if verdict.get("confidence") is not None:
+        state = "BORDERLINE" if verdict.get("borderline") else "stable"
+        lines.append(f"verdict confidence: {verdict['confidence']:.3f} ({state}; share of {how} giving this label)")
+    rows = [(fam, t) for fam, t in analysis.thresholds.items() if t.get("s10_ci") is not None or
+            t.get("s25_ci") is not None]
+    if rows:
+        lines.append(f"{'thresholds 95%':15s}{'s*10':>16s}{'never':>7s}{'s*25':>16s}{'never':>7s}")
+        for fam, t in rows:
+            lines.append(f"{fam:15s}" + "".join(
+                f"{format_interval(t.get(k + '_ci'), 2):>16s}{format_value(t.get(k + '_never'), 2):>7s}"
+                for k in ("s10", "s25")))
+    return lines
+
+
 def retention_table(analysis: RunAnalysis) -> list[str]:
     """Family x severity retention, with s*10 / s*25, as fixed-width lines."""
     by_family: dict[str, dict[int, float]] = {}
@@ -41,6 +73,7 @@ def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
     if clean is not None:
         lines.append(f"clean l2_avg {format_value(clean.l2_avg)} m; ego-only floor l2_avg {format_value(floor)} m")
     lines += retention_table(analysis)
+    lines += interval_lines(analysis)
     if missing:
         lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
                      "compute only these (finished cells are reused)")

@@ -76,7 +76,7 @@ class RunAnalysis:
     """Everything the reports show, as plain builtins (summaries aside, which ``to_builtins`` flattens)."""
 
     summaries: list[CellSummary]
-    thresholds: dict[str, dict[str, float | None]]
+    thresholds: dict[str, dict[str, Any]]
     axes: dict[str, Any]
     verdict: dict[str, Any]
     null_control: dict[str, Any] | None

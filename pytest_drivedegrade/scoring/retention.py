@@ -68,12 +68,44 @@ def paired_retention(m_clean: np.ndarray, m_cell: np.ndarray, kind: str = "error
     return float(retention(finite_mean(m_clean[paired]), finite_mean(m_cell[paired]), kind))
 
 
+def record_retention(clean: CellRecord, record: CellRecord, convention: str = "stp3", kind: str = "error") -> float:
+    """A cell's retention: `paired_retention` of each seed run against clean, averaged over the seeds (one run:
+    exactly its paired retention)."""
+    m_clean = clean.l2_avg_per_frame(convention)
+    values = [paired_retention(m_clean, run.l2_avg_per_frame(convention), kind) for run in record.runs()]
+    return values[0] if len(values) == 1 else finite_mean(values)
+
+
+def _seed_mean(values: Iterable[dict[str, float]]) -> dict[str, float]:
+    """Key-wise mean over seed runs (NaN runs left out)."""
+    rows = list(values)
+    return {k: finite_mean([row[k] for row in rows]) for k in rows[0]}
+
+
 def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "stp3", kind: str = "error",
-                   n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0) -> CellSummary:
-    """A cell's metrics, its retention against `clean` and the paired bootstrap CI."""
+                   n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
+                   ci: tuple[float, float] | None = None) -> CellSummary:
+    """A cell's metrics, its retention against `clean` and the paired bootstrap CI.
+
+    A cell run under several seeds reports the mean over its seed runs of every metric and of retention, and
+    takes its CI from `ci` (the two-level bootstrap of ``intervals``); `frames` counts the frames finite in
+    every run, `conformance_errors` the failures of all runs.
+    """
     if record.frames != clean.frames:
         raise InvalidInput(f"cell {record.cell!r} was scored on other frames than the clean cell")
     m_clean, m_cell = clean.l2_avg_per_frame(convention), record.l2_avg_per_frame(convention)
+    if record.seed_runs:
+        runs = record.runs()
+        per_run = [{**horizon_metrics(run), "endpoint_shift": finite_mean(run.endpoint_shift(clean)),
+                    "energy": float(retention(finite_mean(clean.bit1), finite_mean(run.bit1), "reward")),
+                    "l2_avg": finite_mean(run.l2_avg_per_frame(convention))} for run in runs]
+        metrics = _seed_mean(per_run)
+        l2 = metrics.pop("l2_avg")
+        r = record_retention(clean, record, convention, kind)
+        low, high = ci if ci is not None else (math.nan, math.nan)
+        finite = np.all([np.isfinite(run.l2_avg_per_frame(convention)) for run in runs], axis=0)
+        return CellSummary(record.cell, record.family, record.severity, int(finite.sum()), l2, r, low, high,
+                           metrics, conformance_errors=sum(len(run.errors) for run in runs))
     metrics = horizon_metrics(record)
     metrics["endpoint_shift"] = finite_mean(record.endpoint_shift(clean))
     metrics["energy"] = float(retention(finite_mean(clean.bit1), finite_mean(record.bit1), "reward"))
@@ -106,7 +138,7 @@ def tolerance_threshold(curve: Mapping[int, float], level: float) -> float | Non
     return None
 
 
-def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, float | None]]:
+def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, Any]]:
     """family -> {"s10": x|None, "s25": x|None} for every ladder family among the summaries."""
     curves: dict[str, dict[int, float]] = {}
     for s in summaries:

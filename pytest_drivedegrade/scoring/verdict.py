@@ -13,9 +13,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellRecord, cell_id, differing_frames, identical_plans, report_order
+from ..cells import DIAGNOSTIC, CellRecord, cell_id, differing_frames, identical_plans, report_order
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
 from ..errors import InvalidInput
+from . import intervals as iv
 from .records import CellSummary, RunAnalysis, format_value
 from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
 
@@ -151,14 +152,18 @@ def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], r
 
 def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
                 convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
-                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None) -> RunAnalysis:
+                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
+                intervals: bool = True) -> RunAnalysis:
     """Every figure of a run from its cell records (in any order; the result does not depend on it).
 
     Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
-    in a cell drops out of that cell's comparison only).
+    in a cell drops out of that cell's comparison only). A cell run under several seeds has the mean of its
+    per-seed retentions and the two-level bootstrap's CI.
 
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
-    floor's clean l2_avg when it was run.
+    floor's clean l2_avg when it was run; `seeds` the run's ``--drivedegrade-seeds`` (recorded in the
+    settings). With `intervals` (the default) the thresholds, axes and verdict get their intervals from one
+    joint bootstrap of every ladder cell (``scoring.intervals``); without, those fields are None.
     """
     recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
     by_cell = {r.cell: r for r in recs}
@@ -166,8 +171,14 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
         raise InvalidInput("no clean cell among the results: retention needs it (was it deselected with -k?)")
     groups = groups or FamilyGroups.from_registry()
     clean = by_cell["clean"]
-    summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed)
-                 for r in by_cell.values()]  # a cell recorded twice (a resumed run) counts once: the last
+    ladder = [r for r in by_cell.values() if r.family not in DIAGNOSTIC]
+    res = None
+    if intervals and n_resamples > 0 and ladder:
+        res = iv.resample_cells(clean.l2_avg_per_frame(convention),
+                                {r.cell: [run.l2_avg_per_frame(convention) for run in r.runs()] for r in ladder},
+                                kind=kind, n_resamples=n_resamples, seed=seed)
+    summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed,
+                                ci=_seed_ci(res, r)) for r in by_cell.values()]  # a resumed duplicate counts once
     summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
     nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
     wander = nc["max_l2_change"] if nc else 0.0
@@ -175,8 +186,43 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
         if s.cell not in ("clean", "null"):
             s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
     ax = compute_axes({s.family: s.retention for s in summaries if s.severity == 5}, groups)
+    th = thresholds(summaries)
+    per: dict[str, Any] = {"quality": None, "removal": None, "gap": None, "mean": None}
+    if res is not None:
+        curves: dict[str, dict[int, str]] = {}
+        for s in summaries:
+            if s.family not in DIAGNOSTIC:
+                curves.setdefault(s.family, {})[s.severity] = s.cell
+        for fam, entry in iv.threshold_intervals(res, curves).items():
+            th[fam].update(entry)
+        s5 = {fam: cells[5] for fam, cells in curves.items() if 5 in cells}
+        per = iv.axes_per_resample(res, s5, groups.quality, groups.removal, groups.core)
+    for t in th.values():
+        for key in THRESHOLD_LEVELS:
+            t.setdefault(f"{key}_ci", None)
+            t.setdefault(f"{key}_never", None)
+    ax.update(iv.axis_intervals(per))
+    v = verdict(ax, flat)
+    confidence = iv.verdict_confidence(v["label"], per["quality"], per["removal"], flat) if res else None
+    v["confidence"] = confidence
+    v["borderline"] = confidence is not None and confidence < iv.BORDERLINE
+    if v["borderline"]:
+        v["text"] += iv.borderline_text(cast(float, confidence))
     settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
                 "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
-                "tolerance_default": DEFAULT_TOLERANCE}
-    return RunAnalysis(summaries, thresholds(summaries), ax, verdict(ax, flat), nc,
-                       floor_comparison(floor_l2, summaries, groups.removal), settings)
+                "tolerance_default": DEFAULT_TOLERANCE, "seeds": int(seeds),
+                "seed_values": [int(seed) + k for k in range(int(seeds))],
+                "intervals": {"computed": res is not None,
+                              "scheme": "seeds then frames" if res is not None and res.n_seeds > 1 else
+                              "paired frames", "percentile": "linear", "never": "+inf (null bound)"}}
+    return RunAnalysis(summaries, th, ax, v, nc, floor_comparison(floor_l2, summaries, groups.removal), settings)
+
+
+def _seed_ci(res: iv.Resamples | None, record: CellRecord) -> tuple[float, float] | None:
+    """A multi-seed cell's CI from the two-level bootstrap (None for a one-run cell: it keeps its own)."""
+    if not record.seed_runs or res is None or record.cell not in res.retention:
+        return None
+    got = iv.percentile_interval(res.retention[record.cell])
+    if got is None:
+        return math.nan, math.nan
+    return (math.nan if got[0] is None else got[0]), (math.inf if got[1] is None else got[1])

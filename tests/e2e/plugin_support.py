@@ -20,6 +20,7 @@ from typing import Any
 import jinja2  # noqa: F401
 import pytest
 
+import pytest_drivedegrade.plugin.session  # noqa: F401 - with plugin.context: one SESSION_KEY for every run
 import pytest_drivedegrade.report.html  # noqa: F401
 import pytest_drivedegrade.report.plots  # noqa: F401
 import pytest_drivedegrade.run  # noqa: F401

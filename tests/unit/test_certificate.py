@@ -43,7 +43,7 @@ def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
     assert cert["dataset"]["fingerprint"] == "sha256:data" and cert["dataset"]["split"] == "val"
     cell = cert["cells"][3]
     assert {"cell", "family", "severity", "l2_avg", "retention", "retention_ci_low", "retention_ci_high"} <= set(cell)
-    assert set(cert["thresholds"]["fog"]) == {"s10", "s25"}
+    assert set(cert["thresholds"]["fog"]) == {"s10", "s25", "s10_ci", "s25_ci", "s10_never", "s25_never"}
     assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
     assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
     assert cert["verdict"]["label"] in vd.VERDICT_LABELS and cert["settings"]["flat"] == 0.95

@@ -210,6 +210,9 @@ class FakeContext:
         self.ran.append(cell_id(family, severity))
         return self.records[cell_id(family, severity)]
 
+    def run_seeded_cell(self, planner: Any, family: str, severity: int) -> CellRecord:
+        return self.run_cell(planner, family, severity)  # one seed: the cell's only run
+
     def clean_record(self, planner: Any, stored: Any = lambda: None) -> CellRecord:
         if self._clean is None:
             self._clean = stored() or self.run_cell(planner, "clean", 0)
