@@ -60,6 +60,11 @@ def official_split(split: str) -> set[str]:
     return names
 
 
+def official_scene_names(split: str) -> list[str]:
+    """Scene names of an official nuScenes split in scene-number order."""
+    return sorted(official_split(split), key=lambda name: int(name.rpartition("-")[2]))
+
+
 def _load_table(path: Path) -> list[dict]:
     if not path.is_file():
         raise DataError(f"missing nuScenes table {path}: the data root must hold every table of the version "

@@ -40,15 +40,22 @@ def test_layout_is_nuscenes(world):
     for cam in CAMERAS:
         assert len(list((world / "samples" / cam).glob("*.jpg"))) == KEYFRAMES  # the val scene only
     manifest = json.loads((world / build.MANIFEST).read_text())
-    assert manifest["splits"] == {"train": ["scene-0001"], "val": ["scene-0002"]}
+    assert manifest["splits"] == {"train": ["scene-0001"], "val": ["scene-0003"]}  # the official lists agree
     assert len(manifest["fingerprint"]) == 32
+    assert WORLD_VERSION == "v1.0-trainval"
+    clouds = sorted((world / "samples" / "LIDAR_TOP").glob("*.pcd.bin"))
+    assert len(clouds) == 2 * KEYFRAMES  # every keyframe of both scenes, train included
+    points = np.fromfile(clouds[0], np.float32).reshape(-1, 5)
+    assert len(points) > 100 and set(np.unique(points[:, 4])) <= set(range(32))
+    categories = json.loads((world / WORLD_VERSION / "category.json").read_text())
+    assert {c["name"]: c["index"] for c in categories}["vehicle.car"] == 17
 
 
 def test_futures_equal_the_expert_log_and_commands_follow_the_rule(world):
     reader = NuScenesReader(world, split="val")
     frames = list(reader.frames())
     assert len(frames) == KEYFRAMES and sum(f.scorable for f in frames) == KEYFRAMES - 6
-    scene = make_scene(3, 1, "scene-0002")
+    scene = make_scene(3, 1, "scene-0003")
     keys = scene.key_steps
     for k, frame in enumerate(frames):
         origin, yaw = scene.ego.xy[keys[k]], scene.ego.yaw[keys[k]]

@@ -180,7 +180,7 @@ def world(tmp_path_factory):
 
 def test_world_writes_a_map_per_location_and_the_reader_loads_it(world):
     logs = json.loads((world / WORLD_VERSION / "log.json").read_text())
-    assert [r["location"] for r in logs] == ["ddworld-s4-scene-0001", "ddworld-s4-scene-0002"]
+    assert [r["location"] for r in logs] == ["ddworld-s4-scene-0001", "ddworld-s4-scene-0003"]
     for r in logs:
         data = json.loads(expansion_path(world, r["location"]).read_text())
         assert data["version"] == "1.3" and len(data["drivable_area"]) == 1
@@ -201,7 +201,7 @@ def test_world_writes_a_map_per_location_and_the_reader_loads_it(world):
 
 def test_frame_pose_maps_ego_frame_points_to_the_world(world):
     frame = NuScenesReader(world, split="val").scorable_frames(limit=3)[1]
-    scene = make_scene(4, 1, "scene-0002")
+    scene = make_scene(4, 1, "scene-0003")
     k = next(i for i in range(len(scene.key_steps)) if scene.ego.xy[scene.key_steps[i], 0] == frame.pose[0])
     steps = scene.key_steps[k + 1:k + 7]
     np.testing.assert_allclose(frame.to_global(frame.gt_future), scene.ego.xy[steps], atol=1e-6)

@@ -16,26 +16,39 @@ from typing import Any
 
 from ...errors import DataError
 from ..maps import expansion_path
-from ..nuscenes import WORLD_MANIFEST
+from ..nuscenes import WORLD_MANIFEST, official_scene_names
 from . import export
 from .rig import Rig
 from .scene import KEYFRAMES, make_scene
 
-GENERATOR_VERSION = "2.1.0"
-WORLD_VERSION = "v1.0-ddworld"
+GENERATOR_VERSION = "3.0.0"
+#: The version folder: the name the converters of planner code bases accept (mmdet3d, UniAD, VAD).
+WORLD_VERSION = "v1.0-trainval"
 MANIFEST = WORLD_MANIFEST  # the file the reader looks for
 DEFAULT_SCENES = 100  # 94 train scenes (3196 scorable frames) and 6 val scenes (204 scorable frames)
 MAX_VAL_SCENES = 6  # val is what a certification scores (83 cells x its frames): enough, and bounded
 SCORABLE_PER_SCENE = KEYFRAMES - 6
+#: Scene numbers nuscenes-devkit's `NuScenesCanBus.get_messages` refuses (its `can_blacklist`).
+CAN_BLACKLIST = frozenset((*range(161, 169), *range(170, 177), *range(309, 315)))
 
 Progress = Callable[[str], None] | None
 
 
 def split_names(n: int) -> tuple[list[str], list[str]]:
-    """Scene names of the train and val splits: the last tenth (at least one, at most MAX_VAL_SCENES) is val."""
-    names = [f"scene-{i + 1:04d}" for i in range(n)]
+    """Scene names of the train and val splits: the last tenth (at least one, at most MAX_VAL_SCENES) is val.
+
+    Names are the official nuScenes split's (`nuscenes.utils.splits`), in scene-number order: train scenes take
+    the first names of the official train list, val scenes the first of the official val list, so a converter
+    that selects scenes by the official lists (mmdet3d's, UniAD's, VAD's `create_nuscenes_infos`) puts every
+    world scene in the split the suite scores it in. Train scenes beyond the official list's 700 are
+    `ddworld-NNNN`, which no official list names (the manifest's `splits` still does). Scene numbers the devkit's
+    `NuScenesCanBus` refuses (`CAN_BLACKLIST`: real logs without CAN bus data) are skipped, so UniAD's and VAD's
+    converters read every world scene's `can_bus/<scene>_pose.json`.
+    """
     n_val = min(max(1, -(-n // 10)), MAX_VAL_SCENES)
-    return names[: n - n_val], names[n - n_val:]
+    official = [s for s in official_scene_names("train") if int(s[-4:]) not in CAN_BLACKLIST]
+    train = [official[i] if i < len(official) else f"ddworld-{i + 1:04d}" for i in range(n - n_val)]
+    return train, [s for s in official_scene_names("val") if int(s[-4:]) not in CAN_BLACKLIST][:n_val]
 
 
 def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size: bool = False,
@@ -66,7 +79,10 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
         scene = make_scene(seed, i, name)
         split = "val" if name in val else "train"
         events[split] += scene.events[:SCORABLE_PER_SCENE]
-        export.scene_tables(scene, seed, tables, rig)
+        for path, data in export.scene_tables(scene, seed, tables, rig).items():
+            (root / path).parent.mkdir(parents=True, exist_ok=True)
+            (root / path).write_bytes(data)
+            digest.update(hashlib.blake2b(data, digest_size=16).digest())
         export.dump(root / "can_bus" / f"{name}_pose.json", export.can_bus(scene))
         digest.update(export.dump(expansion_path(root, export.location(scene, seed)),
                                   export.map_expansion(scene, seed)))

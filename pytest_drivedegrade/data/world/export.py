@@ -16,7 +16,7 @@ import numpy as np
 from ...constants import CAMERAS
 from ..geometry import yaw_to_quat
 from ..maps import EXPANSION_VERSION
-from . import models, render, texture
+from . import models, render, sensing, texture
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
 from .rig import Rig
@@ -29,6 +29,10 @@ ATTRIBUTES = ("vehicle.moving", "vehicle.stopped", "vehicle.parked", "pedestrian
               "pedestrian.standing", "cycle.with_rider")
 VISIBILITY = (("1", "v0-40"), ("2", "v40-60"), ("3", "v60-80"), ("4", "v80-100"))
 JPEG_QUALITY = 90
+LIDAR = "LIDAR_TOP"
+#: nuScenes v1.0's category `index` (the lidarseg class index) of the real taxonomy's names the world uses.
+CATEGORY_INDEX = {"human.pedestrian.adult": 2, "vehicle.bicycle": 14, "vehicle.bus.rigid": 16, "vehicle.car": 17,
+                  "vehicle.truck": 23}
 MAP_TOLERANCE = 0.01  # m: the map's polygons stay this close to the painted carriageway edges
 #: Map expansion layers written empty (the world maps only its drivable area), so the file has the full schema.
 EMPTY_MAP_LAYERS = ("line", "road_segment", "road_block", "lane", "ped_crossing", "walkway", "stop_line",
@@ -41,6 +45,10 @@ def token(seed: int, *parts) -> str:
 
 def image_name(scene: Scene, cam: str, k: int) -> str:
     return f"samples/{cam}/ddworld-s{scene.seed}-{scene.name}__{cam}__{timestamp(scene, k)}.jpg"
+
+
+def lidar_name(scene: Scene, k: int) -> str:
+    return f"samples/{LIDAR}/ddworld-s{scene.seed}-{scene.name}__{LIDAR}__{timestamp(scene, k)}.pcd.bin"
 
 
 def timestamp(scene: Scene, k: int) -> int:
@@ -61,8 +69,13 @@ def static_tables(seed: int, rig: Rig) -> dict[str, list[dict]]:
         t["calibrated_sensor"].append({"token": token(seed, "calib", cam), "sensor_token": token(seed, "sensor", cam),
                                        "translation": list(info.translation), "rotation": list(info.rotation),
                                        "camera_intrinsic": info.intrinsic.tolist()})
+    t["sensor"].append({"token": token(seed, "sensor", LIDAR), "channel": LIDAR, "modality": "lidar"})
+    t["calibrated_sensor"].append({"token": token(seed, "calib", LIDAR), "sensor_token": token(seed, "sensor", LIDAR),
+                                   "translation": list(sensing.LIDAR_TRANSLATION),
+                                   "rotation": list(sensing.LIDAR_ROTATION), "camera_intrinsic": []})
     t["category"] = [{"token": token(seed, "category", KINDS[k][0]), "name": KINDS[k][0],
-                      "description": f"drivedegrade world {k}"} for k in KINDS]
+                      "description": f"drivedegrade world {k}", "index": CATEGORY_INDEX[KINDS[k][0]]}
+                     for k in KINDS]
     t["attribute"] = [{"token": token(seed, "attribute", a), "name": a, "description": a} for a in ATTRIBUTES]
     t["visibility"] = [{"token": tok, "level": lvl, "description": f"visibility of whole object {lvl}"}
                        for tok, lvl in VISIBILITY]
@@ -78,8 +91,10 @@ def _attribute(agent, step: int) -> str:
     return "vehicle.parked" if agent.parked else ("vehicle.moving" if moving else "vehicle.stopped")
 
 
-def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) -> None:
-    """Append one scene's records (log, scene, samples, poses, sample_data, annotations, instances)."""
+def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) -> dict[str, bytes]:
+    """Append one scene's records (log, scene, samples, poses, sample_data, annotations, instances); returns
+    the LIDAR_TOP point clouds to write (file name -> ``.pcd.bin`` bytes)."""
+    clouds: dict[str, bytes] = {}
     log_tok, scene_tok = token(seed, "log", scene.index), token(seed, "scene", scene.index)
     t["log"].append({"token": log_tok, "logfile": f"ddworld-s{seed}-{scene.name}", "vehicle": "ddworld-ego",
                      "date_captured": "2018-08-01", "location": location(scene, seed)})
@@ -102,19 +117,32 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
                                      "fileformat": "jpg", "is_key_frame": True, "height": rig.cameras[cam].height,
                                      "width": rig.cameras[cam].width, "filename": image_name(scene, cam, k),
                                      "prev": sd(k - 1), "next": sd(k + 1)})
-        for i, a in enumerate(scene.agents):
-            if np.linalg.norm(a.xy[step] - scene.ego.xy[step]) > ANNOTATION_RANGE:
-                continue
+        lidar_sd = lambda j: token(seed, "sd", scene.index, LIDAR, j) if 0 <= j < KEYFRAMES else ""  # noqa: E731
+        t["sample_data"].append({"token": lidar_sd(k), "sample_token": st, "ego_pose_token": pose_tok,
+                                 "calibrated_sensor_token": token(seed, "calib", LIDAR), "timestamp": ts,
+                                 "fileformat": "pcd", "is_key_frame": True, "height": 0, "width": 0,
+                                 "filename": lidar_name(scene, k), "prev": lidar_sd(k - 1), "next": lidar_sd(k + 1)})
+        pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
+        boxes = sensing.boxes_at(scene.agents, step, pose)
+        cloud, n_points = sensing.lidar_scan(boxes)
+        clouds[lidar_name(scene, k)] = cloud.tobytes()
+        annotated = [i for i, a in enumerate(scene.agents)
+                     if np.linalg.norm(a.xy[step] - scene.ego.xy[step]) <= ANNOTATION_RANGE]
+        visible = dict(zip(annotated, sensing.visible_fractions(boxes, annotated, rig)))
+        for i in annotated:
+            a = scene.agents[i]
             at = token(seed, "ann", scene.index, i, k)
             ann_tokens.setdefault(i, []).append(at)
             t["sample_annotation"].append({
                 "token": at, "sample_token": st, "instance_token": token(seed, "inst", scene.index, i),
-                "visibility_token": "4", "attribute_tokens": [token(seed, "attribute", _attribute(a, step))],
+                "visibility_token": sensing.visibility_token(float(visible[i])),
+                "attribute_tokens": [token(seed, "attribute", _attribute(a, step))],
                 "translation": [float(a.xy[step, 0]), float(a.xy[step, 1]), a.size[2] / 2],
                 "size": [a.size[1], a.size[0], a.size[2]], "rotation": list(yaw_to_quat(float(a.yaw[step]))),
-                "prev": "", "next": "", "num_lidar_pts": 20, "num_radar_pts": 0})
+                "prev": "", "next": "", "num_lidar_pts": int(n_points[i]), "num_radar_pts": 0})
     _link_instances(scene, seed, t, ann_tokens)
     t["map"][0]["log_tokens"].append(log_tok)
+    return clouds
 
 
 def _link_instances(scene, seed, t, ann_tokens) -> None:
