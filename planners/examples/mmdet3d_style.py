@@ -257,6 +257,7 @@ class Mmdet3dStylePlanner:
         self.model = TinyBEVPlanner(pixel_scale=1.0 if max(norm["std"]) > 1 else 58.0)
         self.model.eval()
         self.prev_frame_info: dict[str, Any] = {}
+        self.last_img_metas: dict[str, Any] = {}  # what the model got last, CAN-bus delta applied (debugging)
         self.reset(None)
         self._log = os.environ.get(LOG_ENV, "")
 
@@ -278,6 +279,7 @@ class Mmdet3dStylePlanner:
         metas = build_img_metas(context, scale=scale, norm=self.norm, prev_idx=self.prev_frame_info["prev_token"])
         img = multiview_image(images, scale, self.norm)
         plan_lidar = self.forward_test(img, metas, cmd)
+        self.last_img_metas = metas
         self.prev_frame_info["prev_token"] = context.token
         rotation = np.asarray(metas["lidar2ego_rotation"])
         l2e = geo.quat_to_matrix(rotation)[:2, :2]
