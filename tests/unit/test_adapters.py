@@ -42,13 +42,12 @@ def nav() -> ModuleType:
 
 
 @pytest.fixture
-def deterministic():
-    threads, flag = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+def one_thread():
+    """As the adapters' fixtures run them."""
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    torch.use_deterministic_algorithms(True)
     yield
     torch.set_num_threads(threads)
-    torch.use_deterministic_algorithms(flag)
 
 
 def context(token: str = "t0", scene: str = "scene-a", index: int = 0, *, size: tuple[int, int] = (1600, 900),
@@ -190,7 +189,7 @@ def test_img_metas_keys_and_values(mm):
 
 # -- mmdet3d-style: temporal state ------------------------------------------------------------------------
 
-def test_can_bus_delta_is_zero_at_the_first_frame_then_the_motion(mm, deterministic):
+def test_can_bus_delta_is_zero_at_the_first_frame_then_the_motion(mm, one_thread):
     planner = mm.Mmdet3dStylePlanner(input_width=320)
     imgs = images((800, 450))
     planner.reset("scene-a")
@@ -208,7 +207,7 @@ def test_can_bus_delta_is_zero_at_the_first_frame_then_the_motion(mm, determinis
     assert second["can_bus"][-1] == pytest.approx(np.degrees(0.05))
 
 
-def test_prev_bev_is_dropped_on_a_scene_change_with_or_without_reset(mm, deterministic):
+def test_prev_bev_is_dropped_on_a_scene_change_with_or_without_reset(mm, one_thread):
     """A new scene seen only in the context, or announced by reset(), leaves the planner exactly as fresh."""
     imgs = images((800, 450))
     frames_a = [context(f"a{i}", "scene-a", i, size=(800, 450), xy=(100.0 + 2 * i, 50.0)) for i in range(3)]
@@ -232,7 +231,7 @@ def test_prev_bev_is_dropped_on_a_scene_change_with_or_without_reset(mm, determi
         np.testing.assert_array_equal(got, expected)
 
 
-def test_mmdet3d_style_plan_is_deterministic_and_leaves_inputs_alone(mm, deterministic):
+def test_mmdet3d_style_plan_is_deterministic_and_leaves_inputs_alone(mm, one_thread):
     imgs = images((800, 450))
     before = {k: v.copy() for k, v in imgs.items()}
     ctxs = [context(f"a{i}", index=i, size=(800, 450), xy=(100.0 + 2 * i, 50.0)) for i in range(2)]
@@ -294,7 +293,7 @@ def test_navsim_status_vector(nav):
         np.testing.assert_allclose(nav.status_feature(ego, cmd).numpy(), [*onehot, 4.0, 0.5, -1.0, 0.2])
 
 
-def test_navsim_agent_reads_only_the_front_and_is_deterministic(nav, deterministic):
+def test_navsim_agent_reads_only_the_front_and_is_deterministic(nav, one_thread):
     agent = nav.NavsimStyleAgent()
     assert agent.cameras == ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT")
     imgs = images((800, 450))
