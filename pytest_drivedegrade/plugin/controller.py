@@ -52,8 +52,10 @@ def gather(received: Mapping[str, CellPayload], expected: Sequence[tuple[str, in
     return Gathered(first.planner, first.key, payloads, [c for c in ids if c not in payloads])
 
 
-def floor_l2(config: pytest.Config, context: RunContext, split: str, lines: list[str]) -> float | None:
-    """The ego-only floor's clean l2_avg on the scored frames (trained on the train split once, cached)."""
+def floor_l2(config: pytest.Config, context: RunContext, split: str, lines: list[str],
+             ego: dict[str, float] | None = None) -> float | None:
+    """The ego-only floor's clean l2_avg on the scored frames (trained on the train split once, cached); with
+    `ego`, also its ego_blind retention there (``ego["ego_removal"]``, for the reliance chart)."""
     from ..scoring.floor import load_or_train_floor, train_split_for
     from ..scoring.records import finite_mean
 
@@ -66,7 +68,13 @@ def floor_l2(config: pytest.Config, context: RunContext, split: str, lines: list
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
-    return finite_mean(context.run_cell(model, "clean", 0).l2_avg_per_frame())
+    clean = finite_mean(context.run_cell(model, "clean", 0).l2_avg_per_frame())
+    if ego is not None:
+        from ..scoring.retention import retention
+
+        blind = finite_mean(context.run_cell(model, "ego_blind", 0).l2_avg_per_frame())
+        ego["ego_removal"] = float(retention(clean, blind))
+    return clean
 
 
 def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
@@ -103,9 +111,12 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     from ..report.terminal import summary_lines
     from ..scoring.verdict import analyse_run
 
-    floor = floor_l2(config, context, options.split, out.lines)
+    floor_ego: dict[str, float] = {}
+    floor = floor_l2(config, context, options.split, out.lines, floor_ego if options.ego else None)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
-    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor)
+    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
+                           metric=options.metric)
+    analysis.floor.update(floor_ego)
     command = "pytest " + " ".join(str(a) for a in config.invocation_params.args)
     prov = provenance(options, context, run.planner, run.key, command)
     cert, written = write_outputs(options.report_dir, prov, context, records, analysis, run.missing)

@@ -13,7 +13,9 @@ from typing import Any
 
 import pytest
 
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
+
+EGO_FAMILIES = (EGO_NOISE, EGO_BLIND)
 
 
 @dataclass(frozen=True)
@@ -34,8 +36,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "mini_train, all", {"metavar": "SPLIT"}),
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
                "frames (default: all scorable frames)", {"metavar": "N"}),
-    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families (default: all "
-               "sixteen)", {"metavar": "LIST"}),
+    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, and the ego "
+               "cells ego_noise, ego_blind (default: all sixteen and both ego cells; a list runs only what it names)",
+               {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
                "all five)", {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-seed", "drivedegrade_seed", "seed of every random corruption (default 0)",
@@ -48,6 +51,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                f"(default {DEFAULT_TOLERANCE:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-flat", "drivedegrade_flat", "retention at or above which an axis counts as flat "
                f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
+               "M = mean L2) or pdms (the PDMS-like score); both are always computed and reported",
+               {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
 )
@@ -111,6 +117,8 @@ class RunOptions:
     tolerance: float
     flat: float
     timeout: float
+    metric: str = "l2"
+    ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -125,17 +133,21 @@ def parse(config: pytest.Config) -> RunOptions:
     split = str(value(config, "drivedegrade_split") or "val")
     if split not in SPLITS:
         raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
-    families = _list(config, "drivedegrade_families") or list(FAMILIES)
-    unknown = [f for f in families if f not in FAMILIES]
+    listed = _list(config, "drivedegrade_families")
+    families = listed or [*FAMILIES, *EGO_FAMILIES]
+    unknown = [f for f in families if f not in FAMILIES and f not in EGO_FAMILIES]
     if unknown:
         raise _fail("drivedegrade_families", f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
-                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join(FAMILIES)}")
+                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join([*FAMILIES, *EGO_FAMILIES])}")
     severities = []
     for s in _list(config, "drivedegrade_severities") or [str(s) for s in SEVERITIES]:
         if not s.isdigit() or int(s) not in SEVERITIES:
             raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
         severities.append(int(s))
     baseline = value(config, "drivedegrade_baseline")
+    metric = str(value(config, "drivedegrade_metric") or "l2").strip().lower()
+    if metric not in ("l2", "pdms"):
+        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
     return RunOptions(
         planner_path=planner_path,
         data=(here / data).resolve() if data else None,
@@ -149,4 +161,6 @@ def parse(config: pytest.Config) -> RunOptions:
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
+        metric=metric,
+        ego=tuple(f for f in EGO_FAMILIES if f in families),
     )

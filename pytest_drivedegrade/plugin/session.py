@@ -53,7 +53,7 @@ class DriveDegradeSession:
         self.config, self.options, self.collect_path = config, options, collect_path
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
-        self.cells = run_order(options.families, options.severities)
+        self.cells = run_order(options.families, options.severities, ego=options.ego)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run

@@ -13,8 +13,8 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellRecord, cell_id, differing_frames, identical_plans, report_order
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, report_order
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from .records import CellSummary, RunAnalysis, format_value
 from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
@@ -111,6 +111,42 @@ def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, An
     return {"label": label, "case": case, "flat": float(flat), "text": text, "negative_gap": bool(negative)}
 
 
+#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default) or PDMS retention.
+VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms")
+EGO_LABELS: tuple[str, ...] = ("ego-reliant", "ego-insensitive", "undetermined")
+
+
+def retention_of(summary: CellSummary, metric: str = "l2") -> float:
+    """A summary's retention on `metric`: L2 (``retention``) or PDMS (``pdms_retention``; NaN when unscored)."""
+    if metric == "pdms":
+        return float(summary.metrics.get("pdms_retention", math.nan))
+    return summary.retention
+
+
+def camera_s5(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float]:
+    """S5 retention per camera ladder family (the ego cells left out: they are not camera axes)."""
+    return {s.family: retention_of(s, metric) for s in summaries if s.severity == 5 and not is_ego(s.family)}
+
+
+def ego_axes(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float | None]:
+    """The ego axis (SPEC section 10): ``ego`` = ego_noise S5 retention, ``ego_removal`` = ego_blind retention
+    (None when that cell was not run or its retention is not finite)."""
+    by_cell = {s.cell: retention_of(s, metric) for s in summaries}
+    out: dict[str, float | None] = {}
+    for key, cell in (("ego", cell_id(EGO_NOISE, 5)), ("ego_removal", cell_id(EGO_BLIND, 0))):
+        value = by_cell.get(cell)
+        out[key] = value if value is not None and math.isfinite(value) else None
+    return out
+
+
+def ego_label(ego_removal: float | None, flat: float = DEFAULT_FLAT) -> str:
+    """``ego-reliant`` when ego_removal is below the flat line, else ``ego-insensitive``; ``undetermined`` when
+    the ego_blind cell was not run. Compared at the certificate's precision, like the camera verdict."""
+    if ego_removal is None:
+        return "undetermined"
+    return "ego-reliant" if round(ego_removal, 6) < flat else "ego-insensitive"
+
+
 def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
     """Compare the null-control plans with clean: passed iff bit-identical (`cells.identical_plans`); otherwise
     how far they wandered.
@@ -151,15 +187,19 @@ def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], r
 
 def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
                 convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
-                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None) -> RunAnalysis:
+                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None,
+                metric: str = "l2") -> RunAnalysis:
     """Every figure of a run from its cell records (in any order; the result does not depend on it).
 
     Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
     in a cell drops out of that cell's comparison only).
 
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
-    floor's clean l2_avg when it was run.
+    floor's clean l2_avg when it was run. The axes are computed on L2 retention (``axes``, with the ego axis)
+    and on PDMS retention (``axes_pdms``); `metric` ("l2" or "pdms") says which one the verdict is put on.
     """
+    if metric not in VERDICT_METRICS:
+        raise InvalidInput(f"metric must be one of {', '.join(VERDICT_METRICS)}, got {metric!r}")
     recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
     by_cell = {r.cell: r for r in recs}
     if "clean" not in by_cell:
@@ -174,9 +214,16 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     for s in summaries:
         if s.cell not in ("clean", "null"):
             s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
-    ax = compute_axes({s.family: s.retention for s in summaries if s.severity == 5}, groups)
+    ax = {**compute_axes(camera_s5(summaries), groups), **ego_axes(summaries)}
+    ax_pdms = {**compute_axes(camera_s5(summaries, "pdms"), groups), **ego_axes(summaries, "pdms")}
     settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
                 "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
-                "tolerance_default": DEFAULT_TOLERANCE}
-    return RunAnalysis(summaries, thresholds(summaries), ax, verdict(ax, flat), nc,
-                       floor_comparison(floor_l2, summaries, groups.removal), settings)
+                "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric}
+    on = ax_pdms if metric == "pdms" else ax
+    decided = verdict(on, flat)
+    if metric == "pdms":
+        decided["text"] = "On PDMS retention: " + decided["text"]
+    decided["metric"] = metric
+    decided["ego_label"] = ego_label(on.get("ego_removal"), flat)
+    return RunAnalysis(summaries, thresholds(summaries), ax, decided, nc,
+                       floor_comparison(floor_l2, summaries, groups.removal), settings, axes_pdms=ax_pdms)
