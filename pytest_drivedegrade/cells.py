@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .constants import HORIZON_STEPS
+from .constants import EGO_BLIND, EGO_NOISE, HORIZON_STEPS
 from .errors import InvalidInput
 from .scoring.metrics import l2_avg
 
@@ -21,6 +21,14 @@ from .scoring.metrics import l2_avg
 #: planner does not read blacked out; an untouched rerun for a planner that reads all six) and blind (all six
 #: black).
 DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
+#: The ego ladder (SPEC section 10): cells outside the camera axes that perturb (`ego_noise`, S1..S5) or zero
+#: (`ego_blind`, severity 0) the ego status and the context's CAN bus, the images left clean.
+EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
+#: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
+#: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells.
+RECORD_VERSION = 2
+#: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
+PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
 #: that cell is the null control and is asserted bit-identical to clean too.
 REAR_BLACKOUT_SEVERITY = 3
@@ -31,21 +39,33 @@ Property = tuple[str, "str | float | int"]
 
 def cell_id(family: str, severity: int) -> str:
     """The stable id of a cell: `clean`, `null`, `blind` or `<family>-s<severity>` (e.g. `jpeg-s3`)."""
-    return family if family in DIAGNOSTIC else f"{family}-s{int(severity)}"
+    return family if family in DIAGNOSTIC or family == EGO_BLIND else f"{family}-s{int(severity)}"
 
 
-def run_order(families: Iterable[str], severities: Iterable[int]) -> list[tuple[str, int]]:
-    """(family, severity) of every cell in run order: clean first, the ladder, blind, and the null control last,
-    so that under xdist the clean result is already stored when the null control and the baseline gate compare
-    against it, and no worker computes clean twice."""
+def is_ego(family: str) -> bool:
+    """Whether a family is one of the ego cells (outside the camera axes)."""
+    return family in EGO_FAMILIES
+
+
+def run_order(families: Iterable[str], severities: Iterable[int], *,
+              ego: Iterable[str] | bool = EGO_FAMILIES) -> list[tuple[str, int]]:
+    """(family, severity) of every cell in run order: clean first, the ladder, the ego cells (`ego_noise` at the
+    same severities, then `ego_blind`: those of `ego` that are asked for; ``ego=False`` for none), blind, and the
+    null control last, so that under xdist the clean result is already stored when the null control and the
+    baseline gate compare against it, and no worker computes clean twice."""
     sev = list(severities)
-    return [("clean", 0), *((f, s) for f in families for s in sev), ("blind", 0), ("null", 0)]
+    wanted = set(EGO_FAMILIES if ego is True else () if ego is False else ego)
+    ego_cells = [*((EGO_NOISE, s) for s in sev if EGO_NOISE in wanted), *([(EGO_BLIND, 0)] if EGO_BLIND in wanted
+                                                                            else [])]
+    return [("clean", 0), *((f, s) for f in families for s in sev), *ego_cells, ("blind", 0), ("null", 0)]
 
 
 def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[int, int, str, int]:
     """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
     if family in DIAGNOSTIC:
         return (0, DIAGNOSTIC.index(family), "", 0)
+    if family in EGO_FAMILIES:  # the ego cells after the camera ladder: ego_noise S1..S5, then ego_blind
+        return (2, EGO_FAMILIES.index(family), family, int(severity))
     rank = families.index(family) if family in families else len(families)
     return (1, rank, family, int(severity))
 
@@ -87,7 +107,10 @@ class CellRecord:
     """Everything one finished cell yields, per frame; the frame order is the same in every cell of a run.
 
     Arrays: ``plans`` (F, 6, 2) metres; ``l2``, ``collision``, ``collision_vru`` (F, 6) per step; ``jerk`` and
-    ``bit1`` (F,). A frame whose planner output failed conformance carries NaN and is left out of means.
+    ``bit1`` (F,); the PDMS-like score and its sub-scores ``nc, dac, ttc, ep, comfort, pdms`` (F,) in [0, 1]
+    (`PDMS_FIELDS`; NaN in a record stored before they existed) and ``map_scored`` (F,) 1.0 where the drivable
+    area was scored (0.0: no map, dac fixed at 1). A frame whose planner output failed conformance carries NaN
+    and is left out of means.
     """
 
     cell: str
@@ -104,13 +127,24 @@ class CellRecord:
     errors: list[str] = field(default_factory=list)
     seed_runs: list[CellRecord] = field(default_factory=list)
     seeds: list[int] = field(default_factory=list)
+    nc: Any = None
+    dac: Any = None
+    ttc: Any = None
+    ep: Any = None
+    comfort: Any = None
+    pdms: Any = None
+    map_scored: Any = None
 
     def __post_init__(self) -> None:
         n = len(self.frames)
+        for name in (*PDMS_FIELDS, "map_scored"):
+            if getattr(self, name) is None:  # a record from before the PDMS arrays: unscored
+                setattr(self, name, np.full(n, np.nan))
         self.frames = [str(f) for f in self.frames]
         self.severity = int(self.severity)
         for name, shape in (("plans", (n, HORIZON_STEPS, 2)), ("l2", (n, HORIZON_STEPS)), ("jerk", (n,)),
-                            ("collision", (n, HORIZON_STEPS)), ("collision_vru", (n, HORIZON_STEPS)), ("bit1", (n,))):
+                            ("collision", (n, HORIZON_STEPS)), ("collision_vru", (n, HORIZON_STEPS)), ("bit1", (n,)),
+                            *((k, (n,)) for k in (*PDMS_FIELDS, "map_scored"))):
             arr = np.asarray(getattr(self, name), dtype=float)
             arr = arr.reshape(shape) if arr.size == 0 else arr
             if arr.shape != shape:
@@ -130,7 +164,8 @@ class CellRecord:
     def to_builtins(self) -> dict[str, Any]:
         """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""
         out = {k: getattr(self, k) for k in ("cell", "family", "severity", "frames")}
-        out.update({k: getattr(self, k).tolist() for k in ("plans", "l2", "jerk", "bit1")})
+        out.update({k: getattr(self, k).tolist() for k in ("plans", "l2", "jerk", "bit1", *PDMS_FIELDS,
+                                                           "map_scored")})
         out.update({k: [[int(v) if v == v else -1 for v in row] for row in getattr(self, k)]
                     for k in ("collision", "collision_vru")})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
@@ -142,7 +177,8 @@ class CellRecord:
 
     @classmethod
     def from_builtins(cls, data: Mapping[str, Any]) -> CellRecord:
-        """Inverse of ``to_builtins``; a collision of -1 (a NaN frame) comes back as NaN."""
+        """Inverse of ``to_builtins``; a collision of -1 (a NaN frame) comes back as NaN. A record stored before
+        the PDMS arrays existed loads with them NaN (its run key differs, so it is recomputed, never reused)."""
         if not isinstance(data, Mapping):
             raise InvalidInput(f"a cell record is a JSON object, found {type(data).__name__}")
         try:
@@ -152,6 +188,7 @@ class CellRecord:
                 kw[k] = np.where(arr < 0, np.nan, arr)
         except KeyError as exc:
             raise InvalidInput(f"cell record lacks the field {exc.args[0]!r}") from None
+        kw.update({k: data[k] for k in (*PDMS_FIELDS, "map_scored") if data.get(k) is not None})
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
                    seed_runs=runs, seeds=list(data.get("seeds", [])))

@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, merge.
+"""The `drivedegrade` command: spec, preview, world, verify, merge, compare.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -69,6 +69,25 @@ def _merge(args: argparse.Namespace) -> int:
     return 0
 
 
+def _compare(args: argparse.Namespace) -> int:
+    """Compare certificates: compare.csv and compare.html in --out; exit 2 for an unreadable, edited or
+    incomparable certificate."""
+    from .report.certificate import CertificateMismatch
+    from .report.compare import write_compare
+
+    try:
+        csv_path, html_path, df = write_compare(args.certificates, args.out, force=args.force)
+    except CertificateMismatch as exc:
+        print(f"drivedegrade: compare: refused: {exc}", file=sys.stderr)
+        return 2
+    for row in df.itertuples():
+        flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
+        print(f"{row.planner}: clean L2 {row.clean_l2:.3f} (rank {row.rank_clean_l2}), mean retention rank "
+              f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}{flag}")
+    print(f"wrote {csv_path} and {html_path}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -106,6 +125,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("verify", help="check a certificate's digest: exit 0 intact, 1 edited, 2 unreadable")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")
     p.set_defaults(func=_verify)
+
+    p = sub.add_parser("compare", help="compare certificates: compare.csv and compare.html, ranks and reversals")
+    p.add_argument("certificates", nargs="+", metavar="CERT", help="certificate.json files (verified first)")
+    p.add_argument("--out", required=True, help="output folder for compare.csv and compare.html")
+    p.add_argument("--force", action="store_true", help="compare certificates of different spec versions or data sets")
+    p.set_defaults(func=_compare)
     return parser
 
 

@@ -35,3 +35,6 @@ VRU_CATEGORIES: tuple[str, ...] = ("pedestrian", "cyclist")
 #: allowed retention drop; run options and the analysis share them.
 DEFAULT_FLAT: float = 0.95
 DEFAULT_TOLERANCE: float = 0.02
+#: The ego ladder's families (SPEC section 10), cells outside the camera axes: `ego_noise` S1..S5 and the
+#: diagnostic `ego_blind` (cell ids ``ego_noise-s1`` .. ``ego_noise-s5``, ``ego_blind``).
+EGO_NOISE, EGO_BLIND = "ego_noise", "ego_blind"

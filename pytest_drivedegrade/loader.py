@@ -13,7 +13,7 @@ from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
-from .cells import cell_id
+from .cells import cell_id, is_ego
 from .constants import CAMERAS
 from .corruptions.api import corrupt
 from .corruptions.ladder import FAMILIES
@@ -138,7 +138,7 @@ class CellSample(Mapping[str, np.ndarray]):
         family = self.family
         if family == "blind" or (family == "null" and camera in self._unread):
             return self._black(camera)
-        if family in ("clean", "null"):
+        if family in ("clean", "null") or is_ego(family):  # the ego cells perturb the ego status, not the images
             return self._load(self.frame, camera)
         if family == "blackout":
             return self._black(camera) if camera in FAMILIES[family].value(self.severity) \

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .cells import CellRecord, cell_id
+from .cells import PDMS_FIELDS, RECORD_VERSION, CellRecord, cell_id, is_ego
 from .constants import CAMERAS, HORIZON_STEPS
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.context import FrameContext
@@ -29,6 +29,7 @@ from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, samples
 from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
+from .scoring.pdms import PreparedFrame
 from .shards import Shard, shard_frames
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
@@ -95,6 +96,7 @@ class RunContext:
     _decoded_bytes: int = 0
     _clean: dict[int, CellRecord] = field(default_factory=dict)
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
+    _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
 
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
@@ -127,7 +129,8 @@ class RunContext:
     def run_key(self, planner: Any) -> dict[str, Any]:
         """What a stored cell result must match to be reused by a rerun (the seed count only when above one, so
         a one-seed run keeps the key, and the stored cells, of runs before seeds existed)."""
-        key = {"spec_version": SPEC_VERSION, "planner_fingerprint": self.planner_info(planner).fingerprint,
+        key = {"spec_version": SPEC_VERSION, "record_version": RECORD_VERSION,
+               "planner_fingerprint": self.planner_info(planner).fingerprint,
                "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
         return {**key, "seeds": self.seeds} if self.seeds > 1 else key
 
@@ -179,6 +182,14 @@ class RunContext:
             found = self._contexts[frame.token] = FrameContext.of(frame)
         return found
 
+    def pdms_frame(self, frame: Frame) -> PreparedFrame:
+        """The frame's PDMS preparation (expert states, agent tracks, the map around the ego), built once per
+        process and shared by every cell: a cell then pays only for its own plans."""
+        found = self._pdms.get(frame.token)
+        if found is None:
+            found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame))
+        return found
+
     def stream(self, planner: Any, family: str, severity: int, frames: list[Frame], *,
                unread: tuple[str, ...], seed: int | None = None) -> Iterator[tuple[CellSample, np.ndarray | str]]:
         """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each
@@ -207,10 +218,17 @@ class RunContext:
     def _predict(self, planner: Any, sample: CellSample, style: CallStyle) -> np.ndarray | str:
         frame = sample.frame
         ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
+        context = self.context_of(frame) if style.takes_context else None
+        if is_ego(sample.family):  # the ego cells: the ego status and the context's CAN bus, perturbed or zeroed
+            from .corruptions.ego import perturb
+
+            ego, bus = perturb(ego, None if context is None else context.can_bus, sample.family, sample.severity,
+                               seed=self.seed, frame=frame.token)
+            context = None if context is None else replace(context, can_bus=bus)
         try:
             with time_limit(self.timeout):
                 if style.takes_context:
-                    raw = planner.predict(sample, ego, frame.command, context=self.context_of(frame))
+                    raw = planner.predict(sample, ego, frame.command, context=context)
                 else:
                     raw = planner.predict(sample, ego, frame.command)
             written = sample.written()
@@ -236,8 +254,9 @@ class RunContext:
         plans = np.full((n, HORIZON_STEPS, 2), np.nan)
         l2, col, vru = (np.full((n, HORIZON_STEPS), np.nan) for _ in range(3))
         jerk, bit1 = np.full(n, np.nan), np.full(n, np.nan)
+        pdms = {k: np.full(n, np.nan) for k in (*PDMS_FIELDS, "map_scored")}
         errors: list[str] = []
-        spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "check": 0.0}
+        spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
         start = last = time.perf_counter()
         for i, (sample, result) in enumerate(self.stream(planner, family, severity, self.frames, unread=unread,
                                                                    seed=seed)):
@@ -253,11 +272,21 @@ class RunContext:
                 plans[i], l2[i], col[i], vru[i] = result, m["l2"], m["collision"], m["collision_vru"]
                 jerk[i] = m["jerk"]
                 bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
+                t2 = time.perf_counter()
+                scored = self.pdms_frame(sample.frame).score(result)
+                for k in PDMS_FIELDS:
+                    pdms[k][i] = getattr(scored, k)
+                pdms["map_scored"][i] = float(scored.map_scored)
+                took = time.perf_counter() - t2
+                spent["pdms"] += took
+                spent["metrics"] -= took  # metrics is the rest
             last = time.perf_counter()
             spent["metrics"] += last - t1
         spent["total"] = time.perf_counter() - start
         return CellRecord(cell_id(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
-                          col, vru, jerk, bit1, seconds=spent, errors=errors)
+                          col, vru, jerk, bit1, seconds=spent, errors=errors, nc=pdms["nc"], dac=pdms["dac"],
+                          ttc=pdms["ttc"], ep=pdms["ep"], comfort=pdms["comfort"], pdms=pdms["pdms"],
+                          map_scored=pdms["map_scored"])
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:

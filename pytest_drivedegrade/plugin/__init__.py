@@ -38,9 +38,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     if opt.value(config, opt.ENABLE) is None:
         return
-    from . import context
+    import importlib
+
     from .session import DriveDegradeSession
 
+    # Through sys.modules, not `from . import context`: that returns the package's `context` attribute when it
+    # is set, which after pytester's in-process runs restore sys.modules can be an older module than the one
+    # `session` imported, with another SESSION_KEY.
+    context = importlib.import_module(f"{__name__}.context")
     session = DriveDegradeSession.start(config)
     config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, DriveDegradeSession.NAME)

@@ -18,7 +18,7 @@ from ..report.columns import TESTCASE
 from ..report.junit import plain
 from ..run import MAX_MESSAGES, RunContext
 from ..scoring.baseline import cell_regression
-from ..scoring.records import horizon_metrics
+from ..scoring.records import finite_mean, horizon_metrics
 from ..scoring.retention import record_retention
 from ..store import ResultStore
 
@@ -29,6 +29,7 @@ def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
                            "severity": int(record.severity), "frames": len(record.frames),
                            "failed_frames": int(np.isnan(record.l2).any(axis=1).sum()), "resumed": int(resumed)}
     row["l2_avg"] = row["l2_avg_stp3"]
+    row["pdms"] = finite_mean(record.pdms)
     return tuple((name, plain(row[name])) for name in TESTCASE)
 
 

@@ -12,10 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from ..cells import CellPayload, CellRecord, cell_id, run_order
+from ..cells import CellPayload, CellRecord, cell_id
 from ..errors import DriveDegradeError
 from ..report.certificate import Provenance
 from ..run import RunContext
+from ..scoring.records import finite_mean
 from ..store import ResultStore
 from .context import cache_root
 from .options import RunOptions
@@ -54,9 +55,11 @@ def gather(received: Mapping[str, CellPayload], expected: Sequence[tuple[str, in
     return Gathered(first.planner, first.key, payloads, [c for c in ids if c not in payloads])
 
 
-def floor_per_frame(config: pytest.Config, context: RunContext, split: str, lines: list[str]) -> np.ndarray | None:
+def floor_per_frame(config: pytest.Config, context: RunContext, split: str, lines: list[str],
+                    ego: dict[str, Any] | None = None) -> np.ndarray | None:
     """The ego-only floor's clean l2_avg per scored frame (trained on the train split once, cached); None with a
-    line saying why when there is no floor."""
+    line saying why when there is no floor. With `ego`, also its ego_blind retention there
+    (``ego["ego_removal"]``, for the reliance chart)."""
     from ..scoring.floor import load_or_train_floor, train_split_for
 
     try:
@@ -68,7 +71,14 @@ def floor_per_frame(config: pytest.Config, context: RunContext, split: str, line
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
-    return context.run_cell(model, "clean", 0).l2_avg_per_frame()
+    clean = context.run_cell(model, "clean", 0).l2_avg_per_frame()
+    if ego is not None:
+        from ..scoring.retention import retention
+
+        blind_frames = context.run_cell(model, "ego_blind", 0).l2_avg_per_frame()
+        ego["ego_removal"] = float(retention(finite_mean(clean), finite_mean(blind_frames)))
+        ego["per_frame"] = blind_frames
+    return clean
 
 
 def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
@@ -99,7 +109,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         out.lines.append("no cell finished: nothing to analyse")
         return out
     if options.shard is not None:
-        return finish_shard(config, options, context, run, store, out)
+        return finish_shard(config, options, context, run, store, out, expected)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
@@ -107,14 +117,16 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     from ..report.outputs import write_outputs
     from ..report.terminal import summary_lines
-    from ..scoring.records import finite_mean
     from ..scoring.verdict import analyse_run
 
-    per_frame = floor_per_frame(config, context, options.split, out.lines)
+    floor_ego: dict[str, Any] = {}
+    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
+    floor_ego.pop("per_frame", None)
     floor = None if per_frame is None else finite_mean(per_frame)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
     analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
-                           seeds=options.seeds)
+                           seeds=options.seeds, metric=options.metric)
+    analysis.floor.update(floor_ego)
     prov = provenance(options, context, run.planner, run.key, _command(config))
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
@@ -151,20 +163,22 @@ def front_montage(context: RunContext, seed: int) -> np.ndarray | None:
 
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
-                 store: ResultStore, out: Outcome) -> Outcome:
+                 store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]]) -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
     from ..report.merge import MANIFEST, shard_manifest
 
     shard = options.shard
     assert shard is not None
-    per_frame = floor_per_frame(config, context, options.split, out.lines)
+    floor_ego: dict[str, Any] = {}
+    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
     prov = provenance(options, context, run.planner, run.key, _command(config))
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
-                              provenance=prov, flat=options.flat, seeds=options.seeds,
+                              provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
                               frames_total=context.frames_total,
-                              cells=[cell_id(f, s) for f, s in run_order(options.families, options.severities)],
+                              cells=[cell_id(f, s) for f, s in expected],
                               missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),
+                              floor_ego_blind_l2=floor_ego.get("per_frame"),
                               gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),
                               front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
     path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")

@@ -13,9 +13,11 @@ from typing import Any
 
 import pytest
 
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..shards import Shard
+
+EGO_FAMILIES = (EGO_NOISE, EGO_BLIND)
 
 
 @dataclass(frozen=True)
@@ -36,8 +38,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "mini_train, all", {"metavar": "SPLIT"}),
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
                "frames (default: all scorable frames)", {"metavar": "N"}),
-    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families (default: all "
-               "sixteen)", {"metavar": "LIST"}),
+    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, and the ego "
+               "cells ego_noise, ego_blind (default: all sixteen and both ego cells; a list runs only what it names)",
+               {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
                "all five)", {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-seed", "drivedegrade_seed", "seed of every random corruption (default 0)",
@@ -54,6 +57,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-shard", "drivedegrade_shard", "run shard I of N (1-based; scene-contiguous, "
                "balanced by frame count) and write its cells for `drivedegrade merge`", {"metavar": "I/N"}),
+    OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
+               "M = mean L2) or pdms (the PDMS-like score); both are always computed and reported",
+               {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
 )
@@ -119,6 +125,8 @@ class RunOptions:
     timeout: float
     shard: Shard | None = None
     seeds: int = 1
+    metric: str = "l2"
+    ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -133,11 +141,12 @@ def parse(config: pytest.Config) -> RunOptions:
     split = str(value(config, "drivedegrade_split") or "val")
     if split not in SPLITS:
         raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
-    families = _list(config, "drivedegrade_families") or list(FAMILIES)
-    unknown = [f for f in families if f not in FAMILIES]
+    listed = _list(config, "drivedegrade_families")
+    families = listed or [*FAMILIES, *EGO_FAMILIES]
+    unknown = [f for f in families if f not in FAMILIES and f not in EGO_FAMILIES]
     if unknown:
         raise _fail("drivedegrade_families", f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
-                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join(FAMILIES)}")
+                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join([*FAMILIES, *EGO_FAMILIES])}")
     severities = []
     for s in _list(config, "drivedegrade_severities") or [str(s) for s in SEVERITIES]:
         if not s.isdigit() or int(s) not in SEVERITIES:
@@ -149,6 +158,9 @@ def parse(config: pytest.Config) -> RunOptions:
         shard = Shard.parse(str(shard_text)) if shard_text is not None else None
     except DriveDegradeError as exc:
         raise _fail("drivedegrade_shard", str(exc)) from None
+    metric = str(value(config, "drivedegrade_metric") or "l2").strip().lower()
+    if metric not in ("l2", "pdms"):
+        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
     return RunOptions(
         planner_path=planner_path,
         data=(here / data).resolve() if data else None,
@@ -164,4 +176,6 @@ def parse(config: pytest.Config) -> RunOptions:
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
         shard=shard,
         seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
+        metric=metric,
+        ego=tuple(f for f in EGO_FAMILIES if f in families),
     )

@@ -54,7 +54,7 @@ class DriveDegradeSession:
         self.config, self.options, self.collect_path = config, options, collect_path
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
-        self.cells = run_order(options.families, options.severities)
+        self.cells = run_order(options.families, options.severities, ego=options.ego)
         self.store = ResultStore(options.report_dir, options.shard.label if options.shard else None)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes

@@ -111,6 +111,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "cells": cells,
         "thresholds": analysis.thresholds,
         "axes": analysis.axes,
+        "axes_pdms": analysis.axes_pdms,
         "floor": analysis.floor,
         "null_control": {**nc, "ran": analysis.null_control is not None},
         "verdict": analysis.verdict,

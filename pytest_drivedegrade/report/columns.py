@@ -26,16 +26,20 @@ HORIZONS: tuple[str, ...] = tuple(name for kind in ("l2", "collision", "vru") fo
                                   for name in per_horizon(kind, c))
 #: The rest of a cell's summary.
 EXTRA: tuple[str, ...] = ("jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors")
+#: The PDMS-like score (spec 3), mean per cell, its sub-scores, and PDMS retention M(cell) / M(clean) (a reward)
+#: with its paired bootstrap CI; all in [0, 1] (retention may exceed 1), empty where not scored.
+PDMS: tuple[str, ...] = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_retention", "pdms_retention_ci_low",
+                         "pdms_retention_ci_high")
 #: What makes a row traceable.
 PROVENANCE: tuple[str, ...] = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version",
                                "seed", "convention")
 
 #: cells.csv, in this order.
-CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PROVENANCE)
+CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *PROVENANCE)
 #: The certificate's per-cell fields (the CSV carries every metric; key order is irrelevant in sealed JSON).
 CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"),
-                                     *per_horizon("collision", "stp3"), "vru_3s_stp3")
+                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored")
 #: JUnit testcase properties of a cell item, known as soon as the cell ran (no retention yet: clean may run on
 #: another worker).
 TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "l2_avg", *per_horizon("l2", "stp3"),
-                             *per_horizon("l2", "uniad"), "collision_3s_stp3", "vru_3s_stp3", "jerk", "resumed")
+                             *per_horizon("l2", "uniad"), "collision_3s_stp3", "vru_3s_stp3", "jerk", "resumed", "pdms")

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..cells import DIAGNOSTIC, CellRecord
+from ..cells import DIAGNOSTIC, CellRecord, is_ego
 from ..scoring.records import CellSummary, RunAnalysis, format_value
 from .certificate import Provenance
 
@@ -40,7 +40,8 @@ class TrajectoryExample:
 
 def most_damaging(summaries: Sequence[CellSummary], n: int = 3) -> list[CellSummary]:
     """The `n` ladder cells with the lowest retention (ties broken by cell id, so the choice is stable)."""
-    ladder = [s for s in summaries if s.family not in DIAGNOSTIC and math.isfinite(s.retention)]
+    ladder = [s for s in summaries if s.family not in DIAGNOSTIC and not is_ego(s.family)
+              and math.isfinite(s.retention)]
     return sorted(ladder, key=lambda s: (s.retention, s.cell))[:n]
 
 
@@ -118,6 +119,37 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
             "thresholds": thresholds, "cells": cells, "charts": charts, **extra}
 
 
+def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, str | None]:
+    """The PDMS retention heatmap and the camera-vs-ego reliance chart (spec 3, SPEC section 10)."""
+    from . import plots
+
+    blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
+    return {"heatmap_pdms": plots.retention_heatmap(analysis.summaries, "pdms_retention", "PDMS retention"),
+            "reliance": plots.reliance_chart(analysis.axes, analysis.verdict["flat"], planner=provenance.planner_name,
+                                             blind=blind, floor_ego=(analysis.floor or {}).get("ego_removal"))}
+
+
+def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
+    """The template's PDMS and ego figures: both axes sets side by side, the ego axis and label, whether a map
+    was scored, and the PDMS sub-scores of the `n` most damaging cells (on L2 retention)."""
+    def sub(s: CellSummary) -> dict[str, Any]:
+        m = s.metrics
+        return {"cell": s.cell, "retention": _fmt(s.retention), "pdms_retention": _fmt(m.get("pdms_retention")),
+                **{k: _fmt(m.get(k)) for k in ("pdms", "nc", "dac", "ttc", "ep", "comfort")}}
+
+    clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
+    mapped = None if clean is None else clean.metrics.get("map_scored")
+    keys = ("quality", "removal", "gap", "mean")
+    return {"axes_both": [{"k": k, "l2": _fmt(analysis.axes.get(k)), "pdms": _fmt((analysis.axes_pdms or {}).get(k))}
+                          for k in keys],
+            "ego": {"ego": _fmt(analysis.axes.get("ego")), "ego_removal": _fmt(analysis.axes.get("ego_removal")),
+                    "label": analysis.verdict.get("ego_label", "undetermined")},
+            "verdict_metric": analysis.verdict.get("metric", "l2"),
+            "map_scored": mapped is not None and math.isfinite(mapped) and mapped > 0,
+            "damaging_pdms": [sub(s) for s in most_damaging(analysis.summaries, n)],
+            "clean_pdms": sub(clean) if clean is not None else None}
+
+
 def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.ndarray | None = None,
                   trajectories: Sequence[TrajectoryExample | Mapping[str, Any]] = (),
                   floor_point: tuple[float, float] = (1.0, 1.0), families: Mapping[str, Any] | None = None,
@@ -136,10 +168,12 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
                                  blind=blind, floor=floor_point),
         "montage": plots.image_data_uri(montage) if montage is not None else None,
         "trajectories": plots.trajectory_panels(traj),
+        **pdms_ego_charts(analysis, provenance),
     }
     env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
-    extra = {"created": created, "digest": digest, "traj_cells": [c for t in traj[:1] for c in t["plans"]]}
+    extra = {"created": created, "digest": digest, "traj_cells": [c for t in traj[:1] for c in t["plans"]],
+             **pdms_ego_context(analysis)}
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
 
 

@@ -14,11 +14,12 @@ from typing import Any
 import numpy as np
 
 from ..scoring.records import CellSummary, RunAnalysis
-from .columns import STABLE, per_horizon
+from .columns import PDMS, STABLE, per_horizon
 
 #: Testcase properties of a finished summary, in the order they appear in the XML.
 CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"), "collision_3s_stp3",
-                   "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors")
+                   "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
+                   *PDMS)
 
 SUITE_PREFIX = "drivedegrade_"
 
@@ -48,11 +49,14 @@ def suite_properties(analysis: RunAnalysis | Mapping[str, Any]) -> list[tuple[st
     """(name, value) pairs for ``record_testsuite_property``: axes, verdict, null control, floor, thresholds."""
     data = analysis.to_builtins() if isinstance(analysis, RunAnalysis) else dict(analysis)
     out: list[tuple[str, Any]] = [(f"axis_{k}", data["axes"].get(k))
-                                  for k in ("quality", "removal", "gap", "mean", "dropout", "occlusion")]
+                                  for k in ("quality", "removal", "gap", "mean", "dropout", "occlusion", "ego",
+                                            "ego_removal")]
+    out += [(f"axis_pdms_{k}", (data.get("axes_pdms") or {}).get(k)) for k in ("quality", "removal", "gap", "mean")]
     verdict = data["verdict"]
     out += [("verdict", verdict["label"]), ("verdict_flat", verdict["flat"]),
             ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"]),
-            ("verdict_confidence", verdict.get("confidence"))]
+            ("verdict_confidence", verdict.get("confidence")),
+            ("verdict_ego_label", verdict.get("ego_label")), ("verdict_metric", verdict.get("metric", "l2"))]
     for k in ("quality", "removal", "gap", "mean"):
         ci = data["axes"].get(f"{k}_ci") or (None, None)
         out += [(f"axis_{k}_ci_low", ci[0]), (f"axis_{k}_ci_high", ci[1])]

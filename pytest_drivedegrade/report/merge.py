@@ -18,17 +18,18 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import CellPayload, CellRecord
+from ..cells import PDMS_FIELDS, CellPayload, CellRecord
 from ..constants import HORIZON_STEPS
 from ..errors import DriveDegradeError
 from ..scoring.records import finite_mean
+from ..scoring.retention import retention
 from .certificate import Provenance
 
 SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
 #: Manifest fields every shard of one run shares.
 SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "seeds",
-            "count", "flat", "frames_total", "cells")
+            "count", "flat", "metric", "frames_total", "cells")
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,8 @@ def _table(shards: Sequence[ShardResult]) -> Any:
             n = len(r.frames)
             cols: dict[str, Any] = {"shard": shard.manifest["index"], "cell": cell, "pos": np.arange(n),
                                     "token": r.frames, "jerk": r.jerk, "bit1": r.bit1}
+            for name in (*PDMS_FIELDS, "map_scored"):
+                cols[name] = getattr(r, name)
             for j in range(HORIZON_STEPS):
                 cols[f"x{j}"], cols[f"y{j}"] = r.plans[:, j, 0], r.plans[:, j, 1]
                 cols[f"l2_{j}"], cols[f"col_{j}"], cols[f"vru_{j}"] = r.l2[:, j], r.collision[:, j], \
@@ -110,7 +113,8 @@ def _records(table: Any, shards: Sequence[ShardResult], cells: Sequence[str]) ->
             str(cell), first.family, first.severity, [str(t) for t in rows["token"]], plans,
             np.stack([rows[f"l2_{j}"] for j in steps], axis=1), np.stack([rows[f"col_{j}"] for j in steps], axis=1),
             np.stack([rows[f"vru_{j}"] for j in steps], axis=1), rows["jerk"].to_numpy(),
-            rows["bit1"].to_numpy(), seconds=seconds, errors=[e for p in parts for e in p.record.errors])
+            rows["bit1"].to_numpy(), seconds=seconds, errors=[e for p in parts for e in p.record.errors],
+            **{name: rows[name].to_numpy() for name in (*PDMS_FIELDS, "map_scored")})
     return {c: records[c] for c in cells if c in records}
 
 
@@ -126,6 +130,8 @@ class Merged:
     missing_shards: list[int]
     data_root: str
     front: tuple[str, str] | None  #: (token, CAM_FRONT image path) of the first shard's first frame
+    floor_extra: dict[str, float]  #: the floor's ego_removal, when the shards ran the ego cells
+    metric: str = "l2"
 
 
 def write_merged(merged: Merged, out: Path) -> list[str]:
@@ -135,7 +141,8 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
     from .outputs import montage_of, write_outputs
 
     analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
-                           floor_l2=merged.floor_l2)
+                           floor_l2=merged.floor_l2, metric=merged.metric)
+    analysis.floor.update(merged.floor_extra)
     montage = None
     if merged.front is not None and Path(merged.front[1]).is_file():
         from ..data.images import decode_rgb
@@ -156,6 +163,13 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
         lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, merged.missing_shards))} missing; the certificate "
                      "says completeness: false")
     return [*lines, written]
+
+
+def _joined_mean(parts: Sequence[Any]) -> float | None:
+    """The mean over the shards' per-frame values joined in order (None when a shard has none)."""
+    if not parts or any(p is None for p in parts):
+        return None
+    return finite_mean(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
 
 
 def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> Merged:
@@ -186,9 +200,10 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     if "clean" not in records:
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
                                 "shard (finished cells are reused)")
-    floors = [s.manifest.get("floor_l2") for s in shards]
-    floor = None if any(f is None for f in floors) else \
-        finite_mean(np.concatenate([np.asarray(f, dtype=float) for f in floors]))
+    floor = _joined_mean([s.manifest.get("floor_l2") for s in shards])
+    floor_blind = _joined_mean([s.manifest.get("floor_ego_blind_l2") for s in shards])
+    floor_extra = {} if floor is None or floor_blind is None else \
+        {"ego_removal": float(retention(floor, floor_blind))}
     frames = len(records["clean"].frames)
     prov = Provenance(planner_name=first["planner"], planner_fingerprint=first["planner_fingerprint"],
                       dataset_fingerprint=first["dataset_fingerprint"], split=first["split"],
@@ -199,21 +214,26 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     key = {k: v for k, v in first["key"].items() if k != "frames_key"}
     front = shards[0].manifest.get("front")
     return Merged(records, prov, key, floor, gt, float(first["flat"]), [c for c in cells if c not in records],
-                  missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None)
+                  missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None,
+                  floor_extra, str(first.get("metric", "l2")))
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
-                   flat: float, seeds: int, frames_total: int, cells: Sequence[str], missing: Sequence[str],
-                   floor_l2: Sequence[float] | None, gt: Mapping[str, Any], data_root: str,
+                   flat: float, seeds: int, metric: str, frames_total: int, cells: Sequence[str],
+                   missing: Sequence[str],
+                   floor_l2: Sequence[float] | None, floor_ego_blind_l2: Sequence[float] | None,
+                   gt: Mapping[str, Any], data_root: str,
                    front: tuple[str, str] | None = None) -> dict[str, Any]:
     """What a shard run writes beside its cells for the merge."""
     return {"schema": SHARD_SCHEMA, "index": index, "count": count, "planner": planner, "key": dict(key),
             "planner_fingerprint": provenance.planner_fingerprint,
             "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
             "spec_version": provenance.spec_version, "seed": provenance.seed, "seeds": seeds, "flat": flat,
+            "metric": metric,
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "data_source": provenance.data_source, "tool_version": provenance.tool_version,
             "cells": list(cells), "missing_cells": list(missing),
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
+            "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],
             "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,
             "front": list(front) if front else None}

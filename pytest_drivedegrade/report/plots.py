@@ -17,7 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from ..cells import DIAGNOSTIC
+from ..cells import DIAGNOSTIC, is_ego
 from ..constants import EGO_LENGTH, EGO_WIDTH
 from ..scoring.records import CellSummary
 from ..scoring.retention import THRESHOLD_LEVELS
@@ -71,7 +71,7 @@ def image_data_uri(rgb: np.ndarray) -> str:
 def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
     out: dict[str, list[CellSummary]] = {}
     for s in summaries:
-        if s.family not in DIAGNOSTIC:
+        if s.family not in DIAGNOSTIC and not is_ego(s.family):
             out.setdefault(s.family, []).append(s)
     return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
 
@@ -125,8 +125,16 @@ def _yerr(point: float, ci: Any) -> list[list[float]] | None:
     return [[max(0.0, point - float(ci[0]))], [max(0.0, float(ci[1]) - point)]]
 
 
-def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
-    """Family x severity retention, red (lost) to green (kept), each cell annotated with its value."""
+def _value(summary: CellSummary, key: str) -> float:
+    """A summary's `key`: an attribute (``retention``) or a metric (``pdms_retention``); NaN when absent."""
+    got = getattr(summary, key, None) if key in ("retention", "l2_avg") else summary.metrics.get(key)
+    return float(got) if got is not None else math.nan
+
+
+def retention_heatmap(summaries: Sequence[CellSummary], key: str = "retention",
+                      label: str = "retention") -> str | None:
+    """Family x severity retention (`key`: ``retention`` on L2, ``pdms_retention`` on PDMS), red (lost) to green
+    (kept), each cell annotated with its value."""
     curves = _curves(summaries)
     if not curves:
         return None
@@ -135,7 +143,9 @@ def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
     for i, fam in enumerate(fams):
         for s in curves[fam]:
             if 1 <= s.severity <= 5:
-                grid[i, s.severity - 1] = s.retention
+                grid[i, s.severity - 1] = _value(s, key)
+    if not np.isfinite(grid).any():
+        return None
     fig = _figure(6.4, 0.36 * len(fams) + 1.0)
     ax = fig.add_subplot(1, 1, 1)
     im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdYlGn", vmin=0.5, vmax=1.0, aspect="auto")
@@ -152,7 +162,7 @@ def retention_heatmap(summaries: Sequence[CellSummary]) -> str | None:
         side.set_visible(False)
     cbar = fig.colorbar(im, ax=ax, fraction=0.04, pad=0.02)
     cbar.ax.tick_params(labelsize=7.5)
-    cbar.set_label("retention (clipped to 0.5 .. 1.0)", fontsize=8)
+    cbar.set_label(f"{label} (clipped to 0.5 .. 1.0)", fontsize=8)
     return to_data_uri(fig)
 
 
@@ -193,6 +203,42 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     ax.set_xlabel("quality axis: mean S5 retention, nine quality families", fontsize=8.5)
     ax.set_ylabel("removal axis: blackout S5 retention", fontsize=8.5)
     ax.legend(fontsize=7.5, loc="upper left", frameon=False)
+    return to_data_uri(fig)
+
+
+def reliance_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: float | None = None,
+                   floor_ego: float | None = None) -> str | None:
+    """Camera removal (x: blackout S5 retention) vs ego removal (y: ego_blind retention), SPEC section 10.
+
+    The planner's point; the blind point (every camera off, the ego status kept) at (r_blind, 1); the ego-only
+    floor at (1, its own ego_blind retention): it reads no camera, so camera removal cannot touch it.
+    """
+    x, y = axes.get("removal"), axes.get("ego_removal")
+    if x is None or y is None:
+        return None
+    pts = [v for v in (x, y, blind, floor_ego) if v is not None and math.isfinite(v)]
+    lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
+    fig = _figure(5.2, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    _style(ax)
+    ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
+    ax.axvline(flat, color=MUTED, linestyle="--", linewidth=0.8)
+    ax.axhline(flat, color=MUTED, linestyle="--", linewidth=0.8)
+    kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
+    ax.text(flat + 0.005, 1.075, "relies on\nneither", va="top", **kw)
+    ax.text(flat + 0.005, lo + 0.01, "ego-reliant", va="bottom", **kw)
+    ax.text(lo + 0.01, 1.075, "camera-reliant", va="top", **kw)
+    ax.text(lo + 0.01, lo + 0.01, "relies on both", va="bottom", **kw)
+    if floor_ego is not None and math.isfinite(floor_ego):
+        ax.scatter([1.0], [floor_ego], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
+    if blind is not None and math.isfinite(blind):
+        ax.scatter([blind], [1.0], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")
+    ax.scatter([x], [y], marker="o", s=90, color=ACCENT, edgecolor="white", zorder=4, label=_label(planner))
+    ax.set_xlim(lo, 1.08)
+    ax.set_ylim(lo, 1.08)
+    ax.set_xlabel("camera removal: blackout S5 retention", fontsize=8.5)
+    ax.set_ylabel("ego removal: ego_blind retention", fontsize=8.5)
+    ax.legend(fontsize=7.5, loc="lower right", frameon=False)
     return to_data_uri(fig)
 
 

@@ -58,12 +58,27 @@ def retention_table(analysis: RunAnalysis) -> list[str]:
     return lines
 
 
+def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
+    """The axes on PDMS retention (spec 3) and the ego axis with its label (SPEC section 10)."""
+    ap, ax = analysis.axes_pdms or {}, analysis.axes
+    lines = []
+    if ap:
+        lines.append(f"axes (PDMS): quality {format_value(ap.get('quality'))}  removal "
+                     f"{format_value(ap.get('removal'))}  gap {format_value(ap.get('gap'))}  mean "
+                     f"{format_value(ap.get('mean'))}")
+    if ax.get("ego") is not None or ax.get("ego_removal") is not None:
+        lines.append(f"ego: ego_noise S5 {format_value(ax.get('ego'))}  ego_blind "
+                     f"{format_value(ax.get('ego_removal'))} -> {analysis.verdict.get('ego_label', 'undetermined')}")
+    return lines
+
+
 def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
     """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells."""
     ax, verdict = analysis.axes, analysis.verdict
     lines = [f"verdict: {verdict['label']} - {verdict['text']}",
              f"axes: quality {format_value(ax.get('quality'))}  removal {format_value(ax.get('removal'))}  "
              f"gap {format_value(ax.get('gap'))}  mean {format_value(ax.get('mean'))}"]
+    lines += pdms_ego_lines(analysis)
     nc = analysis.null_control
     if nc is not None:
         state = "passed" if nc["passed"] else "FAILED"

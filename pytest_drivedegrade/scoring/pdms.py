@@ -172,16 +172,17 @@ def interpolate(waypoints: Any, velocity: Any = (0.0, 0.0)) -> EgoStates:
     vel = -m0 * w**2 / (2 * h) + m1 * u**2 / (2 * h) - c0 + c1
     acc = m0 * w / h + m1 * u / h
     speed = np.hypot(vel[:, 0], vel[:, 1])
-    heading = np.zeros(N_STATES)
+    headings = []
     current = 0.0
-    for i in range(N_STATES):
-        if speed[i] >= HEADING_MIN_SPEED:
-            turn = float(_wrap(np.arctan2(vel[i, 1], vel[i, 0]) - current))
-            if abs(turn) > np.pi / 2:  # moving backwards: the heading is opposite the velocity
-                turn = float(_wrap(turn - np.pi))
+    # plain floats: a 31-step recurrence (the heading follows the velocity's direction, modulo driving backwards)
+    for angle, fast in zip(np.arctan2(vel[:, 1], vel[:, 0]).tolist(), (speed >= HEADING_MIN_SPEED).tolist()):
+        if fast:
+            turn = (angle - current + math.pi) % (2 * math.pi) - math.pi
+            if abs(turn) > math.pi / 2:  # moving backwards: the heading is opposite the velocity
+                turn = (turn - math.pi + math.pi) % (2 * math.pi) - math.pi
             current += turn
-        heading[i] = current
-    return EgoStates(xy, vel, acc, heading, speed)
+        headings.append(current)
+    return EgoStates(xy, vel, acc, np.array(headings), speed)
 
 
 def box_corners(xy: np.ndarray, heading: np.ndarray, size: np.ndarray = _EGO_SIZE) -> np.ndarray:
@@ -515,3 +516,219 @@ def frame_pdms(plan: Any, frame: Frame, drivable: DrivableQuery | None = None, *
     frame's `reader.drivable_area(frame)` (or None) as `drivable`."""
     return pdm_score(plan, frame.gt_future, frame.agents, frame.ego.velocity, drivable,
                      frame.pose, static_categories=static_categories)
+
+
+# -- the fast path: one frame prepared once, many plans scored -----------------------------------------------
+
+#: Half the diagonal of the ego box: two boxes whose centres are farther apart than the sum of their half
+#: diagonals (plus a margin above the touch tolerance) cannot touch, so those pairs are not tested at all.
+_EGO_RADIUS = 0.5 * math.hypot(EGO_LENGTH, EGO_WIDTH)
+_FAR_MARGIN_M = 0.1
+#: The map around the ego kept per frame: polygons whose bounding box meets this window (m, each side).
+LOCAL_MAP_M = 200.0
+
+
+class LocalDrivable:
+    """A drivable-area query restricted to the polygons near one point (in the map's frame): points inside the
+    window are tested against the rings of the polygons whose bounding box meets it (no other polygon can hold
+    them), all edges at once with `maps.points_in_ring`'s crossing rule; a point outside the window goes to
+    the whole map's query."""
+
+    def __init__(self, drivable: Any, center: Any, half: float = LOCAL_MAP_M) -> None:
+        self.full = drivable
+        c = np.asarray(center, dtype=np.float64).reshape(2)
+        self.lo, self.hi = c - half, c + half
+        polygons = [p for p in getattr(drivable, "polygons", ()) if len(p.exterior) >= 3
+                    and (p.exterior.min(0) <= self.hi).all() and (p.exterior.max(0) >= self.lo).all()]
+        rings = [(k, False, p.exterior) for k, p in enumerate(polygons)]
+        rings += [(k, True, h) for k, p in enumerate(polygons) for h in p.holes if len(h) >= 3]
+        self.n_polygons, self.n_rings = len(polygons), len(rings)
+        self.ring_polygon = np.array([r[0] for r in rings], dtype=np.int64)
+        self.ring_hole = np.array([r[1] for r in rings], dtype=bool)
+        edges = [(np.asarray(r[2], dtype=np.float64).reshape(-1, 2), i) for i, r in enumerate(rings)]
+        start = np.concatenate([e for e, _ in edges]) if edges else np.zeros((0, 2))
+        end = np.concatenate([np.roll(e, -1, axis=0) for e, _ in edges]) if edges else np.zeros((0, 2))
+        self.x0, self.y0, self.x1, self.y1 = start[:, 0], start[:, 1], end[:, 0], end[:, 1]
+        self.edge_ring = np.concatenate([np.full(len(e), i) for e, i in edges]) if edges else np.zeros(0, np.int64)
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not ((pts >= self.lo) & (pts <= self.hi)).all():
+            return np.asarray(self.full(pts), dtype=bool).reshape(-1)
+        if not self.n_rings:
+            return np.zeros(len(pts), dtype=bool)
+        px, py = pts[:, 0:1], pts[:, 1:2]
+        straddle = (self.y0[None, :] > py) != (self.y1[None, :] > py)
+        pe, e = np.nonzero(straddle)
+        t = (py[pe, 0] - self.y0[e]) / (self.y1[e] - self.y0[e])
+        crosses = px[pe, 0] < self.x0[e] + t * (self.x1[e] - self.x0[e])
+        counts = np.bincount(pe[crosses] * self.n_rings + self.edge_ring[e[crosses]],
+                             minlength=len(pts) * self.n_rings).reshape(len(pts), self.n_rings)
+        odd = counts % 2 == 1
+        in_exterior = odd[:, ~self.ring_hole]  # (P, polygons): exterior rings come first, one per polygon
+        in_hole = np.zeros_like(in_exterior)
+        if self.ring_hole.any():
+            holes = np.flatnonzero(self.ring_hole)
+            np.logical_or.at(in_hole.T, self.ring_polygon[holes], odd[:, holes].T)
+        return np.asarray((in_exterior & ~in_hole).any(axis=1), dtype=bool)
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """What `pdm_score` derives from the frame alone (expert states and path, agent tracks and speeds, the
+    expert's contacts and progress, the map around the ego), prepared once per frame and shared by every cell.
+
+    ``score(plan)`` equals ``pdm_score(plan, expert, agents, ...)`` (tests/unit/test_pdms.py checks it on the
+    world and on the known-answer frames); it tests all agent boxes of a waypoint time (and all TTC projections)
+    in one vectorised separating-axis call, after dropping the pairs too far apart to touch.
+    """
+
+    expert: np.ndarray
+    steps: tuple[AgentBoxes, ...]
+    ids: tuple[np.ndarray, ...]
+    velocities: tuple[np.ndarray, ...]
+    ego_velocity: np.ndarray
+    drivable: DrivableQuery | None
+    ego_pose: Any
+    static_categories: tuple[str, ...]
+    ignore: frozenset[int]
+    path: np.ndarray
+    expert_m: float
+    expert_multiplier: float
+    # every agent box of the six waypoint times, flat, in (time, index) order
+    step_of: np.ndarray  # (M,) waypoint index 0..5
+    index: np.ndarray  # (M,) index of the box within its time's AgentBoxes
+    centers: np.ndarray  # (M, 2)
+    sizes: np.ndarray  # (M, 2)
+    yaws: np.ndarray  # (M,)
+    reach: np.ndarray  # (M,) half diagonal + the ego's + margin
+
+    @classmethod
+    def prepare(cls, expert: Any, agents: Sequence[AgentBoxes], ego_velocity: Any = (0.0, 0.0),
+                drivable: DrivableQuery | None = None, ego_pose: Any = None, *,
+                static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+        """Prepare a frame from the arguments of `pdm_score` (less the plan)."""
+        expert_arr = _waypoints(expert, "expert")
+        steps = _steps(agents)
+        ids, velocities = agent_tracks(steps)
+        velocity = np.asarray(ego_velocity, dtype=np.float64).reshape(2)
+        if drivable is not None and ego_pose is not None and hasattr(drivable, "polygons"):
+            drivable = LocalDrivable(drivable, [float(ego_pose[0]), float(ego_pose[1])])
+        es = interpolate(expert_arr, velocity)
+        expert_off = off_road(es, drivable, ego_pose)
+        ignore = expert_contacts(es, steps, ids)
+        path = expert_path(expert_arr, float(es.heading[-1]))
+        parts = [(k, j, np.asarray(b.center, dtype=np.float64).reshape(-1, 2)[j],
+                  np.asarray(b.size, dtype=np.float64).reshape(-1, 2)[j],
+                  float(np.asarray(b.yaw, dtype=np.float64).reshape(-1)[j]))
+                 for k, b in enumerate(steps) for j in range(len(b))]
+        sizes = np.array([p[3] for p in parts], dtype=np.float64).reshape(-1, 2)
+        return cls(expert_arr, tuple(steps), tuple(ids), tuple(velocities), velocity, drivable, ego_pose,
+                   tuple(static_categories), frozenset(ignore), path, progress_along(path, expert_arr[-1]),
+                   0.0 if expert_off.any() else 1.0,
+                   np.array([p[0] for p in parts], dtype=np.int64), np.array([p[1] for p in parts], dtype=np.int64),
+                   np.array([p[2] for p in parts], dtype=np.float64).reshape(-1, 2), sizes,
+                   np.array([p[4] for p in parts], dtype=np.float64),
+                   0.5 * np.hypot(sizes[:, 0], sizes[:, 1]) + _EGO_RADIUS + _FAR_MARGIN_M)
+
+    @classmethod
+    def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
+           static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+        """Prepare a reader frame, as `frame_pdms` scores it."""
+        return cls.prepare(frame.gt_future, frame.agents, frame.ego.velocity, drivable, frame.pose,
+                           static_categories=static_categories)
+
+    def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
+        flat agent) pairs that overlap or touch, in (query, agent) order."""
+        q, a = np.nonzero(step[:, None] == self.step_of[None, :])
+        if len(q):
+            near = np.hypot(*(self.centers[a] - xy[q]).T) <= self.reach[a]
+            q, a = q[near], a[near]
+        if not len(q):
+            return q, a
+        over = _overlap_pairs(xy[q], np.broadcast_to(_EGO_SIZE, (len(q), 2)), heading[q], self.centers[a],
+                              self.sizes[a], self.yaws[a])
+        return q[over], a[over]
+
+    def _nc(self, states: EgoStates, astray: np.ndarray) -> float:
+        """`no_at_fault_collisions`, all waypoint times at once."""
+        keys = np.asarray(KEY_STATES)
+        qs, ags = self._hit_pairs(states.xy[keys], states.heading[keys], np.arange(HORIZON_STEPS))
+        ignored = set(self.ignore)
+        score = 1.0
+        for q, flat in zip(qs.tolist(), ags.tolist()):
+            k, j, i = self.step_of[flat], int(self.index[flat]), int(keys[q])
+            track = int(self.ids[k][j])
+            if track in ignored:
+                continue
+            boxes = self.steps[k]
+            xy, heading = states.xy[i], float(states.heading[i])
+            static = boxes.category[j] in self.static_categories
+            agent_speed = float(np.hypot(*self.velocities[k][j]))
+            if states.speed[i] <= STOPPED_SPEED:
+                at_fault = False
+            elif static or agent_speed <= STOPPED_SPEED:
+                at_fault = True
+            elif _relative_angle(xy, heading, self.centers[flat]) > np.deg2rad(BEHIND_DEG):
+                at_fault = False
+            else:
+                nose = xy + 0.5 * EGO_LENGTH * np.array([np.cos(heading), np.sin(heading)])
+                single = AgentBoxes(self.centers[flat][None], self.sizes[flat][None], self.yaws[flat:flat + 1],
+                                    (boxes.category[j],))
+                front = len(_hits(nose, heading, single, _BUMPER_SIZE)) > 0
+                at_fault = front or bool(astray[i])
+            if at_fault:
+                score = min(score, 0.5 if static else 0.0)
+            else:
+                ignored.add(track)
+        return score
+
+    def _ttc(self, states: EgoStates, astray: np.ndarray) -> float:
+        """`time_to_collision_within_bound`, every (state, projection) pair at once."""
+        pairs = _ttc_pairs()
+        i_arr, d_arr, k_arr = pairs[:, 0].astype(np.int64), pairs[:, 1], pairs[:, 2].astype(np.int64)
+        speed = states.speed[i_arr]
+        moving = speed >= TTC_STOPPED_SPEED
+        i_arr, d_arr, k_arr, speed = i_arr[moving], d_arr[moving], k_arr[moving], speed[moving]
+        heading = states.heading[i_arr]
+        moved = states.xy[i_arr] + (speed * d_arr)[:, None] * np.stack([np.cos(heading), np.sin(heading)], 1)
+        qs, ags = self._hit_pairs(moved, heading, k_arr)
+        ignored = set(self.ignore)
+        for q, flat in zip(qs.tolist(), ags.tolist()):
+            k, j, i = int(k_arr[q]), int(self.index[flat]), int(i_arr[q])
+            track = int(self.ids[k][j])
+            if track in ignored:
+                continue
+            angle = _relative_angle(states.xy[i], float(states.heading[i]), self.centers[flat])
+            if angle < np.deg2rad(AHEAD_DEG) or (astray[i] and angle <= np.deg2rad(BEHIND_DEG)):
+                return 0.0
+            ignored.add(track)
+        return 1.0
+
+    def score(self, plan: Any) -> PDMSResult:
+        """The PDMS-like score of one plan on this frame (equal to `pdm_score`)."""
+        plan_arr = _waypoints(plan, "plan")
+        ps = interpolate(plan_arr, self.ego_velocity)
+        plan_off = off_road(ps, self.drivable, self.ego_pose)
+        astray = plan_off | out_of_lane(ps, self.path)
+        nc = self._nc(ps, astray)
+        dac = 0.0 if plan_off.any() else 1.0
+        ttc = self._ttc(ps, astray)
+        comfort = is_comfortable(ps)
+        plan_m = progress_along(self.path, plan_arr[-1])
+        ep = ego_progress(plan_m, nc * dac, self.expert_m, self.expert_multiplier)
+        weighted = (EP_WEIGHT * ep + TTC_WEIGHT * ttc + COMFORT_WEIGHT * comfort) / (EP_WEIGHT + TTC_WEIGHT
+                                                                                       + COMFORT_WEIGHT)
+        return PDMSResult(nc, dac, ttc, ep, comfort, nc * dac * weighted, self.drivable is not None,
+                          max(plan_m, 0.0), max(self.expert_m, 0.0))
+
+
+@functools.lru_cache(maxsize=1)
+def _ttc_pairs() -> np.ndarray:
+    """NAVSIM's TTC (state index, projection seconds, waypoint index) pairs in its order, as (P, 3) floats."""
+    pairs = sorted((int(i - round(d / SIM_DT)), d, k) for k, i in enumerate(KEY_STATES) for d in TTC_PROJECTIONS_S
+                   if i - round(d / SIM_DT) >= 0)
+    out = np.array(pairs, dtype=np.float64)
+    out.setflags(write=False)
+    return out

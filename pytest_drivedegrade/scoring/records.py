@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellRecord
+from ..cells import DIAGNOSTIC, CellRecord, is_ego
 from ..constants import REPORT_HORIZONS_S
 from .metrics import CONVENTIONS, at_horizons
 
@@ -82,6 +82,7 @@ class RunAnalysis:
     null_control: dict[str, Any] | None
     floor: dict[str, Any]
     settings: dict[str, Any]
+    axes_pdms: dict[str, Any] = field(default_factory=dict)  #: the axes on PDMS retention (spec 3)
 
     def to_builtins(self) -> dict[str, Any]:
         out = asdict(self)
@@ -90,4 +91,5 @@ class RunAnalysis:
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""
-        return {s.family: s.retention for s in self.summaries if s.severity == 5 and s.family not in DIAGNOSTIC}
+        return {s.family: s.retention for s in self.summaries
+                if s.severity == 5 and s.family not in DIAGNOSTIC and not is_ego(s.family)}

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellRecord
+from ..cells import DIAGNOSTIC, PDMS_FIELDS, CellRecord, is_ego
 from ..errors import InvalidInput
 from .records import CellSummary, finite_mean, horizon_metrics
 
@@ -109,6 +109,7 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
     metrics = horizon_metrics(record)
     metrics["endpoint_shift"] = finite_mean(record.endpoint_shift(clean))
     metrics["energy"] = float(retention(finite_mean(clean.bit1), finite_mean(record.bit1), "reward"))
+    metrics.update(pdms_metrics(record, clean, n_resamples=n_resamples, seed=seed))
     if record.cell == clean.cell:
         r, ci = 1.0, (1.0, 1.0)
     else:
@@ -116,6 +117,22 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
         ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed)
     return CellSummary(record.cell, record.family, record.severity, int(np.isfinite(m_cell).sum()),
                        finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors))
+
+
+def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DEFAULT_RESAMPLES,
+                 seed: int = 0) -> dict[str, float]:
+    """A cell's mean PDMS-like score and sub-scores (spec 3), the share of frames scored with a map
+    (``map_scored``), and PDMS retention M(cell) / M(clean) (a reward) with its paired bootstrap CI
+    (``pdms_retention``, ``pdms_retention_ci_low``, ``pdms_retention_ci_high``); NaN where not scored."""
+    out = {k: finite_mean(getattr(record, k)) for k in PDMS_FIELDS}
+    out["map_scored"] = finite_mean(record.map_scored)
+    if record.cell == clean.cell:
+        r, ci = (1.0, (1.0, 1.0)) if np.isfinite(clean.pdms).any() else (math.nan, (math.nan, math.nan))
+    else:
+        r = paired_retention(clean.pdms, record.pdms, "reward")
+        ci = bootstrap_retention_ci(clean.pdms, record.pdms, kind="reward", n_resamples=n_resamples, seed=seed)
+    out.update(pdms_retention=r, pdms_retention_ci_low=ci[0], pdms_retention_ci_high=ci[1])
+    return out
 
 
 def tolerance_threshold(curve: Mapping[int, float], level: float) -> float | None:
@@ -139,9 +156,10 @@ def tolerance_threshold(curve: Mapping[int, float], level: float) -> float | Non
 
 
 def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, Any]]:
-    """family -> {"s10": x|None, "s25": x|None} for every ladder family among the summaries."""
+    """family -> {"s10": x|None, "s25": x|None} for every camera ladder family among the summaries (not the ego
+    cells)."""
     curves: dict[str, dict[int, float]] = {}
     for s in summaries:
-        if s.family not in DIAGNOSTIC:
+        if s.family not in DIAGNOSTIC and not is_ego(s.family):
             curves.setdefault(s.family, {})[s.severity] = s.retention
     return {fam: {k: tolerance_threshold(c, lvl) for k, lvl in THRESHOLD_LEVELS.items()} for fam, c in curves.items()}

@@ -13,8 +13,8 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellRecord, cell_id, differing_frames, identical_plans, report_order
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..cells import DIAGNOSTIC, CellRecord, cell_id, differing_frames, identical_plans, is_ego, report_order
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from . import intervals as iv
 from .records import CellSummary, RunAnalysis, format_value
@@ -112,6 +112,42 @@ def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, An
     return {"label": label, "case": case, "flat": float(flat), "text": text, "negative_gap": bool(negative)}
 
 
+#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default) or PDMS retention.
+VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms")
+EGO_LABELS: tuple[str, ...] = ("ego-reliant", "ego-insensitive", "undetermined")
+
+
+def retention_of(summary: CellSummary, metric: str = "l2") -> float:
+    """A summary's retention on `metric`: L2 (``retention``) or PDMS (``pdms_retention``; NaN when unscored)."""
+    if metric == "pdms":
+        return float(summary.metrics.get("pdms_retention", math.nan))
+    return summary.retention
+
+
+def camera_s5(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float]:
+    """S5 retention per camera ladder family (the ego cells left out: they are not camera axes)."""
+    return {s.family: retention_of(s, metric) for s in summaries if s.severity == 5 and not is_ego(s.family)}
+
+
+def ego_axes(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float | None]:
+    """The ego axis (SPEC section 10): ``ego`` = ego_noise S5 retention, ``ego_removal`` = ego_blind retention
+    (None when that cell was not run or its retention is not finite)."""
+    by_cell = {s.cell: retention_of(s, metric) for s in summaries}
+    out: dict[str, float | None] = {}
+    for key, cell in (("ego", cell_id(EGO_NOISE, 5)), ("ego_removal", cell_id(EGO_BLIND, 0))):
+        value = by_cell.get(cell)
+        out[key] = value if value is not None and math.isfinite(value) else None
+    return out
+
+
+def ego_label(ego_removal: float | None, flat: float = DEFAULT_FLAT) -> str:
+    """``ego-reliant`` when ego_removal is below the flat line, else ``ego-insensitive``; ``undetermined`` when
+    the ego_blind cell was not run. Compared at the certificate's precision, like the camera verdict."""
+    if ego_removal is None:
+        return "undetermined"
+    return "ego-reliant" if round(ego_removal, 6) < flat else "ego-insensitive"
+
+
 def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
     """Compare the null-control plans with clean: passed iff bit-identical (`cells.identical_plans`); otherwise
     how far they wandered.
@@ -153,7 +189,7 @@ def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], r
 def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
                 convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
                 n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
-                intervals: bool = True) -> RunAnalysis:
+                intervals: bool = True, metric: str = "l2") -> RunAnalysis:
     """Every figure of a run from its cell records (in any order; the result does not depend on it).
 
     Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
@@ -163,8 +199,12 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
     floor's clean l2_avg when it was run; `seeds` the run's ``--drivedegrade-seeds`` (recorded in the
     settings). With `intervals` (the default) the thresholds, axes and verdict get their intervals from one
-    joint bootstrap of every ladder cell (``scoring.intervals``); without, those fields are None.
+    joint bootstrap of every ladder cell (``scoring.intervals``); without, those fields are None. The axes are
+    computed on L2 retention (``axes``, with the ego axis) and on PDMS retention (``axes_pdms``); `metric`
+    ("l2" or "pdms") says which one the verdict is put on.
     """
+    if metric not in VERDICT_METRICS:
+        raise InvalidInput(f"metric must be one of {', '.join(VERDICT_METRICS)}, got {metric!r}")
     recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
     by_cell = {r.cell: r for r in recs}
     if "clean" not in by_cell:
@@ -185,13 +225,14 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     for s in summaries:
         if s.cell not in ("clean", "null"):
             s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
-    ax = compute_axes({s.family: s.retention for s in summaries if s.severity == 5}, groups)
+    ax = {**compute_axes(camera_s5(summaries), groups), **ego_axes(summaries)}
+    ax_pdms = {**compute_axes(camera_s5(summaries, "pdms"), groups), **ego_axes(summaries, "pdms")}
     th = thresholds(summaries)
     per: dict[str, Any] = {"quality": None, "removal": None, "gap": None, "mean": None}
     if res is not None:
         curves: dict[str, dict[int, str]] = {}
         for s in summaries:
-            if s.family not in DIAGNOSTIC:
+            if s.family not in DIAGNOSTIC and not is_ego(s.family):
                 curves.setdefault(s.family, {})[s.severity] = s.cell
         for fam, entry in iv.threshold_intervals(res, curves).items():
             th[fam].update(entry)
@@ -202,20 +243,28 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
             t.setdefault(f"{key}_ci", None)
             t.setdefault(f"{key}_never", None)
     ax.update(iv.axis_intervals(per))
-    v = verdict(ax, flat)
-    confidence = iv.verdict_confidence(v["label"], per["quality"], per["removal"], flat) if res else None
+    on = ax_pdms if metric == "pdms" else ax
+    v = verdict(on, flat)
+    if metric == "pdms":
+        v["text"] = "On PDMS retention: " + v["text"]
+    v["metric"] = metric
+    v["ego_label"] = ego_label(on.get("ego_removal"), flat)
+    # the resamples are of L2 retention: the verdict's confidence is given for a verdict on L2
+    confidence = iv.verdict_confidence(v["label"], per["quality"], per["removal"], flat) \
+        if res is not None and metric == "l2" else None
     v["confidence"] = confidence
     v["borderline"] = confidence is not None and confidence < iv.BORDERLINE
     if v["borderline"]:
         v["text"] += iv.borderline_text(cast(float, confidence))
     settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
                 "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
-                "tolerance_default": DEFAULT_TOLERANCE, "seeds": int(seeds),
+                "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric, "seeds": int(seeds),
                 "seed_values": [int(seed) + k for k in range(int(seeds))],
                 "intervals": {"computed": res is not None,
                               "scheme": "seeds then frames" if res is not None and res.n_seeds > 1 else
                               "paired frames", "percentile": "linear", "never": "+inf (null bound)"}}
-    return RunAnalysis(summaries, th, ax, v, nc, floor_comparison(floor_l2, summaries, groups.removal), settings)
+    return RunAnalysis(summaries, th, ax, v, nc, floor_comparison(floor_l2, summaries, groups.removal), settings,
+                       axes_pdms=ax_pdms)
 
 
 def _seed_ci(res: iv.Resamples | None, record: CellRecord) -> tuple[float, float] | None:

@@ -19,6 +19,7 @@ from typing import Any
 # itself, and a matplotlib imported twice in one process breaks (its classes no longer match).
 import jinja2  # noqa: F401
 import pytest
+import torch._dynamo  # noqa: F401 - torch.manual_seed imports it lazily; twice in one process it fails
 
 import pytest_drivedegrade.plugin.session  # noqa: F401 - with plugin.context: one SESSION_KEY for every run
 import pytest_drivedegrade.report.html  # noqa: F401

@@ -20,7 +20,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
     ("corruptions",),
     ("data",),
-    ("planning", "scoring.metrics"),  # the contract a plan must meet, and how one plan is scored
+    ("planning", "scoring.metrics", "scoring.pdms"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
     ("loader", "run", "store", "shards"),  # running one cell, on one shard of the scenes
     ("scoring",),  # statistics over finished cells

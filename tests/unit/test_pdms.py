@@ -318,3 +318,52 @@ def test_bad_plans_are_refused():
     with pytest.raises(ValueError, match="non-finite"):
         P.pdm_score(np.full((6, 2), np.nan), np.zeros((6, 2)), [])
     assert EGO_LENGTH == pytest.approx(4.084)
+
+
+# -- the fast path (PreparedFrame): equal to pdm_score -------------------------------------------------------
+
+
+@settings(max_examples=150, deadline=None)
+@given(waypoints, waypoints, agent_steps(), st.tuples(st.floats(-2.0, 20.0), st.floats(-2.0, 2.0)), maps)
+def test_prepared_frame_scores_exactly_as_pdm_score(plan, expert, boxes, v, drivable):
+    assert P.PreparedFrame.prepare(expert, boxes, v, drivable).score(plan) == P.pdm_score(plan, expert, boxes, v,
+                                                                                          drivable)
+
+
+def test_prepared_frame_equals_pdm_score_on_the_world_with_a_local_map(tmp_path):
+    """Every frame of a small world, the expert and noisy plans (some leaving the road, some hitting agents):
+    the prepared frame (agents flattened, the map cut to the ego's surroundings) gives pdm_score's result."""
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.data.world import write_world
+
+    reader = NuScenesReader(write_world(tmp_path / "w", scenes=2, seed=3, val_images=False), split="all")
+    rng = np.random.default_rng(0)
+    checked = set()
+    for frame in reader.scorable_frames():
+        area = reader.drivable_area(frame)
+        prepared = P.PreparedFrame.of(frame, area)
+        assert isinstance(prepared.drivable, P.LocalDrivable)
+        for scale in (0.0, 0.5, 3.0):
+            plan = frame.gt_future + rng.normal(0.0, scale, (6, 2))
+            fast, ref = prepared.score(plan), P.frame_pdms(plan, frame, area)
+            assert fast == ref
+            checked.add((fast.nc, fast.dac, fast.ttc))
+    assert len(checked) > 1  # not only full marks
+
+
+def test_local_drivable_agrees_with_the_whole_map_inside_and_outside_its_window():
+    area = road_area()
+    local = P.LocalDrivable(area, POSE[:2], half=30.0)
+    rng = np.random.default_rng(1)
+    pts = np.array(POSE[:2]) + rng.uniform(-25, 25, (500, 2))  # inside the window
+    np.testing.assert_array_equal(local(pts), area.contains(pts))
+    far = np.array(POSE[:2]) + rng.uniform(-300, 300, (200, 2))  # mostly outside: the whole map answers
+    np.testing.assert_array_equal(local(far), area.contains(far))
+
+
+def test_local_drivable_keeps_holes_and_overlapping_polygons():
+    square = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 40.0], [0.0, 40.0]])
+    hole = np.array([[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]])
+    area = DrivableArea("holes", (MapPolygon(square, (hole,)), MapPolygon(hole + 5.0)))
+    pts = np.random.default_rng(2).uniform(-5, 45, (2000, 2))
+    np.testing.assert_array_equal(P.LocalDrivable(area, (20.0, 20.0), half=60.0)(pts), area.contains(pts))

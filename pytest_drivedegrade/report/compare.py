@@ -1,0 +1,146 @@
+"""`drivedegrade compare CERT... --out DIR` (SPEC section 10): several planners' certificates side by side.
+
+One row per certificate: planner, clean L2, clean PDMS, the axes (L2 and PDMS, the ego axis), the thresholds,
+the verdicts and the floor; ranks by clean L2 (lower is better) and by mean retention (higher is better), and a
+rank reversal flagged where a planner is better than another on clean L2 but worse on mean retention (or the
+other way round): a planner that plans better on clean images yet relies on them more. Every certificate is
+verified first; certificates of different spec versions or data sets are refused unless ``force``.
+
+Written with pandas (imported here only): ``compare.csv`` and a self-contained ``compare.html``.
+"""
+
+from __future__ import annotations
+
+import html
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from ..atomic import atomic_write_text
+from ..errors import DriveDegradeError
+from .certificate import verify
+
+AXES = ("quality", "removal", "gap", "mean", "ego", "ego_removal")
+PDMS_AXES = ("quality", "removal", "gap", "mean")
+
+
+class CompareError(DriveDegradeError):
+    """Certificates that cannot be compared (another spec version or data set) or none at all."""
+
+
+def _clean(cert: Mapping[str, Any], key: str) -> float | None:
+    row: Mapping[str, Any] = next((c for c in cert.get("cells", []) if c.get("cell") == "clean"), {})
+    value = row.get(key)
+    return None if value is None else float(value)
+
+
+def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, Any]:
+    """One certificate's comparison row, flat: axes as ``axis_<name>`` / ``pdms_axis_<name>``, thresholds as
+    ``<family>_s10`` / ``<family>_s25``."""
+    axes, pdms_axes = cert.get("axes") or {}, cert.get("axes_pdms") or {}
+    verdict = cert.get("verdict") or {}
+    row: dict[str, Any] = {
+        "planner": (cert.get("planner") or {}).get("name"),
+        "planner_fingerprint": (cert.get("planner") or {}).get("fingerprint"),
+        "clean_l2": _clean(cert, "l2_avg"),
+        "clean_pdms": _clean(cert, "pdms"),
+        **{f"axis_{k}": axes.get(k) for k in AXES},
+        **{f"pdms_axis_{k}": pdms_axes.get(k) for k in PDMS_AXES},
+        "verdict": verdict.get("label"),
+        "ego_label": verdict.get("ego_label"),
+        "verdict_metric": verdict.get("metric", "l2"),
+        "floor_l2": (cert.get("floor") or {}).get("l2_avg"),
+    }
+    for fam, t in sorted((cert.get("thresholds") or {}).items()):
+        row[f"{fam}_s10"], row[f"{fam}_s25"] = t.get("s10"), t.get("s25")
+    row.update(spec_version=cert.get("spec_version"), dataset_fingerprint=(cert.get("dataset") or {}).get(
+        "fingerprint"), certificate=source)
+    return row
+
+
+def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool = False) -> list[str]:
+    """The mismatches (spec version, data set) between the certificates, as lines; raise `CompareError` unless
+    `force` (then they are returned as warnings)."""
+    problems = []
+    for what in ("spec version", "data set"):
+        seen: dict[Any, list[str]] = {}
+        for path, cert in certs:
+            value = cert.get("spec_version") if what == "spec version" else (cert.get("dataset") or {}).get(
+                "fingerprint")
+            seen.setdefault(value, []).append(path)
+        if len(seen) > 1:
+            problems.append(f"different {what}s: " + "; ".join(f"{v!r} in {', '.join(p)}" for v, p in seen.items()))
+    if problems and not force:
+        raise CompareError(" and ".join(problems) + "; retentions are comparable only under the same ladder and "
+                           "data (pass --force to compare anyway)")
+    return problems
+
+
+def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> Any:
+    """The comparison table (a pandas DataFrame), one row per certificate, with the ranks and reversals."""
+    import pandas as pd
+
+    df = pd.DataFrame([certificate_row(c, path) for path, c in certs])
+    df["rank_clean_l2"] = df["clean_l2"].rank(method="min", ascending=True).astype("Int64")
+    df["rank_mean_retention"] = df["axis_mean"].astype(float).rank(method="min", ascending=False).astype("Int64")
+    reversals = []
+    for i in range(len(df)):
+        others = []
+        for j in range(len(df)):
+            a, b = df.loc[i], df.loc[j]
+            if i == j or pd.isna(a["rank_clean_l2"]) or pd.isna(b["rank_clean_l2"]) \
+                    or pd.isna(a["rank_mean_retention"]) or pd.isna(b["rank_mean_retention"]):
+                continue
+            l2 = int(a["rank_clean_l2"]) - int(b["rank_clean_l2"])
+            ret = int(a["rank_mean_retention"]) - int(b["rank_mean_retention"])
+            if l2 * ret < 0:
+                others.append(str(b["planner"]))
+        reversals.append(", ".join(others))
+    df["rank_reversal"] = [bool(r) for r in reversals]
+    df["reversed_with"] = reversals
+    head = ["planner", "clean_l2", "clean_pdms", "rank_clean_l2", "rank_mean_retention", "rank_reversal",
+            "reversed_with"]
+    return df[head + [c for c in df.columns if c not in head]]
+
+
+def _html(df: Any, warnings: Sequence[str]) -> str:
+    table = df.to_html(index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}",
+                       classes="cmp", border=0)
+    flagged = df[df["rank_reversal"]]
+    notes = "".join(f"<li>{html.escape(str(r.planner))}: better on one ranking, worse on the other, against "
+                    f"{html.escape(str(r.reversed_with))}</li>" for r in flagged.itertuples())
+    warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>DriveDegrade comparison</title>
+<style>
+body {{ font:14px/1.5 -apple-system, "Segoe UI", Roboto, Arial, sans-serif; color:#1f2933; margin:28px; }}
+table.cmp {{ border-collapse:collapse; font-size:12.5px; font-variant-numeric:tabular-nums; }}
+table.cmp th, table.cmp td {{ padding:4px 8px; border-bottom:1px solid #e4e7eb; text-align:right; }}
+table.cmp th {{ background:#fafbfc; color:#616e7c; }}
+.warn {{ background:#fef3c7; border:1px solid #f59e0b; padding:6px 10px; border-radius:6px; }}
+</style></head><body>
+<h1>DriveDegrade comparison: {len(df)} certificate(s)</h1>
+<p>Ranks: by clean L2 (1 = lowest error) and by mean S5 retention over the core families (1 = least damage).
+A rank reversal: a planner better than another on one ranking and worse on the other.</p>
+{warn}
+{"<h2>Rank reversals</h2><ul>" + notes + "</ul>" if notes else "<p>No rank reversals.</p>"}
+<div style="overflow-x:auto">{table}</div>
+</body></html>
+"""
+
+
+def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
+                  force: bool = False) -> tuple[Path, Path, Any]:
+    """Verify and compare the certificates; write ``compare.csv`` and ``compare.html`` into `out`. Returns
+    (csv path, html path, the DataFrame)."""
+    if not paths:
+        raise CompareError("no certificate given")
+    certs = [(os.fspath(p), verify(p)) for p in paths]
+    warnings = check_comparable(certs, force)
+    df = compare_frame(certs)
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    csv_path = atomic_write_text(folder / "compare.csv", df.to_csv(index=False, float_format="%.6g"))
+    html_path = atomic_write_text(folder / "compare.html", _html(df, warnings))
+    return csv_path, html_path, df

@@ -1,0 +1,68 @@
+"""End-to-end: the PDMS columns and axes (spec 3), --drivedegrade-metric, and the ego cells with the ego-only
+floor's known answer (SPEC section 10)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import AXIS_FAMILIES, load_json, no_traceback, read_csv  # noqa: E402
+
+pytest_plugins = ["plugin_support"]
+
+REPO = Path(__file__).resolve().parents[2]
+PDMS_COLUMNS = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_retention", "pdms_retention_ci_low",
+                "pdms_retention_ci_high")
+
+
+def test_the_ego_only_floor_is_ego_reliant_and_flat_on_the_cameras(dd):
+    """Known answer: the floor reads no image (camera axes 1.000) and everything from the ego status, so zeroing
+    it (ego_blind) wrecks its plans: ego_removal well below the flat line, `ego-reliant`."""
+    dd.pytester.makepyfile(ego_floor=(REPO / "planners" / "ego_mlp.py").read_text())
+    result = dd.run("--junitxml=ego.xml", planner="ego_floor.py", families=AXIS_FAMILIES + ",ego_noise,ego_blind",
+                    severities="5")
+    no_traceback(result)
+    result.assert_outcomes(passed=15)
+    [cert_path] = (dd.pytester.path / "rep").glob("*/certificate.json")
+    cert = load_json(cert_path)
+    axes = cert["axes"]
+    assert axes["quality"] == axes["removal"] == 1.0
+    assert axes["ego_removal"] < 0.75 and cert["verdict"]["ego_label"] == "ego-reliant"
+    # S5 noise (past positions sigma 0.8 m, velocity 1.6 m/s) throws the floor's regressor out of its training
+    # range: on this world it costs even more than zeroing the ego status
+    assert axes["ego"] is not None and axes["ego"] < 0.95
+    assert cert["verdict"]["label"] == "not-shown-to-use-cameras"
+    assert cert["axes_pdms"]["quality"] == cert["axes_pdms"]["removal"] == 1.0
+    rows = {r["cell"]: r for r in read_csv(cert_path.parent / "cells.csv")}
+    assert {"ego_noise-s5", "ego_blind"} <= set(rows) and rows["ego_blind"]["severity"] == "0"
+    result.stdout.fnmatch_lines(["*ego*ego-reliant*"])
+
+
+def test_pdms_columns_and_the_verdict_on_pdms(dd):
+    dd.write_planner()
+    result = dd.run("--drivedegrade-metric", "pdms")
+    no_traceback(result)
+    folder = dd.folder()
+    rows = read_csv(folder / "cells.csv")
+    for row in rows:
+        for col in PDMS_COLUMNS[:6]:
+            assert 0.0 <= float(row[col]) <= 1.0, (row["cell"], col, row[col])
+        assert float(row["pdms_retention_ci_low"]) <= float(row["pdms_retention"]) <= \
+            float(row["pdms_retention_ci_high"]) + 1e-9
+    clean = next(r for r in rows if r["cell"] == "clean")
+    assert float(clean["pdms_retention"]) == 1.0 and float(clean["map_scored"]) == 1.0
+    cert = load_json(folder / "certificate.json")
+    assert cert["verdict"]["metric"] == "pdms" and cert["settings"]["verdict_metric"] == "pdms"
+    assert set(cert["axes_pdms"]) >= {"quality", "removal", "gap", "mean", "ego", "ego_removal"}
+    assert all("pdms_retention" in c for c in cert["cells"])
+    html = (folder / "report.html").read_text()
+    assert "PDMS" in html
+
+
+def test_an_unknown_metric_is_a_usage_error(dd):
+    dd.write_planner()
+    result = dd.run("--drivedegrade-metric", "mse")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    result.stderr.fnmatch_lines(["*--drivedegrade-metric: unknown metric 'mse'*"])
