@@ -142,6 +142,14 @@ class CameraCNNPlanner:
     def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
         return self.predict_many(preprocess(images)[None], ego_features(ego, cmd)[None])[0]
 
+    def predict_batch(self, images: list[Mapping[str, np.ndarray]], egos: list[EgoStatus], cmds: list[Command],
+                      contexts: list[object]) -> np.ndarray:
+        """(B, 6, 2) for B frames in one forward pass (`--drivedegrade-batch B`): the same plans as `predict`
+        within float rounding (batched convolutions sum in another order)."""
+        pix = np.stack([preprocess(im) for im in images])
+        feats = np.stack([ego_features(e, c) for e, c in zip(egos, cmds)])
+        return self.predict_many(pix, feats)
+
 
 @pytest.fixture(scope="session")
 def planner() -> CameraCNNPlanner:

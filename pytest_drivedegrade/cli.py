@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, merge, compare.
+"""The `drivedegrade` command: spec, preview, world, verify, merge, compare, estimate.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -88,6 +88,24 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
+def _estimate(args: argparse.Namespace) -> int:
+    """Wall time of a certification from a planner's frames/s (and a certificate's measured overhead)."""
+    from .report.estimate import estimate, estimate_lines, overhead_per_prediction
+
+    overhead = 0.0
+    if args.certificate:
+        from .report.certificate import verify
+
+        overhead = overhead_per_prediction(verify(args.certificate).get("cost"))
+    try:
+        rows = estimate(args.fps, args.frames, args.gpus, cells=args.cells, overhead=overhead)
+    except ValueError as exc:
+        raise DriveDegradeError(f"estimate: {exc}") from None
+    for line in estimate_lines(rows, args.fps, args.frames, args.cells, overhead):
+        print(line)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -121,6 +139,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-incomplete", action="store_true",
                    help="merge although shards are missing; the certificate then says completeness: false")
     p.set_defaults(func=_merge)
+
+    p = sub.add_parser("estimate", help="wall time of a certification at a planner's frames/s on G GPUs")
+    p.add_argument("--fps", type=float, required=True, help="the planner's frames per second on one GPU")
+    p.add_argument("--frames", type=int, default=6019, help="scored frames (default 6019: nuScenes val)")
+    p.add_argument("--cells", type=int, default=89, help="cells of the run (default 89: the full ladder and ego cells)")
+    p.add_argument("--gpus", type=int, nargs="+", default=[1, 8, 64], help="GPU counts (default 1 8 64)")
+    p.add_argument("--certificate", help="a certificate whose cost ledger gives the suite's per-frame overhead")
+    p.set_defaults(func=_estimate)
 
     p = sub.add_parser("verify", help="check a certificate's digest: exit 0 intact, 1 edited, 2 unreadable")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")

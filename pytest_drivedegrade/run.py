@@ -32,6 +32,9 @@ from .scoring.metrics import bit1_density, frame_metrics
 from .scoring.pdms import PreparedFrame
 from .shards import Shard, shard_frames
 
+#: One frame's outcome in a stream: its sample and the validated plan, or why the frame failed.
+FrameResult = tuple[CellSample, "np.ndarray | str"]
+
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
 #: Decoded clean images kept per process for reuse by later cells (a fixed budget, so memory is flat in the
 #: number of frames): 512 MB holds about 500 images at 800 x 450.
@@ -91,6 +94,7 @@ class RunContext:
     shard: Shard | None = None  #: the shard of the scenes this process scores (None: all of them)
     frames_total: int = 0  #: scored frames of the whole run (all shards)
     seeds: int = 1  #: --drivedegrade-seeds: random families run under seed, seed + 1, ..., seed + seeds - 1
+    batch: int = 1  #: --drivedegrade-batch: frames per predict_batch() call (stateless planners only)
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -100,7 +104,8 @@ class RunContext:
 
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
-             planner_path: Path | None, shard: Shard | None = None, seeds: int = 1) -> RunContext:
+             planner_path: Path | None, shard: Shard | None = None, seeds: int = 1,
+             batch: int = 1) -> RunContext:
         """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
         DataError naming the file or token."""
         reader = NuScenesReader(data_root, split=split)
@@ -113,7 +118,7 @@ class RunContext:
             chosen = shard_frames(chosen, shard)
         return cls(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
                    frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total,
-                   seeds=seeds)
+                   seeds=seeds, batch=batch)
 
     @property
     def frames_key(self) -> str:
@@ -132,7 +137,11 @@ class RunContext:
         key = {"spec_version": SPEC_VERSION, "record_version": RECORD_VERSION,
                "planner_fingerprint": self.planner_info(planner).fingerprint,
                "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
-        return {**key, "seeds": self.seeds} if self.seeds > 1 else key
+        if self.seeds > 1:
+            key["seeds"] = self.seeds
+        if self.batch > 1:  # batched plans equal per-frame ones within 1e-5 m, not bit for bit
+            key["batch"] = self.batch
+        return key
 
     def seeds_for(self, family: str) -> list[int]:
         """The corruption seeds a cell of `family` runs under: seed .. seed + seeds - 1 for a random family,
@@ -191,7 +200,7 @@ class RunContext:
         return found
 
     def stream(self, planner: Any, family: str, severity: int, frames: list[Frame], *,
-               unread: tuple[str, ...], seed: int | None = None) -> Iterator[tuple[CellSample, np.ndarray | str]]:
+               unread: tuple[str, ...], seed: int | None = None) -> Iterator[FrameResult]:
         """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each
         frame its sample and the validated plan, or the one-line reason the frame failed.
 
@@ -202,6 +211,10 @@ class RunContext:
         style = call_style(planner)
         scene = None
         seed = self.seed if seed is None else seed
+        if self.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
+            yield from self._stream_batched(planner, samples(frames, family, severity, seed=seed,
+                                                             decode=self.decode, unread=unread))
+            return
         for sample in samples(frames, family, severity, seed=seed, decode=self.decode, unread=unread):
             frame = sample.frame
             if style.resets and frame.scene_token != scene:
@@ -215,7 +228,48 @@ class RunContext:
             scene = frame.scene_token
             yield sample, self._predict(planner, sample, style)
 
-    def _predict(self, planner: Any, sample: CellSample, style: CallStyle) -> np.ndarray | str:
+    def _stream_batched(self, planner: Any, stream: Iterator[CellSample]) -> Iterator[FrameResult]:
+        """`--drivedegrade-batch B`: B frames per ``predict_batch(images, egos, cmds, contexts)`` call, in order;
+        each frame's output is checked (and its inputs for writes) as a single prediction's would be."""
+        pending: list[CellSample] = []
+        for sample in stream:
+            pending.append(sample)
+            if len(pending) == self.batch:
+                yield from self._predict_batch(planner, pending)
+                pending = []
+        if pending:
+            yield from self._predict_batch(planner, pending)
+
+    def _predict_batch(self, planner: Any, batch: list[CellSample]) -> Iterator[FrameResult]:
+        inputs = [self._inputs(planner, s, CallStyle(True, False)) for s in batch]
+        egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
+        try:
+            with time_limit(self.timeout * len(batch)):
+                raw = planner.predict_batch(batch, egos, [s.frame.command for s in batch], contexts)
+            if hasattr(raw, "detach") and hasattr(raw, "cpu"):
+                raw = raw.detach().cpu().numpy()
+            if len(raw) != len(batch):
+                raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
+        except PlannerOutputError as exc:
+            for s in batch:
+                yield s, f"frame {s.frame.token!r}: {exc}"
+            return
+        except Exception as exc:  # noqa: BLE001 - the planner's failure, on every frame of the batch
+            for s in batch:
+                yield s, describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
+            return
+        for s, plan in zip(batch, raw):
+            written = s.written()
+            if written:
+                yield s, _written_message(s.frame.token, written)
+                continue
+            try:
+                yield s, validate_output(plan, s.frame.token)
+            except PlannerOutputError as exc:
+                yield s, str(exc)
+
+    def _inputs(self, planner: Any, sample: CellSample, style: CallStyle) -> tuple[Any, FrameContext | None]:
+        """The call's private ego status and its context (perturbed in the ego cells)."""
         frame = sample.frame
         ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
         context = self.context_of(frame) if style.takes_context else None
@@ -225,6 +279,11 @@ class RunContext:
             ego, bus = perturb(ego, None if context is None else context.can_bus, sample.family, sample.severity,
                                seed=self.seed, frame=frame.token)
             context = None if context is None else replace(context, can_bus=bus)
+        return ego, context
+
+    def _predict(self, planner: Any, sample: CellSample, style: CallStyle) -> np.ndarray | str:
+        frame = sample.frame
+        ego, context = self._inputs(planner, sample, style)
         try:
             with time_limit(self.timeout):
                 if style.takes_context:
@@ -233,9 +292,7 @@ class RunContext:
                     raw = planner.predict(sample, ego, frame.command)
             written = sample.written()
             if written:
-                return (f"frame {frame.token!r}: predict() wrote into its input image of {', '.join(written)}; "
-                        "inputs are read-only: copy before modifying (np.array(img), or tensor.clone() after "
-                        "torch.from_numpy)")
+                return _written_message(frame.token, written)
             return validate_output(raw, frame.token)
         except PlannerOutputError as exc:
             return str(exc)
@@ -287,6 +344,11 @@ class RunContext:
                           col, vru, jerk, bit1, seconds=spent, errors=errors, nc=pdms["nc"], dac=pdms["dac"],
                           ttc=pdms["ttc"], ep=pdms["ep"], comfort=pdms["comfort"], pdms=pdms["pdms"],
                           map_scored=pdms["map_scored"])
+
+
+def _written_message(token: str, cameras: list[str]) -> str:
+    return (f"frame {token!r}: predict() wrote into its input image of {', '.join(cameras)}; inputs are read-only: "
+            "copy before modifying (np.array(img), or tensor.clone() after torch.from_numpy)")
 
 
 def _readonly(array: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
                                     progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
     return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
                            timeout=options.timeout, planner_path=options.planner_path, shard=options.shard,
-                           seeds=options.seeds)
+                           seeds=options.seeds, batch=options.batch)
 
 
 @pytest.fixture(scope="session")

@@ -16,7 +16,7 @@ from ..cells import CellPayload, CellRecord, cell_id
 from ..errors import DriveDegradeError
 from ..report.certificate import Provenance
 from ..run import RunContext
-from ..scoring.records import finite_mean
+from ..scoring.records import cost_ledger, finite_mean
 from ..store import ResultStore
 from .context import cache_root
 from .options import RunOptions
@@ -127,10 +127,13 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
                            seeds=options.seeds, metric=options.metric)
     analysis.floor.update(floor_ego)
+    analysis.settings["batch"] = options.batch
     prov = provenance(options, context, run.planner, run.key, _command(config))
+    cost = cost_ledger(records.values())
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
-                                  montage=front_montage(context, options.seed))
+                                  montage=front_montage(context, options.seed), cost=cost)
+    out.lines.append(cost_line(cost))
     out.lines.append(written)
     from .compat import junit_xml
 
@@ -143,6 +146,15 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     gate_lines, out.failed = gate(cert, baseline, options.tolerance)
     out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
     return out
+
+
+def cost_line(cost: Mapping[str, Any]) -> str:
+    """The cost ledger in one line of the terminal summary."""
+    sec = cost["seconds"]
+    fps = cost.get("planner_frames_per_second")
+    return (f"cost: {cost['predictions']} predictions ({cost['reused']} reused); seconds in cells: planner "
+            f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
+            f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
 
 
 def _command(config: pytest.Config) -> str:
@@ -175,6 +187,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     prov = provenance(options, context, run.planner, run.key, _command(config))
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
+                              batch=options.batch,
                               frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in expected],
                               missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),

@@ -45,6 +45,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "all five)", {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-seed", "drivedegrade_seed", "seed of every random corruption (default 0)",
                {"metavar": "INT"}),
+    OptionSpec("--drivedegrade-batch", "drivedegrade_batch", "frames per predict_batch() call for a planner "
+               "that has predict_batch and no reset (default 1: one predict() per frame)", {"metavar": "B"}),
     OptionSpec("--drivedegrade-seeds", "drivedegrade_seeds", "run each random family's cells under N corruption "
                "seeds (seed, seed+1, ...) and fold them into the intervals (default 1)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-report", "drivedegrade_report", "folder for <planner>/cells.csv, report.html and "
@@ -125,6 +127,7 @@ class RunOptions:
     timeout: float
     shard: Shard | None = None
     seeds: int = 1
+    batch: int = 1
     metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
 
@@ -176,6 +179,7 @@ def parse(config: pytest.Config) -> RunOptions:
         timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
         shard=shard,
         seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
+        batch=_number(config, "drivedegrade_batch", int, 1, 1, 4096),
         metric=metric,
         ego=tuple(f for f in EGO_FAMILIES if f in families),
     )

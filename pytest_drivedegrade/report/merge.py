@@ -29,7 +29,7 @@ SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
 #: Manifest fields every shard of one run shares.
 SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "seeds",
-            "count", "flat", "metric", "frames_total", "cells")
+            "count", "flat", "metric", "batch", "frames_total", "cells")
 
 
 @dataclass(frozen=True)
@@ -132,6 +132,7 @@ class Merged:
     front: tuple[str, str] | None  #: (token, CAM_FRONT image path) of the first shard's first frame
     floor_extra: dict[str, float]  #: the floor's ego_removal, when the shards ran the ego cells
     metric: str = "l2"
+    batch: int = 1
 
 
 def write_merged(merged: Merged, out: Path) -> list[str]:
@@ -143,6 +144,7 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
     analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
                            floor_l2=merged.floor_l2, metric=merged.metric)
     analysis.floor.update(merged.floor_extra)
+    analysis.settings["batch"] = merged.batch
     montage = None
     if merged.front is not None and Path(merged.front[1]).is_file():
         from ..data.images import decode_rgb
@@ -154,8 +156,10 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
             montage = None
     extra: dict[str, Any] = {"complete": False, "missing_shards": merged.missing_shards} \
         if merged.missing_shards else {}
+    from ..scoring.records import cost_ledger
+
     _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
-                               montage=montage, completeness=extra)
+                               montage=montage, completeness=extra, cost=cost_ledger(merged.records.values()))
     from .terminal import summary_lines
 
     lines = summary_lines(analysis, merged.missing_cells)
@@ -215,11 +219,11 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     front = shards[0].manifest.get("front")
     return Merged(records, prov, key, floor, gt, float(first["flat"]), [c for c in cells if c not in records],
                   missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None,
-                  floor_extra, str(first.get("metric", "l2")))
+                  floor_extra, str(first.get("metric", "l2")), int(first.get("batch", 1)))
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
-                   flat: float, seeds: int, metric: str, frames_total: int, cells: Sequence[str],
+                   flat: float, seeds: int, metric: str, batch: int, frames_total: int, cells: Sequence[str],
                    missing: Sequence[str],
                    floor_l2: Sequence[float] | None, floor_ego_blind_l2: Sequence[float] | None,
                    gt: Mapping[str, Any], data_root: str,
@@ -229,7 +233,7 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "planner_fingerprint": provenance.planner_fingerprint,
             "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
             "spec_version": provenance.spec_version, "seed": provenance.seed, "seeds": seeds, "flat": flat,
-            "metric": metric,
+            "metric": metric, "batch": batch,
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "data_source": provenance.data_source, "tool_version": provenance.tool_version,
             "cells": list(cells), "missing_cells": list(missing),

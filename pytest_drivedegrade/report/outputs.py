@@ -23,7 +23,8 @@ def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
 
 def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
                   missing: Sequence[str], *, gt: Mapping[str, Any], montage: np.ndarray | None,
-                  completeness: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
+                  completeness: Mapping[str, Any] | None = None,
+                  cost: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files and return (the sealed certificate, a line saying what was written). A run with
     missing cells (a crash, Ctrl-C, -k) or shards says so in the certificate, so it is not mistaken for a
     complete baseline. `gt`: frame token -> ground truth (the trajectory panels)."""
@@ -34,6 +35,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     folder = Path(report_dir) / prov.planner_name
     cert = build_certificate(analysis, prov)
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
+    if cost is not None:
+        cert["cost"] = dict(cost)
     cert = seal(cert)
     atomic_write_text(folder / "certificate.json", certificate_text(cert))
     write_cells_csv(folder / "cells.csv", analysis, prov)

@@ -4,6 +4,7 @@ reduce per-frame arrays (NaN frames left out) and format numbers for people."""
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -93,3 +94,27 @@ class RunAnalysis:
         """S5 retention per ladder family."""
         return {s.family: s.retention for s in self.summaries
                 if s.severity == 5 and s.family not in DIAGNOSTIC and not is_ego(s.family)}
+
+
+#: The time parts a cell records (``CellRecord.seconds``), as the cost ledger reports them.
+COST_PARTS: tuple[str, ...] = ("decode", "inject", "planner", "metrics", "pdms", "check")
+
+
+def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
+    """What the run cost: predictions made (frames predicted, every seed run counted) and reused, and seconds
+    decoding, injecting, planning, scoring and checking inputs, in total and per cell; the planner's frames per
+    second. Seconds are process CPU-wall time inside the cells (workers add up), not the run's wall time."""
+    per_cell: dict[str, dict[str, float]] = {}
+    totals = dict.fromkeys(COST_PARTS, 0.0)
+    predictions = 0
+    for record in records:
+        runs = [record, *getattr(record, "seed_runs", [])]
+        made = sum(len(r.frames) for r in runs)
+        spent = {part: sum(float(r.seconds.get(part, 0.0)) for r in runs) for part in COST_PARTS}
+        per_cell[record.cell] = {"predictions": made, **spent}
+        predictions += made
+        for part in COST_PARTS:
+            totals[part] += spent[part]
+    return {"predictions": predictions, "reused": 0, "seconds": totals, "cells": per_cell,
+            "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None}
+
