@@ -153,8 +153,9 @@ def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
 def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.ndarray | None = None,
                   trajectories: Sequence[TrajectoryExample | Mapping[str, Any]] = (),
                   floor_point: tuple[float, float] = (1.0, 1.0), families: Mapping[str, Any] | None = None,
-                  created: str = "", digest: str = "") -> str:
-    """The page as a string. `montage`: the S4 montage of one front frame (RGB uint8), optional."""
+                  created: str = "", digest: str = "", cost: Mapping[str, Any] | None = None) -> str:
+    """The page as a string. `montage`: the S4 montage of one front frame (RGB uint8), optional; `cost`: the
+    certificate's cost ledger, shown as a panel."""
     from jinja2 import Environment, FileSystemLoader, StrictUndefined
 
     from . import plots
@@ -173,8 +174,24 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
     extra = {"created": created, "digest": digest, "traj_cells": [c for t in traj[:1] for c in t["plans"]],
+             "cost": _cost_rows(cost),
              **pdms_ego_context(analysis)}
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
+
+
+def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The cost panel: predictions, and seconds per part with its share of the cells' time."""
+    if not cost:
+        return None
+    sec = {k: float(v) for k, v in cost["seconds"].items()}
+    total = sum(sec.values()) or 1.0
+    names = {"planner": "planner (predict)", "inject": "injecting corruptions", "decode": "decoding images",
+             "metrics": "scoring: L2, collisions", "pdms": "scoring: PDMS-like", "check": "input write check"}
+    rows = [{"part": names.get(k, k), "seconds": f"{v:.1f}", "share": f"{100 * v / total:.1f} %"}
+            for k, v in sorted(sec.items(), key=lambda kv: -kv[1])]
+    fps = cost.get("planner_frames_per_second")
+    return {"predictions": cost["predictions"], "reused": cost.get("reused", 0), "rows": rows,
+            "fps": f"{fps:.1f}" if fps else "—"}
 
 
 def write_report(path: str | os.PathLike[str], analysis: RunAnalysis, provenance: Provenance, **kwargs: Any) -> Path:

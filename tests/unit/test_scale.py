@@ -117,3 +117,20 @@ def test_estimate_known_answers():
     assert with_overhead.wall_hours == pytest.approx(89 * 6019 * (1 / 45 + 0.05) / 3600)
     with pytest.raises(ValueError):
         estimate(0, 10, [1])
+
+
+def test_report_shows_the_cost_panel():
+    from test_analysis import synthetic_run
+
+    from pytest_drivedegrade.report.certificate import Provenance
+    from pytest_drivedegrade.report.html import render_report
+    from pytest_drivedegrade.scoring.verdict import analyse_run
+
+    recs, _ = synthetic_run(8)
+    cost = {"predictions": 1234, "reused": 0, "planner_frames_per_second": 50.0,
+            "seconds": {"planner": 6.0, "inject": 3.0, "decode": 1.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}}
+    html = render_report(analyse_run(recs, n_resamples=20), Provenance("p", "f", "d", "val", "3.0.0"), cost=cost)
+    assert "<h2>Cost</h2>" in html and "1234 predictions (0 reused)" in html and "50.0" in html
+    assert "planner (predict)</td><td class=\"n\">6.0</td><td class=\"n\">60.0 %" in html
+    assert "<h2>Cost</h2>" not in render_report(analyse_run(recs, n_resamples=20),
+                                                 Provenance("p", "f", "d", "val", "3.0.0"))
