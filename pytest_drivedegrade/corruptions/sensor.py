@@ -43,6 +43,8 @@ def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> n
 #: Rows per block of the box filter in `_line_blur`: each block filters only the band of the canvas its
 #: lines occupy, so the work stays near the image size at any angle instead of growing with the shear.
 _LINE_BLOCK = 192
+#: A fractional tap lighter than this (a length within 1e-6 px of an integer) is left out.
+_MIN_FRACTION = 1e-6
 
 
 def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
@@ -70,56 +72,81 @@ def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
     return cv2.convertScaleAbs(total, alpha=0.5)
 
 
-def _line_blur(image: np.ndarray, n: int, slope: float) -> np.ndarray:
-    """Average n pixels along the digital lines {(i, c + round(slope * i))}, |slope| <= 1: lines advance
-    one row per step and drift sideways by the rounded slope.
+def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bool = False) -> np.ndarray:
+    """Average along the digital lines {(i, c + round(slope * i))}, |slope| <= 1, over a segment `length`
+    rows long (`length` >= 1, any real): lines advance one row per step and drift sideways by the rounded
+    slope. With `transposed`, rows and columns trade places (the lines advance along x), as if the image
+    were transposed before and after.
 
-    Every pixel lies on exactly one such line. Shifting row i by -round(slope * i) columns lays each line
-    out as a column of a wider canvas (a row shift is one contiguous copy per run of equal shifts); a box
-    filter down the columns averages along the lines in O(1) per pixel, and the same integer shifts put
-    every pixel back. Exact, no 2-D kernel. Lines leaving the image continue on its edge pixels (the
-    canvas margins replicate each row's end pixels as deep as a window can reach).
+    The segment covers rows [i - n//2 - 1/2, i - n//2 - 1/2 + length] around row i, n = floor(length):
+    the n rows i - n//2 .. i - n//2 + n - 1 whole and the next row by the fraction f = length - n, each
+    weighted by how much of the segment its cell holds (the area-sampled box). Every pixel lies on exactly
+    one such line. Shifting row i by -round(slope * i) columns lays each line out as a column of a wider
+    canvas (a row shift is one contiguous copy per run of equal shifts); a box filter down the columns
+    averages along the lines in O(1) per pixel, the fractional row is one weighted add of the canvas
+    shifted by n rows, and the same integer shifts put every pixel back. Exact up to rounding, no 2-D
+    kernel. Lines leaving the image continue on its edge pixels (the rows are padded with their end pixels
+    as deep as a window can reach).
     """
-    rows, cols = image.shape[:2]
+    rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
+    n = int(length + 1e-9)
+    fraction = float(length) - n
+    extra = fraction > _MIN_FRACTION  # the partial row at i - n//2 + n
+    reach = n + 1 if extra else n  # rows a window touches
     shift = -np.round(slope * np.arange(rows)).astype(np.int64)
     shift -= shift.min()
-    margin = ceil(abs(slope) * n) + 1
+    margin = ceil(abs(slope) * reach) + 1
+    padded = np.empty((rows, cols + 2 * margin) + image.shape[2:], image.dtype)
+    if transposed:
+        cv2.transpose(image, dst=padded[:, margin:margin + cols])
+    else:
+        padded[:, margin:margin + cols] = image
+    padded[:, :margin] = padded[:, margin:margin + 1]
+    padded[:, margin + cols:] = padded[:, margin + cols - 1:margin + cols]
     canvas = np.empty((rows, cols + int(shift.max()) + 2 * margin) + image.shape[2:], image.dtype)
     for a, b, s in _runs(shift):
-        left = margin + s
-        canvas[a:b, left:left + cols] = image[a:b]
-        canvas[a:b, left - margin:left] = image[a:b, :1]
-        canvas[a:b, left + cols:left + cols + margin] = image[a:b, cols - 1:]
-    out = np.empty_like(image)
+        canvas[a:b, s:s + cols + 2 * margin] = padded[a:b]
+    out = padded[:, :cols] if transposed else np.empty_like(image)  # the padding is free again
     before = n // 2
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
-        hi = min(rows, last + n - 1 - before)  # the block and its window's reach (at least n rows)
+        hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)
         lo = max(0, min(first - before, hi - n))
         band = shift[first:last]
         left = margin + int(band.min())
-        blurred = _box_rows(canvas[lo:hi, left:margin + int(band.max()) + cols], n)
+        view = canvas[lo:hi, left:margin + int(band.max()) + cols]
+        blurred = _box_rows(view, n)[first - lo:last - lo] if n > 1 else view[first - lo:last - lo]
+        if extra:
+            # the partial row of output row i is canvas row i - before + n; past the last row, the last row
+            start = first - before + n  # > first: only the image's last row can cut it short
+            inside = max(0, min(last - first, rows - start))
+            tail = view[start - lo:start - lo + inside]
+            if inside < last - first:
+                tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
+            blurred = cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0)
         for a, b, s in _runs(band):
-            out[first + a:first + b] = blurred[first - lo + a:first - lo + b, margin + s - left:][:, :cols]
-    return out
+            out[first + a:first + b] = blurred[a:b, margin + s - left:][:, :cols]
+    return cv2.transpose(out) if transposed else out
 
 
 @register("motion_blur", group="sensor", axis="quality", parameter="blur length", unit="px",
           values=(4, 8, 14, 22, 34), random=True, spatial=True)
 def motion_blur(image: np.ndarray, length: float, rng: np.random.Generator, scale: float) -> np.ndarray:
-    """Linear motion blur of the given length in a random direction.
+    """Linear motion blur: the mean over a segment of the given Euclidean length in a random direction.
 
-    Each output pixel averages the n pixels on a rasterised line through it (see `_line_blur`); mostly
-    horizontal motion is handled on the transposed image. No large 2-D kernel is convolved.
+    Along the major axis of the direction (angle a) the segment spans length * max(|cos a|, |sin a|)
+    pixels, area-sampled (whole pixels plus one fractional one, see `_line_blur`), so its Euclidean extent
+    is the declared length at every angle. Mostly horizontal motion is handled on the transposed image.
+    No large 2-D kernel is convolved.
     """
-    n = max(1, int(round(scaled(length, scale))))
     angle = rng.uniform(0.0, np.pi)
-    if n == 1:
-        return image.copy()
     c, s = np.cos(angle), np.sin(angle)
+    span = scaled(length, scale) * max(abs(c), abs(s))  # rows (or columns) the segment crosses
+    if span <= 1.0:  # within one pixel: the pixel itself
+        return image.copy()
     if abs(c) >= abs(s):  # lines advance along x: make x the row axis
-        return cv2.transpose(_line_blur(cv2.transpose(image), n, s / c))
-    return _line_blur(image, n, c / s)
+        return _line_blur(image, span, s / c, transposed=True)
+    return _line_blur(image, span, c / s)
 
 
 @register("gaussian_noise", group="sensor", axis="quality", parameter="noise sigma", unit="8-bit levels",
