@@ -45,7 +45,9 @@ def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
     assert set(cert["thresholds"]["fog"]) == {"s10", "s25"}
     assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
     assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
-    assert cert["verdict"]["label"] in an.VERDICT_LABELS and cert["settings"]["flat"] == 0.95
+    # the synthetic planner degrades on both axes (S5 retention ~0.77 on quality, ~0.62 on removal)
+    assert (cert["verdict"]["label"], cert["verdict"]["case"]) == ("camera-reliant", "both-below")
+    assert cert["settings"]["flat"] == 0.95
     assert cf.check_schema(cert) == []
 
 
