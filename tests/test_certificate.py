@@ -61,6 +61,21 @@ def test_digest_is_sha256_over_canonical_json_with_rounded_floats(cert_file: Pat
     assert all(len(repr(c["retention"]).split(".")[-1]) <= 6 for c in cert["cells"])
 
 
+def test_digest_known_answer() -> None:
+    """A two-key body sealed by hand: floats rounded to six decimals, NaN as null, keys sorted, no spaces;
+    each section hashed on its own, then everything but the digest. The hex strings are fixed."""
+    import hashlib
+
+    sealed = cf.seal({"b": [0.1234567, float("nan"), True], "a": "x"})
+    sections = {"a": "ba2df4903a2c14e86dc3bcca58911b44ac1d2514b7227bf6eb08cfb978f55a1b",  # sha256 of '"x"'
+                "b": "85c0c85d04e978eb4d547c17df51d402c2818aff876204ea628eaba988444778"}  # '[0.123457,null,true]'
+    assert sealed["section_digests"] == sections
+    body = '{"a":"x","b":[0.123457,null,true],"section_digests":{"a":"%s","b":"%s"}}' % (sections["a"], sections["b"])
+    assert sealed["digest"] == hashlib.sha256(body.encode()).hexdigest() == (
+        "e584f5b0d7948a47e158446c6f62fed38a64021d73f0f9f7944a506e2434f36d")
+    assert hashlib.sha256(b'"x"').hexdigest() == sections["a"]
+
+
 def test_seal_is_idempotent_and_layout_free(run: an.RunAnalysis) -> None:
     sealed = cf.seal(cf.build_certificate(run, PROV, created="x"))
     assert cf.seal(sealed) == sealed
