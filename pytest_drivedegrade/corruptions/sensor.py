@@ -45,6 +45,9 @@ def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> n
 _LINE_BLOCK = 192
 #: A fractional tap lighter than this (a length within 1e-6 px of an integer) is left out.
 _MIN_FRACTION = 1e-6
+#: Up to this many taps a window is one weighted 1-D filter down the columns (one pass, one rounding);
+#: longer ones are a box filter plus a weighted add of the fractional row, O(1) per pixel at any length.
+_SHORT_WINDOW = 7
 
 
 def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
@@ -56,20 +59,29 @@ def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
 
 
 def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
-    """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated).
+    """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated), for the
+    windows longer than `_SHORT_WINDOW` (n >= `_SHORT_WINDOW` with a fractional row).
 
-    OpenCV 5.0's `blur` is off by one level for a 2-tap window (a zero image comes back as 1), so two
-    taps are summed exactly in 16 bits and halved (round half to even); and it misreads the replicated
-    border of a view shorter than the window, so such a view is padded first."""
-    border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
+    OpenCV 5.0's `blur` misreads the replicated border of a view shorter than the window, so such a view
+    is padded first. (Its 2-tap window is off by one level, a zero image coming back as 1: short windows
+    never come here.)"""
     if view.shape[0] < n:
         before = n // 2
         padded = cv2.copyMakeBorder(view, before, n - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
         return _box_rows(padded, n)[before:before + view.shape[0]]
-    if n != 2:
-        return cv2.blur(view, (1, n), borderType=border)
-    total = cv2.boxFilter(view, cv2.CV_16U, (1, 2), normalize=False, borderType=border)
-    return cv2.convertScaleAbs(total, alpha=0.5)
+    return cv2.blur(view, (1, n), borderType=cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED)
+
+
+def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int) -> np.ndarray:
+    """sum_k weights[k] * row (i - before + k), edge rows replicated: a short 1-D filter down the columns
+    (at most `_SHORT_WINDOW` taps, one column wide), accumulated in float and rounded once."""
+    taps = len(weights)
+    if view.shape[0] < taps:  # pad a view shorter than the window, as `_box_rows` does
+        padded = cv2.copyMakeBorder(view, before, taps - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
+        return _weighted_rows(padded, weights, before)[before:before + view.shape[0]]
+    kernel = np.asarray(weights, np.float32).reshape(taps, 1)
+    border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
+    return cv2.filter2D(view, -1, kernel, anchor=(0, before), borderType=border)
 
 
 def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bool = False) -> np.ndarray:
@@ -82,11 +94,12 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
     the n rows i - n//2 .. i - n//2 + n - 1 whole and the next row by the fraction f = length - n, each
     weighted by how much of the segment its cell holds (the area-sampled box). Every pixel lies on exactly
     one such line. Shifting row i by -round(slope * i) columns lays each line out as a column of a wider
-    canvas (a row shift is one contiguous copy per run of equal shifts); a box filter down the columns
-    averages along the lines in O(1) per pixel, the fractional row is one weighted add of the canvas
-    shifted by n rows, and the same integer shifts put every pixel back. Exact up to rounding (within 1.25
-    levels: the box filter's, scaled by n / length, and the weighted add's), no 2-D kernel. Lines leaving the image continue on its edge pixels (the rows are padded with their end pixels
-    as deep as a window can reach).
+    canvas (a row shift is one contiguous copy per run of equal shifts); down the columns, a window of at
+    most `_SHORT_WINDOW` rows is one weighted 1-D filter (rounded once: within half a level), a longer
+    one a box filter, O(1) per pixel, plus one weighted add of the canvas shifted by n rows for the
+    fractional row (within 1.25 levels: the box filter's rounding, scaled by n / length, and the add's);
+    the same integer shifts put every pixel back. No 2-D kernel. Lines leaving the image continue on its
+    edge pixels (the rows are padded with their end pixels as deep as a window can reach).
     """
     rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
     n = int(length + 1e-9)
@@ -108,22 +121,26 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
         canvas[a:b, s:s + cols + 2 * margin] = padded[a:b]
     out = padded[:, :cols] if transposed else np.empty_like(image)  # the padding is free again
     before = n // 2
+    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
         hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)
-        lo = max(0, min(first - before, hi - n))
+        lo = max(0, min(first - before, hi - reach))
         band = shift[first:last]
         left = margin + int(band.min())
         view = canvas[lo:hi, left:margin + int(band.max()) + cols]
-        blurred = _box_rows(view, n)[first - lo:last - lo] if n > 1 else view[first - lo:last - lo]
-        if extra:
-            # the partial row of output row i is canvas row i - before + n; past the last row, the last row
-            start = first - before + n  # > first: only the image's last row can cut it short
-            inside = max(0, min(last - first, rows - start))
-            tail = view[start - lo:start - lo + inside]
-            if inside < last - first:
-                tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
-            blurred = cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0)
+        if reach <= _SHORT_WINDOW:
+            blurred = _weighted_rows(view, weights, before)[first - lo:last - lo]
+        else:
+            blurred = _box_rows(view, n)[first - lo:last - lo]
+            if extra:
+                # the partial row of output row i is canvas row i - before + n; past the last row, the last row
+                start = first - before + n  # > first: only the image's last row can cut it short
+                inside = max(0, min(last - first, rows - start))
+                tail = view[start - lo:start - lo + inside]
+                if inside < last - first:
+                    tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
+                blurred = cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0)
         for a, b, s in _runs(band):
             at = margin + s - left
             out[first + a:first + b] = blurred[a:b, at:at + cols]
