@@ -7,6 +7,7 @@ from math import ceil
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
@@ -58,7 +59,7 @@ def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
     return [(a, b, int(offsets[a])) for a, b in zip(starts, stops)]
 
 
-def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
+def _box_rows(view: np.ndarray, n: int, dst: np.ndarray | None = None) -> np.ndarray:
     """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated), for the
     windows longer than `_SHORT_WINDOW` (n >= `_SHORT_WINDOW` with a fractional row).
 
@@ -69,10 +70,10 @@ def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
         before = n // 2
         padded = cv2.copyMakeBorder(view, before, n - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
         return _box_rows(padded, n)[before:before + view.shape[0]]
-    return cv2.blur(view, (1, n), borderType=cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED)
+    return cv2.blur(view, (1, n), dst=dst, borderType=cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED)
 
 
-def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int) -> np.ndarray:
+def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int, dst: np.ndarray | None = None) -> np.ndarray:
     """sum_k weights[k] * row (i - before + k), edge rows replicated: a short 1-D filter down the columns
     (at most `_SHORT_WINDOW` taps, one column wide), accumulated in float and rounded once."""
     taps = len(weights)
@@ -81,7 +82,7 @@ def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int) -> np.nda
         return _weighted_rows(padded, weights, before)[before:before + view.shape[0]]
     kernel = np.asarray(weights, np.float32).reshape(taps, 1)
     border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
-    return cv2.filter2D(view, -1, kernel, anchor=(0, before), borderType=border)
+    return cv2.filter2D(view, -1, kernel, dst=dst, anchor=(0, before), borderType=border)
 
 
 def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bool = False) -> np.ndarray:
@@ -102,48 +103,84 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
     edge pixels (the rows are padded with their end pixels as deep as a window can reach).
     """
     rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
+    px = image.shape[2]  # H x W x C uint8
     n = int(length + 1e-9)
     fraction = float(length) - n
     extra = fraction > _MIN_FRACTION  # the partial row at i - n//2 + n
     reach = n + 1 if extra else n  # rows a window touches
-    shift = -np.round(slope * np.arange(rows)).astype(np.int64)
-    shift -= shift.min()
+    before = n // 2
+    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
+    # shift_i = -round(slope i) (made >= 0) splits into a whole shear k i, k = round(slope), and a residual
+    # -round((slope - k) i) with |slope - k| <= 1/2, whose runs of equal values are at least two rows long:
+    # the residual is copied run by run, the whole shear is a stride (a view), so no angle copies row by row.
+    k = int(np.sign(slope)) if abs(slope) > 0.5 else 0
+    i = np.arange(rows)
+    total = -np.round(slope * i).astype(np.int64)
+    shift = total - total.min()
+    resid = total + k * i
+    resid -= resid.min()
+    c = int(shift[0] - resid[0])  # shift_i = resid_i - k i + c
     margin = ceil(abs(slope) * reach) + 1
-    padded = np.empty((rows, cols + 2 * margin) + image.shape[2:], image.dtype)
+    wp = cols + 2 * margin
+    padded = np.empty((rows, wp, px), np.uint8)
     if transposed:
         cv2.transpose(image, dst=padded[:, margin:margin + cols])
     else:
         padded[:, margin:margin + cols] = image
     padded[:, :margin] = padded[:, margin:margin + 1]
     padded[:, margin + cols:] = padded[:, margin + cols - 1:margin + cols]
-    canvas = np.empty((rows, cols + int(shift.max()) + 2 * margin) + image.shape[2:], image.dtype)
-    for a, b, s in _runs(shift):
-        canvas[a:b, s:s + cols + 2 * margin] = padded[a:b]
+    # the residual canvas D[i, resid_i + p] = padded[i, p], in a flat buffer with room on both sides for the
+    # sheared views: the canvas is C[i, x] = D[i, x + k i - c] (row stride one pixel longer or shorter); its
+    # rows are at least as wide as a block's band, which OpenCV needs of a row stride
+    wd = max(wp + int(resid.max()), cols + ceil(abs(slope) * _LINE_BLOCK) + 4)
+    sd = wd * px
+    slack = (rows + wd + 2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px  # views reach at most a block out
+    buf = np.empty(2 * slack + rows * sd, np.uint8)
+    canvas_d = buf[slack:slack + rows * sd].reshape(rows, wd, px)
+    for a, b, r in _runs(resid):
+        canvas_d[a:b, r:r + wp] = padded[a:b]
+
+    def canvas(lo: int, hi: int, c0: int, c1: int) -> np.ndarray:
+        """Rows lo..hi - 1, columns c0..c1 - 1 of the sheared canvas C, as a view."""
+        offset = slack + lo * sd + (c0 + k * lo - c) * px
+        return as_strided(buf[offset:], shape=(hi - lo, c1 - c0, px), strides=(sd + k * px, px, 1), writeable=False)
+
     out = padded[:, :cols] if transposed else np.empty_like(image)  # the padding is free again
-    before = n // 2
-    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
+    band_width = cols + min(rows, _LINE_BLOCK) + 2 * margin + 2
+    bslack = (2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px
+    bbuf = np.empty(2 * bslack + (_LINE_BLOCK + reach) * band_width * px, np.uint8)
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
         hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)
         lo = max(0, min(first - before, hi - reach))
         band = shift[first:last]
         left = margin + int(band.min())
-        view = canvas[lo:hi, left:margin + int(band.max()) + cols]
+        view = canvas(lo, hi, left, margin + int(band.max()) + cols)
+        # filtered straight into a buffer with room around it, for the sheared view that reads it back
+        wb = view.shape[1]
+        held = bbuf[bslack:bslack + (hi - lo) * wb * px].reshape(hi - lo, wb, px)
         if reach <= _SHORT_WINDOW:
-            blurred = _weighted_rows(view, weights, before)[first - lo:last - lo]
+            filtered = _weighted_rows(view, weights, before, dst=held)
         else:
-            blurred = _box_rows(view, n)[first - lo:last - lo]
-            if extra:
-                # the partial row of output row i is canvas row i - before + n; past the last row, the last row
-                start = first - before + n  # > first: only the image's last row can cut it short
-                inside = max(0, min(last - first, rows - start))
-                tail = view[start - lo:start - lo + inside]
-                if inside < last - first:
-                    tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
-                blurred = cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0)
-        for a, b, s in _runs(band):
-            at = margin + s - left
-            out[first + a:first + b] = blurred[a:b, at:at + cols]
+            filtered = _box_rows(view, n, dst=held)
+        if filtered is not held:  # a view shorter than its window was padded first
+            held[...] = filtered
+        blurred = held[first - lo:last - lo]
+        if extra and reach > _SHORT_WINDOW:
+            # the partial row of output row i is canvas row i - before + n; past the last row, the last row
+            start = first - before + n  # > first: only the image's last row can cut it short
+            inside = max(0, min(last - first, rows - start))
+            tail = view[start - lo:start - lo + inside]
+            if inside < last - first:
+                tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
+            cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0, dst=blurred)
+        # back: out[i, j] = blurred[i - first, j + margin + shift_i - left], the whole shear again a stride
+        low = int(resid[first:last].min())  # the view starts at the block's least residual: inside bbuf
+        offset = bslack + ((first - lo) * wb + low + margin + c - left - k * first) * px
+        unsheared = as_strided(bbuf[offset:], shape=(last - first, cols + int(resid[first:last].max()) - low, px),
+                               strides=((wb - k) * px, px, 1), writeable=False)
+        for a, b, r in _runs(resid[first:last]):
+            out[first + a:first + b] = unsheared[a:b, r - low:r - low + cols]
     return cv2.transpose(out) if transposed else out
 
 
