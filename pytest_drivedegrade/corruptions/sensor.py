@@ -7,6 +7,7 @@ from math import ceil
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
@@ -43,6 +44,11 @@ def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> n
 #: Rows per block of the box filter in `_line_blur`: each block filters only the band of the canvas its
 #: lines occupy, so the work stays near the image size at any angle instead of growing with the shear.
 _LINE_BLOCK = 192
+#: A fractional tap lighter than this (a length within 1e-6 px of an integer) is left out.
+_MIN_FRACTION = 1e-6
+#: Up to this many taps a window is one weighted 1-D filter down the columns (one pass, one rounding);
+#: longer ones are a box filter plus a weighted add of the fractional row, O(1) per pixel at any length.
+_SHORT_WINDOW = 7
 
 
 def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
@@ -53,73 +59,149 @@ def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
     return [(a, b, int(offsets[a])) for a, b in zip(starts, stops)]
 
 
-def _box_rows(view: np.ndarray, n: int) -> np.ndarray:
-    """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated).
+def _box_rows(view: np.ndarray, n: int, dst: np.ndarray | None = None) -> np.ndarray:
+    """Mean of n consecutive rows (window [i - n//2, i + n - 1 - n//2], edge rows replicated), for the
+    windows longer than `_SHORT_WINDOW` (n >= `_SHORT_WINDOW` with a fractional row).
 
-    OpenCV 5.0's `blur` is off by one level for a 2-tap window (a zero image comes back as 1), so two
-    taps are summed exactly in 16 bits and halved (round half to even); and it misreads the replicated
-    border of a view shorter than the window, so such a view is padded first."""
-    border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
+    OpenCV 5.0's `blur` misreads the replicated border of a view shorter than the window, so such a view
+    is padded first. (Its 2-tap window is off by one level, a zero image coming back as 1: short windows
+    never come here.)"""
     if view.shape[0] < n:
         before = n // 2
         padded = cv2.copyMakeBorder(view, before, n - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
         return _box_rows(padded, n)[before:before + view.shape[0]]
-    if n != 2:
-        return cv2.blur(view, (1, n), borderType=border)
-    total = cv2.boxFilter(view, cv2.CV_16U, (1, 2), normalize=False, borderType=border)
-    return cv2.convertScaleAbs(total, alpha=0.5)
+    return cv2.blur(view, (1, n), dst=dst, borderType=cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED)
 
 
-def _line_blur(image: np.ndarray, n: int, slope: float) -> np.ndarray:
-    """Average n pixels along the digital lines {(i, c + round(slope * i))}, |slope| <= 1: lines advance
-    one row per step and drift sideways by the rounded slope.
+def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int, dst: np.ndarray | None = None) -> np.ndarray:
+    """sum_k weights[k] * row (i - before + k), edge rows replicated: a short 1-D filter down the columns
+    (at most `_SHORT_WINDOW` taps, one column wide), accumulated in float and rounded once."""
+    taps = len(weights)
+    if view.shape[0] < taps:  # pad a view shorter than the window, as `_box_rows` does
+        padded = cv2.copyMakeBorder(view, before, taps - 1 - before, 0, 0, cv2.BORDER_REPLICATE)
+        return _weighted_rows(padded, weights, before)[before:before + view.shape[0]]
+    kernel = np.asarray(weights, np.float32).reshape(taps, 1)
+    border = cv2.BORDER_REPLICATE | cv2.BORDER_ISOLATED
+    return cv2.filter2D(view, -1, kernel, dst=dst, anchor=(0, before), borderType=border)
 
-    Every pixel lies on exactly one such line. Shifting row i by -round(slope * i) columns lays each line
-    out as a column of a wider canvas (a row shift is one contiguous copy per run of equal shifts); a box
-    filter down the columns averages along the lines in O(1) per pixel, and the same integer shifts put
-    every pixel back. Exact, no 2-D kernel. Lines leaving the image continue on its edge pixels (the
-    canvas margins replicate each row's end pixels as deep as a window can reach).
+
+def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bool = False) -> np.ndarray:
+    """Average along the digital lines {(i, c + round(slope * i))}, |slope| <= 1, over a segment `length`
+    rows long (`length` >= 1, any real): lines advance one row per step and drift sideways by the rounded
+    slope. With `transposed`, rows and columns trade places (the lines advance along x), as if the image
+    were transposed before and after.
+
+    The segment covers rows [i - n//2 - 1/2, i - n//2 - 1/2 + length] around row i, n = floor(length):
+    the n rows i - n//2 .. i - n//2 + n - 1 whole and the next row by the fraction f = length - n, each
+    weighted by how much of the segment its cell holds (the area-sampled box). Every pixel lies on exactly
+    one such line. Shifting row i by -round(slope * i) columns lays each line out as a column of a wider
+    canvas (a row shift is one contiguous copy per run of equal shifts); down the columns, a window of at
+    most `_SHORT_WINDOW` rows is one weighted 1-D filter (rounded once: within half a level), a longer
+    one a box filter, O(1) per pixel, plus one weighted add of the canvas shifted by n rows for the
+    fractional row (within 1.25 levels: the box filter's rounding, scaled by n / length, and the add's);
+    the same integer shifts put every pixel back. No 2-D kernel. Lines leaving the image continue on its
+    edge pixels (the rows are padded with their end pixels as deep as a window can reach).
     """
-    rows, cols = image.shape[:2]
-    shift = -np.round(slope * np.arange(rows)).astype(np.int64)
-    shift -= shift.min()
-    margin = ceil(abs(slope) * n) + 1
-    canvas = np.empty((rows, cols + int(shift.max()) + 2 * margin) + image.shape[2:], image.dtype)
-    for a, b, s in _runs(shift):
-        left = margin + s
-        canvas[a:b, left:left + cols] = image[a:b]
-        canvas[a:b, left - margin:left] = image[a:b, :1]
-        canvas[a:b, left + cols:left + cols + margin] = image[a:b, cols - 1:]
-    out = np.empty_like(image)
+    rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
+    px = image.shape[2]  # H x W x C uint8
+    n = int(length + 1e-9)
+    fraction = float(length) - n
+    extra = fraction > _MIN_FRACTION  # the partial row at i - n//2 + n
+    reach = n + 1 if extra else n  # rows a window touches
     before = n // 2
+    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
+    # shift_i = -round(slope i) (made >= 0) splits into a whole shear k i, k = round(slope), and a residual
+    # -round((slope - k) i) with |slope - k| <= 1/2, whose runs of equal values are at least two rows long:
+    # the residual is copied run by run, the whole shear is a stride (a view), so no angle copies row by row.
+    k = int(np.sign(slope)) if abs(slope) > 0.5 else 0
+    i = np.arange(rows)
+    total = -np.round(slope * i).astype(np.int64)
+    shift = total - total.min()
+    resid = total + k * i
+    resid -= resid.min()
+    c = int(shift[0] - resid[0])  # shift_i = resid_i - k i + c
+    margin = ceil(abs(slope) * reach) + 1
+    wp = cols + 2 * margin
+    padded = np.empty((rows, wp, px), np.uint8)
+    if transposed:
+        cv2.transpose(image, dst=padded[:, margin:margin + cols])
+    else:
+        padded[:, margin:margin + cols] = image
+    padded[:, :margin] = padded[:, margin:margin + 1]
+    padded[:, margin + cols:] = padded[:, margin + cols - 1:margin + cols]
+    # the residual canvas D[i, resid_i + p] = padded[i, p], in a flat buffer with room on both sides for the
+    # sheared views: the canvas is C[i, x] = D[i, x + k i - c] (row stride one pixel longer or shorter); its
+    # rows are at least as wide as a block's band, which OpenCV needs of a row stride
+    wd = max(wp + int(resid.max()), cols + ceil(abs(slope) * _LINE_BLOCK) + 4)
+    sd = wd * px
+    slack = (rows + wd + 2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px  # views reach at most a block out
+    buf = np.empty(2 * slack + rows * sd, np.uint8)
+    canvas_d = buf[slack:slack + rows * sd].reshape(rows, wd, px)
+    for a, b, r in _runs(resid):
+        canvas_d[a:b, r:r + wp] = padded[a:b]
+
+    def canvas(lo: int, hi: int, c0: int, c1: int) -> np.ndarray:
+        """Rows lo..hi - 1, columns c0..c1 - 1 of the sheared canvas C, as a view."""
+        offset = slack + lo * sd + (c0 + k * lo - c) * px
+        return as_strided(buf[offset:], shape=(hi - lo, c1 - c0, px), strides=(sd + k * px, px, 1), writeable=False)
+
+    out = np.empty((rows, cols, px), np.uint8)  # contiguous: OpenCV transposes that twice as fast
+    band_width = cols + min(rows, _LINE_BLOCK) + 2 * margin + 2
+    bslack = (2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px
+    bbuf = np.empty(2 * bslack + (_LINE_BLOCK + reach) * band_width * px, np.uint8)
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
-        hi = min(rows, last + n - 1 - before)  # the block and its window's reach (at least n rows)
-        lo = max(0, min(first - before, hi - n))
+        hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)
+        lo = max(0, min(first - before, hi - reach))
         band = shift[first:last]
         left = margin + int(band.min())
-        blurred = _box_rows(canvas[lo:hi, left:margin + int(band.max()) + cols], n)
-        for a, b, s in _runs(band):
-            out[first + a:first + b] = blurred[first - lo + a:first - lo + b, margin + s - left:][:, :cols]
-    return out
+        view = canvas(lo, hi, left, margin + int(band.max()) + cols)
+        # filtered straight into a buffer with room around it, for the sheared view that reads it back
+        wb = view.shape[1]
+        held = bbuf[bslack:bslack + (hi - lo) * wb * px].reshape(hi - lo, wb, px)
+        if reach <= _SHORT_WINDOW:
+            filtered = _weighted_rows(view, weights, before, dst=held)
+        else:
+            filtered = _box_rows(view, n, dst=held)
+        if filtered is not held:  # a view shorter than its window was padded first
+            held[...] = filtered
+        blurred = held[first - lo:last - lo]
+        if extra and reach > _SHORT_WINDOW:
+            # the partial row of output row i is canvas row i - before + n; past the last row, the last row
+            start = first - before + n  # > first: only the image's last row can cut it short
+            inside = max(0, min(last - first, rows - start))
+            tail = view[start - lo:start - lo + inside]
+            if inside < last - first:
+                tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
+            cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0, dst=blurred)
+        # back: out[i, j] = blurred[i - first, j + margin + shift_i - left], the whole shear again a stride
+        low = int(resid[first:last].min())  # the view starts at the block's least residual: inside bbuf
+        offset = bslack + ((first - lo) * wb + low + margin + c - left - k * first) * px
+        unsheared = as_strided(bbuf[offset:], shape=(last - first, cols + int(resid[first:last].max()) - low, px),
+                               strides=((wb - k) * px, px, 1), writeable=False)
+        for a, b, r in _runs(resid[first:last]):
+            out[first + a:first + b] = unsheared[a:b, r - low:r - low + cols]
+    return cv2.transpose(out) if transposed else out
 
 
 @register("motion_blur", group="sensor", axis="quality", parameter="blur length", unit="px",
           values=(4, 8, 14, 22, 34), random=True, spatial=True)
 def motion_blur(image: np.ndarray, length: float, rng: np.random.Generator, scale: float) -> np.ndarray:
-    """Linear motion blur of the given length in a random direction.
+    """Linear motion blur: the mean over a segment of the given Euclidean length in a random direction.
 
-    Each output pixel averages the n pixels on a rasterised line through it (see `_line_blur`); mostly
-    horizontal motion is handled on the transposed image. No large 2-D kernel is convolved.
+    Along the major axis of the direction (angle a) the segment spans length * max(|cos a|, |sin a|)
+    pixels, area-sampled (whole pixels plus one fractional one, see `_line_blur`), so its Euclidean extent
+    is the declared length at every angle. Mostly horizontal motion is handled on the transposed image.
+    No large 2-D kernel is convolved.
     """
-    n = max(1, int(round(scaled(length, scale))))
     angle = rng.uniform(0.0, np.pi)
-    if n == 1:
-        return image.copy()
     c, s = np.cos(angle), np.sin(angle)
+    span = scaled(length, scale) * max(abs(c), abs(s))  # rows (or columns) the segment crosses
+    if span <= 1.0:  # within one pixel: the pixel itself
+        return image.copy()
     if abs(c) >= abs(s):  # lines advance along x: make x the row axis
-        return cv2.transpose(_line_blur(cv2.transpose(image), n, s / c))
-    return _line_blur(image, n, c / s)
+        return _line_blur(image, span, s / c, transposed=True)
+    return _line_blur(image, span, c / s)
 
 
 @register("gaussian_noise", group="sensor", axis="quality", parameter="noise sigma", unit="8-bit levels",

@@ -39,14 +39,38 @@ def test_spec_carries_version_and_the_exact_table():
         "gaussian_blur", "jpeg", "downscale", "color_quant", "fog", "blackout"}
 
 
+def _shown(value) -> str:
+    """How the table prints one ladder value."""
+    return "+".join(c.replace("CAM_", "") for c in value) if isinstance(value, tuple) else str(value)
+
+
+def assert_table_lists_the_ladder(table: str) -> None:
+    """Every family on its own row, in SPEC order, with its group, axis, S1..S5 and randomness as declared."""
+    import re
+
+    lines = table.splitlines()
+    assert lines[0] == f"DriveDegrade ladder, spec version {SPEC_VERSION}"
+    assert re.split(r"\s{2,}", lines[1]) == ["family", "group", "axis", "parameter (unit)", "S1", "S2", "S3", "S4",
+                                              "S5", "random"]
+    rows = [re.split(r"\s{2,}", line) for line in lines[3:]]
+    assert [r[0] for r in rows] == list(FAMILIES) and len(rows) == 16
+    for row, fam in zip(rows, FAMILIES.values()):
+        assert row == [fam.name, fam.group, fam.axis, f"{fam.parameter} ({fam.unit})",
+                       *[_shown(v) for v in fam.values], "yes" if fam.random else "no"], row
+    by_name = {r[0]: r for r in rows}
+    assert by_name["motion_blur"][4:9] == ["4", "8", "14", "22", "34"]
+    assert by_name["blackout"][7] == "FRONT_LEFT+FRONT_RIGHT" and by_name["bit_error"][4] == "1e-07"
+
+
 def test_cli_spec_formats(capsys, tmp_path):
     assert main(["spec", "--format", "table"]) == 0
-    table = capsys.readouterr().out
-    assert "lens_dirt" in table and SPEC_VERSION in table and "FRONT_LEFT+FRONT_RIGHT" in table
+    assert_table_lists_the_ladder(capsys.readouterr().out)
     assert main(["spec", "--format", "json", "--out", str(tmp_path / "l.json")]) == 0
     import json
 
     assert json.loads((tmp_path / "l.json").read_text()) == spec_dict()
+    assert main(["spec", "--format", "yaml", "--out", str(tmp_path / "l.yaml")]) == 0
+    assert (tmp_path / "l.yaml").read_text() == (ROOT / "spec" / "ladder.yaml").read_text()
 
 
 def test_cli_preview_all_families_and_one_family(tmp_path, nuscenes_frames):
@@ -83,8 +107,16 @@ def test_plugin_entry_imports_nothing_heavy():
 
 
 def test_console_script_is_installed():
-    out = subprocess.run(["drivedegrade", "spec", "--format", "table"], capture_output=True, text=True)
-    assert out.returncode == 0 and "gaussian_blur" in out.stdout
+    """The `drivedegrade` script sits beside this interpreter (not merely somewhere on PATH) and prints the
+    ladder of this checkout (PYTHONPATH points it here; the installed copy may be another checkout)."""
+    import os
+
+    script = Path(sys.executable).parent / "drivedegrade"
+    assert script.is_file() and os.access(script, os.X_OK), f"no console script at {script}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([str(script), "spec", "--format", "table"], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert_table_lists_the_ladder(out.stdout)
 
 
 @pytest.mark.parametrize("width", [160, 220, 480])

@@ -99,19 +99,30 @@ def test_retention_known_answers() -> None:
 
 
 def test_summary_retention_is_clean_over_cell_l2_avg() -> None:
-    recs, _ = synthetic_run(10)
-    clean, cell = recs[0], recs[8]
+    """Hand-computed: stp3 L2 at 1/2/3 s is the mean of steps 1-2 / 1-4 / 1-6, l2_avg their mean.
+
+    clean frame 0: L2 1..6 -> (1.5 + 2.5 + 3.5) / 3 = 2.5; frame 1: all 2 -> 2.0; M(clean) = 2.25.
+    cell frame 0: 2, 4, .., 12 -> 5.0; frame 1: all 3 -> 3.0; M(cell) = 4.0; retention 2.25 / 4.0 = 0.5625.
+    """
+    zeros = np.zeros((2, 6))
+    clean_plans = np.zeros((2, 6, 2))
+    cell_plans = clean_plans.copy()
+    cell_plans[:, 5] = (3.0, 4.0)  # the 3 s waypoint moved 5 m
+    clean = CellRecord("clean", "clean", 0, ["f0", "f1"], clean_plans,
+                       np.array([[1.0, 2, 3, 4, 5, 6], [2.0] * 6]), zeros, zeros, [0.0, 0.0], [0.5, 0.5])
+    cell = CellRecord("fog-s3", "fog", 3, ["f0", "f1"], cell_plans,
+                      np.array([[2.0, 4, 6, 8, 10, 12], [3.0] * 6]), zeros, zeros, [0.0, 0.0], [0.4, 0.4])
     s = rt.summarise_cell(cell, clean, n_resamples=200)
-    m_clean = clean.l2_avg_per_frame().mean()
-    assert s.retention == pytest.approx(m_clean / cell.l2_avg_per_frame().mean())
-    assert s.l2_avg == pytest.approx(s.metrics["l2_avg_stp3"])
-    # stp3 l2 at 3 s is the mean of all six steps; uniad at 3 s is the last step.
-    assert s.metrics["l2_3s_stp3"] == pytest.approx(cell.l2.mean())
-    assert s.metrics["l2_3s_uniad"] == pytest.approx(cell.l2[:, 5].mean())
-    assert s.metrics["endpoint_shift"] == pytest.approx(np.linalg.norm(cell.plans[:, 5] - clean.plans[:, 5],
-                                                                       axis=1).mean())
-    assert s.metrics["energy"] == pytest.approx(cell.bit1.mean() / clean.bit1.mean())
-    assert s.retention_ci_low <= s.retention <= s.retention_ci_high
+    assert s.retention == pytest.approx(0.5625, abs=1e-12)
+    assert s.l2_avg == pytest.approx(4.0) and s.metrics["l2_avg_stp3"] == pytest.approx(4.0)
+    assert s.metrics["l2_avg_uniad"] == pytest.approx(((4 + 8 + 12) / 3 + 3.0) / 2)  # steps 2, 4, 6
+    # stp3 L2 at 3 s is the mean of all six steps; uniad at 3 s is the last step.
+    assert s.metrics["l2_3s_stp3"] == pytest.approx((7.0 + 3.0) / 2)
+    assert s.metrics["l2_3s_uniad"] == pytest.approx((12.0 + 3.0) / 2)
+    assert s.metrics["l2_1s_uniad"] == pytest.approx((4.0 + 3.0) / 2)
+    assert s.metrics["endpoint_shift"] == pytest.approx(5.0)
+    assert s.metrics["energy"] == pytest.approx(0.8)
+    assert s.frames == 2 and s.retention_ci_low <= s.retention <= s.retention_ci_high
 
 
 def test_bootstrap_is_deterministic_and_contains_the_estimate() -> None:
@@ -123,6 +134,17 @@ def test_bootstrap_is_deterministic_and_contains_the_estimate() -> None:
     assert ci != rt.bootstrap_retention_ci(a, b, seed=8)
     assert ci[0] < rt.retention(a.mean(), b.mean()) < ci[1]
     assert rt.bootstrap_retention_ci(a, b, seed=7, chunk_elems=1000) == ci  # chunking does not change it
+
+
+def test_paired_bootstrap_known_answers() -> None:
+    """Pairing: a cell exactly twice as bad on every frame, however unequal the frames, has retention 0.5 in
+    every resample, so the CI is the point (0.5, 0.5) (resampling clean and cell apart would spread it
+    over 0.01..100). Two frames, clean (1, 3), cell (2, 2): a resample is (0, 0), (1, 1) or mixed with
+    probability 1/4, 1/4, 1/2, retention 0.5, 1.5 or 1.0, so the 95 % interval is (0.5, 1.5)."""
+    clean = np.array([0.1, 1.0, 10.0, 100.0, 3.0, 0.5])
+    assert rt.bootstrap_retention_ci(clean, 2 * clean, n_resamples=500) == (0.5, 0.5)
+    assert rt.bootstrap_retention_ci(2 * clean, clean, kind="reward", n_resamples=500) == (0.5, 0.5)
+    assert rt.bootstrap_retention_ci([1.0, 3.0], [2.0, 2.0], n_resamples=2000) == (0.5, 1.5)
 
 
 def test_bootstrap_ci_shrinks_with_more_frames() -> None:
@@ -198,6 +220,19 @@ def test_axes_known_answer() -> None:
     assert ax["missing"] == []
 
 
+def test_quality_axis_is_the_mean_of_the_nine_quality_families_only() -> None:
+    """Nine quality families at 0.1, 0.2, .., 0.9 average 0.5 whatever the other seven hold; the mean axis
+    takes the twelve core families: (4.5 + 0.3 + 0.2 + 0.1) / 12."""
+    values = {f: (i + 1) / 10 for i, f in enumerate(ORDER[:9])}
+    values |= {"frame_dropout": 0.3, "blackout": 0.2, "bit_error": 0.1, "raindrop": 0.0, "occlusion": 0.0,
+               "mud_splash": 0.0, "lens_dirt": 0.0}
+    ax = vd.compute_axes(values, GROUPS)
+    assert ax["quality"] == pytest.approx(0.5, abs=1e-12) and ax["removal"] == 0.2
+    assert ax["gap"] == pytest.approx(0.3, abs=1e-12) and ax["mean"] == pytest.approx(5.1 / 12, abs=1e-12)
+    values["occlusion"] = values["raindrop"] = 1.0  # contamination and occlusion stay off the quality axis
+    assert vd.compute_axes(values, GROUPS)["quality"] == pytest.approx(0.5, abs=1e-12)
+
+
 def test_missing_family_makes_its_axis_none() -> None:
     values = s5(0.99, 0.5)
     del values["fog"], values["occlusion"]
@@ -213,6 +248,9 @@ def test_missing_family_makes_its_axis_none() -> None:
     (0.98, 0.60, "quality-insensitive", "removal-only"),
     (0.80, 0.60, "camera-reliant", "both-below"),
     (0.80, 0.99, "camera-reliant", "quality-only"),
+    (0.80, 0.95, "camera-reliant", "quality-only"),  # removal exactly on the flat line is flat
+    (0.95, 0.60, "quality-insensitive", "removal-only"),  # quality exactly on the flat line is flat
+    (0.949999, 0.99, "camera-reliant", "quality-only"),  # a millionth below the line is below
 ])
 def test_verdict_labels(q, r, label, case) -> None:
     v = vd.verdict(vd.compute_axes(s5(q, r), GROUPS), flat=0.95)
@@ -226,6 +264,20 @@ def test_flat_is_a_parameter() -> None:
     ax = vd.compute_axes(s5(0.93, 0.92), GROUPS)
     assert vd.verdict(ax, flat=0.95)["label"] == "camera-reliant"
     assert vd.verdict(ax, flat=0.90)["label"] == "not-shown-to-use-cameras"
+
+
+def test_flat_line_known_answers() -> None:
+    """The line is 0.95 unless given; the axes are compared at six decimals (the certificate's), so a value
+    that rounds onto the line is on it; each side of a line at 0.80 gives its own case."""
+    on_line = {"quality": 0.9499996, "removal": 0.97, "gap": 0.0}
+    assert vd.verdict(on_line)["flat"] == 0.95 and vd.verdict(on_line)["case"] == "both-flat"
+    below = {"quality": 0.9499994, "removal": 0.97, "gap": 0.0}
+    assert (vd.verdict(below)["label"], vd.verdict(below)["case"]) == ("camera-reliant", "quality-only")
+    at = lambda q, r: vd.verdict({"quality": q, "removal": r, "gap": q - r}, flat=0.80)  # noqa: E731
+    assert (at(0.81, 0.79)["label"], at(0.81, 0.79)["case"]) == ("quality-insensitive", "removal-only")
+    assert (at(0.79, 0.81)["label"], at(0.79, 0.81)["case"]) == ("camera-reliant", "quality-only")
+    assert (at(0.79, 0.79)["case"], at(0.80, 0.80)["case"]) == ("both-below", "both-flat")
+    assert "flat line 0.80" in at(0.81, 0.79)["text"]
 
 
 def test_family_groups_from_the_registry_match_the_spec() -> None:

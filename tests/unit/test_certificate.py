@@ -46,7 +46,9 @@ def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
     assert set(cert["thresholds"]["fog"]) == {"s10", "s25", "s10_ci", "s25_ci", "s10_never", "s25_never"}
     assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
     assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
-    assert cert["verdict"]["label"] in vd.VERDICT_LABELS and cert["settings"]["flat"] == 0.95
+    # the synthetic planner degrades on both axes (S5 retention ~0.77 on quality, ~0.62 on removal)
+    assert (cert["verdict"]["label"], cert["verdict"]["case"]) == ("camera-reliant", "both-below")
+    assert cert["settings"]["flat"] == 0.95
     assert cf.check_schema(cert) == []
 
 
@@ -58,6 +60,22 @@ def test_digest_is_sha256_over_canonical_json_with_rounded_floats(cert_file: Pat
     canon = json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()
     assert cert["digest"] == hashlib.sha256(canon).hexdigest()
     assert all(len(repr(c["retention"]).split(".")[-1]) <= 6 for c in cert["cells"])
+
+
+def test_digest_known_answer() -> None:
+    """A two-key body sealed by hand: floats rounded to six decimals, NaN as null, keys sorted, no spaces;
+    each section hashed on its own, then everything but the digest. The hex strings are fixed."""
+    import hashlib
+
+    sealed = cf.seal({"b": [0.1234567, float("nan"), True], "a": "x"})
+    sections = {"a": "ba2df4903a2c14e86dc3bcca58911b44ac1d2514b7227bf6eb08cfb978f55a1b",  # sha256 of '"x"'
+                "b": "85c0c85d04e978eb4d547c17df51d402c2818aff876204ea628eaba988444778"}  # '[0.123457,null,true]'
+    assert sealed["section_digests"] == sections
+    body = ('{"a":"x","b":[0.123457,null,true],"section_digests":{"a":"' + sections["a"] + '","b":"'
+            + sections["b"] + '"}}')
+    assert sealed["digest"] == hashlib.sha256(body.encode()).hexdigest() == (
+        "e584f5b0d7948a47e158446c6f62fed38a64021d73f0f9f7944a506e2434f36d")
+    assert hashlib.sha256(b'"x"').hexdigest() == sections["a"]
 
 
 def test_seal_is_idempotent_and_layout_free(run: rc.RunAnalysis) -> None:

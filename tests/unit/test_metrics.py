@@ -181,6 +181,26 @@ def test_heading_matters_for_collision() -> None:
     assert hit_if_forward[0]
 
 
+def test_heading_is_the_step_direction_not_the_bearing_of_the_waypoint() -> None:
+    """Waypoints (4, 0), (5, 1), (6, 2), ..: the first step heads 0, every later one 45 degrees, while the third
+    waypoint's bearing from the ego is atan(2 / 6) = 18.4 degrees. At (6, 2), heading 45 degrees, the ego box
+    (4.084 x 1.85) reaches 2.042 m along the heading and 0.925 m across it: a 0.5 m box turned with it 2.2 m
+    ahead touches (2.2 < 2.042 + 0.25), one 1.2 m to the side does not (1.2 > 0.925 + 0.25), though an ego
+    facing 0 or 18.4 degrees would hit it."""
+    plan = np.array([[4.0, 0.0], [5.0, 1.0], [6.0, 2.0], [7.0, 3.0], [8.0, 4.0], [9.0, 5.0]])
+    np.testing.assert_allclose(metrics.step_headings(plan), [0.0] + [math.pi / 4] * 5, atol=1e-12)
+    along, across = np.array([1.0, 1.0]) / math.sqrt(2), np.array([-1.0, 1.0]) / math.sqrt(2)
+    far = plan + np.array([0.0, 40.0])  # the ground truth is nowhere near the agents
+    for offset, expected in ((2.2 * along, True), (1.2 * across, False)):
+        centre = tuple(plan[2] + offset)
+        agents = tuple(boxes((*centre, 0.5, 0.5, math.pi / 4, "vehicle")) if i == 2 else AgentBoxes.empty()
+                       for i in range(6))
+        assert metrics.collision_per_step(plan, far, agents).tolist() == [False, False, expected, False, False, False]
+    side = [tuple(plan[2] + 1.2 * across)]
+    for wrong in (0.0, math.atan2(2.0, 6.0)):
+        assert metrics.boxes_overlap(plan[2], (EGO_LENGTH, EGO_WIDTH), wrong, side, [(0.5, 0.5)], [math.pi / 4])[0]
+
+
 # --- jerk, endpoint shift, energy ----------------------------------------------------------------------------
 
 

@@ -63,8 +63,24 @@ def test_csv_has_the_stable_columns_and_values(run_and_records, tmp_path: Path) 
 
 
 def test_csv_is_deterministic(run_and_records) -> None:
-    res, _, _ = run_and_records
-    assert cells.cells_csv_text(res, PROV) == cells.cells_csv_text(res, PROV)
+    """The same records in another order, through JSON, give the same bytes; and the bytes are the stable
+    columns with six-decimal floats, clean first at retention 1.0."""
+    import json
+    import random
+
+    res, recs, _ = run_and_records
+    shuffled = [cl.CellRecord.from_builtins(json.loads(json.dumps(r.to_builtins()))) for r in recs]
+    random.Random(5).shuffle(shuffled)
+    again = vd.analyse_run(shuffled, groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    text = cells.cells_csv_text(res, PROV)
+    assert cells.cells_csv_text(again, PROV) == text
+    lines = text.splitlines()
+    assert lines[0] == ",".join(cells.CSV_COLUMNS) and len(lines) == 1 + 83
+    clean = res.summaries[0]
+    assert lines[1].startswith(f"clean,clean,0,12,{round(clean.l2_avg, 6)!r},1.0,1.0,1.0,")
+    fog = next(s for s in res.summaries if s.cell == "fog-s5")
+    row = next(line for line in lines if line.startswith("fog-s5,"))
+    assert row.split(",")[5] == repr(round(fog.retention, 6))
 
 
 def test_html_shows_verdict_and_axes(run_and_records, page: str) -> None:
@@ -129,10 +145,34 @@ def test_junit_plain_converts_numpy_and_none() -> None:
     assert junit.plain(float("nan")) == "none" and junit.plain(Path("a")) == "a"
 
 
-def test_user_text_with_dollar_signs_does_not_break_charts() -> None:
+def test_user_text_with_dollar_signs_does_not_break_charts(monkeypatch) -> None:
+    """Dollar signs in user text are escaped, so matplotlib prints them instead of parsing mathtext: the
+    labels carry the literal text, and the charts are real PNGs of the expected size with the planner's
+    point, the plans and the labels drawn."""
+    import base64
+
+    import cv2
+
     from pytest_drivedegrade.report import plots
 
-    uri = plots.axes_chart({"quality": 0.9, "removal": 0.8}, 0.95, planner="costs $5 and $\\frac{", blind=0.4)
-    assert uri.startswith("data:image/png;base64,")
+    figures = []
+    render = plots.to_data_uri
+    monkeypatch.setattr(plots, "to_data_uri", lambda fig: figures.append(fig) or render(fig))
+
+    def png(uri: str) -> np.ndarray:
+        assert uri.startswith("data:image/png;base64,")
+        data = np.frombuffer(base64.b64decode(uri.split(",", 1)[1]), np.uint8)
+        return cv2.imdecode(data, cv2.IMREAD_COLOR)
+
+    chart = png(plots.axes_chart({"quality": 0.9, "removal": 0.8}, 0.95, planner="costs $5 and $\\frac{", blind=0.4))
+    legend = [t.get_text() for t in figures[0].axes[0].get_legend().get_texts()]
+    assert legend == ["ego-only floor", "blind (all cameras off)", r"costs \$5 and \$\frac{"]
+    assert 400 < chart.shape[1] < 700 and 350 < chart.shape[0] < 650  # 5.2 x 4.6 in at 110 dpi, trimmed
+    accent = np.array([0xEB, 0x63, 0x24])  # ACCENT #2463eb in BGR: the planner's point is drawn
+    assert (np.abs(chart.astype(int) - accent).max(axis=2) < 8).sum() > 30
     ex = [{"frame": "tok$_{", "gt": np.zeros((6, 2)), "plans": {"clean": np.ones((6, 2)), "fog-s5$": np.ones((6, 2))}}]
-    assert plots.trajectory_panels(ex).startswith("data:image/png;base64,")
+    panels = png(plots.trajectory_panels(ex))
+    fig = figures[1]
+    assert fig.axes[0].get_title(loc="left") == r"frame tok\$_{"
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["ground truth", "clean", r"fog-s5\$"]
+    assert panels.shape[0] > 300 and len(np.unique(panels.reshape(-1, 3), axis=0)) > 20

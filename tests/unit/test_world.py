@@ -184,6 +184,20 @@ def test_cli_world_writes_a_world(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(build, "write_world", functools.partial(write_world, val_images=False))  # fast
 
-    assert main(["world", "--out", str(tmp_path / "cli"), "--scenes", "2", "--seed", "3"]) == 0
-    assert (tmp_path / "cli" / build.MANIFEST).is_file()
-    assert "wrote" in capsys.readouterr().err
+    out = tmp_path / "cli"
+    assert main(["world", "--out", str(out), "--scenes", "2", "--seed", "3"]) == 0
+    manifest = json.loads((out / build.MANIFEST).read_text())
+    assert (manifest["scenes"], manifest["seed"], manifest["train_images"]) == (2, 3, False)
+    # named after the official split lists: the first train scene and the first val scene of nuScenes
+    assert manifest["splits"] == {"train": ["scene-0001"], "val": ["scene-0003"]}
+    counts = {p.stem: len(json.loads(p.read_text())) for p in (out / WORLD_VERSION).glob("*.json")}
+    assert counts["scene"] == 2 and counts["log"] == 2
+    assert counts["sample"] == counts["ego_pose"] == 2 * KEYFRAMES  # one keyframe = one sample = one pose
+    # six cameras and LIDAR_TOP at every keyframe
+    assert counts["sample_data"] == 2 * KEYFRAMES * (len(CAMERAS) + 1) and counts["sensor"] == len(CAMERAS) + 1
+    assert counts["sample_annotation"] > 0 and counts["instance"] > 0
+    assert sorted(p.name for p in (out / "can_bus").iterdir()) == ["scene-0001_pose.json", "scene-0003_pose.json"]
+    assert not list(out.rglob("*.jpg"))  # val_images=False: tables only, no frames written
+    err = capsys.readouterr().err
+    assert f"wrote {out} (2 scenes, fingerprint {manifest['fingerprint']})" in err
+    assert err.count("drivedegrade world: scene ") == 2  # one progress line per scene
