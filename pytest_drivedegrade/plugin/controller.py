@@ -130,7 +130,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     prov = provenance(options, context, run.planner, run.key, _command(config))
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
-                                  montage=front_montage(context, options.seed))
+                                  montage=front_montage(context, options.seed), signing_key=signing_key(options))
     out.lines.append(written)
     from .compat import junit_xml
 
@@ -143,6 +143,15 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     gate_lines, out.failed = gate(cert, baseline, options.tolerance)
     out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
     return out
+
+
+def signing_key(options: RunOptions) -> Any:
+    """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
+    if options.sign_key_pem is None:
+        return None
+    from ..report.signing import load_private_key
+
+    return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")
 
 
 def _command(config: pytest.Config) -> str:

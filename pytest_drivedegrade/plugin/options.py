@@ -62,6 +62,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
+    OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
+               "private key (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY environment "
+               "variable, a path or the PEM text)", {"metavar": "PATH"}),
 )
 _BY_DEST = {spec.dest: spec for spec in OPTIONS}
 
@@ -127,6 +130,32 @@ class RunOptions:
     seeds: int = 1
     metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
+    sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
+
+
+def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
+    """--drivedegrade-sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text): the PEM bytes of
+    an Ed25519 private key, checked now so that a bad key is a usage error before any cell runs."""
+    import os
+
+    raw = value(config, "drivedegrade_sign_key")
+    where = "--drivedegrade-sign-key"
+    if raw is None:
+        raw = os.environ.get("DRIVEDEGRADE_SIGNING_KEY") or None
+        where = "DRIVEDEGRADE_SIGNING_KEY"
+        if raw is None:
+            return None
+    text = str(raw)
+    if not text.strip().startswith("-----BEGIN"):
+        text = str(here / text.strip())
+    from ..report.signing import load_private_key, read_key_source
+
+    try:
+        pem = read_key_source(text, where)
+        load_private_key(pem, where)
+    except DriveDegradeError as exc:
+        raise pytest.UsageError(str(exc)) from None
+    return pem
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -178,4 +207,5 @@ def parse(config: pytest.Config) -> RunOptions:
         seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
         metric=metric,
         ego=tuple(f for f in EGO_FAMILIES if f in families),
+        sign_key_pem=_sign_key(config, here),
     )

@@ -134,9 +134,9 @@ class Merged:
     metric: str = "l2"
 
 
-def write_merged(merged: Merged, out: Path) -> list[str]:
-    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`;
-    the lines to print."""
+def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str]:
+    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`
+    (the certificate signed with `signing_key` when given); the lines to print."""
     from ..scoring.verdict import analyse_run
     from .outputs import montage_of, write_outputs
 
@@ -155,7 +155,7 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
     extra: dict[str, Any] = {"complete": False, "missing_shards": merged.missing_shards} \
         if merged.missing_shards else {}
     _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
-                               montage=montage, completeness=extra)
+                               montage=montage, completeness=extra, signing_key=signing_key)
     from .terminal import summary_lines
 
     lines = summary_lines(analysis, merged.missing_cells)

@@ -191,3 +191,58 @@ def test_baseline_from_another_dataset_is_a_clear_error(dd):
     no_traceback(result)
     result.stderr.fnmatch_lines(["*--drivedegrade-baseline*dataset fingerprint*0000*"])
     assert "passed" not in result.stdout.str()  # refused before any cell ran
+
+
+def _verify_with(path: Path, *extra: str):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify", str(path), *extra],
+                          capture_output=True, text=True, check=False)
+
+
+@pytest.mark.parametrize("via", ["option", "env"])
+def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch, via):
+    """A run signed with --drivedegrade-sign-key (or DRIVEDEGRADE_SIGNING_KEY holding the PEM text) verifies
+    with the public key; edited and resealed with hashlib, it fails; another key fails."""
+    import hashlib
+    import json
+
+    from pytest_drivedegrade.report.signing import keygen
+
+    key, pub = keygen(dd.pytester.path / "issuer")
+    _, other = keygen(dd.pytester.path / "other")
+    dd.write_planner()
+    if via == "env":
+        monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", key.read_text())
+        extra: tuple[str, ...] = ()
+    else:
+        extra = ("--drivedegrade-sign-key", "issuer.key")
+    dd.run(*extra, families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "certificate.json"
+    assert load_json(path)["signature"]["algorithm"] == "ed25519"
+    ok = _verify_with(path, "--public-key", str(pub))
+    assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
+    wrong = _verify_with(path, "--public-key", str(other))
+    assert wrong.returncode == 1 and "wrong key" in wrong.stderr
+
+    data = load_json(path)
+    data["verdict"]["label"] = "not-shown-to-use-cameras"
+
+    def sha(obj):
+        return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+    data["section_digests"] = {k: sha(v) for k, v in data.items() if k not in ("digest", "section_digests")}
+    data["digest"] = sha({k: v for k, v in data.items() if k != "digest"})
+    path.write_text(json.dumps(data))
+    forged = _verify_with(path, "--public-key", str(pub))
+    assert forged.returncode == 1 and "signature does not verify" in forged.stderr, forged.stderr
+
+
+def test_a_bad_signing_key_is_a_usage_error(dd):
+    dd.write_planner()
+    (dd.pytester.path / "bad.key").write_text("not a key")
+    result = dd.run("--drivedegrade-sign-key", "bad.key", families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines(["*--drivedegrade-sign-key*not an unencrypted PEM private key*"])
