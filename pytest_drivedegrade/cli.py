@@ -44,9 +44,11 @@ def _world(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
-    """Exit 0 when the certificate is intact (and signed by --public-key's key when given), 1 when it was
-    edited or its signature fails (naming how), 2 when unreadable."""
+    """Exit 0 when the certificate is intact (and signed by --public-key's key when given) and its arithmetic
+    adds up, 1 when it was edited, its signature fails or its thresholds / axes / verdict disagree with its
+    cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
     from .report.certificate import CertificateMismatch, verify
+    from .report.consistency import check_consistency, incompleteness
     from .report.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
 
     public_key = load_public_key(args.public_key) if args.public_key else None
@@ -56,6 +58,13 @@ def _verify(args: argparse.Namespace) -> int:
     except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
+    inconsistent = check_consistency(cert)
+    if inconsistent:
+        print(f"drivedegrade: verify: FAILED: {args.file}: the digest verifies but the arithmetic does not add up "
+              f"({len(inconsistent)} field(s)):", file=sys.stderr)
+        for line in inconsistent:
+            print(f"  {line}", file=sys.stderr)
+        return 1
     what = f"planner {cert['planner'].get('name')!r}, verdict {cert['verdict'].get('label')}"
     if signer is not None:
         level = f"signature verifies: issued by the holder of the key with fingerprint {signer}"
@@ -64,7 +73,14 @@ def _verify(args: argparse.Namespace) -> int:
                  "NOT checked: pass --public-key to check who issued it; integrity only")
     else:
         level = f"{UNSIGNED_TEXT}: the digest catches an accidental edit, not a deliberate one"
-    print(f"{args.file}: OK, digest {cert['digest']} verifies ({what}); {level}")
+    missing = incompleteness(cert)
+    if missing is not None:
+        print(f"drivedegrade: verify: INCOMPLETE: {args.file}: intact and consistent, but the run is incomplete "
+              f"(completeness.complete is false; {missing}): not a certificate of the whole ladder; {level}",
+              file=sys.stderr)
+        return 3
+    print(f"{args.file}: OK, digest {cert['digest']} verifies, thresholds, axes and verdict agree with its cells "
+          f"({what}); {level}")
     return 0
 
 
@@ -158,8 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                        "(default: $DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
     p.set_defaults(func=_merge)
 
-    p = sub.add_parser("verify", help="check a certificate's digest (and signature): exit 0 intact, 1 edited or "
-                                      "badly signed, 2 unreadable")
+    p = sub.add_parser("verify", help="check a certificate's digest, signature and arithmetic: exit 0 intact, 1 "
+                                      "edited, badly signed or inconsistent, 2 unreadable, 3 incomplete")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")
     p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature with this "
                                                        "public key (NAME.pub); an unsigned certificate then fails")

@@ -68,7 +68,7 @@ def test_signed_certificate_verifies_and_a_resealed_forgery_does_not(cert, keys,
     assert main(["verify", str(path)]) == 0
     assert "NOT checked" in capsys.readouterr().out
 
-    forge(path, lambda d: d["axes"].__setitem__("quality", 0.99))
+    forge(path, lambda d: d["planner"].__setitem__("name", "someone-else"))
     assert main(["verify", str(path)]) == 0  # the digest alone cannot catch a deliberate edit
     capsys.readouterr()
     assert main(["verify", str(path), "--public-key", str(pub)]) == 1
