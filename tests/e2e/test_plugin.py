@@ -246,3 +246,26 @@ def test_a_bad_signing_key_is_a_usage_error(dd):
     assert result.ret == pytest.ExitCode.USAGE_ERROR
     no_traceback(result)
     result.stderr.fnmatch_lines(["*--drivedegrade-sign-key*not an unencrypted PEM private key*"])
+
+
+def test_an_edited_stored_cell_is_recomputed_and_reported(dd):
+    """A stored cell whose plans were edited without fixing its digest is not reused: the rerun computes it
+    again (its file is back to the computed plans) and the summary says so; the others are reported reused."""
+    import json
+
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "cells" / "jpeg-s1.json"
+    original = json.loads(path.read_text())
+    assert len(original["record_digest"]) == 64 and original["key"]["tool_version"]
+    edited = json.loads(path.read_text())
+    edited["record"]["plans"][0][0][0] += 3.0
+    path.write_text(json.dumps(edited))
+
+    again = dd.run("--junitxml=again.xml", families="jpeg", severities="1")
+    again.assert_outcomes(passed=4)
+    again.stdout.fnmatch_lines(["*reused 3 stored cell(s)*: blind, clean, null",
+                                "*recomputed 1 stored cell(s) whose content digest failed*: jpeg-s1"])
+    assert json.loads(path.read_text())["record"]["plans"] == original["record"]["plans"]
+    _, cases = junit(dd.pytester.path / "again.xml")
+    assert cases["jpeg-s1"]["resumed"] == "0" and cases["clean"]["resumed"] == "1"
