@@ -100,6 +100,18 @@ def _number(config: pytest.Config, dest: str, kind: type[int] | type[float], def
     return got
 
 
+#: The shortest --drivedegrade-timeout but 0 (no limit): below a millisecond every predict() call would fail.
+MIN_TIMEOUT = 1e-3
+
+
+def _timeout(config: pytest.Config) -> float:
+    got = float(_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None))
+    if 0 < got < MIN_TIMEOUT:
+        raise _fail("drivedegrade_timeout", f"must be 0 (no limit) or at least {MIN_TIMEOUT:g} s, got {got:g}: "
+                    "every predict() call would time out")
+    return got
+
+
 def _list(config: pytest.Config, dest: str) -> list[str] | None:
     raw = value(config, dest)
     if raw is None:
@@ -202,7 +214,7 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_path=(here / baseline).resolve() if baseline else None,
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
-        timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
+        timeout=_timeout(config),
         shard=shard,
         seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
         metric=metric,

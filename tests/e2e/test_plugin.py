@@ -269,3 +269,13 @@ def test_an_edited_stored_cell_is_recomputed_and_reported(dd):
     assert json.loads(path.read_text())["record"]["plans"] == original["record"]["plans"]
     _, cases = junit(dd.pytester.path / "again.xml")
     assert cases["jpeg-s1"]["resumed"] == "0" and cases["clean"]["resumed"] == "1"
+
+
+def test_a_bidi_planner_name_is_a_clear_error_checked_once(dd):
+    dd.write_planner(name="evil\u202eplanner")
+    result = dd.run(families="jpeg", severities="1")
+    assert result.ret != 0
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*unusable planner name*bidirectional control character U+202E at position 4*"])
+    outcomes = result.parseoutcomes()
+    assert outcomes.get("failed") == 1 and "passed" not in outcomes  # stopped at the first cell, not one per cell

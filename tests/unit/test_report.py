@@ -136,3 +136,11 @@ def test_user_text_with_dollar_signs_does_not_break_charts() -> None:
     assert uri.startswith("data:image/png;base64,")
     ex = [{"frame": "tok$_{", "gt": np.zeros((6, 2)), "plans": {"clean": np.ones((6, 2)), "fog-s5$": np.ones((6, 2))}}]
     assert plots.trajectory_panels(ex).startswith("data:image/png;base64,")
+
+
+def test_csv_fields_that_would_start_a_formula_are_neutralised() -> None:
+    from pytest_drivedegrade.report.cells import _field
+
+    assert [_field(v) for v in ("=HYPERLINK(\"x\")", "+1+1", "-cmd", "@SUM(A1)", "plain")] == \
+        ["'=HYPERLINK(\"x\")", "'+1+1", "'-cmd", "'@SUM(A1)", "plain"]
+    assert [_field(v) for v in ("-0.5", "+3", "-1e-3", -2, -0.25)] == ["-0.5", "+3", "-1e-3", "-2", "-0.25"]
