@@ -7,6 +7,8 @@ with `report_order`, the store and the certificate key everything by `cell_id`.
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -202,12 +204,25 @@ class CellRecord:
         return np.asarray(l2_avg(self.l2, convention))
 
 
+def record_digest(record: Mapping[str, Any]) -> str:
+    """sha256 hex of a record's canonical JSON (``CellRecord.to_builtins``: keys sorted, compact, NaN as NaN).
+    JSON round-trips these builtins exactly, so a stored record hashes to the digest written beside it unless
+    the file was edited."""
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"), allow_nan=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+class RecordDigestMismatch(InvalidInput):
+    """A stored cell whose record no longer hashes to its recorded digest: edited or corrupted on disk."""
+
+
 @dataclass(frozen=True)
 class CellPayload:
     """What one finished cell sends to the controller (on the test report under xdist) and the store keeps.
 
     `key` is the run key a stored result must match to be reused; `properties` the cell's JUnit testcase
-    properties; `resumed` says the record was read from the store rather than computed.
+    properties; `resumed` says the record was read from the store rather than computed; `recomputed` says why a
+    stored record was not reused (its content digest failed), empty otherwise.
     """
 
     key: Mapping[str, Any]
@@ -215,6 +230,7 @@ class CellPayload:
     record: CellRecord
     properties: tuple[Property, ...] = ()
     resumed: bool = False
+    recomputed: str = ""
 
     @property
     def cell(self) -> str:
@@ -222,12 +238,16 @@ class CellPayload:
 
     def to_builtins(self) -> dict[str, Any]:
         """Plain JSON builtins (the store's file and the report attribute that crosses the xdist boundary)."""
-        return {"key": dict(self.key), "planner": self.planner, "record": self.record.to_builtins(),
-                "properties": [[name, value] for name, value in self.properties], "resumed": self.resumed}
+        record = self.record.to_builtins()
+        out = {"key": dict(self.key), "planner": self.planner, "record": record, "record_digest": record_digest(record),
+               "properties": [[name, value] for name, value in self.properties], "resumed": self.resumed}
+        return {**out, "recomputed": self.recomputed} if self.recomputed else out
 
     @classmethod
     def from_builtins(cls, data: Mapping[str, Any]) -> CellPayload:
-        """Inverse of `to_builtins`; `InvalidInput` naming the missing field otherwise."""
+        """Inverse of `to_builtins`; `InvalidInput` naming the missing field otherwise, `RecordDigestMismatch` when
+        the record does not hash to its ``record_digest`` (a payload without one, from before digests, is not
+        checked: its run key lacks the tool version, so it is never reused)."""
         if not isinstance(data, Mapping):
             raise InvalidInput(f"a cell payload is a JSON object, found {type(data).__name__}")
         try:
@@ -236,5 +256,11 @@ class CellPayload:
             raise InvalidInput(f"cell payload lacks the field {exc.args[0]!r}") from None
         if not isinstance(key, Mapping) or not isinstance(planner, str):
             raise InvalidInput("cell payload: `key` must be an object and `planner` a string")
+        recorded = data.get("record_digest")
+        if recorded is not None and isinstance(record, Mapping) and record_digest(record) != recorded:
+            raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record hashes to "
+                                       f"{record_digest(record)[:16]}..., not to its recorded digest "
+                                       f"{str(recorded)[:16]}...: it was edited or corrupted on disk")
         props = tuple((str(p[0]), p[1]) for p in data.get("properties", []))
-        return cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)))
+        return cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)),
+                   str(data.get("recomputed", "")))

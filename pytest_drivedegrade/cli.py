@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, merge, compare, estimate.
+"""The `drivedegrade` command: spec, preview, world, verify, keygen, merge, compare, estimate.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -44,17 +44,66 @@ def _world(args: argparse.Namespace) -> int:
 
 
 def _verify(args: argparse.Namespace) -> int:
-    """Exit 0 when the certificate is intact, 1 when it was edited (naming how), 2 when unreadable."""
+    """Exit 0 when the certificate is intact (and signed by --public-key's key when given) and its arithmetic
+    adds up, 1 when it was edited, its signature fails or its thresholds / axes / verdict disagree with its
+    cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
     from .report.certificate import CertificateMismatch, verify
+    from .report.consistency import check_consistency, incompleteness
+    from .report.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
 
+    public_key = load_public_key(args.public_key) if args.public_key else None
     try:
         cert = verify(args.file)
-    except CertificateMismatch as exc:
+        signer = None if public_key is None else verify_signature(cert, public_key, where=args.file)
+    except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
-    print(f"{args.file}: OK, digest {cert['digest']} verifies (planner {cert['planner'].get('name')!r}, "
-          f"verdict {cert['verdict'].get('label')})")
+    inconsistent = check_consistency(cert)
+    if inconsistent:
+        print(f"drivedegrade: verify: FAILED: {args.file}: the digest verifies but the arithmetic does not add up "
+              f"({len(inconsistent)} field(s)):", file=sys.stderr)
+        for line in inconsistent:
+            print(f"  {line}", file=sys.stderr)
+        return 1
+    what = f"planner {cert['planner'].get('name')!r}, verdict {cert['verdict'].get('label')}"
+    if signer is not None:
+        level = f"signature verifies: issued by the holder of the key with fingerprint {signer}"
+    elif isinstance(cert.get("signature"), dict):
+        level = (f"signed by the key with fingerprint {cert['signature'].get('public_key_fingerprint')}, signature "
+                 "NOT checked: pass --public-key to check who issued it; integrity only")
+    else:
+        level = f"{UNSIGNED_TEXT}: the digest catches an accidental edit, not a deliberate one"
+    missing = incompleteness(cert)
+    if missing is not None:
+        print(f"drivedegrade: verify: INCOMPLETE: {args.file}: intact and consistent, but the run is incomplete "
+              f"(completeness.complete is false; {missing}): not a certificate of the whole ladder; {level}",
+              file=sys.stderr)
+        return 3
+    print(f"{args.file}: OK, digest {cert['digest']} verifies, thresholds, axes and verdict agree with its cells "
+          f"({what}); {level}")
     return 0
+
+
+def _keygen(args: argparse.Namespace) -> int:
+    """Write NAME.key (private, mode 0600) and NAME.pub."""
+    from .report.signing import fingerprint, keygen, load_private_key
+
+    key_path, pub_path = keygen(args.name)
+    fp = fingerprint(load_private_key(key_path.read_bytes(), str(key_path)).public_key())
+    print(f"wrote {key_path} (private: keep it secret, mode 0600) and {pub_path} (public key fingerprint {fp})")
+    return 0
+
+
+def _merge_signing_key(args: argparse.Namespace) -> object:
+    """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text), else None."""
+    import os
+
+    from .report.signing import ENV_VAR, load_private_key, read_key_source
+
+    source, where = (args.sign_key, "--sign-key") if args.sign_key else (os.environ.get(ENV_VAR), ENV_VAR)
+    if not source:
+        return None
+    return load_private_key(read_key_source(source, where), where)
 
 
 def _merge(args: argparse.Namespace) -> int:
@@ -62,9 +111,10 @@ def _merge(args: argparse.Namespace) -> int:
     from .report.merge import merge_shards, write_merged
 
     command = "drivedegrade merge " + " ".join(args.shards) + f" --out {args.out}"
+    key = _merge_signing_key(args)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""))
-    for line in write_merged(merged, Path(args.out)):
+    for line in write_merged(merged, Path(args.out), signing_key=key):
         print(line)
     return 0
 
@@ -138,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "certificate.json and report.html")
     p.add_argument("--allow-incomplete", action="store_true",
                    help="merge although shards are missing; the certificate then says completeness: false")
+    p.add_argument("--sign-key", metavar="PATH", help="sign the certificate with this Ed25519 private key "
+                                                       "(default: $DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
     p.set_defaults(func=_merge)
 
     p = sub.add_parser("estimate", help="wall time of a certification at a planner's frames/s on G GPUs")
@@ -148,9 +200,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--certificate", help="a certificate whose cost ledger gives the suite's per-frame overhead")
     p.set_defaults(func=_estimate)
 
-    p = sub.add_parser("verify", help="check a certificate's digest: exit 0 intact, 1 edited, 2 unreadable")
+    p = sub.add_parser("verify", help="check a certificate's digest, signature and arithmetic: exit 0 intact, 1 "
+                                      "edited, badly signed or inconsistent, 2 unreadable, 3 incomplete")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")
+    p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature with this "
+                                                       "public key (NAME.pub); an unsigned certificate then fails")
     p.set_defaults(func=_verify)
+
+    p = sub.add_parser("keygen", help="write an Ed25519 key pair NAME.key (mode 0600) and NAME.pub for signing")
+    p.add_argument("name", metavar="NAME", help="path prefix of the two files")
+    p.set_defaults(func=_keygen)
 
     p = sub.add_parser("compare", help="compare certificates: compare.csv and compare.html, ranks and reversals")
     p.add_argument("certificates", nargs="+", metavar="CERT", help="certificate.json files (verified first)")

@@ -150,16 +150,37 @@ def planner_cameras(planner: Any) -> tuple[str, ...]:
     return tuple(c for c in CAMERAS if c in names)
 
 
+#: The longest planner name: it names the report folder and is printed in the terminal, HTML and certificate.
+MAX_NAME = 64
+#: Bidirectional embedding / override / isolate controls (U+202A-U+202E, U+2066-U+2069): they make a name read
+#: differently from what it is (a "Trojan Source" name in a report or a CI log).
+BIDI_CONTROLS = frozenset(map(chr, (*range(0x202A, 0x202F), *range(0x2066, 0x206A))))
+
+
 def planner_name(planner: Any, default: str) -> str:
-    """The planner's ``name`` attribute when it is a usable folder name, else `default` (the file's stem)."""
+    """The planner's ``name`` attribute when it is a usable folder name, else `default` (the file's stem).
+
+    A name is at most `MAX_NAME` printable characters with no bidirectional controls and no path; otherwise
+    `InvalidInput` naming the offending character and its position.
+    """
     name = getattr(planner, "name", None)
+    where = "planner.name"
     if name is None:
-        return default
+        name, where = default, "the planner's name (its file name)"
     if not isinstance(name, str) or not name.strip():
         raise InvalidInput(f"planner.name must be a non-empty string, got {name!r}")
     name = name.strip()
+    rule = (f"a planner name is at most {MAX_NAME} printable characters without bidirectional controls (it "
+            "names the report folder and appears in the certificate)")
+    for i, ch in enumerate(name):
+        if ch in BIDI_CONTROLS or not ch.isprintable():
+            kind = "bidirectional control" if ch in BIDI_CONTROLS else "non-printable"
+            raise InvalidInput(f"{where} {name!r} contains the {kind} character U+{ord(ch):04X} at position {i}; "
+                               f"{rule}")
+    if len(name) > MAX_NAME:
+        raise InvalidInput(f"{where} {name[:MAX_NAME]!r}... is {len(name)} characters long; {rule}")
     if any(sep in name for sep in ("/", "\\")) or name in (".", ".."):
-        raise InvalidInput(f"planner.name {name!r} is used as a report folder and may not contain a path")
+        raise InvalidInput(f"{where} {name!r} is used as a report folder and may not contain a path")
     return name
 
 

@@ -133,8 +133,11 @@ class RunContext:
 
     def run_key(self, planner: Any) -> dict[str, Any]:
         """What a stored cell result must match to be reused by a rerun (the seed count only when above one, so
-        a one-seed run keeps the key, and the stored cells, of runs before seeds existed)."""
-        key = {"spec_version": SPEC_VERSION, "record_version": RECORD_VERSION,
+        a one-seed run keeps the key, and the stored cells, of runs before seeds existed). The tool version is
+        part of it: a new release may compute a cell differently, so it never reuses an older release's cells."""
+        from . import __version__
+
+        key = {"spec_version": SPEC_VERSION, "tool_version": __version__, "record_version": RECORD_VERSION,
                "planner_fingerprint": self.planner_info(planner).fingerprint,
                "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
         if self.seeds > 1:

@@ -1,8 +1,9 @@
 """Cell results on disk: `<report>/<planner>/cells/<cell>.json`, written atomically as each cell finishes.
 
-A stored result is a `CellPayload` with its run key (spec version, planner and dataset fingerprints, scored
-frames, seed); a rerun reuses exactly the results whose key matches, so an interrupted run resumes and a changed
-planner, data set or ladder recomputes.
+A stored result is a `CellPayload` with its run key (spec and tool versions, planner and dataset fingerprints,
+scored frames, seed) and its record's content digest; a rerun reuses exactly the results whose key matches and
+whose record still hashes to its digest, so an interrupted run resumes, a changed planner, data set, ladder or
+tool recomputes, and a stored file edited by hand is recomputed (and reported in `digest_failures`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import atomic_write_text
-from .cells import CellPayload
+from .cells import CellPayload, RecordDigestMismatch
 from .errors import InvalidInput
 
 
@@ -22,6 +23,8 @@ class ResultStore:
 
     def __init__(self, report_dir: Path, shard: str | None = None) -> None:
         self.report_dir, self.shard = Path(report_dir), shard
+        #: cell -> why its stored record was not reused although present: its content digest failed
+        self.digest_failures: dict[str, str] = {}
 
     def folder(self, planner: str) -> Path:
         """The planner's folder of this run (a shard's own subfolder for a shard)."""
@@ -35,10 +38,15 @@ class ResultStore:
                                  json.dumps(payload.to_builtins(), allow_nan=True))
 
     def read(self, planner: str, cell: str, key: Mapping[str, Any]) -> CellPayload | None:
-        """The stored payload of `cell` when its run key equals `key`; None when absent, stale or unreadable."""
+        """The stored payload of `cell` when its run key equals `key`; None when absent, stale, unreadable or
+        edited (its record no longer hashes to its digest: noted in `digest_failures`)."""
         try:
             data = json.loads(self.path(planner, cell).read_text())
             payload = CellPayload.from_builtins(data)
+        except RecordDigestMismatch as exc:
+            if isinstance(data, dict) and dict(data.get("key") or {}) == dict(key):
+                self.digest_failures[cell] = str(exc)
+            return None
         except (OSError, ValueError, InvalidInput):
             return None
         if dict(payload.key) != dict(key) or payload.cell != cell:

@@ -125,4 +125,5 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
             if reg:
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")
     resumed = stored is not None
-    return CellPayload(key, name, record, properties(record, resumed), resumed), failures
+    why = "" if resumed else store.digest_failures.get(cell, "")
+    return CellPayload(key, name, record, properties(record, resumed), resumed, why), failures

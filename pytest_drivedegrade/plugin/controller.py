@@ -55,6 +55,21 @@ def gather(received: Mapping[str, CellPayload], expected: Sequence[tuple[str, in
     return Gathered(first.planner, first.key, payloads, [c for c in ids if c not in payloads])
 
 
+def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: ResultStore) -> list[str]:
+    """Which cells were reused from the store rather than computed, and which stored cells were recomputed
+    because their record no longer hashed to its recorded digest (edited or corrupted on disk)."""
+    reused = sorted(c for c, p in run.payloads.items() if c not in received or p.resumed)
+    failed = {c: p.recomputed for c, p in received.items() if p.recomputed}
+    failed.update({c: why for c, why in store.digest_failures.items() if c not in failed})
+    lines = []
+    if reused:
+        lines.append(f"reused {len(reused)} stored cell(s) (same run key, digest verified): {', '.join(reused)}")
+    if failed:
+        lines.append(f"recomputed {len(failed)} stored cell(s) whose content digest failed (edited or corrupted "
+                     f"on disk): {', '.join(sorted(failed))}")
+    return lines
+
+
 def floor_per_frame(config: pytest.Config, context: RunContext, split: str, lines: list[str],
                     ego: dict[str, Any] | None = None) -> np.ndarray | None:
     """The ego-only floor's clean l2_avg per scored frame (trained on the train split once, cached); None with a
@@ -108,6 +123,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
+    out.lines += reuse_lines(received, run, store)
     if options.shard is not None:
         return finish_shard(config, options, context, run, store, out, expected)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
@@ -132,7 +148,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     cost = cost_ledger(records.values())
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
-                                  montage=front_montage(context, options.seed), cost=cost)
+                                  montage=front_montage(context, options.seed), cost=cost,
+                                  signing_key=signing_key(options))
     out.lines.append(cost_line(cost))
     out.lines.append(written)
     from .compat import junit_xml
@@ -155,6 +172,15 @@ def cost_line(cost: Mapping[str, Any]) -> str:
     return (f"cost: {cost['predictions']} predictions ({cost['reused']} reused); seconds in cells: planner "
             f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
             f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
+
+
+def signing_key(options: RunOptions) -> Any:
+    """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
+    if options.sign_key_pem is None:
+        return None
+    from ..report.signing import load_private_key
+
+    return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")
 
 
 def _command(config: pytest.Config) -> str:

@@ -64,6 +64,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
+    OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
+               "private key (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY environment "
+               "variable, a path or the PEM text)", {"metavar": "PATH"}),
 )
 _BY_DEST = {spec.dest: spec for spec in OPTIONS}
 
@@ -99,6 +102,18 @@ def _number(config: pytest.Config, dest: str, kind: type[int] | type[float], def
     return got
 
 
+#: The shortest --drivedegrade-timeout but 0 (no limit): below a millisecond every predict() call would fail.
+MIN_TIMEOUT = 1e-3
+
+
+def _timeout(config: pytest.Config) -> float:
+    got = float(_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None))
+    if 0 < got < MIN_TIMEOUT:
+        raise _fail("drivedegrade_timeout", f"must be 0 (no limit) or at least {MIN_TIMEOUT:g} s, got {got:g}: "
+                    "every predict() call would time out")
+    return got
+
+
 def _list(config: pytest.Config, dest: str) -> list[str] | None:
     raw = value(config, dest)
     if raw is None:
@@ -130,6 +145,32 @@ class RunOptions:
     batch: int = 1
     metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
+    sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
+
+
+def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
+    """--drivedegrade-sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text): the PEM bytes of
+    an Ed25519 private key, checked now so that a bad key is a usage error before any cell runs."""
+    import os
+
+    raw = value(config, "drivedegrade_sign_key")
+    where = "--drivedegrade-sign-key"
+    if raw is None:
+        raw = os.environ.get("DRIVEDEGRADE_SIGNING_KEY") or None
+        where = "DRIVEDEGRADE_SIGNING_KEY"
+        if raw is None:
+            return None
+    text = str(raw)
+    if not text.strip().startswith("-----BEGIN"):
+        text = str(here / text.strip())
+    from ..report.signing import load_private_key, read_key_source
+
+    try:
+        pem = read_key_source(text, where)
+        load_private_key(pem, where)
+    except DriveDegradeError as exc:
+        raise pytest.UsageError(str(exc)) from None
+    return pem
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -176,10 +217,11 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_path=(here / baseline).resolve() if baseline else None,
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
-        timeout=_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None),
+        timeout=_timeout(config),
         shard=shard,
         seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
         batch=_number(config, "drivedegrade_batch", int, 1, 1, 4096),
         metric=metric,
         ego=tuple(f for f in EGO_FAMILIES if f in families),
+        sign_key_pem=_sign_key(config, here),
     )

@@ -59,6 +59,7 @@ class DriveDegradeSession:
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
+        self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -143,6 +144,7 @@ class DriveDegradeSession:
         from .checks import certify
 
         family, severity = item.drivedegrade_cell
+        self._check_name(item, planner)
         try:
             context = self.run_context()
             payload, failures = certify(context, planner, family, severity,
@@ -154,6 +156,24 @@ class DriveDegradeSession:
         item.user_properties.extend(payload.properties)
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
+
+    def _check_name(self, item: CellItem, planner: Any) -> None:
+        """The planner's name, checked once when the planner first exists (the first cell): a bad one fails that
+        cell with the rule it breaks and stops the session, rather than failing every cell the same way."""
+        if self.name_error is None:
+            from ..errors import InvalidInput
+            from ..planning import planner_name
+
+            default = self.options.planner_path.stem if self.options.planner_path else "planner"
+            try:
+                planner_name(planner, default)
+                self.name_error = ""
+            except InvalidInput as exc:
+                self.name_error = str(exc)
+        if self.name_error:
+            message = f"--drivedegrade: unusable planner name: {self.name_error}"
+            item.session.shouldstop = message
+            pytest.fail(message, pytrace=False)
 
     @pytest.hookimpl(wrapper=True)
     def pytest_runtest_makereport(self, item: pytest.Item,

@@ -19,16 +19,34 @@ from ..scoring.records import RunAnalysis
 from .certificate import DIGITS, Provenance
 from .columns import CSV as CSV_COLUMNS
 
+#: A spreadsheet reads a field starting with one of these as a formula (CSV injection), e.g. a planner name
+#: ``=HYPERLINK(...)`` or a data path ``@SUM(...)``.
+FORMULA_PREFIXES = ("=", "+", "-", "@")
+
+
+def _neutralise(text: str) -> str:
+    """A text field that a spreadsheet would run as a formula, with a leading apostrophe (numbers untouched)."""
+    if not text.startswith(FORMULA_PREFIXES):
+        return text
+    try:
+        float(text)
+    except ValueError:
+        return "'" + text
+    return text
+
 
 def _field(value: Any) -> str:
-    """One CSV field: rounded floats, empty for missing / NaN, lower-case booleans."""
+    """One CSV field: rounded floats, empty for missing / NaN, lower-case booleans, and text that would start a
+    spreadsheet formula (=, +, -, @, unless it is a number) neutralised with a leading apostrophe."""
     if value is None:
         return ""
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, float):
         return repr(round(value, DIGITS) + 0.0) if math.isfinite(value) else ""
-    return str(value)
+    if isinstance(value, int):
+        return str(value)
+    return _neutralise(str(value))
 
 
 def cell_rows(analysis: RunAnalysis, provenance: Provenance) -> list[dict[str, str]]:

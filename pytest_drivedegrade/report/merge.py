@@ -135,9 +135,9 @@ class Merged:
     batch: int = 1
 
 
-def write_merged(merged: Merged, out: Path) -> list[str]:
-    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`;
-    the lines to print."""
+def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str]:
+    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`
+    (the certificate signed with `signing_key` when given); the lines to print."""
     from ..scoring.verdict import analyse_run
     from .outputs import montage_of, write_outputs
 
@@ -159,7 +159,8 @@ def write_merged(merged: Merged, out: Path) -> list[str]:
     from ..scoring.records import cost_ledger
 
     _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
-                               montage=montage, completeness=extra, cost=cost_ledger(merged.records.values()))
+                               montage=montage, completeness=extra, cost=cost_ledger(merged.records.values()),
+                               signing_key=signing_key)
     from .terminal import summary_lines
 
     lines = summary_lines(analysis, merged.missing_cells)

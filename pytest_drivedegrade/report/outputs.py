@@ -24,10 +24,11 @@ def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
 def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
                   missing: Sequence[str], *, gt: Mapping[str, Any], montage: np.ndarray | None,
                   completeness: Mapping[str, Any] | None = None,
-                  cost: Mapping[str, Any] | None = None) -> tuple[dict[str, Any], str]:
+                  cost: Mapping[str, Any] | None = None, signing_key: Any = None) -> tuple[dict[str, Any], str]:
     """Write the three files and return (the sealed certificate, a line saying what was written). A run with
     missing cells (a crash, Ctrl-C, -k) or shards says so in the certificate, so it is not mistaken for a
-    complete baseline. `gt`: frame token -> ground truth (the trajectory panels)."""
+    complete baseline. `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` (an Ed25519
+    private key) the certificate is signed before it is sealed, so its digest covers the signature."""
     from .cells import write_cells_csv
     from .certificate import build_certificate, certificate_text, seal
     from .html import trajectory_examples, write_report
@@ -37,6 +38,10 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     if cost is not None:
         cert["cost"] = dict(cost)
+    if signing_key is not None:
+        from .signing import sign
+
+        cert = sign(cert, signing_key)
     cert = seal(cert)
     atomic_write_text(folder / "certificate.json", certificate_text(cert))
     write_cells_csv(folder / "cells.csv", analysis, prov)

@@ -17,6 +17,9 @@ from typing import Any
 
 # Import the heavy stages once here, before pytester's in-process runs: each run drops the modules it imported
 # itself, and a matplotlib imported twice in one process breaks (its classes no longer match).
+import cryptography.exceptions  # noqa: F401 - certificate signatures: their classes must match across runs
+import cryptography.hazmat.primitives.asymmetric.ed25519  # noqa: F401
+import cryptography.hazmat.primitives.serialization  # noqa: F401
 import jinja2  # noqa: F401
 import pytest
 import torch._dynamo  # noqa: F401 - torch.manual_seed imports it lazily; twice in one process it fails

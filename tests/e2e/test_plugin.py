@@ -191,3 +191,91 @@ def test_baseline_from_another_dataset_is_a_clear_error(dd):
     no_traceback(result)
     result.stderr.fnmatch_lines(["*--drivedegrade-baseline*dataset fingerprint*0000*"])
     assert "passed" not in result.stdout.str()  # refused before any cell ran
+
+
+def _verify_with(path: Path, *extra: str):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify", str(path), *extra],
+                          capture_output=True, text=True, check=False)
+
+
+@pytest.mark.parametrize("via", ["option", "env"])
+def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch, via):
+    """A run signed with --drivedegrade-sign-key (or DRIVEDEGRADE_SIGNING_KEY holding the PEM text) verifies
+    with the public key; edited and resealed with hashlib, it fails; another key fails."""
+    import hashlib
+    import json
+
+    from pytest_drivedegrade.report.signing import keygen
+
+    key, pub = keygen(dd.pytester.path / "issuer")
+    _, other = keygen(dd.pytester.path / "other")
+    dd.write_planner()
+    if via == "env":
+        monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", key.read_text())
+        extra: tuple[str, ...] = ()
+    else:
+        extra = ("--drivedegrade-sign-key", "issuer.key")
+    dd.run(*extra, families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "certificate.json"
+    assert load_json(path)["signature"]["algorithm"] == "ed25519"
+    ok = _verify_with(path, "--public-key", str(pub))
+    assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
+    wrong = _verify_with(path, "--public-key", str(other))
+    assert wrong.returncode == 1 and "wrong key" in wrong.stderr
+
+    data = load_json(path)
+    data["verdict"]["label"] = "not-shown-to-use-cameras"
+
+    def sha(obj):
+        return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+    data["section_digests"] = {k: sha(v) for k, v in data.items() if k not in ("digest", "section_digests")}
+    data["digest"] = sha({k: v for k, v in data.items() if k != "digest"})
+    path.write_text(json.dumps(data))
+    forged = _verify_with(path, "--public-key", str(pub))
+    assert forged.returncode == 1 and "signature does not verify" in forged.stderr, forged.stderr
+
+
+def test_a_bad_signing_key_is_a_usage_error(dd):
+    dd.write_planner()
+    (dd.pytester.path / "bad.key").write_text("not a key")
+    result = dd.run("--drivedegrade-sign-key", "bad.key", families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines(["*--drivedegrade-sign-key*not an unencrypted PEM private key*"])
+
+
+def test_an_edited_stored_cell_is_recomputed_and_reported(dd):
+    """A stored cell whose plans were edited without fixing its digest is not reused: the rerun computes it
+    again (its file is back to the computed plans) and the summary says so; the others are reported reused."""
+    import json
+
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "cells" / "jpeg-s1.json"
+    original = json.loads(path.read_text())
+    assert len(original["record_digest"]) == 64 and original["key"]["tool_version"]
+    edited = json.loads(path.read_text())
+    edited["record"]["plans"][0][0][0] += 3.0
+    path.write_text(json.dumps(edited))
+
+    again = dd.run("--junitxml=again.xml", families="jpeg", severities="1")
+    again.assert_outcomes(passed=4)
+    again.stdout.fnmatch_lines(["*reused 3 stored cell(s)*: blind, clean, null",
+                                "*recomputed 1 stored cell(s) whose content digest failed*: jpeg-s1"])
+    assert json.loads(path.read_text())["record"]["plans"] == original["record"]["plans"]
+    _, cases = junit(dd.pytester.path / "again.xml")
+    assert cases["jpeg-s1"]["resumed"] == "0" and cases["clean"]["resumed"] == "1"
+
+
+def test_a_bidi_planner_name_is_a_clear_error_checked_once(dd):
+    dd.write_planner(name="evil\u202eplanner")
+    result = dd.run(families="jpeg", severities="1")
+    assert result.ret != 0
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*unusable planner name*bidirectional control character U+202E at position 4*"])
+    outcomes = result.parseoutcomes()
+    assert outcomes.get("failed") == 1 and "passed" not in outcomes  # stopped at the first cell, not one per cell

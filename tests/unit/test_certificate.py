@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -142,3 +143,53 @@ def test_edited_baseline_is_refused_naming_the_section(cert_file: Path) -> None:
     edit(cert_file, lambda d: d["axes"].__setitem__("quality", 1.0))
     with pytest.raises(cf.CertificateMismatch, match="digest mismatch.*edited section.*axes"):
         cf.verify(cert_file)
+
+
+def reseal(path: Path, change) -> None:
+    """Edit and reseal as a forger would: section digests and digest recomputed with hashlib."""
+    import hashlib
+
+    data = json.loads(path.read_text())
+    change(data)
+
+    def sha(obj) -> str:
+        return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+    data["section_digests"] = {k: sha(v) for k, v in data.items() if k not in ("digest", "section_digests")}
+    data["digest"] = sha({k: v for k, v in data.items() if k != "digest"})
+    path.write_text(json.dumps(data, indent=2))
+
+
+def test_verify_recomputes_axes_thresholds_and_verdict_from_the_cells(cert_file: Path, capsys) -> None:
+    from pytest_drivedegrade.report.consistency import check_consistency
+
+    assert check_consistency(cf.verify(cert_file)) == []
+    s5 = next(i for i, c in enumerate(json.loads(cert_file.read_text())["cells"]) if c["cell"] == "fog-s5")
+
+    def lift_fog(d) -> None:
+        d["cells"][s5]["retention"] = 0.999  # the cell says fog barely hurts, the axes and thresholds say not
+    reseal(cert_file, lift_fog)
+    assert main(["verify", str(cert_file)]) == 1
+    err = capsys.readouterr().err
+    assert "arithmetic does not add up" in err
+    assert re.search(r"axes\.quality: certificate says \d\.\d{6}, its cells give \d\.\d{6}", err)
+    assert "axes.mean:" in err and "axes.gap:" in err
+
+
+def test_a_forged_verdict_or_threshold_is_named(cert_file: Path, capsys) -> None:
+    reseal(cert_file, lambda d: (d["verdict"].__setitem__("label", "not-shown-to-use-cameras"),
+                                 d["thresholds"]["fog"].__setitem__("s10", 4.5)))
+    assert main(["verify", str(cert_file)]) == 1
+    err = capsys.readouterr().err
+    assert "verdict.label: certificate says 'not-shown-to-use-cameras'" in err
+    assert "thresholds.fog.s10: certificate says 4.500000, its cells give" in err
+
+
+def test_a_consistent_resealed_certificate_passes_and_incomplete_exits_3(cert_file: Path, capsys) -> None:
+    reseal(cert_file, lambda d: d["planner"].__setitem__("name", "renamed"))
+    assert main(["verify", str(cert_file)]) == 0
+    assert "integrity only, unsigned" in capsys.readouterr().out
+    reseal(cert_file, lambda d: d.__setitem__("completeness", {"complete": False, "missing_cells": ["jpeg-s3"]}))
+    assert main(["verify", str(cert_file)]) == 3
+    err = capsys.readouterr().err
+    assert "INCOMPLETE" in err and "missing cell(s): jpeg-s3" in err

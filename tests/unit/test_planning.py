@@ -146,3 +146,15 @@ def test_fingerprint_tracks_source_weights_and_declarations(tmp_path) -> None:
 def test_fingerprint_without_a_path_uses_the_class_source() -> None:
     assert planner_fingerprint(Straight()) == planner_fingerprint(Straight(), None)
     assert planner_fingerprint(Straight()) != planner_fingerprint(Declares())
+
+
+def test_names_are_printable_bidi_free_and_short() -> None:
+    for bad, what in (("evil\u202eplanner", "bidirectional control character U\\+202E at position 4"),
+                      ("a\u2066b", "bidirectional control character U\\+2066"),
+                      ("tab\there", "non-printable character U\\+0009 at position 3"),
+                      ("x" * 65, "is 65 characters long")):
+        with pytest.raises(InvalidInput, match=what):
+            planner_name(Declares(name=bad), "x")
+    assert planner_name(Declares(name="ü" * 64), "x") == "ü" * 64
+    with pytest.raises(InvalidInput, match="file name"):
+        planner_name(Declares(), "bad\u202ename")

@@ -176,3 +176,11 @@ def test_user_text_with_dollar_signs_does_not_break_charts(monkeypatch) -> None:
     assert fig.axes[0].get_title(loc="left") == r"frame tok\$_{"
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["ground truth", "clean", r"fog-s5\$"]
     assert panels.shape[0] > 300 and len(np.unique(panels.reshape(-1, 3), axis=0)) > 20
+
+
+def test_csv_fields_that_would_start_a_formula_are_neutralised() -> None:
+    from pytest_drivedegrade.report.cells import _field
+
+    assert [_field(v) for v in ("=HYPERLINK(\"x\")", "+1+1", "-cmd", "@SUM(A1)", "plain")] == \
+        ["'=HYPERLINK(\"x\")", "'+1+1", "'-cmd", "'@SUM(A1)", "plain"]
+    assert [_field(v) for v in ("-0.5", "+3", "-1e-3", -2, -0.25)] == ["-0.5", "+3", "-1e-3", "-2", "-0.25"]

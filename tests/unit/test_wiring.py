@@ -62,10 +62,16 @@ def test_options_from_ini_and_in_ladder_order(tmp_path):
     assert opts.families == ("jpeg", "fog", "blackout") and opts.severities == (1, 5) and opts.seed == 7
 
 
+def test_timeout_zero_and_a_millisecond_are_accepted(tmp_path):
+    for raw, want in (("0", 0.0), ("0.001", 0.001)):
+        assert parse(FakeConfig(tmp_path, {"drivedegrade": "", "drivedegrade_timeout": raw})).timeout == want  # type: ignore[arg-type]
+
+
 @pytest.mark.parametrize(("dest", "raw", "message"), [
     ("drivedegrade_tolerance", "nan", "--drivedegrade-tolerance: must be a finite number"),
     ("drivedegrade_flat", "inf", "--drivedegrade-flat: must be a finite number"),
     ("drivedegrade_timeout", "nan", "--drivedegrade-timeout: must be a finite number"),
+    ("drivedegrade_timeout", "0.0001", "--drivedegrade-timeout: must be 0 (no limit) or at least 0.001 s"),
     ("drivedegrade_tolerance", "1.5", "--drivedegrade-tolerance: must be between 0.0 and 1.0, got 1.5"),
     ("drivedegrade_frames", "0", "--drivedegrade-frames: must be at least 1, got 0"),
     ("drivedegrade_seed", "x", "--drivedegrade-seed: expected an integer, got 'x'"),

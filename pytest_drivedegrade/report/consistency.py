@@ -1,0 +1,177 @@
+"""Does a certificate's arithmetic add up? `drivedegrade verify` recomputes, from the certificate's own cells,
+the thresholds (``scoring.retention.tolerance_threshold`` on each family's retention curve), the axes (quality,
+removal, gap, mean, and the ego axis, from S5 retentions and the family groups of the ladder) and the verdict
+label (from those axes and the flat line in ``verdict.flat`` / ``settings.flat``), and names every field that
+disagrees with both values.
+
+A digest, and even a signature, only says the file is what someone wrote; this says that what was written is
+self-consistent, so a hand-made certificate whose cells and axes disagree fails even when resealed.
+
+Tolerance: the certificate stores 6 decimals, so each stored number is off its exact value by up to half a unit
+of the 6th decimal (5e-7). A figure recomputed from n stored inputs is allowed ``5e-7 * (n + 1)`` (1e-6 for a
+mean or a copy, 1.5e-6 for the gap); a threshold, which divides by the retention drop across its segment, is
+allowed that error propagated through the interpolation, and is not checked where a retention lies within 1e-6
+of the threshold level (which severity crosses first is then undecidable at the certificate's precision).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from ..cells import DIAGNOSTIC, cell_id, is_ego
+from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
+from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
+from .certificate import DIGITS
+
+HALF_UNIT = 0.5 * 10.0 ** -DIGITS  #: the rounding error of one stored number
+TOLERANCE = 2 * HALF_UNIT  #: 1e-6: the certificate's precision
+
+
+def _section(cert: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+    got = cert.get(key)
+    return got if isinstance(got, Mapping) else {}
+
+
+def _number(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def _fmt(v: Any) -> str:
+    return "null" if v is None else f"{v:.6f}" if isinstance(v, float) else repr(v)
+
+
+def _compare(problems: list[str], field: str, recorded: Any, recomputed: float | None, tol: float) -> None:
+    got = _number(recorded)
+    if recorded is not None and got is None:
+        problems.append(f"{field}: certificate says {_fmt(recorded)}, not a number")
+        return
+    if got is None and recomputed is None:
+        return
+    if got is None or recomputed is None or abs(got - recomputed) > tol + 1e-12:
+        problems.append(f"{field}: certificate says {_fmt(got)}, its cells give {_fmt(recomputed)}")
+
+
+def _curves(cells: Sequence[Mapping[str, Any]], key: str) -> dict[str, dict[int, float]]:
+    curves: dict[str, dict[int, float]] = {}
+    for c in cells:
+        fam = c.get("family")
+        if isinstance(fam, str) and fam not in DIAGNOSTIC and not is_ego(fam):
+            value = _number(c.get(key))
+            curves.setdefault(fam, {})[int(c.get("severity", 0))] = math.nan if value is None else value
+    return curves
+
+
+def _threshold_tolerance(curve: Mapping[int, float], level: float) -> float | None:
+    """The allowed difference of a threshold recomputed from stored retentions; None when undecidable."""
+    points = sorted((s, r) for s, r in curve.items() if s > 0 and math.isfinite(r))
+    if any(abs(r - level) <= TOLERANCE for _, r in points):
+        return None
+    prev = None
+    for s, r in points:
+        if r < level:
+            if prev is None:
+                return TOLERANCE
+            s0, r0 = prev
+            return TOLERANCE + 2 * HALF_UNIT * (s - s0) / (r0 - r)
+        prev = (s, r)
+    return TOLERANCE
+
+
+def _axes(s5: Mapping[str, float], groups: Any) -> dict[str, Any]:
+    from ..scoring.verdict import compute_axes
+
+    return compute_axes(s5, groups)
+
+
+def check_thresholds(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]]) -> list[str]:
+    problems: list[str] = []
+    recorded = _section(cert, "thresholds")
+    curves = _curves(cells, "retention")
+    for fam in sorted(set(recorded) - set(curves)):
+        problems.append(f"thresholds.{fam}: certificate has thresholds for a family none of its cells has")
+    for fam, curve in curves.items():
+        entry = recorded.get(fam)
+        if not isinstance(entry, Mapping):
+            problems.append(f"thresholds.{fam}: missing, its cells give a retention curve")
+            continue
+        for key, level in THRESHOLD_LEVELS.items():
+            tol = _threshold_tolerance(curve, level)
+            if tol is not None:
+                _compare(problems, f"thresholds.{fam}.{key}", entry.get(key), tolerance_threshold(curve, level), tol)
+    return problems
+
+
+def check_axes(axes: Mapping[str, Any], cells: Sequence[Mapping[str, Any]], key: str, where: str,
+               groups: Any) -> list[str]:
+    """quality, removal, gap, mean and the ego axis of `axes` against those recomputed from the cells' `key`."""
+    problems: list[str] = []
+    s5 = {fam: curve[5] for fam, curve in _curves(cells, key).items() if 5 in curve}
+    got = _axes(s5, groups)
+    for name in ("quality", "removal", "mean"):
+        # a mean of stored values: their average rounding (<= 5e-7) plus the axis's own rounding
+        _compare(problems, f"{where}.{name}", axes.get(name), got[name], TOLERANCE)
+    _compare(problems, f"{where}.gap", axes.get("gap"), got["gap"], 3 * HALF_UNIT)
+    by_cell = {c.get("cell"): _number(c.get(key)) for c in cells}
+    for name, cell in (("ego", cell_id(EGO_NOISE, 5)), ("ego_removal", cell_id(EGO_BLIND, 0))):
+        if name in axes:
+            _compare(problems, f"{where}.{name}", axes.get(name), by_cell.get(cell), TOLERANCE)
+    return problems
+
+
+def check_verdict(cert: Mapping[str, Any]) -> list[str]:
+    """The label from the certificate's (checked) axes and its flat line; the flat line agrees with settings."""
+    from ..scoring.verdict import ego_label, verdict
+
+    v, settings = _section(cert, "verdict"), _section(cert, "settings")
+    problems: list[str] = []
+    flat = _number(v.get("flat", settings.get("flat", DEFAULT_FLAT)))
+    if flat is None:
+        return [f"verdict.flat: certificate says {_fmt(v.get('flat'))}, not a number"]
+    if "flat" in settings:
+        _compare(problems, "settings.flat", settings.get("flat"), flat, 0.0)
+    metric = v.get("metric", "l2")
+    axes = _section(cert, "axes_pdms" if metric == "pdms" else "axes")
+    plain = {k: _number(axes.get(k)) for k in ("quality", "removal", "gap")}
+    label = verdict(plain, flat)["label"]
+    if v.get("label") != label:
+        problems.append(f"verdict.label: certificate says {v.get('label')!r}, its axes and flat line {flat:g} "
+                        f"give {label!r}")
+    if "ego_label" in v and "ego_removal" in axes:
+        expected = ego_label(_number(axes.get("ego_removal")), flat)
+        if v.get("ego_label") != expected:
+            problems.append(f"verdict.ego_label: certificate says {v.get('ego_label')!r}, its ego axis gives "
+                            f"{expected!r}")
+    return problems
+
+
+def check_consistency(cert: Mapping[str, Any], groups: Any = None) -> list[str]:
+    """Every inconsistency between a certificate's cells and its thresholds, axes and verdict, as
+    ``field: certificate says X, its cells give Y``; empty when the arithmetic adds up. `groups` defaults to the
+    ladder's family groups (``FamilyGroups.from_registry()``)."""
+    if groups is None:
+        from ..scoring.verdict import FamilyGroups
+
+        groups = FamilyGroups.from_registry()
+    cells = [c for c in cert.get("cells", []) if isinstance(c, Mapping)] if isinstance(cert.get("cells"), list) \
+        else []
+    problems = check_thresholds(cert, cells)
+    if isinstance(cert.get("axes"), Mapping):
+        problems += check_axes(cert["axes"], cells, "retention", "axes", groups)
+    if isinstance(cert.get("axes_pdms"), Mapping) and any("pdms_retention" in c for c in cells):
+        problems += check_axes(cert["axes_pdms"], cells, "pdms_retention", "axes_pdms", groups)
+    return problems + check_verdict(cert)
+
+
+def incompleteness(cert: Mapping[str, Any]) -> str | None:
+    """Why a certificate is incomplete (``completeness.complete == false``), or None."""
+    comp = cert.get("completeness")
+    if not isinstance(comp, Mapping) or comp.get("complete") is not False:
+        return None
+    parts = []
+    if comp.get("missing_cells"):
+        parts.append(f"missing cell(s): {', '.join(map(str, comp['missing_cells']))}")
+    if comp.get("missing_shards"):
+        parts.append(f"missing shard(s): {', '.join(map(str, comp['missing_shards']))}")
+    return "; ".join(parts) or "completeness.complete is false"

@@ -1,0 +1,100 @@
+"""Ed25519 signatures of certificates: keygen, sign before sealing, verify --public-key, forgeries, wrong keys."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import stat
+from pathlib import Path
+
+import pytest
+from test_analysis import GROUPS, synthetic_run
+
+from pytest_drivedegrade.cli import main
+from pytest_drivedegrade.errors import DriveDegradeError
+from pytest_drivedegrade.report import certificate as cf
+from pytest_drivedegrade.report import signing as sg
+from pytest_drivedegrade.scoring import verdict as vd
+
+PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
+
+
+@pytest.fixture(scope="module")
+def cert() -> dict:
+    run = vd.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=50, floor_l2=5.0)
+    return cf.build_certificate(run, PROV, created="2025-01-01T00:00:00+00:00")
+
+
+@pytest.fixture()
+def keys(tmp_path: Path) -> tuple[Path, Path]:
+    assert main(["keygen", str(tmp_path / "issuer")]) == 0
+    return tmp_path / "issuer.key", tmp_path / "issuer.pub"
+
+
+def forge(path: Path, change) -> None:
+    """Edit and reseal the way a forger would: recompute the section digests and the digest with hashlib."""
+    data = json.loads(path.read_text())
+    change(data)
+
+    def sha(obj) -> str:
+        return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True).encode()) \
+            .hexdigest()
+
+    body = {k: v for k, v in data.items() if k not in ("digest", "section_digests")}
+    data["section_digests"] = {k: sha(v) for k, v in body.items()}
+    data["digest"] = sha({k: v for k, v in data.items() if k != "digest"})
+    path.write_text(json.dumps(data, indent=2))
+
+
+def test_keygen_writes_a_private_pem_0600_and_a_public_pem(keys, tmp_path: Path) -> None:
+    key, pub = keys
+    assert key.read_text().startswith("-----BEGIN PRIVATE KEY-----")
+    assert pub.read_text().startswith("-----BEGIN PUBLIC KEY-----")
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    with pytest.raises(DriveDegradeError, match="already exists"):
+        sg.keygen(tmp_path / "issuer")
+
+
+def test_signed_certificate_verifies_and_a_resealed_forgery_does_not(cert, keys, tmp_path: Path, capsys) -> None:
+    key, pub = keys
+    signed = sg.sign(cert, sg.load_private_key(key.read_bytes(), "k"))
+    path = cf.write_certificate(tmp_path / "c.json", signed)
+    stored = json.loads(path.read_text())
+    section = stored["signature"]
+    assert section["algorithm"] == "ed25519" and len(section["public_key_fingerprint"]) == 64
+    assert stored["section_digests"]["signature"]  # the digest covers the signature
+    assert main(["verify", str(path), "--public-key", str(pub)]) == 0
+    assert "signature verifies" in capsys.readouterr().out
+    assert main(["verify", str(path)]) == 0
+    assert "NOT checked" in capsys.readouterr().out
+
+    forge(path, lambda d: d["planner"].__setitem__("name", "someone-else"))
+    assert main(["verify", str(path)]) == 0  # the digest alone cannot catch a deliberate edit
+    capsys.readouterr()
+    assert main(["verify", str(path), "--public-key", str(pub)]) == 1
+    assert "signature does not verify" in capsys.readouterr().err
+
+
+def test_wrong_key_and_unsigned_fail_with_a_public_key(cert, keys, tmp_path: Path, capsys) -> None:
+    key, _ = keys
+    path = cf.write_certificate(tmp_path / "c.json", sg.sign(cert, sg.load_private_key(key.read_bytes(), "k")))
+    _, other = sg.keygen(tmp_path / "other")
+    assert main(["verify", str(path), "--public-key", str(other)]) == 1
+    assert "wrong key" in capsys.readouterr().err
+
+    unsigned = cf.write_certificate(tmp_path / "u.json", cert)
+    assert main(["verify", str(unsigned)]) == 0
+    assert "integrity only, unsigned" in capsys.readouterr().out
+    assert main(["verify", str(unsigned), "--public-key", str(other)]) == 1
+    assert "unsigned" in capsys.readouterr().err
+
+
+def test_key_sources_and_bad_keys(keys, tmp_path: Path, capsys) -> None:
+    key, pub = keys
+    assert sg.read_key_source(key.read_text(), "env") == sg.read_key_source(str(key), "env")  # PEM text or path
+    with pytest.raises(DriveDegradeError, match="no such key file"):
+        sg.read_key_source(str(tmp_path / "absent.key"), "--drivedegrade-sign-key")
+    with pytest.raises(DriveDegradeError, match="not an unencrypted PEM private key"):
+        sg.load_private_key(pub.read_bytes(), "--drivedegrade-sign-key")
+    assert main(["verify", str(tmp_path / "x.json"), "--public-key", str(key)]) == 2
+    assert "not a PEM public key" in capsys.readouterr().err
