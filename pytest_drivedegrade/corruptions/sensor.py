@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from functools import lru_cache
 from math import ceil
 
@@ -49,6 +50,22 @@ _MIN_FRACTION = 1e-6
 #: Up to this many taps a window is one weighted 1-D filter down the columns (one pass, one rounding);
 #: longer ones are a box filter plus a weighted add of the fractional row, O(1) per pixel at any length.
 _SHORT_WINDOW = 7
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, size: int) -> np.ndarray:
+    """A flat uint8 work buffer of `size` bytes, kept per thread and reused by the next call: the fresh
+    pages of new buffers would be faulted in on every call, which at 1600 x 900 costs more than the blur
+    itself. Holds the largest size a thread has needed (about 17 MB for 1600 x 900)."""
+    pool = getattr(_SCRATCH, "pool", None)
+    if pool is None:
+        pool = _SCRATCH.pool = {}
+    buf = pool.get(name)
+    if buf is None or buf.size < size:
+        buf = pool[name] = np.empty(size, np.uint8)
+    return buf[:size]
 
 
 def _runs(offsets: np.ndarray) -> list[tuple[int, int, int]]:
@@ -122,7 +139,7 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
     c = int(shift[0] - resid[0])  # shift_i = resid_i - k i + c
     margin = ceil(abs(slope) * reach) + 1
     wp = cols + 2 * margin
-    padded = np.empty((rows, wp, px), np.uint8)
+    padded = _scratch("padded", rows * wp * px).reshape(rows, wp, px)
     if transposed:
         cv2.transpose(image, dst=padded[:, margin:margin + cols])
     else:
@@ -135,7 +152,7 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
     wd = max(wp + int(resid.max()), cols + ceil(abs(slope) * _LINE_BLOCK) + 4)
     sd = wd * px
     slack = (rows + wd + 2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px  # views reach at most a block out
-    buf = np.empty(2 * slack + rows * sd, np.uint8)
+    buf = _scratch("canvas", 2 * slack + rows * sd)
     canvas_d = buf[slack:slack + rows * sd].reshape(rows, wd, px)
     for a, b, r in _runs(resid):
         canvas_d[a:b, r:r + wp] = padded[a:b]
@@ -145,10 +162,11 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
         offset = slack + lo * sd + (c0 + k * lo - c) * px
         return as_strided(buf[offset:], shape=(hi - lo, c1 - c0, px), strides=(sd + k * px, px, 1), writeable=False)
 
-    out = np.empty((rows, cols, px), np.uint8)  # contiguous: OpenCV transposes that twice as fast
+    # contiguous (OpenCV transposes that twice as fast); a work buffer when the result is its transpose
+    out = _scratch("out", rows * cols * px).reshape(rows, cols, px) if transposed else np.empty_like(image)
     band_width = cols + min(rows, _LINE_BLOCK) + 2 * margin + 2
     bslack = (2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px
-    bbuf = np.empty(2 * bslack + (_LINE_BLOCK + reach) * band_width * px, np.uint8)
+    bbuf = _scratch("band", 2 * bslack + (_LINE_BLOCK + reach) * band_width * px)
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
         hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)

@@ -323,6 +323,20 @@ def test_line_blur_of_a_real_length_is_the_area_sampled_segment(rows, cols, leng
     assert np.abs(got - expected).max() < 1.25
 
 
+def test_motion_blur_work_buffers_are_per_thread():
+    """motion_blur reuses its work buffers within a thread: threads blurring different images and sizes
+    at once get exactly what one thread gets, and a result never aliases a buffer the next call reuses."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    jobs = [(textured(225 + 9 * k, 400 + 16 * k, seed=k), 1 + k % 5, f"t{k}") for k in range(12)]
+    alone = [corrupt(image, "motion_blur", severity, frame=frame) for image, severity, frame in jobs]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda job: corrupt(job[0], "motion_blur", job[1], frame=job[2]), jobs * 3))
+    for k, out in enumerate(together):
+        np.testing.assert_array_equal(out, alone[k % len(jobs)])
+    np.testing.assert_array_equal(alone[0], corrupt(jobs[0][0], "motion_blur", jobs[0][1], frame=jobs[0][2]))
+
+
 @pytest.mark.parametrize("width", [1600, 800, 400, 200])
 def test_motion_blur_keeps_a_flat_image_flat(width):
     """A constant image is a fixed point of every blur length (OpenCV 5.0's 2-tap box filter is not)."""
