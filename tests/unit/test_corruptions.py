@@ -284,11 +284,11 @@ def _line_mean(image: np.ndarray, length: float, slope: float) -> np.ndarray:
     advancing along axis 0: n = floor(length) whole samples (window [i - n//2, i + n - 1 - n//2]) and the
     next one weighted by length - n, the line's column shifted by round(slope * i), both clamped."""
     rows, cols = image.shape[:2]
-    n = int(length)
+    n = int(length + 1e-9)  # a length within 1e-9 of a whole number is that number, as the operator takes it
     i = np.arange(rows)[:, None]
     j = np.arange(cols)[None, :]
     total = np.zeros(image.shape, float)
-    taps = [(k, 1.0) for k in range(-(n // 2), n - n // 2)] + [(n - n // 2, length - n)]
+    taps = [(k, 1.0) for k in range(-(n // 2), n - n // 2)] + [(n - n // 2, max(length - n, 0.0))]
     for k, weight in taps:
         q = np.clip(i + k, 0, rows - 1)
         col = np.clip(j - np.round(slope * i) + np.round(slope * q), 0, cols - 1).astype(int)
