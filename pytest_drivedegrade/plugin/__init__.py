@@ -43,8 +43,8 @@ def pytest_configure(config: pytest.Config) -> None:
     from .session import DriveDegradeSession
 
     # Through sys.modules, not `from . import context`: that returns the package's `context` attribute when it
-    # is set, which after pytester's in-process runs restore sys.modules can be an older module than the one
-    # `session` imported, with another SESSION_KEY.
+    # is set, which after pytester's in-process runs restore sys.modules can be an older copy of the module than
+    # the one `session` imported; the fixture registered must be the current one.
     context = importlib.import_module(f"{__name__}.context")
     session = DriveDegradeSession.start(config)
     config.stash[SESSION_KEY] = session
