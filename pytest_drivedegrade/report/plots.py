@@ -166,6 +166,28 @@ def retention_heatmap(summaries: Sequence[CellSummary], key: str = "retention",
     return to_data_uri(fig)
 
 
+def _quadrants(points: Sequence[float | None], flat: float,
+               corners: tuple[str, str, str, str]) -> tuple[Figure, Any, float]:
+    """The frame both retention-plane charts share: a square plot from `lo` (below every finite point, at
+    most 0.5) to 1.08 on both axes, the "flat on both" corner shaded, and the four corner labels
+    (top right, bottom right, top left, bottom left; "" for none). Returns (figure, axes, lo)."""
+    pts = [v for v in points if v is not None and math.isfinite(v)]
+    lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
+    fig = _figure(5.2, 4.6)
+    ax = fig.add_subplot(1, 1, 1)
+    _style(ax)
+    ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
+    kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
+    places = ((flat + 0.005, 1.075, "top"), (flat + 0.005, lo + 0.01, "bottom"), (lo + 0.01, 1.075, "top"),
+              (lo + 0.01, lo + 0.01, "bottom"))
+    for (x, y, va), text in zip(places, corners):
+        if text:  # an empty label leaves its corner bare
+            ax.text(x, y, text, va=va, **kw)
+    ax.set_xlim(lo, 1.08)
+    ax.set_ylim(lo, 1.08)
+    return fig, ax, lo
+
+
 def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: float | None = None,
                floor: tuple[float, float] = (1.0, 1.0)) -> str | None:
     """Quality (x) vs removal (y) S5 retention: the planner, the ego-only floor and the blind point.
@@ -177,18 +199,10 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     if q is None or r is None:
         return None
     bounds = [v for k in ("quality_ci", "removal_ci") for v in (axes.get(k) or ()) if v is not None]
-    pts = [v for v in (q, r, blind, *floor, *bounds) if v is not None and math.isfinite(v)]
-    lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
-    fig = _figure(5.2, 4.6)
-    ax = fig.add_subplot(1, 1, 1)
-    _style(ax)
-    ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
+    fig, ax, lo = _quadrants([q, r, blind, *floor, *bounds], flat,
+                             ("not shown to\nuse cameras", "quality-insensitive", "", "camera-reliant"))
     ax.add_patch(Rectangle((flat, lo - 1), 2, flat - lo + 1, color="#fde68a", alpha=0.5, linewidth=0))
     ax.add_patch(Rectangle((lo - 1, lo - 1), flat - lo + 1, 3, color="#fecaca", alpha=0.45, linewidth=0))
-    kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
-    ax.text(flat + 0.005, 1.075, "not shown to\nuse cameras", va="top", **kw)
-    ax.text(flat + 0.005, lo + 0.01, "quality-insensitive", va="bottom", **kw)
-    ax.text(lo + 0.01, lo + 0.01, "camera-reliant", va="bottom", **kw)
     ax.plot([lo, 1.1], [lo, 1.1], color=MUTED, linewidth=0.8, linestyle=":")
     ax.scatter([floor[0]], [floor[1]], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
     if blind is not None and math.isfinite(blind):
@@ -198,8 +212,6 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
         ax.errorbar([q], [r], xerr=xerr, yerr=yerr, fmt="none", ecolor=ACCENT, elinewidth=1.4, capsize=4,
                     zorder=3.5)
     ax.scatter([q], [r], marker="o", s=90, color=ACCENT, edgecolor="white", zorder=4, label=_label(planner))
-    ax.set_xlim(lo, 1.08)
-    ax.set_ylim(lo, 1.08)
     ax.set_xlabel("quality axis: mean S5 retention, nine quality families", fontsize=8.5)
     ax.set_ylabel("removal axis: blackout S5 retention", fontsize=8.5)
     ax.legend(fontsize=7.5, loc="upper left", frameon=False)
@@ -216,26 +228,15 @@ def reliance_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind:
     x, y = axes.get("removal"), axes.get("ego_removal")
     if x is None or y is None:
         return None
-    pts = [v for v in (x, y, blind, floor_ego) if v is not None and math.isfinite(v)]
-    lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
-    fig = _figure(5.2, 4.6)
-    ax = fig.add_subplot(1, 1, 1)
-    _style(ax)
-    ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
+    fig, ax, lo = _quadrants([x, y, blind, floor_ego], flat,
+                             ("relies on\nneither", "ego-reliant", "camera-reliant", "relies on both"))
     ax.axvline(flat, color=MUTED, linestyle="--", linewidth=0.8)
     ax.axhline(flat, color=MUTED, linestyle="--", linewidth=0.8)
-    kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
-    ax.text(flat + 0.005, 1.075, "relies on\nneither", va="top", **kw)
-    ax.text(flat + 0.005, lo + 0.01, "ego-reliant", va="bottom", **kw)
-    ax.text(lo + 0.01, 1.075, "camera-reliant", va="top", **kw)
-    ax.text(lo + 0.01, lo + 0.01, "relies on both", va="bottom", **kw)
     if floor_ego is not None and math.isfinite(floor_ego):
         ax.scatter([1.0], [floor_ego], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
     if blind is not None and math.isfinite(blind):
         ax.scatter([blind], [1.0], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")
     ax.scatter([x], [y], marker="o", s=90, color=ACCENT, edgecolor="white", zorder=4, label=_label(planner))
-    ax.set_xlim(lo, 1.08)
-    ax.set_ylim(lo, 1.08)
     ax.set_xlabel("camera removal: blackout S5 retention", fontsize=8.5)
     ax.set_ylabel("ego removal: ego_blind retention", fontsize=8.5)
     ax.legend(fontsize=7.5, loc="lower right", frameon=False)
