@@ -258,44 +258,19 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     cells = sample_cells(usable(cert, cert_path), cert["digest"], n, salt)
     root = data_root(cert, data, Path.cwd())
     note(f"reproduce: {cert_path}: {proof}; planner {cert['planner'].get('name')!r}, {len(cert['cells'])} cells")
-    for line in version_notes(cert, runtime_versions(), __version__, SPEC_VERSION):
+    notes = version_notes(cert, runtime_versions(), __version__, SPEC_VERSION)
+    for line in notes:
         note(f"reproduce: NOTE: {line}")
-    by_id = {c["cell"]: c for c in cert["cells"]}
     report_dir = Path(tempfile.mkdtemp(prefix="drivedegrade-reproduce-"))
     argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {' '.join(argv[1:])}")
-    results: dict[str, str] = {}
-    started = time.perf_counter()
-
-    def on_cell(payload: CellPayload) -> None:
-        if not results:  # the first cell says who and what was run
-            for field_, where, what in (("planner_fingerprint", cert["planner"], "planner"),
-                                        ("dataset_fingerprint", cert["dataset"], "data set")):
-                if payload.key.get(field_) != where.get("fingerprint"):
-                    note(f"reproduce: NOTE: the {what} fingerprint differs from the certificate's "
-                         f"({str(payload.key.get(field_))[:16]}... here, {str(where.get('fingerprint'))[:16]}...): "
-                         f"a different {what}")
-        expected = by_id[payload.cell]["plans_digest"]
-        results[payload.cell] = compare_plans(expected, payload.record,
-                                              certified_record(cert_path, payload.cell, expected))
-        say(f"[{len(results)}/{len(cells)} {time.perf_counter() - started:.0f} s] {payload.cell}: "
-            f"{results[payload.cell]}")
-
-    log = report_dir / "pytest.log"
-    rc = run_watched(argv, log, Watch(report_dir, cells), on_cell)
-    if rc in (2, 3, 4) and not results:
+    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [])
+    rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
+    if rc in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
-                                f"{tail(log)}")
+                                f"{tail(report_dir / 'pytest.log')}")
     figures = _rerun_cells(report_dir)
-    for cell in cells:
-        if cell not in results:
-            results[cell] = "DIFFERENT (not rerun: the rerun gave no result for it; see the log)"
-            say(f"{cell}: {results[cell]}")
-        elif results[cell] == "identical" and cell in figures and \
-                (diff := metric_differences(by_id[cell], figures[cell])):
-            results[cell] = f"DIFFERENT (figures: {'; '.join(diff[:4])}{'; ...' if len(diff) > 4 else ''})"
-            say(f"{cell}: {results[cell]}")
-    different = [c for c, r in results.items() if r != "identical"]
+    different = judge.finish(figures)
     checked = "" if figures else " (the rerun wrote no certificate: figures not compared)"
     if different:
         say(f"reproduce: {len(different)} of {len(cells)} cell(s) DIFFERENT from the certificate: "
@@ -306,6 +281,53 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     if not keep:
         shutil.rmtree(report_dir, ignore_errors=True)
     return 0
+
+
+@dataclass
+class Judge:
+    """Compares each rerun cell with the certificate as it finishes, and says so; `expected` names why a
+    difference is to be expected (other software, another planner or data set), appended to DIFFERENT lines."""
+
+    cert: Mapping[str, Any]
+    cert_path: Path
+    cells: Sequence[str]
+    say: Callable[[str], None]
+    note: Callable[[str], None]
+    expected: list[str]
+    results: dict[str, str] = field(default_factory=dict)
+    started: float = field(default_factory=time.perf_counter)
+
+    def _line(self, cell: str, verdict: str, prefix: str = "") -> None:
+        because = f" [expected: {', '.join(self.expected)}]" if self.expected and verdict != "identical" else ""
+        self.results[cell] = verdict
+        self.say(f"{prefix}{cell}: {verdict}{because}")
+
+    def on_cell(self, payload: CellPayload) -> None:
+        if not self.results:  # the first cell says which planner and data the rerun had
+            for name, section, what in (("planner_fingerprint", "planner", "planner"),
+                                        ("dataset_fingerprint", "dataset", "data set")):
+                here, there = str(payload.key.get(name)), str(self.cert[section].get("fingerprint"))
+                if here != there:
+                    self.note(f"reproduce: NOTE: the {what} fingerprint differs from the certificate's "
+                              f"({here[:16]}... here, {there[:16]}...): a different {what}")
+                    self.expected.append(f"a different {what}")
+        by_id = {c["cell"]: c for c in self.cert["cells"]}
+        digest = by_id[payload.cell]["plans_digest"]
+        verdict = compare_plans(digest, payload.record, certified_record(self.cert_path, payload.cell, digest))
+        self._line(payload.cell, verdict,
+                   f"[{len(self.results) + 1}/{len(self.cells)} {time.perf_counter() - self.started:.0f} s] ")
+
+    def finish(self, figures: Mapping[str, Mapping[str, Any]]) -> list[str]:
+        """Cells the rerun did not give, and identical plans whose other figures differ; the different cells."""
+        by_id = {c["cell"]: c for c in self.cert["cells"]}
+        for cell in self.cells:
+            if cell not in self.results:
+                self._line(cell, "DIFFERENT (not rerun: the rerun gave no result for it; see its pytest.log)")
+            elif self.results[cell] == "identical" and cell in figures and \
+                    (diff := metric_differences(by_id[cell], figures[cell])):
+                self._line(cell, f"DIFFERENT (plans identical, figures not: {'; '.join(diff[:4])}"
+                                 f"{'; ...' if len(diff) > 4 else ''})")
+        return [c for c in self.cells if self.results.get(c) != "identical"]
 
 
 def _rerun_cells(report_dir: Path) -> dict[str, dict[str, Any]]:
