@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import shlex
 import shutil
 import subprocess
 import sys
@@ -263,7 +264,7 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
         note(f"reproduce: NOTE: {line}")
     report_dir = Path(tempfile.mkdtemp(prefix="drivedegrade-reproduce-"))
     argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
-    note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {' '.join(argv[1:])}")
+    note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [])
     rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
     if rc in (2, 3, 4) and not judge.results:
