@@ -184,3 +184,27 @@ def test_usage_errors_exit_2(cert_file: Path, tmp_path: Path, capsys) -> None:
     assert "written before reproduction was possible" in capsys.readouterr().err
     assert main(["reproduce", str(cert_file), str(planner), "--cells", "-1"]) == 2
     assert "--cells must be 0 or more" in capsys.readouterr().err
+
+
+def test_signature_and_data_checks_come_before_any_rerun(cert_file: Path, tmp_path: Path, capsys) -> None:
+    from pytest_drivedegrade.report import signing
+
+    planner = tmp_path / "planner.py"
+    planner.write_text("")
+    key_path, pub = signing.keygen(tmp_path / "issuer")
+    _, other = signing.keygen(tmp_path / "other")
+    signed = tmp_path / "signed.json"
+    key = signing.load_private_key(key_path.read_bytes(), str(key_path))
+    cf.write_certificate(signed, signing.sign(cf.verify(cert_file), key))
+    assert main(["reproduce", str(cert_file), str(planner), "--public-key", str(pub)]) == 2
+    assert "the certificate is unsigned" in capsys.readouterr().err
+    assert main(["reproduce", str(signed), str(planner), "--public-key", str(other)]) == 2
+    assert "wrong key" in capsys.readouterr().err
+    # the right key passes the signature: the run then stops at the next usage error, before pytest starts
+    assert main(["reproduce", str(signed), str(planner), "--public-key", str(pub), "--data", str(tmp_path / "x")]) == 2
+    assert f"--data {tmp_path / 'x'}: no such folder" in capsys.readouterr().err
+    cert = cf.verify(cert_file)
+    cert["dataset"]["source"] = str(tmp_path / "nuscenes")
+    cf.write_certificate(tmp_path / "elsewhere.json", cert)
+    assert main(["reproduce", str(tmp_path / "elsewhere.json"), str(planner)]) == 2
+    assert "not on this machine: pass its root with --data PATH" in capsys.readouterr().err
