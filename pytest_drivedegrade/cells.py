@@ -80,8 +80,29 @@ def rear_cameras() -> tuple[str, ...]:
 
 
 def _plans_bytes(plans: Any) -> tuple[tuple[int, ...], bytes]:
-    arr = np.ascontiguousarray(plans, dtype=np.float64)
+    """The shape and the float64 little-endian C-order bytes of plans (the canonical byte form)."""
+    arr = np.ascontiguousarray(plans, dtype="<f8")
     return arr.shape, arr.tobytes()
+
+
+#: The bit pattern every NaN takes in `plans_digest` (numpy's ``np.nan``), whatever sign or payload it carried.
+CANONICAL_NAN = np.float64(np.nan)
+
+
+def plans_digest(runs: Iterable[Any]) -> str:
+    """SHA-256 hex of a cell's plans, one array per seed run in run order (one entry for a single seed).
+
+    Each run contributes its shape and its float64 bytes, little-endian, C order (frames in run order), with every
+    NaN replaced by ``CANONICAL_NAN``: the certificate's ``plans_digest``, so a rerun can be compared bit for bit
+    (`identical_plans`) with nothing but the certificate. -0.0 and 0.0 differ, as in `identical_plans`.
+    """
+    digest = hashlib.sha256(b"drivedegrade-plans-v1")
+    for plans in runs:
+        arr = np.array(plans, dtype=np.float64)  # a copy: its NaNs are rewritten
+        arr[np.isnan(arr)] = CANONICAL_NAN
+        shape, data = _plans_bytes(arr)
+        digest.update(("|" + ",".join(map(str, shape)) + "|").encode() + data)
+    return digest.hexdigest()
 
 
 def identical_plans(a: Any, b: Any) -> bool:
@@ -162,6 +183,10 @@ class CellRecord:
     def runs(self) -> list[CellRecord]:
         """Every seed's run of this cell: this record first, then ``seed_runs`` (one entry for a single seed)."""
         return [self, *self.seed_runs]
+
+    def plans_digest(self) -> str:
+        """`plans_digest` over every seed run's plans in order: the certificate's per-cell ``plans_digest``."""
+        return plans_digest(run.plans for run in self.runs())
 
     def to_builtins(self) -> dict[str, Any]:
         """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""

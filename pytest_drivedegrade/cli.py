@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, keygen, merge, compare, estimate.
+"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -82,6 +82,15 @@ def _verify(args: argparse.Namespace) -> int:
     print(f"{args.file}: OK, digest {cert['digest']} verifies, thresholds, axes and verdict agree with its cells "
           f"({what}); {level}")
     return 0
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    """Exit 0 when every rerun cell is bit-identical to the certificate, 1 when one differs, 2 for a usage error
+    (a missing file, a certificate that does not verify)."""
+    from .report.reproduce import reproduce
+
+    return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
+                     salt="" if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep)
 
 
 def _keygen(args: argparse.Namespace) -> int:
@@ -206,6 +215,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature with this "
                                                        "public key (NAME.pub); an unsigned certificate then fails")
     p.set_defaults(func=_verify)
+
+    p = sub.add_parser("reproduce", help="rerun clean, null and N sampled cells of a certificate and compare them bit "
+                                         "for bit: exit 0 identical, 1 different, 2 usage error")
+    p.add_argument("certificate", metavar="CERT", help="the certificate.json to check (verified first)")
+    p.add_argument("planner", metavar="PLANNER", help="the planner file (.py) the certificate was made with")
+    p.add_argument("--cells", type=int, default=3, metavar="N",
+                   help="sampled cells besides clean and null (default 3; sampled from the certificate's digest)")
+    p.add_argument("--data", metavar="PATH", help="the data set's root when the certificate's is not on this "
+                                                  "machine (default: the certificate's, or the embedded world)")
+    p.add_argument("--seed", type=int, metavar="INT", help="draw another sample of cells (default: the certificate's "
+                                                           "digest alone picks them)")
+    p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature")
+    p.add_argument("--keep", action="store_true", help="keep the rerun's report folder (kept anyway when a cell "
+                                                       "differs)")
+    p.set_defaults(func=_reproduce)
 
     p = sub.add_parser("keygen", help="write an Ed25519 key pair NAME.key (mode 0600) and NAME.pub for signing")
     p.add_argument("name", metavar="NAME", help="path prefix of the two files")

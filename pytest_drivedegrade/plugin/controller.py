@@ -101,13 +101,15 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
     """What makes the run traceable, for the certificate and cells.csv."""
     from .. import __version__
     from ..corruptions.ladder import SPEC_VERSION
+    from ..report.certificate import runtime_versions
 
     source = "embedded world" if options.data is None else str(options.data)
     return Provenance(planner_name=name, planner_fingerprint=str(key["planner_fingerprint"]),
                       dataset_fingerprint=str(key["dataset_fingerprint"]), split=options.split,
                       spec_version=SPEC_VERSION, seed=options.seed, frames=len(context.frames),
                       frames_unscored=context.frames_unscored, data_source=source, command=command,
-                      tool_version=__version__)
+                      tool_version=__version__, frames_requested=options.frames, timeout=options.timeout,
+                      versions=runtime_versions())
 
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,

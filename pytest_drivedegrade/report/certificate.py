@@ -15,7 +15,7 @@ import math
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, cast
@@ -23,6 +23,7 @@ from typing import Any, cast
 import numpy as np
 
 from ..atomic import atomic_write_text
+from ..cells import CellRecord
 from ..errors import DriveDegradeError
 from ..scoring.records import RunAnalysis
 from ..scoring.verdict import VERDICT_LABELS
@@ -63,6 +64,26 @@ class Provenance:
     data_source: str = "embedded world"
     command: str = ""
     tool_version: str = ""
+    #: --drivedegrade-frames (None: every scorable frame) and --drivedegrade-timeout: what a rerun needs
+    frames_requested: int | None = None
+    timeout: float | None = None
+    #: The libraries the cells were computed with (`runtime_versions`): a rerun elsewhere says when they differ.
+    versions: Mapping[str, str | None] = field(default_factory=dict)
+
+
+def runtime_versions() -> dict[str, str | None]:
+    """The versions that can change a cell's bits: Python, numpy, OpenCV, torch (None when not installed)."""
+    import platform
+    from importlib import metadata
+
+    import cv2
+
+    try:
+        torch: str | None = metadata.version("torch")
+    except metadata.PackageNotFoundError:
+        torch = None
+    return {"python": platform.python_version(), "numpy": np.__version__, "opencv": str(cv2.__version__),
+            "torch": torch}
 
 
 def canonicalize(obj: Any, digits: int = DIGITS) -> Any:
@@ -97,9 +118,15 @@ def compute_digest(cert: Mapping[str, Any]) -> str:
     return _sha256({k: v for k, v in cert.items() if k != "digest"})
 
 
-def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None) -> dict:
-    """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC."""
+def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None,
+                      records: Mapping[str, CellRecord] | None = None) -> dict:
+    """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
+    run's `records`, each cell carries ``plans_digest`` (`CellRecord.plans_digest`), what `drivedegrade
+    reproduce` compares a rerun with."""
     cells = [{k: row[k] for k in CERTIFICATE_CELL if k in row} for row in (s.flat() for s in analysis.summaries)]
+    for cell in cells:
+        if records is not None and cell["cell"] in records:
+            cell["plans_digest"] = records[cell["cell"]].plans_digest()
     nc = analysis.null_control or {"passed": None, "max_abs_diff": None, "max_l2_change": None}
     return {
         "schema": SCHEMA,
@@ -107,7 +134,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint},
         "dataset": {"fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
                     "frames": provenance.frames, "frames_unscored": provenance.frames_unscored,
-                    "source": provenance.data_source},
+                    "frames_requested": provenance.frames_requested, "source": provenance.data_source},
         "cells": cells,
         "thresholds": analysis.thresholds,
         "axes": analysis.axes,
@@ -115,8 +142,9 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "floor": analysis.floor,
         "null_control": {**nc, "ran": analysis.null_control is not None},
         "verdict": analysis.verdict,
-        "settings": {**analysis.settings, "seed": provenance.seed},
-        "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command},
+        "settings": {**analysis.settings, "seed": provenance.seed, "timeout": provenance.timeout},
+        "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command,
+                 "versions": dict(provenance.versions)},
         "created": created or datetime.now(timezone.utc).replace(microsecond=0).isoformat(),
     }
 
@@ -182,6 +210,10 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
         expect(f"cells[{i}].severity", c.get("severity"), type(c.get("severity")) is int, "an integer")
         for k in ("l2_avg", "retention", "retention_ci_low", "retention_ci_high"):
             expect(f"cells[{i}].{k}", c.get(k), _num(c.get(k)), "a number or null")
+        if "plans_digest" in c:  # absent from certificates written before digests of the plans existed
+            got = c["plans_digest"]
+            expect(f"cells[{i}].plans_digest", got, isinstance(got, str) and bool(_HEX64.match(got)),
+                   "64 lowercase hex digits")
     for fam, t in (cert.get("thresholds") or {}).items() if isinstance(cert.get("thresholds"), dict) else ():
         for k in ("s10", "s25"):
             v = t.get(k) if isinstance(t, dict) else t

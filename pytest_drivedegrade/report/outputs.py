@@ -34,7 +34,7 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     from .html import trajectory_examples, write_report
 
     folder = Path(report_dir) / prov.planner_name
-    cert = build_certificate(analysis, prov)
+    cert = build_certificate(analysis, prov, records=records)
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     if cost is not None:
         cert["cost"] = dict(cost)

@@ -159,11 +159,16 @@ def _locked(path: Path):
         os.unlink(str(path) + ".excl")
 
 
+def default_world_dir(cache_root) -> Path:
+    """Where `ensure_default_world` keeps the default world under `cache_root` (ready when it holds MANIFEST)."""
+    return Path(cache_root) / f"world-{GENERATOR_VERSION}-seed0"
+
+
 def ensure_default_world(cache_root, *, train_images: bool = False, progress: Progress = None) -> Path:
     """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed)."""
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
-    target = cache_root / f"world-{GENERATOR_VERSION}-seed0"
+    target = default_world_dir(cache_root)
     say = progress or (lambda s: print(s, file=sys.stderr, flush=True))
 
     def ready() -> bool:

@@ -1,0 +1,343 @@
+"""`drivedegrade reproduce CERT PLANNER`: check a certificate by rerunning some of its cells bit for bit.
+
+The suite is deterministic (same command, same bits on any worker layout), so the strongest check a stranger can
+make is to rerun cells and compare plans. The certificate is verified first; then clean, the null control and N
+other cells, sampled from the certificate's digest (the same certificate always samples the same cells), are
+rerun by the real pipeline: a ``python -m pytest --drivedegrade PLANNER -k CELLS`` subprocess into a fresh report
+folder, with the settings the certificate records (data set, split, frames, seed(s), batch, timeout) and no
+pytest cache (``-p no:cacheprovider``: no stored cell and no last-failed state can leak in). Each cell's
+``plans_digest`` is compared as it finishes, then every certified figure of the sampled cells.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
+from ..errors import DriveDegradeError, InvalidInput
+
+#: Cells every reproduction reruns (when the certificate has them), before the sampled ones.
+ALWAYS: tuple[str, ...] = ("clean", "null")
+DEFAULT_SAMPLED = 3
+#: Library names of `runtime_versions` as people know them.
+LIBRARIES = {"python": "Python", "numpy": "numpy", "opencv": "OpenCV", "torch": "torch"}
+
+
+def sample_cells(cells: Sequence[str], digest: str, n: int, salt: str = "") -> list[str]:
+    """Clean, null and `n` other cells of `cells` (all of them when fewer), in `cells`' order.
+
+    The others are ranked by ``sha256(digest|salt|cell)``: deterministic, independent of numpy and of the order
+    of `cells`, and a different `salt` draws another sample from the same certificate.
+    """
+    if n < 0:
+        raise InvalidInput(f"--cells must be 0 or more, got {n}")
+    others = sorted((c for c in cells if c not in ALWAYS),
+                    key=lambda c: hashlib.sha256(f"{digest}|{salt}|{c}".encode()).hexdigest())
+    chosen = {*ALWAYS, *others[:n]}
+    return [c for c in cells if c in chosen]
+
+
+def version_notes(cert: Mapping[str, Any], here: Mapping[str, str | None], tool_version: str,
+                  spec_version: str) -> list[str]:
+    """What differs between the certificate's software and this machine's, as lines (empty: nothing known)."""
+    tool: Mapping[str, Any] = cert["tool"] if isinstance(cert.get("tool"), dict) else {}
+    notes = []
+    recorded = tool.get("versions") if isinstance(tool.get("versions"), dict) else None
+    if recorded is None:
+        notes.append("the certificate does not record its OpenCV / numpy / torch versions (written before they "
+                     "were recorded): a difference cannot be put down to them")
+    else:
+        diff = [f"{LIBRARIES.get(k, k)} {here.get(k)} here, {recorded.get(k)} in the certificate"
+                for k in LIBRARIES if k in recorded and recorded.get(k) != here.get(k)]
+        if diff:
+            notes.append("library versions differ (" + "; ".join(diff) + "): differences are then expected, "
+                         "and are named as such below")
+    if tool.get("version") and tool.get("version") != tool_version:
+        notes.append(f"pytest-drivedegrade {tool_version} here, {tool.get('version')} in the certificate")
+    if cert.get("spec_version") != spec_version:
+        notes.append(f"ladder spec {spec_version} here, {cert.get('spec_version')} in the certificate: the "
+                     "corruptions differ, so the cells will")
+    return notes
+
+
+def find_default_world(cwd: Path) -> Path | None:
+    """The embedded world an earlier run rendered under `cwd` (pytest's cache, or the no-cacheprovider folder),
+    so a rerun reads it rather than render it again; None when there is none (the rerun renders it)."""
+    from ..data.world.build import MANIFEST, default_world_dir
+
+    for cache in (cwd / ".pytest_cache" / "d" / "drivedegrade", cwd / ".drivedegrade-cache"):
+        if (default_world_dir(cache) / MANIFEST).is_file():
+            return default_world_dir(cache)
+    return None
+
+
+def data_root(cert: Mapping[str, Any], data: str | None, cwd: Path) -> Path | None:
+    """The data set to rerun on: `data`, else the certificate's nuScenes root, else the embedded world."""
+    if data is not None:
+        if not Path(data).is_dir():
+            raise DriveDegradeError(f"--data {data}: no such folder")
+        return Path(data).resolve()
+    source = str(cert["dataset"].get("source") or "embedded world")
+    if source == "embedded world":
+        return find_default_world(cwd)
+    if not Path(source).is_dir():
+        raise DriveDegradeError(f"the certificate was made on the data set {source}, which is not on this machine: "
+                                "pass its root with --data PATH")
+    return Path(source)
+
+
+def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], report_dir: Path,
+               data: Path | None) -> list[str]:
+    """The pytest command that reruns `cells` with the certificate's settings into `report_dir`."""
+    settings, dataset = cert["settings"], cert["dataset"]
+    by_id = {c["cell"]: c for c in cert["cells"]}
+    argv = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "--drivedegrade", str(planner),
+            "--drivedegrade-report", str(report_dir), "--drivedegrade-split", str(dataset["split"]),
+            "--drivedegrade-seed", str(int(settings.get("seed", 0)))]
+    # --drivedegrade-frames: the value asked for; a certificate from before it was recorded scored this many
+    frames = dataset["frames_requested"] if "frames_requested" in dataset else dataset.get("frames")
+    for flag, value, default in (("--drivedegrade-frames", frames, None), ("--drivedegrade-seeds",
+                                 settings.get("seeds"), 1), ("--drivedegrade-batch", settings.get("batch"), 1),
+                                 ("--drivedegrade-timeout", settings.get("timeout"), None)):
+        if value is not None and value != default:
+            argv += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
+    if data is not None:
+        argv += ["--drivedegrade-data", str(data)]
+    # collect only the sampled cells' families and severities, then select the cells themselves with -k
+    families = [by_id[c]["family"] for c in cells if by_id[c]["family"] not in DIAGNOSTIC]
+    severities = sorted({int(by_id[c]["severity"]) for c in cells if by_id[c]["family"] not in DIAGNOSTIC} - {0})
+    if families:
+        argv += ["--drivedegrade-families", ",".join(dict.fromkeys(families))]
+    if severities:
+        argv += ["--drivedegrade-severities", ",".join(map(str, severities))]
+    return [*argv, "-k", " or ".join(cells)]
+
+
+def compare_plans(expected: str, got: CellRecord, original: CellRecord | None) -> str:
+    """``identical``, or ``DIFFERENT (...)`` with the first differing frame token and the largest plan
+    difference when the certified plans are at hand (`original`)."""
+    digest = got.plans_digest()
+    if digest == expected:
+        return "identical"
+    if original is None:
+        return (f"DIFFERENT (plans digest {digest[:12]}..., certified {expected[:12]}...; which frame differs is "
+                "unknown: the certified cell records are not beside the certificate)")
+    if original.frames != got.frames:
+        return "DIFFERENT (the rerun scored other frames than the certified run)"
+    for i, (a, b) in enumerate(zip(original.runs(), got.runs())):
+        bad = differing_frames(a.plans, b.plans)
+        if len(bad):
+            delta = np.abs(a.plans[bad] - b.plans[bad])
+            size = f"{np.nanmax(delta):.3g} m" if np.isfinite(delta).any() else "a NaN against a number"
+            seed = f", seed run {i + 1}" if len(got.runs()) > 1 else ""
+            return (f"DIFFERENT (first differing frame {got.frames[int(bad[0])]}{seed}, {len(bad)} frame(s) differ, "
+                    f"max plan difference {size})")
+    return "DIFFERENT (another number of seed runs than certified)"
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, float) and isinstance(b, float):
+        return a == b or (math.isnan(a) and math.isnan(b))
+    return bool(a == b)
+
+
+def metric_differences(certified: Mapping[str, Any], rerun: Mapping[str, Any]) -> list[str]:
+    """Every certified figure of a cell the rerun's certificate gives differently, as ``name a (certified b)``."""
+    return [f"{k} {rerun.get(k)!r} (certified {v!r})" for k, v in certified.items()
+            if k != "plans_digest" and not _same(v, rerun.get(k))]
+
+
+def certified_record(cert_path: Path, cell: str, digest: str) -> CellRecord | None:
+    """The certified run's record of `cell` when it lies beside the certificate (``cells/<cell>.json``) and its
+    plans hash to the certified digest; None otherwise."""
+    try:
+        record = CellPayload.from_builtins(json.loads((cert_path.parent / "cells" / f"{cell}.json").read_text())).record
+    except (OSError, ValueError, DriveDegradeError):
+        return None
+    return record if record.plans_digest() == digest else None
+
+
+@dataclass
+class Watch:
+    """The rerun's finished cells, read from its store as each one is written."""
+
+    report_dir: Path
+    wanted: Sequence[str]
+    seen: dict[str, CellPayload] = field(default_factory=dict)
+
+    def poll(self) -> list[CellPayload]:
+        new = []
+        for path in sorted(self.report_dir.glob("*/cells/*.json")):
+            if path.stem in self.wanted and path.stem not in self.seen:
+                try:
+                    payload = CellPayload.from_builtins(json.loads(path.read_text()))
+                except (OSError, ValueError, DriveDegradeError):
+                    continue  # written atomically, so only a file of another kind: read again next time
+                self.seen[path.stem] = payload
+                new.append(payload)
+        return new
+
+
+def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[[CellPayload], None],
+                interval: float = 0.25) -> int:
+    """Run the rerun, its output into `log`, calling `on_cell` for each sampled cell as it finishes."""
+    with open(log, "w") as out:
+        proc = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT)
+        try:
+            while True:
+                done = proc.poll() is not None
+                for payload in watch.poll():
+                    on_cell(payload)
+                if done:
+                    return int(proc.returncode)
+                time.sleep(interval)
+        except BaseException:
+            proc.kill()
+            proc.wait()
+            raise
+
+
+def tail(path: Path, lines: int = 15) -> str:
+    text = path.read_text(errors="replace").splitlines() if path.is_file() else []
+    return "\n".join(f"    {line}" for line in text[-lines:])
+
+
+def verified(path: Path, public_key: str | None) -> tuple[dict[str, Any], str]:
+    """The certificate when its digest (and, with `public_key`, its signature) verifies, and what was proven;
+    ``CertificateError`` otherwise (edited, unreadable, badly signed: a usage error for reproduce)."""
+    from .certificate import verify
+    from .signing import UNSIGNED_TEXT, load_public_key, verify_signature
+
+    key = load_public_key(public_key) if public_key else None
+    cert = verify(path)
+    if key is not None:
+        return cert, f"signature verifies (key fingerprint {verify_signature(cert, key, where=str(path))})"
+    return cert, "digest verifies" + ("" if isinstance(cert.get("signature"), dict) else f" ({UNSIGNED_TEXT})")
+
+
+def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
+    """The certificate's cell ids, when it carries what a rerun compares; DriveDegradeError otherwise."""
+    cells = [c["cell"] for c in cert["cells"]]
+    lacking = [c["cell"] for c in cert["cells"] if "plans_digest" not in c]
+    if lacking:
+        raise DriveDegradeError(f"{path}: cells without plans_digest ({', '.join(lacking[:5])}"
+                                f"{', ...' if len(lacking) > 5 else ''}): the certificate was written before "
+                                "reproduction was possible; certify again with this version")
+    if "clean" not in cells:
+        raise DriveDegradeError(f"{path}: no clean cell: nothing to reproduce against")
+    return cells
+
+
+def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data: str | None = None,
+              salt: str = "", public_key: str | None = None, keep: bool = False,
+              say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None) -> int:
+    """Rerun clean, null and `n` sampled cells; 0 when every one is identical to the certificate, 1 otherwise.
+    Usage errors (a missing planner or certificate, one that does not verify) raise DriveDegradeError."""
+    from .. import __version__
+    from ..corruptions.ladder import SPEC_VERSION
+    from .certificate import runtime_versions
+
+    note = progress or (lambda s: print(s, file=sys.stderr, flush=True))
+    if not planner.is_file() or planner.suffix != ".py":
+        raise DriveDegradeError(f"planner file {planner} does not exist or is not a .py file: give the file the "
+                                "certificate was made with")
+    cert, proof = verified(cert_path, public_key)
+    cells = sample_cells(usable(cert, cert_path), cert["digest"], n, salt)
+    root = data_root(cert, data, Path.cwd())
+    note(f"reproduce: {cert_path}: {proof}; planner {cert['planner'].get('name')!r}, {len(cert['cells'])} cells")
+    notes = version_notes(cert, runtime_versions(), __version__, SPEC_VERSION)
+    for line in notes:
+        note(f"reproduce: NOTE: {line}")
+    report_dir = Path(tempfile.mkdtemp(prefix="drivedegrade-reproduce-"))
+    argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
+    note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
+    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [])
+    rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
+    if rc in (2, 3, 4) and not judge.results:
+        raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
+                                f"{tail(report_dir / 'pytest.log')}")
+    figures = _rerun_cells(report_dir)
+    different = judge.finish(figures)
+    checked = "" if figures else " (the rerun wrote no certificate: figures not compared)"
+    if different:
+        say(f"reproduce: {len(different)} of {len(cells)} cell(s) DIFFERENT from the certificate: "
+            f"{', '.join(different)}{checked}; the rerun is kept in {report_dir} (pytest.log, cells/)")
+        return 1
+    say(f"reproduce: all {len(cells)} cell(s) identical to the certificate, plans bit for bit and every certified "
+        f"figure{checked}")
+    if not keep:
+        shutil.rmtree(report_dir, ignore_errors=True)
+    return 0
+
+
+@dataclass
+class Judge:
+    """Compares each rerun cell with the certificate as it finishes, and says so; `expected` names why a
+    difference is to be expected (other software, another planner or data set), appended to DIFFERENT lines."""
+
+    cert: Mapping[str, Any]
+    cert_path: Path
+    cells: Sequence[str]
+    say: Callable[[str], None]
+    note: Callable[[str], None]
+    expected: list[str]
+    results: dict[str, str] = field(default_factory=dict)
+    started: float = field(default_factory=time.perf_counter)
+
+    def _line(self, cell: str, verdict: str, prefix: str = "") -> None:
+        because = f" [expected: {', '.join(self.expected)}]" if self.expected and verdict != "identical" else ""
+        self.results[cell] = verdict
+        self.say(f"{prefix}{cell}: {verdict}{because}")
+
+    def on_cell(self, payload: CellPayload) -> None:
+        if not self.results:  # the first cell says which planner and data the rerun had
+            for name, section, what in (("planner_fingerprint", "planner", "planner"),
+                                        ("dataset_fingerprint", "dataset", "data set")):
+                here, there = str(payload.key.get(name)), str(self.cert[section].get("fingerprint"))
+                if here != there:
+                    self.note(f"reproduce: NOTE: the {what} fingerprint differs from the certificate's "
+                              f"({here[:16]}... here, {there[:16]}...): a different {what}")
+                    self.expected.append(f"a different {what}")
+        by_id = {c["cell"]: c for c in self.cert["cells"]}
+        digest = by_id[payload.cell]["plans_digest"]
+        verdict = compare_plans(digest, payload.record, certified_record(self.cert_path, payload.cell, digest))
+        self._line(payload.cell, verdict,
+                   f"[{len(self.results) + 1}/{len(self.cells)} {time.perf_counter() - self.started:.0f} s] ")
+
+    def finish(self, figures: Mapping[str, Mapping[str, Any]]) -> list[str]:
+        """Cells the rerun did not give, and identical plans whose other figures differ; the different cells."""
+        by_id = {c["cell"]: c for c in self.cert["cells"]}
+        for cell in self.cells:
+            if cell not in self.results:
+                self._line(cell, "DIFFERENT (not rerun: the rerun gave no result for it; see its pytest.log)")
+            elif self.results[cell] == "identical" and cell in figures and \
+                    (diff := metric_differences(by_id[cell], figures[cell])):
+                self._line(cell, f"DIFFERENT (plans identical, figures not: {'; '.join(diff[:4])}"
+                                 f"{'; ...' if len(diff) > 4 else ''})")
+        return [c for c in self.cells if self.results.get(c) != "identical"]
+
+
+def _rerun_cells(report_dir: Path) -> dict[str, dict[str, Any]]:
+    """The rerun's certificate cells by id (empty when it wrote none)."""
+    found = sorted(report_dir.glob("*/certificate.json"))
+    if not found:
+        return {}
+    try:
+        return {c["cell"]: c for c in json.loads(found[0].read_text())["cells"]}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
