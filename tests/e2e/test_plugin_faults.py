@@ -97,9 +97,16 @@ def test_blackout_s3_is_a_null_control_for_a_front_only_planner(dd):
                                                          "exist*"),
     ("myplanner.py", ["--drivedegrade-report", "notjson.json/rep"], "*--drivedegrade-report: cannot create the "
                                                                      "report folder *notjson.json/rep: Not a dir*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "nan.json"],
+     "*--drivedegrade-baseline: *nan.json: malformed: a NaN literal at axes.quality*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "deep.json"],
+     "*--drivedegrade-baseline: *deep.json: malformed: nested deeper than 64 levels at line 1, column *"),
+    ("myplanner.py", ["--drivedegrade-baseline", "dup.json"],
+     "*--drivedegrade-baseline: *dup.json: malformed: duplicate key 'axes' in the top-level object*"),
 ], ids=["missing", "syntax", "no-fixture", "family", "severity", "baseline-not-json", "baseline-edited", "no-data",
-        "report-not-a-folder"])
+        "report-not-a-folder", "baseline-nan", "baseline-deep", "baseline-duplicate-key"])
 def test_bad_input_is_a_usage_error(dd, planner, options, expected):
+    """(Trust case 11 for the baseline-nan, -deep and -duplicate-key cases: a usage error, not an INTERNALERROR.)"""
     from pytest_drivedegrade.report.certificate import seal
 
     dd.write_planner()
@@ -109,6 +116,9 @@ def test_bad_input_is_a_usage_error(dd, planner, options, expected):
     cert = seal({"schema": "drivedegrade-certificate/1", "axes": {"quality": 0.9}})
     cert["axes"]["quality"] = 0.99
     (dd.pytester.path / "edited.json").write_text(json.dumps(cert))
+    (dd.pytester.path / "nan.json").write_text('{"axes": {"quality": NaN}}')
+    (dd.pytester.path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    (dd.pytester.path / "dup.json").write_text('{"axes": {}, "axes": {"quality": 1.0}}')
     result = dd.pytester.runpytest_inprocess(*dd.args(*options, planner=planner))
     assert result.ret == pytest.ExitCode.USAGE_ERROR
     result.stderr.fnmatch_lines([expected])
@@ -185,3 +195,27 @@ def test_ctrl_c_keeps_finished_cells_and_the_rerun_resumes(dd):
     again = dd.run()
     again.assert_outcomes(passed=9)
     assert set(calls.read_text().split()) == set(SMALL_CELLS) - set(done)
+
+
+@pytest.mark.parametrize("name, expected", [
+    ("bad\x00name", "*unusable planner name: planner.name 'bad\\x00name' contains the non-printable character "
+                    "U+0000 at position 3*"),
+    ("n" * 10_000, "*unusable planner name: planner.name 'nnn*'... is 10000 characters long; a planner name is at "
+                   "most * printable characters*"),
+], ids=["nul", "10000-chars"])
+def test_unusable_planner_name_stops_the_run_clearly(dd, name, expected):
+    """Trust case 11: a NUL or a 10 000-character planner.name fails the first cell with the rule it breaks and
+    stops the session: no INTERNALERROR, no traceback, no report folder made from the name, and a stored
+    result of another planner in the report folder is left as it was."""
+    dd.write_planner(name="other")
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    before = {p: p.read_bytes() for p in (dd.pytester.path / "rep").rglob("*") if p.is_file()}
+    dd.write_planner(name=name)
+    result = dd.run(families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.INTERRUPTED  # the session stops at the first cell
+    result.assert_outcomes(failed=1)
+    no_traceback(result)
+    assert "INTERNALERROR" not in result.stdout.str() + result.stderr.str()
+    result.stdout.fnmatch_lines([expected])
+    after = {p: p.read_bytes() for p in (dd.pytester.path / "rep").rglob("*") if p.is_file()}
+    assert after == before
