@@ -247,7 +247,7 @@ def load_certificate(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise CertificateError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CertificateError(f"{path}: cannot read it ({exc})") from None
-    return cast("dict[str, Any]", parse_certificate_text(text, os.fspath(path)))
+    return parse_certificate_text(text, os.fspath(path))
 
 
 def _num(v: Any) -> bool:
