@@ -43,6 +43,21 @@ def _certify_cell(planner: Any, request: pytest.FixtureRequest) -> None:
     session.run_item(item, planner)
 
 
+def _refuse_own_output(options: RunOptions) -> None:
+    """A baseline that is (or resolves to, through symlinks) a certificate this run writes, some
+    `<report>/<planner>/certificate.json`, would be replaced by the run it gates, so the next run compares the
+    planner with itself and passes: a usage error before anything runs."""
+    assert options.baseline_path is not None
+    real = options.baseline_path.resolve()
+    if real.name == "certificate.json" and real.parent.parent == options.report_dir.resolve():
+        shown = "" if real == options.baseline_path else f" (it resolves to {real})"
+        raise pytest.UsageError(
+            f"--drivedegrade-baseline: {options.baseline_path}{shown} lies in this run's report folder "
+            f"{options.report_dir}, where the run writes its own certificate: a failing run would replace the "
+            "baseline and the next run would pass against itself; copy it elsewhere first (e.g. cp "
+            f"{real} baseline.json) and pass the copy, or pass another --drivedegrade-report")
+
+
 class DriveDegradeSession:
     """Registered as a plugin when --drivedegrade is given; one per process, reached through
     ``config.stash[SESSION_KEY]``."""
@@ -76,6 +91,7 @@ class DriveDegradeSession:
 
             if not options.baseline_path.is_file():
                 raise pytest.UsageError(f"--drivedegrade-baseline: {options.baseline_path} does not exist")
+            _refuse_own_output(options)
             try:
                 baseline = verify(options.baseline_path)
             except CertificateError as exc:

@@ -279,3 +279,26 @@ def test_a_bidi_planner_name_is_a_clear_error_checked_once(dd):
     result.stdout.fnmatch_lines(["*unusable planner name*bidirectional control character U+202E at position 4*"])
     outcomes = result.parseoutcomes()
     assert outcomes.get("failed") == 1 and "passed" not in outcomes  # stopped at the first cell, not one per cell
+
+
+@pytest.mark.parametrize("via", ["path", "symlink"])
+def test_a_baseline_in_the_report_folder_is_refused_before_the_run(dd, via):
+    """Trust case 3: the run's own output certificate (or a symlink to it) as the baseline would be overwritten
+    by the run it gates, so the next run passes against itself: a usage error before any cell, saying to copy it
+    elsewhere first; the certificate is left as it was."""
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    own = dd.folder() / "certificate.json"
+    before = own.read_bytes()
+    baseline = "rep/testplanner/certificate.json"
+    if via == "symlink":
+        (dd.pytester.path / "base.json").symlink_to(own)
+        baseline = "base.json"
+    dd.write_planner(scale=FRAGILE)
+    result = dd.run("--drivedegrade-baseline", baseline, families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines(["*--drivedegrade-baseline: *lies in this run's report folder*copy it elsewhere "
+                                 "first*"])
+    assert "passed" not in result.stdout.str() and "failed" not in result.stdout.str()
+    assert own.read_bytes() == before
