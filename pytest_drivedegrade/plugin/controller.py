@@ -160,7 +160,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
         for prop, value in suite_properties(analysis):
             xml.add_global_property(prop, value)
-    gate_lines, out.failed = gate(cert, baseline, options.tolerance)
+    gate_lines, out.failed = gate(cert, baseline, options.tolerance, partial=options.baseline_partial,
+                                  any_planner=options.baseline_any_planner)
     out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
     return out
 
@@ -231,18 +232,36 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     return out
 
 
-def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float) -> tuple[list[str], bool]:
+def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float, *, partial: bool = False,
+         any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
-    own items)."""
+    own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another
+    planner's (unless `any_planner`), with a line saying what was not compared."""
     if baseline is None:
         return [], False
-    from ..scoring.baseline import BaselineError, compare_to_baseline
+    from ..scoring.baseline import BaselineError, compare_to_baseline, not_compared, planner_mismatch
 
     try:
         result = compare_to_baseline(cert, baseline, tolerance)
     except BaselineError as exc:
         return [f"baseline: {exc}"], True
     lines = [f"REGRESSION {reg.message()}" for reg in result["axes"]]
+    failed = bool(result["axes"])
+    planner = cert.get("planner")
+    planner = planner if isinstance(planner, Mapping) else {}
+    foreign = None if any_planner else planner_mismatch(baseline, planner.get("name"))
+    if foreign:
+        lines.append(f"baseline: FAILED: {foreign}")
+        failed = True
+    gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get("retention") is not None],
+                        cert.get("axes"))
+    if gaps and partial:
+        lines.append(f"baseline (--drivedegrade-baseline-partial): not compared: {'; '.join(gaps)}")
+    elif gaps:
+        lines.append(f"baseline: FAILED: not compared: {'; '.join(gaps)}; certify a complete baseline with this "
+                     "run's families and severities, or pass --drivedegrade-baseline-partial to gate on what both "
+                     "have")
+        failed = True
     lines.append(f"baseline: {len(result['cells'])} cell and {len(result['axes'])} axis regression(s) beyond "
                  f"tolerance {tolerance:g}")
-    return lines, bool(result["axes"])
+    return lines, failed

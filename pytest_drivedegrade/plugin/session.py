@@ -15,7 +15,7 @@ from typing import Any
 
 import pytest
 
-from ..cells import CellPayload, run_order
+from ..cells import CellPayload, cell_id, run_order
 from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
@@ -144,17 +144,29 @@ class DriveDegradeSession:
                                     f"{exc.strerror or exc}") from None
 
     def _check_baseline(self, context: RunContext) -> None:
-        """A baseline from another ladder or data set is a usage error now, not a failure after the whole run."""
+        """A baseline from another ladder, data set or settings, or one that does not cover this run's cells
+        (unless --drivedegrade-baseline-partial), is a usage error now, not a failure after the whole run."""
         if self.baseline is None:
             return
         from ..corruptions.ladder import SPEC_VERSION
-        from ..scoring.baseline import BaselineError, check_baseline_compatible
+        from ..scoring.baseline import BaselineError, check_baseline_compatible, not_compared
 
+        opts = self.options
+        where = f"--drivedegrade-baseline: {opts.baseline_path}"
+        settings = {"scored frames": context.frames_total, "corruption seed": opts.seed, "batch": opts.batch,
+                    "verdict metric": opts.metric}
         try:
             check_baseline_compatible(self.baseline, spec_version=SPEC_VERSION,
-                                      dataset_fingerprint=context.dataset_fingerprint, seeds=self.options.seeds)
+                                      dataset_fingerprint=context.dataset_fingerprint, seeds=opts.seeds,
+                                      settings=settings)
         except BaselineError as exc:
-            raise pytest.UsageError(f"--drivedegrade-baseline: {self.options.baseline_path}: {exc}") from None
+            raise pytest.UsageError(f"{where}: {exc}") from None
+        gaps = not_compared(self.baseline, [cell_id(f, s) for f, s in self.cells])
+        if gaps and not opts.baseline_partial:
+            raise pytest.UsageError(f"{where}: the baseline does not cover this run, so part of it would not be "
+                                    f"compared: {'; '.join(gaps)}; certify a complete baseline with this run's "
+                                    "families and severities, or pass --drivedegrade-baseline-partial to gate on "
+                                    "what both have")
 
     def run_item(self, item: CellItem, planner: Any) -> None:
         from .checks import certify
@@ -174,22 +186,32 @@ class DriveDegradeSession:
             pytest.fail("\n".join(failures), pytrace=False)
 
     def _check_name(self, item: CellItem, planner: Any) -> None:
-        """The planner's name, checked once when the planner first exists (the first cell): a bad one fails that
-        cell with the rule it breaks and stops the session, rather than failing every cell the same way."""
+        """The planner's name, checked once when the planner first exists (the first cell): a bad one, or one
+        that is not the baseline's planner (unless --drivedegrade-baseline-any-planner), fails that cell with
+        the reason and stops the session, rather than failing every cell the same way."""
         if self.name_error is None:
-            from ..errors import InvalidInput
-            from ..planning import planner_name
-
-            default = self.options.planner_path.stem if self.options.planner_path else "planner"
-            try:
-                planner_name(planner, default)
-                self.name_error = ""
-            except InvalidInput as exc:
-                self.name_error = str(exc)
+            self.name_error = self._name_problem(planner)
         if self.name_error:
-            message = f"--drivedegrade: unusable planner name: {self.name_error}"
-            item.session.shouldstop = message
-            pytest.fail(message, pytrace=False)
+            item.session.shouldstop = self.name_error
+            pytest.fail(self.name_error, pytrace=False)
+
+    def _name_problem(self, planner: Any) -> str:
+        """Why this planner cannot be certified under its name ("" when it can)."""
+        from ..errors import InvalidInput
+        from ..planning import planner_name
+
+        default = self.options.planner_path.stem if self.options.planner_path else "planner"
+        try:
+            name = planner_name(planner, default)
+        except InvalidInput as exc:
+            return f"--drivedegrade: unusable planner name: {exc}"
+        if self.baseline is not None and not self.options.baseline_any_planner:
+            from ..scoring.baseline import planner_mismatch
+
+            foreign = planner_mismatch(self.baseline, name)
+            if foreign:
+                return f"--drivedegrade-baseline: {self.options.baseline_path}: {foreign}"
+        return ""
 
     @pytest.hookimpl(wrapper=True)
     def pytest_runtest_makereport(self, item: pytest.Item,
