@@ -67,6 +67,14 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
     if failed:
         lines.append(f"recomputed {len(failed)} stored cell(s) whose content digest failed (edited or corrupted "
                      f"on disk): {', '.join(sorted(failed))}")
+    stale: dict[str, list[str]] = {}
+    for c, p in received.items():
+        if p.stale and not p.resumed:
+            stale.setdefault(p.stale, []).append(c)
+    for fields, cells in sorted(stale.items()):
+        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else ""
+        lines.append(f"not reused: {len(cells)} stored cell(s) recomputed because their run key differs in "
+                     f"{fields}{why}: {', '.join(sorted(cells))}")
     return lines
 
 

@@ -145,7 +145,7 @@ def test_truncated_jpeg_fails_the_cells_that_read_it(dd, small_world, scored_tok
 
     image.write_bytes((small_world / image.relative_to(data)).read_bytes())  # the data set is repaired
     again = dd.run(data=data, families="jpeg,blackout", severities="5")
-    again.assert_outcomes(passed=5)  # the failed cells are computed again, the others reused
+    again.assert_outcomes(passed=5)  # the repaired image changes the data fingerprint: all computed again
     assert by_cell(read_csv(dd.folder() / "cells.csv"))["clean"]["frames"] == "4"
 
 
@@ -219,3 +219,29 @@ def test_unusable_planner_name_stops_the_run_clearly(dd, name, expected):
     result.stdout.fnmatch_lines([expected])
     after = {p: p.read_bytes() for p in (dd.pytester.path / "rep").rglob("*") if p.is_file()}
     assert after == before
+
+
+def test_a_swapped_image_recomputes_every_cell_and_says_so(dd, small_world, scored_tokens, tmp_path):
+    """Trust case 6: one scored image replaced by another (the world's manifest unchanged) changes the dataset
+    fingerprint, so no stored cell is reused and the summary says why; an unchanged rerun reuses them all."""
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+    data = tmp_path / "world"
+    shutil.copytree(small_world, data)
+    dd.write_planner()
+    dd.run(data=data, families="jpeg", severities="1").assert_outcomes(passed=4)
+    first = load_json(dd.folder() / "certificate.json")["dataset"]["fingerprint"]
+    same = dd.run(data=data, families="jpeg", severities="1")
+    same.stdout.fnmatch_lines(["*reused 4 stored cell(s) (same run key, digest verified)*"])
+
+    frames = NuScenesReader(data, split="val").scorable_frames(limit=4)
+    front, other = (Path(f.cameras["CAM_FRONT"].path) for f in frames[1:3])
+    shutil.copyfile(other, front)
+    swapped = dd.run(data=data, families="jpeg", severities="1")
+    swapped.assert_outcomes(passed=4)
+    assert "stored cell(s) (same run key" not in swapped.stdout.str()
+    swapped.stdout.fnmatch_lines(["cost: 16 predictions (0 reused)*"])
+    swapped.stdout.fnmatch_lines(["*not reused: 4 stored cell(s) recomputed because their run key differs in "
+                                  "dataset_fingerprint (the scored frames' files changed): blind, clean, jpeg-s1, "
+                                  "null*"])
+    assert load_json(dd.folder() / "certificate.json")["dataset"]["fingerprint"] != first
