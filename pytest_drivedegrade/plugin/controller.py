@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -104,8 +105,18 @@ def floor_per_frame(config: pytest.Config, context: RunContext, split: str, line
     return clean
 
 
+def planner_file(config: pytest.Config, path: Path) -> str:
+    """The planner file (or conftest.py) as the certificate records it: relative to rootdir when inside it, so
+    a moved checkout keeps it."""
+    try:
+        return path.resolve().relative_to(Path(config.rootpath).resolve()).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
+
+
+
 def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
-               command: str) -> Provenance:
+               command: str, planner_file: str = "") -> Provenance:
     """What makes the run traceable, for the certificate and cells.csv."""
     from .. import __version__
     from ..corruptions.ladder import SPEC_VERSION
@@ -115,14 +126,15 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
                       dataset_fingerprint=str(key["dataset_fingerprint"]), split=options.split,
                       spec_version=SPEC_VERSION, seed=options.seed, frames=len(context.frames),
                       frames_unscored=context.frames_unscored, data_source=source, command=command,
-                      tool_version=__version__)
+                      tool_version=__version__, planner_file=planner_file)
 
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
-               baseline: Mapping[str, Any] | None, store: ResultStore | None = None) -> Outcome | None:
+               baseline: Mapping[str, Any] | None, store: ResultStore | None = None,
+               planner_file: str = "") -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
-    the run never opened its data."""
+    the run never opened its data. `planner_file` goes into the certificate (see `planner_file`)."""
     if context is None:
         return None
     out = Outcome()
@@ -152,7 +164,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
                            seeds=options.seeds, metric=options.metric)
     analysis.floor.update(floor_ego)
     analysis.settings["batch"] = options.batch
-    prov = provenance(options, context, run.planner, run.key, _command(config))
+    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},

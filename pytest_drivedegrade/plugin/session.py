@@ -8,6 +8,8 @@ controller is the only writer.
 
 from __future__ import annotations
 
+import json
+import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
@@ -21,7 +23,7 @@ from ..run import RunContext
 from ..store import ResultStore
 from . import SESSION_KEY
 from .context import build_run_context
-from .controller import Outcome
+from .controller import Outcome, planner_file
 from .items import CellCollector, CellItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
 
@@ -41,6 +43,29 @@ def _certify_cell(planner: Any, request: pytest.FixtureRequest) -> None:
     item = request.node
     assert isinstance(item, CellItem)
     session.run_item(item, planner)
+
+
+#: The files the controller writes in a planner's (or a shard's) folder; cells/ holds one <cell>.json each.
+OUTPUT_FILES = ("certificate.json", "cells.csv", "report.html", "shard.json")
+
+
+def sweep_temporaries(report_dir: Path, started: float) -> list[Path]:
+    """Remove the temporary files of our atomic writes that an interrupted run left (named exactly as the atomic
+    writer names them, older than this run's start) in each planner folder, its shard folders and their cells/;
+    return what was removed."""
+    from ..atomic import stray_temporaries
+
+    removed = []
+    for planner in sorted(p for p in report_dir.iterdir() if p.is_dir() and not p.is_symlink()):
+        for folder in (planner, *sorted(p for p in planner.iterdir() if p.is_dir() and p.name != "cells")):
+            for path in [*stray_temporaries(folder, OUTPUT_FILES, started),
+                         *stray_temporaries(folder / "cells", None, started)]:
+                try:
+                    path.unlink()
+                    removed.append(path)
+                except OSError:
+                    pass
+    return removed
 
 
 def _refuse_own_output(options: RunOptions) -> None:
@@ -75,6 +100,7 @@ class DriveDegradeSession:
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
         self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
+        self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -135,13 +161,21 @@ class DriveDegradeSession:
         self._check_report_dir()
 
     def _check_report_dir(self) -> None:
-        """Results are written as each cell finishes: a report folder that cannot be created fails now."""
+        """Results are written as each cell finishes: a report folder that cannot be created fails now. The
+        temporary files of writes a kill -9 interrupted are swept, and the terminal says so."""
         folder = self.options.report_dir
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise pytest.UsageError(f"--drivedegrade-report: cannot create the report folder {folder}: "
                                     f"{exc.strerror or exc}") from None
+        removed = sweep_temporaries(folder, self.started)
+        reporter = self.config.pluginmanager.get_plugin("terminalreporter")
+        if removed and reporter is not None:
+            shown = ", ".join(str(p.relative_to(folder)) for p in removed[:5])
+            more = f" and {len(removed) - 5} more" if len(removed) > 5 else ""
+            reporter.write_line(f"drivedegrade: removed {len(removed)} temporary file(s) left in {folder} by an "
+                                f"interrupted write: {shown}{more}")
 
     def _check_baseline(self, context: RunContext) -> None:
         """A baseline from another ladder, data set or settings, or one that does not cover this run's cells
@@ -211,7 +245,25 @@ class DriveDegradeSession:
             foreign = planner_mismatch(self.baseline, name)
             if foreign:
                 return f"--drivedegrade-baseline: {self.options.baseline_path}: {foreign}"
+        if not self.options.report_overwrite:
+            return self._folder_owner_problem(name)
         return ""
+
+    def _folder_owner_problem(self, name: str) -> str:
+        """A report folder whose certificate records another planner file (a planner of the same name) is not
+        overwritten silently; checked when the name is first known, before any cell computes."""
+        folder = self.options.report_dir / name
+        try:
+            planner = json.loads((folder / "certificate.json").read_text()).get("planner", {})
+            theirs = planner.get("file") if isinstance(planner, dict) else None
+        except (OSError, ValueError, AttributeError):
+            return ""  # none, or unreadable: nothing recorded to protect
+        mine = planner_file(self.config, self.collect_path)
+        if not isinstance(theirs, str) or theirs == mine:
+            return ""
+        return (f"--drivedegrade-report: {folder} holds the certificate of another planner named {name!r} "
+                f"(planner file {theirs}; this run's is {mine}); pass another --drivedegrade-report, or "
+                "--drivedegrade-report-overwrite to replace its outputs")
 
     @pytest.hookimpl(wrapper=True)
     def pytest_runtest_makereport(self, item: pytest.Item,
@@ -238,7 +290,7 @@ class DriveDegradeSession:
         from .controller import finish_run
 
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
-                                  self.store)
+                                  self.store, planner_file=planner_file(self.config, self.collect_path))
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
             session.exitstatus = pytest.ExitCode.TESTS_FAILED
 

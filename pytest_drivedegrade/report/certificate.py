@@ -64,6 +64,7 @@ class Provenance:
     data_source: str = "embedded world"
     command: str = ""
     tool_version: str = ""
+    planner_file: str = ""  #: the planner file (or conftest.py), relative to rootdir when inside it
 
 
 def canonicalize(obj: Any, digits: int = DIGITS) -> Any:
@@ -105,7 +106,8 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
     return {
         "schema": SCHEMA,
         "spec_version": provenance.spec_version,
-        "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint},
+        "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint,
+                    **({"file": provenance.planner_file} if provenance.planner_file else {})},
         "dataset": {"fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
                     "frames": provenance.frames, "frames_unscored": provenance.frames_unscored,
                     "source": provenance.data_source},

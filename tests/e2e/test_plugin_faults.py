@@ -245,3 +245,57 @@ def test_a_swapped_image_recomputes_every_cell_and_says_so(dd, small_world, scor
                                   "dataset_fingerprint (the scored frames' files changed): blind, clean, jpeg-s1, "
                                   "null*"])
     assert load_json(dd.folder() / "certificate.json")["dataset"]["fingerprint"] != first
+
+
+def test_a_same_name_planner_does_not_overwrite_another_planners_reports(dd):
+    """Trust case 12: a report folder whose certificate records another planner file (a planner of the same
+    name) is refused at the first cell, before any cell computes, saying to pass --drivedegrade-report; the
+    outputs are left as they were; --drivedegrade-report-overwrite replaces them."""
+    dd.write_planner(name="shared")
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    cert = dd.folder("shared") / "certificate.json"
+    assert load_json(cert)["planner"]["file"].endswith("/myplanner.py")  # relative to rootdir
+    before = {p: p.read_bytes() for p in dd.folder("shared").rglob("*") if p.is_file()}
+    dd.write_planner(filename="otherplanner", name="shared", scale="40.0 * d")
+    result = dd.run(families="jpeg", severities="1", planner="otherplanner.py")
+    assert result.ret == pytest.ExitCode.INTERRUPTED
+    result.assert_outcomes(failed=1)
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*--drivedegrade-report: *shared holds the certificate of another planner named "
+                                 "'shared' (planner file *myplanner.py; this run's is *otherplanner.py); pass another "
+                                 "--drivedegrade-report, or --drivedegrade-report-overwrite*"])
+    assert {p: p.read_bytes() for p in dd.folder("shared").rglob("*") if p.is_file()} == before
+    again = dd.run("--drivedegrade-report-overwrite", families="jpeg", severities="1", planner="otherplanner.py")
+    again.assert_outcomes(passed=4)
+    assert load_json(cert)["planner"]["file"].endswith("/otherplanner.py")
+    dd.run(families="jpeg", severities="1", planner="otherplanner.py").assert_outcomes(passed=4)  # its own now
+
+
+def test_stray_temporary_files_are_swept_at_start_up_and_said(dd):
+    """Trust case 12: the temporaries a kill -9 leaves (named exactly as the atomic writer names them, older than
+    the run) in the planner folder and cells/ are removed at start-up and the terminal says so; files that only
+    look alike, or are newer than the run's start, are kept."""
+    import os
+    import time
+
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    folder = dd.folder()
+    old = time.time() - 3600
+    stray = [folder / ".certificate.json.a1b2c3d_.tmp", folder / "cells" / ".jpeg-s1.json.zz9x0q1k.tmp"]
+    kept = [folder / ".notes.txt.a1b2c3d4.tmp", folder / "certificate.json.a1b2c3d4.tmp",
+            folder / ".cells.csv.short.tmp", folder / "cells" / ".jpeg-s1.json.zz9x0q1k.tmp.bak"]
+    for path in stray + kept:
+        path.write_text("partial")
+        os.utime(path, (old, old))
+    future = folder / ".report.html.f0f0f0f0.tmp"
+    future.write_text("in flight")
+    os.utime(future, (time.time() + 3600, time.time() + 3600))
+    result = dd.run(families="jpeg", severities="1")
+    result.assert_outcomes(passed=4)
+    result.stdout.fnmatch_lines(["drivedegrade: removed 2 temporary file(s) left in *rep by an interrupted write: "
+                                 "testplanner/.certificate.json.a1b2c3d_.tmp, "
+                                 "testplanner/cells/.jpeg-s1.json.zz9x0q1k.tmp"])
+    assert not any(p.exists() for p in stray) and all(p.exists() for p in [*kept, future])
+    quiet = dd.run(families="jpeg", severities="1")
+    assert "temporary file(s)" not in quiet.stdout.str()
