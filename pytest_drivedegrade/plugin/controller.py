@@ -145,7 +145,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     out.lines += reuse_lines(received, run, store)
     if options.shard is not None:
-        return finish_shard(config, options, context, run, store, out, expected)
+        return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
@@ -222,7 +222,8 @@ def front_montage(context: RunContext, seed: int) -> np.ndarray | None:
 
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
-                 store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]]) -> Outcome:
+                 store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]],
+                 planner_file: str = "") -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
     from ..report.merge import MANIFEST, shard_manifest
@@ -231,7 +232,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     assert shard is not None
     floor_ego: dict[str, Any] = {}
     per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
-    prov = provenance(options, context, run.planner, run.key, _command(config))
+    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
                               batch=options.batch,
