@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import os
+import re
 import tempfile
+from collections.abc import Collection
 from pathlib import Path
+
+#: The name of the temporary file `atomic_write_bytes` writes beside `target`: ".<target>.<8 mkstemp characters>.tmp"
+#: (what a kill -9 between write and rename leaves behind).
+TEMP_NAME = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp$")
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
     """Write `data` to `path` so that a reader sees the old file or the new one, never half of one."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)  # TEMP_NAME
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -27,3 +33,27 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def stray_temporaries(folder: Path, targets: Collection[str] | None, older_than: float) -> list[Path]:
+    """The temporary files of interrupted atomic writes in `folder`: named exactly like ours (`TEMP_NAME`), for
+    a target in `targets` (None: any ``*.json`` target), last modified before `older_than` (a POSIX time), so
+    a write in flight now is never taken."""
+    found = []
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return []
+    for path in entries:
+        match = TEMP_NAME.match(path.name)
+        if match is None or not path.is_file() or path.is_symlink():
+            continue
+        target = match.group("target")
+        if (target not in targets) if targets is not None else not target.endswith(".json"):
+            continue
+        try:
+            if path.stat().st_mtime < older_than:
+                found.append(path)
+        except OSError:
+            continue
+    return sorted(found)

@@ -247,7 +247,8 @@ class CellPayload:
 
     `key` is the run key a stored result must match to be reused; `properties` the cell's JUnit testcase
     properties; `resumed` says the record was read from the store rather than computed; `recomputed` says why a
-    stored record was not reused (its content digest failed), empty otherwise.
+    stored record was not reused (its content digest failed), empty otherwise; `stale` names the run-key fields
+    in which a stored result of the cell differed, so it was recomputed (e.g. ``dataset_fingerprint``).
     """
 
     key: Mapping[str, Any]
@@ -256,6 +257,7 @@ class CellPayload:
     properties: tuple[Property, ...] = ()
     resumed: bool = False
     recomputed: str = ""
+    stale: str = ""
 
     @property
     def cell(self) -> str:
@@ -266,7 +268,8 @@ class CellPayload:
         record = self.record.to_builtins()
         out = {"key": dict(self.key), "planner": self.planner, "record": record, "record_digest": record_digest(record),
                "properties": [[name, value] for name, value in self.properties], "resumed": self.resumed}
-        return {**out, "recomputed": self.recomputed} if self.recomputed else out
+        return {**out, **({"recomputed": self.recomputed} if self.recomputed else {}),
+                **({"stale": self.stale} if self.stale else {})}
 
     @classmethod
     def from_builtins(cls, data: Mapping[str, Any]) -> CellPayload:
@@ -288,4 +291,4 @@ class CellPayload:
                                        f"{str(recorded)[:16]}...: it was edited or corrupted on disk")
         props = tuple((str(p[0]), p[1]) for p in data.get("properties", []))
         return cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)),
-                   str(data.get("recomputed", "")))
+                   str(data.get("recomputed", "")), str(data.get("stale", "")))

@@ -22,6 +22,7 @@ import numpy as np
 from .cells import PDMS_FIELDS, RECORD_VERSION, CellRecord, cell_id, is_ego
 from .constants import CAMERAS, HORIZON_STEPS
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
+from .data.content import content_fingerprint
 from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
@@ -105,18 +106,21 @@ class RunContext:
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
              planner_path: Path | None, shard: Shard | None = None, seeds: int = 1,
-             batch: int = 1) -> RunContext:
+             batch: int = 1, digest_cache: Path | None = None) -> RunContext:
         """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
-        DataError naming the file or token."""
+        DataError naming the file or token. The dataset fingerprint covers the content of the files every
+        scored frame of the run (all shards) is read from (`data.content`), with file digests cached in
+        `digest_cache` (a folder) when given."""
         reader = NuScenesReader(data_root, split=split)
         chosen = reader.scorable_frames(limit=frames)
         if not chosen:
             raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
                                     f"keyframes); skipped: {dict(reader.skipped)}")
         total = len(chosen)
+        fingerprint = content_fingerprint(reader, chosen, digest_cache)
         if shard is not None:
             chosen = shard_frames(chosen, shard)
-        return cls(reader, chosen, seed, timeout, reader.fingerprint(), planner_path,
+        return cls(reader, chosen, seed, timeout, fingerprint, planner_path,
                    frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total,
                    seeds=seeds, batch=batch)
 

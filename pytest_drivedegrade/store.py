@@ -25,6 +25,8 @@ class ResultStore:
         self.report_dir, self.shard = Path(report_dir), shard
         #: cell -> why its stored record was not reused although present: its content digest failed
         self.digest_failures: dict[str, str] = {}
+        #: cell -> the run-key fields in which its stored result differed (so it was not reused), comma-separated
+        self.stale: dict[str, str] = {}
 
     def folder(self, planner: str) -> Path:
         """The planner's folder of this run (a shard's own subfolder for a shard)."""
@@ -49,7 +51,10 @@ class ResultStore:
             return None
         except (OSError, ValueError, InvalidInput):
             return None
-        if dict(payload.key) != dict(key) or payload.cell != cell:
+        if payload.cell != cell:
+            return None
+        if dict(payload.key) != dict(key):
+            self.stale[cell] = ", ".join(sorted(k for k in {*payload.key, *key} if payload.key.get(k) != key.get(k)))
             return None
         return payload
 

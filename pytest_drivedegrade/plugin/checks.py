@@ -126,4 +126,5 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")
     resumed = stored is not None
     why = "" if resumed else store.digest_failures.get(cell, "")
-    return CellPayload(key, name, record, properties(record, resumed), resumed, why), failures
+    stale = "" if resumed else store.stale.get(cell, "")
+    return CellPayload(key, name, record, properties(record, resumed), resumed, why, stale), failures

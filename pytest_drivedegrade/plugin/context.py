@@ -34,7 +34,7 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
                                     progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
     return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
                            timeout=options.timeout, planner_path=options.planner_path, shard=options.shard,
-                           seeds=options.seeds, batch=options.batch)
+                           seeds=options.seeds, batch=options.batch, digest_cache=cache_root(config) / "digests")
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -67,6 +68,14 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
     if failed:
         lines.append(f"recomputed {len(failed)} stored cell(s) whose content digest failed (edited or corrupted "
                      f"on disk): {', '.join(sorted(failed))}")
+    stale: dict[str, list[str]] = {}
+    for c, p in received.items():
+        if p.stale and not p.resumed:
+            stale.setdefault(p.stale, []).append(c)
+    for fields, cells in sorted(stale.items()):
+        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else ""
+        lines.append(f"not reused: {len(cells)} stored cell(s) recomputed because their run key differs in "
+                     f"{fields}{why}: {', '.join(sorted(cells))}")
     return lines
 
 
@@ -96,8 +105,18 @@ def floor_per_frame(config: pytest.Config, context: RunContext, split: str, line
     return clean
 
 
+def planner_file(config: pytest.Config, path: Path) -> str:
+    """The planner file (or conftest.py) as the certificate records it: relative to rootdir when inside it, so
+    a moved checkout keeps it."""
+    try:
+        return path.resolve().relative_to(Path(config.rootpath).resolve()).as_posix()
+    except ValueError:
+        return path.resolve().as_posix()
+
+
+
 def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
-               command: str) -> Provenance:
+               command: str, planner_file: str = "") -> Provenance:
     """What makes the run traceable, for the certificate and cells.csv."""
     from .. import __version__
     from ..corruptions.ladder import SPEC_VERSION
@@ -109,14 +128,15 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
                       spec_version=SPEC_VERSION, seed=options.seed, frames=len(context.frames),
                       frames_unscored=context.frames_unscored, data_source=source, command=command,
                       tool_version=__version__, frames_requested=options.frames, timeout=options.timeout,
-                      versions=runtime_versions())
+                      versions=runtime_versions(), planner_file=planner_file)
 
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
-               baseline: Mapping[str, Any] | None, store: ResultStore | None = None) -> Outcome | None:
+               baseline: Mapping[str, Any] | None, store: ResultStore | None = None,
+               planner_file: str = "") -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
-    the run never opened its data."""
+    the run never opened its data. `planner_file` goes into the certificate (see `planner_file`)."""
     if context is None:
         return None
     out = Outcome()
@@ -127,7 +147,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     out.lines += reuse_lines(received, run, store)
     if options.shard is not None:
-        return finish_shard(config, options, context, run, store, out, expected)
+        return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
@@ -146,7 +166,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
                            seeds=options.seeds, metric=options.metric)
     analysis.floor.update(floor_ego)
     analysis.settings["batch"] = options.batch
-    prov = provenance(options, context, run.planner, run.key, _command(config))
+    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
@@ -162,7 +182,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
         for prop, value in suite_properties(analysis):
             xml.add_global_property(prop, value)
-    gate_lines, out.failed = gate(cert, baseline, options.tolerance)
+    gate_lines, out.failed = gate(cert, baseline, options.tolerance, partial=options.baseline_partial,
+                                  any_planner=options.baseline_any_planner)
     out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
     return out
 
@@ -203,7 +224,8 @@ def front_montage(context: RunContext, seed: int) -> np.ndarray | None:
 
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
-                 store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]]) -> Outcome:
+                 store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]],
+                 planner_file: str = "") -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
     from ..report.merge import MANIFEST, shard_manifest
@@ -212,7 +234,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     assert shard is not None
     floor_ego: dict[str, Any] = {}
     per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
-    prov = provenance(options, context, run.planner, run.key, _command(config))
+    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
                               batch=options.batch,
@@ -233,18 +255,36 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     return out
 
 
-def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float) -> tuple[list[str], bool]:
+def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float, *, partial: bool = False,
+         any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
-    own items)."""
+    own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another
+    planner's (unless `any_planner`), with a line saying what was not compared."""
     if baseline is None:
         return [], False
-    from ..scoring.baseline import BaselineError, compare_to_baseline
+    from ..scoring.baseline import BaselineError, compare_to_baseline, not_compared, planner_mismatch
 
     try:
         result = compare_to_baseline(cert, baseline, tolerance)
     except BaselineError as exc:
         return [f"baseline: {exc}"], True
     lines = [f"REGRESSION {reg.message()}" for reg in result["axes"]]
+    failed = bool(result["axes"])
+    planner = cert.get("planner")
+    planner = planner if isinstance(planner, Mapping) else {}
+    foreign = None if any_planner else planner_mismatch(baseline, planner.get("name"))
+    if foreign:
+        lines.append(f"baseline: FAILED: {foreign}")
+        failed = True
+    gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get("retention") is not None],
+                        cert.get("axes"))
+    if gaps and partial:
+        lines.append(f"baseline (--drivedegrade-baseline-partial): not compared: {'; '.join(gaps)}")
+    elif gaps:
+        lines.append(f"baseline: FAILED: not compared: {'; '.join(gaps)}; certify a complete baseline with this "
+                     "run's families and severities, or pass --drivedegrade-baseline-partial to gate on what both "
+                     "have")
+        failed = True
     lines.append(f"baseline: {len(result['cells'])} cell and {len(result['axes'])} axis regression(s) beyond "
                  f"tolerance {tolerance:g}")
-    return lines, bool(result["axes"])
+    return lines, failed

@@ -53,8 +53,17 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "certificate.json (default reports)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-baseline", "drivedegrade_baseline", "a stored certificate.json: fail cells and axes "
                "whose retention regressed", {"metavar": "FILE"}),
+    OptionSpec("--drivedegrade-baseline-partial", "drivedegrade_baseline_partial", "accept a baseline that does "
+               "not cover this run (an incomplete run, cells or axes it lacks): gate on what both have and list "
+               "what was not compared (default: such a baseline fails)", {"action": "store_true"}),
+    OptionSpec("--drivedegrade-baseline-any-planner", "drivedegrade_baseline_any_planner", "accept a baseline "
+               "certified for a planner of another name (default: refused; the same planner retrained keeps its "
+               "name and needs no flag)", {"action": "store_true"}),
     OptionSpec("--drivedegrade-tolerance", "drivedegrade_tolerance", "allowed retention drop below the baseline "
                f"(default {DEFAULT_TOLERANCE:g})", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-report-overwrite", "drivedegrade_report_overwrite", "replace the outputs of "
+               "another planner (another planner file) that hold the report folder of this planner's name "
+               "(default: refused)", {"action": "store_true"}),
     OptionSpec("--drivedegrade-flat", "drivedegrade_flat", "retention at or above which an axis counts as flat "
                f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-shard", "drivedegrade_shard", "run shard I of N (1-based; scene-contiguous, "
@@ -114,6 +123,17 @@ def _timeout(config: pytest.Config) -> float:
     return got
 
 
+def _flag(config: pytest.Config, dest: str) -> bool:
+    """An on/off option: the flag on the command line, or true / false in the ini file."""
+    raw = value(config, dest)
+    if raw is None or isinstance(raw, bool):
+        return bool(raw)
+    text = str(raw).strip().lower()
+    if text not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+        raise _fail(dest, f"expected true or false, got {raw!r}")
+    return text in ("1", "true", "yes", "on")
+
+
 def _list(config: pytest.Config, dest: str) -> list[str] | None:
     raw = value(config, dest)
     if raw is None:
@@ -146,6 +166,9 @@ class RunOptions:
     metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
     sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
+    baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
+    baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
+    report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
 
 
 def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
@@ -224,4 +247,7 @@ def parse(config: pytest.Config) -> RunOptions:
         metric=metric,
         ego=tuple(f for f in EGO_FAMILIES if f in families),
         sign_key_pem=_sign_key(config, here),
+        baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
+        baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
+        report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
     )

@@ -14,6 +14,7 @@ import json
 import math
 import os
 import re
+from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -69,6 +70,7 @@ class Provenance:
     timeout: float | None = None
     #: The libraries the cells were computed with (`runtime_versions`): a rerun elsewhere says when they differ.
     versions: Mapping[str, str | None] = field(default_factory=dict)
+    planner_file: str = ""  #: the planner file (or conftest.py), relative to rootdir when inside it
 
 
 def runtime_versions() -> dict[str, str | None]:
@@ -131,7 +133,8 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
     return {
         "schema": SCHEMA,
         "spec_version": provenance.spec_version,
-        "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint},
+        "planner": {"name": provenance.planner_name, "fingerprint": provenance.planner_fingerprint,
+                    **({"file": provenance.planner_file} if provenance.planner_file else {})},
         "dataset": {"fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
                     "frames": provenance.frames, "frames_unscored": provenance.frames_unscored,
                     "frames_requested": provenance.frames_requested, "source": provenance.data_source},
@@ -167,22 +170,114 @@ def write_certificate(path: str | os.PathLike[str], cert: Mapping[str, Any]) -> 
     return atomic_write_text(path, certificate_text(seal(cert)))
 
 
+#: The deepest nesting of arrays and objects a certificate may have (a sealed one is about 5 deep): deeper input
+#: is refused before parsing, so a crafted file cannot exhaust Python's recursion limit.
+MAX_DEPTH = 64
+_TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
+
+
+class _Constant:
+    """Stands in for a NaN / Infinity literal while parsing, so the check can name where it was."""
+
+    def __init__(self, literal: str) -> None:
+        self.literal = literal
+
+
+class _Object(dict):
+    """A parsed JSON object that remembers the keys it held more than once."""
+
+    duplicates: tuple[str, ...] = ()
+
+
+def _pairs(pairs: list[tuple[str, Any]]) -> _Object:
+    obj = _Object(pairs)
+    if len(obj) != len(pairs):
+        counts = Counter(k for k, _ in pairs)
+        obj.duplicates = tuple(k for k, n in counts.items() if n > 1)
+    return obj
+
+
+def _line_col(text: str, offset: int) -> str:
+    line = text.count("\n", 0, offset) + 1
+    return f"line {line}, column {offset - (text.rfind(chr(10), 0, offset) + 1) + 1}"
+
+
+def _too_deep(text: str) -> str | None:
+    """Where the nesting first goes deeper than MAX_DEPTH (brackets inside strings do not count), or None."""
+    depth = 0
+    for match in _TOKENS.finditer(text):
+        token = match.group()
+        if token in "[{":
+            depth += 1
+            if depth > MAX_DEPTH:
+                return _line_col(text, match.start())
+        elif token in "]}":
+            depth -= 1
+    return None
+
+
+def _strict_problem(obj: Any, where: str = "") -> str | None:
+    """The first NaN / Infinity literal or duplicate key in the parsed tree, as 'what at path', or None."""
+    if isinstance(obj, _Constant):
+        return f"a {obj.literal} literal at {where or 'the top level'} (JSON has no such number)"
+    if isinstance(obj, dict):
+        if isinstance(obj, _Object) and obj.duplicates:
+            return f"duplicate key {obj.duplicates[0]!r} in {where or 'the top-level object'}"
+        items: Any = obj.items()
+    elif isinstance(obj, list):
+        items = enumerate(obj)
+    else:
+        return None
+    for k, v in items:
+        found = _strict_problem(v, f"{where}[{k}]" if isinstance(k, int) else f"{where}.{k}" if where else str(k))
+        if found:
+            return found
+    return None
+
+
+def parse_certificate_text(text: str, where: str) -> dict[str, Any]:
+    """Parse a certificate's text strictly: NaN / Infinity literals, duplicate keys (JSON's parser keeps the
+    last silently, so what is shown and what is hashed could differ) and nesting deeper than MAX_DEPTH are
+    refused with a ``CertificateError`` naming the file, the problem and where it is."""
+    deep = _too_deep(text)
+    if deep is not None:
+        raise CertificateError(f"{where}: malformed: nested deeper than {MAX_DEPTH} levels at {deep}; a "
+                               "certificate is a few levels deep")
+    try:
+        data = json.loads(text, object_pairs_hook=_pairs, parse_constant=_Constant)
+    except json.JSONDecodeError as exc:
+        raise CertificateError(f"{where}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") \
+            from None
+    except RecursionError:  # MAX_DEPTH is far below the limit; a safety net, never a traceback
+        raise CertificateError(f"{where}: malformed: nested too deeply to read") from None
+    problem = _strict_problem(data)
+    if problem is not None:
+        raise CertificateError(f"{where}: malformed: {problem}; certificates are written as strict JSON, so "
+                               "this file was not written by drivedegrade or was edited")
+    if not isinstance(data, dict):
+        raise CertificateError(f"{where}: a certificate is a JSON object, found {type(data).__name__}")
+    return _plain(data)
+
+
+def _plain(obj: Any) -> Any:
+    """The parsed tree with plain dicts (the duplicate-key bookkeeping class dropped)."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_plain(v) for v in obj]
+    return obj
+
+
 def load_certificate(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read and parse a certificate file; ``CertificateError`` naming the file and the problem otherwise."""
+    """Read and parse a certificate file strictly (see ``parse_certificate_text``); ``CertificateError`` naming
+    the file and the problem otherwise."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise CertificateError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CertificateError(f"{path}: cannot read it ({exc})") from None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CertificateError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") \
-            from None
-    if not isinstance(data, dict):
-        raise CertificateError(f"{path}: a certificate is a JSON object, found {type(data).__name__}")
-    return data
+    return parse_certificate_text(text, os.fspath(path))
 
 
 def _num(v: Any) -> bool:

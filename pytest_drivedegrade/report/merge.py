@@ -216,7 +216,8 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
                       frames_unscored=first.get("frames_unscored"), data_source=first.get("data_source", ""),
                       command=command, tool_version=first.get("tool_version", ""),
                       frames_requested=first.get("frames_requested"), timeout=first.get("timeout"),
-                      versions=first.get("versions") or {})
+                      versions=first.get("versions") or {},
+                      planner_file=str(first.get("planner_file", "")))
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     key = {k: v for k, v in first["key"].items() if k != "frames_key"}
     front = shards[0].manifest.get("front")
@@ -241,7 +242,7 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "data_source": provenance.data_source, "tool_version": provenance.tool_version,
             "frames_requested": provenance.frames_requested, "timeout": provenance.timeout,
             "versions": dict(provenance.versions),
-            "cells": list(cells), "missing_cells": list(missing),
+            "planner_file": provenance.planner_file, "cells": list(cells), "missing_cells": list(missing),
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
             "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],
             "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -12,7 +12,8 @@ from ..errors import DriveDegradeError
 
 
 class BaselineError(DriveDegradeError):
-    """A baseline certificate that cannot be compared: another spec version or data set, or malformed."""
+    """A baseline certificate that cannot be compared: another spec version, data set or settings, or
+    malformed."""
 
 
 @dataclass(frozen=True)
@@ -38,23 +39,107 @@ def baseline_seeds(cert: Mapping[str, Any]) -> int:
     return int(got) if isinstance(got, int) and not isinstance(got, bool) else 1
 
 
+#: The settings that change a certificate's numbers, besides the spec version, data and seed count: (name, where
+#: in a certificate, the value certificates from before the setting had, the option that sets it).
+SETTINGS: tuple[tuple[str, tuple[str, str], Any, str], ...] = (
+    ("scored frames", ("dataset", "frames"), None, "--drivedegrade-frames"),
+    ("corruption seed", ("settings", "seed"), None, "--drivedegrade-seed"),
+    ("batch", ("settings", "batch"), 1, "--drivedegrade-batch"),
+    ("verdict metric", ("settings", "verdict_metric"), "l2", "--drivedegrade-metric"),
+    ("metric convention", ("settings", "convention"), "stp3", "the tool's default"),
+)
+#: The axes the gate compares.
+GATED_AXES = ("quality", "removal", "mean")
+
+
+def certificate_settings(cert: Mapping[str, Any]) -> dict[str, Any]:
+    """The `SETTINGS` of a certificate, by name (None where it does not say and has no default)."""
+    out = {}
+    for name, (section, key), default, _flag in SETTINGS:
+        part = cert.get(section)
+        out[name] = part.get(key, default) if isinstance(part, Mapping) else default
+    return out
+
+
+def settings_mismatches(baseline: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
+    """Each setting of `current` (by `SETTINGS` name) the baseline certificate has another value of, as
+    'name: baseline X, this run Y (option)'; a setting either side does not know is not compared."""
+    theirs = certificate_settings(baseline)
+    out = []
+    for name, _where, _default, flag in SETTINGS:
+        mine, other = current.get(name), theirs[name]
+        if mine is not None and other is not None and mine != other:
+            out.append(f"{name}: baseline {other!r}, this run {mine!r} ({flag})")
+    return out
+
+
 def check_baseline_compatible(baseline: Mapping[str, Any], *, spec_version: str | None,
-                              dataset_fingerprint: str | None, seeds: int | None = None) -> None:
-    """Raise ``BaselineError`` when the baseline was certified under another spec version or data set, or (when
-    `seeds` is given) under another number of corruption seeds: a retention averaged over three seeds is not
-    the same quantity as one seed's, so comparing them would gate on noise."""
+                              dataset_fingerprint: str | None, seeds: int | None = None,
+                              settings: Mapping[str, Any] | None = None) -> None:
+    """Raise ``BaselineError`` when the baseline was certified under another spec version, under other settings
+    that change the numbers (`settings`, by `SETTINGS` name: frames, seed, batch, metric, convention), or (when
+    `seeds` is given) another number of corruption seeds, or on another data set: a retention averaged over
+    three seeds is not the same quantity as one seed's, so comparing them would gate on noise."""
     theirs = (baseline.get("spec_version"), (baseline.get("dataset") or {}).get("fingerprint"))
-    for what, mine, other in (("spec version", spec_version, theirs[0]),
-                              ("dataset fingerprint", dataset_fingerprint, theirs[1])):
-        if mine != other:
-            raise BaselineError(f"the baseline certificate has {what} {other!r} but this run has {mine!r}; "
-                                "retentions are comparable only under the same ladder and data")
+    if spec_version != theirs[0]:
+        raise BaselineError(f"the baseline certificate has spec version {theirs[0]!r} but this run has "
+                            f"{spec_version!r}; retentions are comparable only under the same ladder and data")
     theirs_seeds = baseline_seeds(baseline)
     if seeds is not None and seeds != theirs_seeds:
         raise BaselineError(f"the baseline certificate was made with {theirs_seeds} corruption seed(s) per random "
                             f"cell (--drivedegrade-seeds {theirs_seeds}) but this run uses {seeds}; retentions are "
                             f"compared only like with like: rerun with --drivedegrade-seeds {theirs_seeds}, or "
                             "certify a new baseline with this seed count")
+    differ = settings_mismatches(baseline, settings or {})
+    if differ:
+        raise BaselineError(f"the baseline certificate was made under other settings that change the numbers: "
+                            f"{'; '.join(differ)}; rerun with the baseline's settings, or certify a new baseline "
+                            "with these")
+    if dataset_fingerprint != theirs[1]:
+        raise BaselineError(f"the baseline certificate has dataset fingerprint {theirs[1]!r} but this run has "
+                            f"{dataset_fingerprint!r}; retentions are comparable only under the same ladder and "
+                            "data")
+
+
+def planner_mismatch(baseline: Mapping[str, Any], name: str | None) -> str | None:
+    """Why the baseline is another planner's (its name differs: a planner's identity is its name, since the
+    same planner retrained has another fingerprint and is the normal baseline), or None."""
+    theirs = (baseline.get("planner") or {}).get("name") if isinstance(baseline.get("planner"), Mapping) else None
+    if theirs == name:
+        return None
+    return (f"the baseline certificate is of planner {theirs!r} but this run certifies {name!r}; pass "
+            "--drivedegrade-baseline-any-planner to gate one planner against another's certificate")
+
+
+def _retentions(cert: Mapping[str, Any]) -> dict[Any, Any]:
+    cells = cert.get("cells")
+    return {c.get("cell"): c.get("retention") for c in cells if isinstance(c, Mapping)} \
+        if isinstance(cells, list) else {}
+
+
+def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mapping[str, Any] | None = None) \
+        -> list[str]:
+    """What of this run the baseline cannot gate, one phrase per kind: it is incomplete
+    (``completeness.complete`` false), it has no retention for some of `cells`, or it has no value for a gated
+    axis that this run has (`axes`: this run's, None at start-up). Empty when the baseline covers the run."""
+    out = []
+    comp = baseline.get("completeness")
+    if isinstance(comp, Mapping) and comp.get("complete") is False:
+        missing = comp.get("missing_cells") or []
+        out.append(f"the baseline run is incomplete (completeness.complete is false; {len(missing)} cell(s) missing"
+                   + (f", shard(s) missing: {', '.join(map(str, comp['missing_shards']))}"
+                      if comp.get("missing_shards") else "") + ")")
+    theirs = _retentions(baseline)
+    lacking = [c for c in cells if theirs.get(c) is None]
+    if lacking:
+        shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
+        out.append(f"{len(lacking)} cell(s) of this run have no retention in the baseline: {shown}")
+    base_axes = baseline.get("axes")
+    base_axes = base_axes if isinstance(base_axes, Mapping) else {}
+    null_axes = [a for a in GATED_AXES if (axes or {}).get(a) is not None and base_axes.get(a) is None]
+    if null_axes:
+        out.append(f"axes {', '.join(null_axes)} are null in the baseline")
+    return out
 
 
 def cell_regression(cell: str, current: float, baseline: Mapping[str, Any], tolerance: float) -> Regression | None:
@@ -74,11 +159,11 @@ def compare_to_baseline(current: Mapping[str, Any], baseline: Mapping[str, Any],
     """
     check_baseline_compatible(baseline, spec_version=current.get("spec_version"),
                               dataset_fingerprint=(current.get("dataset") or {}).get("fingerprint"),
-                              seeds=baseline_seeds(current))
+                              seeds=baseline_seeds(current), settings=certificate_settings(current))
     cells = [reg for c in current.get("cells", [])
              if (reg := cell_regression(c["cell"], c.get("retention"), baseline, tolerance))]
     axes = []
-    for name in ("quality", "removal", "mean"):
+    for name in GATED_AXES:
         mine, theirs = (current.get("axes") or {}).get(name), (baseline.get("axes") or {}).get(name)
         if mine is not None and theirs is not None and theirs - mine > tolerance:
             axes.append(Regression(f"axis:{name}", float(theirs), float(mine)))

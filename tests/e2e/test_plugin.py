@@ -279,3 +279,106 @@ def test_a_bidi_planner_name_is_a_clear_error_checked_once(dd):
     result.stdout.fnmatch_lines(["*unusable planner name*bidirectional control character U+202E at position 4*"])
     outcomes = result.parseoutcomes()
     assert outcomes.get("failed") == 1 and "passed" not in outcomes  # stopped at the first cell, not one per cell
+
+
+@pytest.mark.parametrize("via", ["path", "symlink"])
+def test_a_baseline_in_the_report_folder_is_refused_before_the_run(dd, via):
+    """Trust case 3: the run's own output certificate (or a symlink to it) as the baseline would be overwritten
+    by the run it gates, so the next run passes against itself: a usage error before any cell, saying to copy it
+    elsewhere first; the certificate is left as it was."""
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    own = dd.folder() / "certificate.json"
+    before = own.read_bytes()
+    baseline = "rep/testplanner/certificate.json"
+    if via == "symlink":
+        (dd.pytester.path / "base.json").symlink_to(own)
+        baseline = "base.json"
+    dd.write_planner(scale=FRAGILE)
+    result = dd.run("--drivedegrade-baseline", baseline, families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines(["*--drivedegrade-baseline: *lies in this run's report folder*copy it elsewhere "
+                                 "first*"])
+    assert "passed" not in result.stdout.str() and "failed" not in result.stdout.str()
+    assert own.read_bytes() == before
+
+
+def _baseline_of(dd, *extra: str, name: str = "testplanner", families: str = "jpeg", severities: str = "1",
+                 report: str = "rep_base") -> Path:
+    """Certify a planner named `name` with `extra` options and copy its certificate to baseline.json."""
+    dd.write_planner(name=name)
+    dd.run(*extra, families=families, severities=severities, report=report)
+    baseline = dd.pytester.path / "baseline.json"
+    baseline.write_text((dd.folder(name, report) / "certificate.json").read_text())
+    return baseline
+
+
+def test_an_incomplete_baseline_fails_unless_partial_is_asked_for(dd):
+    """Trust case 8: a baseline from a `-k clean` run (completeness false, every other cell missing) is a usage
+    error before any cell, saying what would not be compared; with --drivedegrade-baseline-partial the run gates
+    on what both have and says what was not compared."""
+    _baseline_of(dd, "-k", "clean")
+    dd.write_planner()
+    result = dd.run("--drivedegrade-baseline", "baseline.json", families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines([
+        "*--drivedegrade-baseline: *baseline.json: the baseline does not cover this run*the baseline run is "
+        "incomplete (completeness.complete is false; 3 cell(s) missing)*3 cell(s) of this run have no retention "
+        "in the baseline: jpeg-s1, blind, null*--drivedegrade-baseline-partial*"])
+    assert "passed" not in result.stdout.str()
+
+    partial = dd.run("--drivedegrade-baseline", "baseline.json", "--drivedegrade-baseline-partial",
+                     families="jpeg", severities="1")
+    partial.assert_outcomes(passed=4)
+    assert partial.ret == pytest.ExitCode.OK
+    partial.stdout.fnmatch_lines(["*baseline (--drivedegrade-baseline-partial): not compared: the baseline run is "
+                                  "incomplete*3 cell(s) of this run have no retention in the baseline: *"])
+
+
+def test_a_baseline_of_fewer_families_is_refused(dd):
+    """Trust case 8: a baseline certified on a family subset leaves this run's other cells ungated: refused."""
+    _baseline_of(dd, families="jpeg")
+    dd.write_planner()
+    result = dd.run("--drivedegrade-baseline", "baseline.json", families="jpeg,blackout", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    result.stderr.fnmatch_lines(["*1 cell(s) of this run have no retention in the baseline: blackout-s1*"])
+
+
+def test_another_planners_baseline_is_refused_unless_asked_for(dd):
+    """Trust case 8: a planner's identity is its name (a retrained planner keeps it, see test_ci_gate): another
+    name's certificate stops the run at its first cell with the reason; --drivedegrade-baseline-any-planner
+    accepts it."""
+    _baseline_of(dd, name="other")
+    dd.write_planner()
+    result = dd.run("--drivedegrade-baseline", "baseline.json", families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.INTERRUPTED
+    result.assert_outcomes(failed=1)
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*--drivedegrade-baseline: *baseline.json: the baseline certificate is of planner "
+                                 "'other' but this run certifies 'testplanner'; pass "
+                                 "--drivedegrade-baseline-any-planner*"])
+    assert not (dd.folder() / "certificate.json").exists()
+    ok = dd.run("--drivedegrade-baseline", "baseline.json", "--drivedegrade-baseline-any-planner",
+                families="jpeg", severities="1")
+    ok.assert_outcomes(passed=4)
+    ok.stdout.fnmatch_lines(["*baseline: 0 cell and 0 axis regression(s) beyond tolerance 0.02*"])
+
+
+@pytest.mark.parametrize("made_with, run_with, expected", [
+    ([], ["--drivedegrade-frames", "3"], "scored frames: baseline 4, this run 3 (--drivedegrade-frames)"),
+    ([], ["--drivedegrade-seed", "1"], "corruption seed: baseline 0, this run 1 (--drivedegrade-seed)"),
+    ([], ["--drivedegrade-batch", "2"], "batch: baseline 1, this run 2 (--drivedegrade-batch)"),
+    ([], ["--drivedegrade-metric", "pdms"], "verdict metric: baseline 'l2', this run 'pdms' (--drivedegrade-metric)"),
+], ids=["frames", "seed", "batch", "metric"])
+def test_a_baseline_under_other_settings_is_refused(dd, made_with, run_with, expected):
+    """Trust case 8: a baseline certified with another frame count, seed, batch or verdict metric is a usage
+    error before any cell, naming the setting, both values and the option."""
+    _baseline_of(dd, *made_with)
+    dd.write_planner()
+    result = dd.run("--drivedegrade-baseline", "baseline.json", *run_with, families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    no_traceback(result)
+    result.stderr.fnmatch_lines([f"*other settings that change the numbers: {expected}*"])
+    assert "passed" not in result.stdout.str()

@@ -97,9 +97,16 @@ def test_blackout_s3_is_a_null_control_for_a_front_only_planner(dd):
                                                          "exist*"),
     ("myplanner.py", ["--drivedegrade-report", "notjson.json/rep"], "*--drivedegrade-report: cannot create the "
                                                                      "report folder *notjson.json/rep: Not a dir*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "nan.json"],
+     "*--drivedegrade-baseline: *nan.json: malformed: a NaN literal at axes.quality*"),
+    ("myplanner.py", ["--drivedegrade-baseline", "deep.json"],
+     "*--drivedegrade-baseline: *deep.json: malformed: nested deeper than 64 levels at line 1, column *"),
+    ("myplanner.py", ["--drivedegrade-baseline", "dup.json"],
+     "*--drivedegrade-baseline: *dup.json: malformed: duplicate key 'axes' in the top-level object*"),
 ], ids=["missing", "syntax", "no-fixture", "family", "severity", "baseline-not-json", "baseline-edited", "no-data",
-        "report-not-a-folder"])
+        "report-not-a-folder", "baseline-nan", "baseline-deep", "baseline-duplicate-key"])
 def test_bad_input_is_a_usage_error(dd, planner, options, expected):
+    """(Trust case 11 for the baseline-nan, -deep and -duplicate-key cases: a usage error, not an INTERNALERROR.)"""
     from pytest_drivedegrade.report.certificate import seal
 
     dd.write_planner()
@@ -109,6 +116,9 @@ def test_bad_input_is_a_usage_error(dd, planner, options, expected):
     cert = seal({"schema": "drivedegrade-certificate/1", "axes": {"quality": 0.9}})
     cert["axes"]["quality"] = 0.99
     (dd.pytester.path / "edited.json").write_text(json.dumps(cert))
+    (dd.pytester.path / "nan.json").write_text('{"axes": {"quality": NaN}}')
+    (dd.pytester.path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    (dd.pytester.path / "dup.json").write_text('{"axes": {}, "axes": {"quality": 1.0}}')
     result = dd.pytester.runpytest_inprocess(*dd.args(*options, planner=planner))
     assert result.ret == pytest.ExitCode.USAGE_ERROR
     result.stderr.fnmatch_lines([expected])
@@ -135,7 +145,7 @@ def test_truncated_jpeg_fails_the_cells_that_read_it(dd, small_world, scored_tok
 
     image.write_bytes((small_world / image.relative_to(data)).read_bytes())  # the data set is repaired
     again = dd.run(data=data, families="jpeg,blackout", severities="5")
-    again.assert_outcomes(passed=5)  # the failed cells are computed again, the others reused
+    again.assert_outcomes(passed=5)  # the repaired image changes the data fingerprint: all computed again
     assert by_cell(read_csv(dd.folder() / "cells.csv"))["clean"]["frames"] == "4"
 
 
@@ -185,3 +195,107 @@ def test_ctrl_c_keeps_finished_cells_and_the_rerun_resumes(dd):
     again = dd.run()
     again.assert_outcomes(passed=9)
     assert set(calls.read_text().split()) == set(SMALL_CELLS) - set(done)
+
+
+@pytest.mark.parametrize("name, expected", [
+    ("bad\x00name", "*unusable planner name: planner.name 'bad\\x00name' contains the non-printable character "
+                    "U+0000 at position 3*"),
+    ("n" * 10_000, "*unusable planner name: planner.name 'nnn*'... is 10000 characters long; a planner name is at "
+                   "most * printable characters*"),
+], ids=["nul", "10000-chars"])
+def test_unusable_planner_name_stops_the_run_clearly(dd, name, expected):
+    """Trust case 11: a NUL or a 10 000-character planner.name fails the first cell with the rule it breaks and
+    stops the session: no INTERNALERROR, no traceback, no report folder made from the name, and a stored
+    result of another planner in the report folder is left as it was."""
+    dd.write_planner(name="other")
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    before = {p: p.read_bytes() for p in (dd.pytester.path / "rep").rglob("*") if p.is_file()}
+    dd.write_planner(name=name)
+    result = dd.run(families="jpeg", severities="1")
+    assert result.ret == pytest.ExitCode.INTERRUPTED  # the session stops at the first cell
+    result.assert_outcomes(failed=1)
+    no_traceback(result)
+    assert "INTERNALERROR" not in result.stdout.str() + result.stderr.str()
+    result.stdout.fnmatch_lines([expected])
+    after = {p: p.read_bytes() for p in (dd.pytester.path / "rep").rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_a_swapped_image_recomputes_every_cell_and_says_so(dd, small_world, scored_tokens, tmp_path):
+    """Trust case 6: one scored image replaced by another (the world's manifest unchanged) changes the dataset
+    fingerprint, so no stored cell is reused and the summary says why; an unchanged rerun reuses them all."""
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+    data = tmp_path / "world"
+    shutil.copytree(small_world, data)
+    dd.write_planner()
+    dd.run(data=data, families="jpeg", severities="1").assert_outcomes(passed=4)
+    first = load_json(dd.folder() / "certificate.json")["dataset"]["fingerprint"]
+    same = dd.run(data=data, families="jpeg", severities="1")
+    same.stdout.fnmatch_lines(["*reused 4 stored cell(s) (same run key, digest verified)*"])
+
+    frames = NuScenesReader(data, split="val").scorable_frames(limit=4)
+    front, other = (Path(f.cameras["CAM_FRONT"].path) for f in frames[1:3])
+    shutil.copyfile(other, front)
+    swapped = dd.run(data=data, families="jpeg", severities="1")
+    swapped.assert_outcomes(passed=4)
+    assert "stored cell(s) (same run key" not in swapped.stdout.str()
+    swapped.stdout.fnmatch_lines(["cost: 16 predictions (0 reused)*"])
+    swapped.stdout.fnmatch_lines(["*not reused: 4 stored cell(s) recomputed because their run key differs in "
+                                  "dataset_fingerprint (the scored frames' files changed): blind, clean, jpeg-s1, "
+                                  "null*"])
+    assert load_json(dd.folder() / "certificate.json")["dataset"]["fingerprint"] != first
+
+
+def test_a_same_name_planner_does_not_overwrite_another_planners_reports(dd):
+    """Trust case 12: a report folder whose certificate records another planner file (a planner of the same
+    name) is refused at the first cell, before any cell computes, saying to pass --drivedegrade-report; the
+    outputs are left as they were; --drivedegrade-report-overwrite replaces them."""
+    dd.write_planner(name="shared")
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    cert = dd.folder("shared") / "certificate.json"
+    assert load_json(cert)["planner"]["file"].endswith("/myplanner.py")  # relative to rootdir
+    before = {p: p.read_bytes() for p in dd.folder("shared").rglob("*") if p.is_file()}
+    dd.write_planner(filename="otherplanner", name="shared", scale="40.0 * d")
+    result = dd.run(families="jpeg", severities="1", planner="otherplanner.py")
+    assert result.ret == pytest.ExitCode.INTERRUPTED
+    result.assert_outcomes(failed=1)
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*--drivedegrade-report: *shared holds the certificate of another planner named "
+                                 "'shared' (planner file *myplanner.py; this run's is *otherplanner.py); pass another "
+                                 "--drivedegrade-report, or --drivedegrade-report-overwrite*"])
+    assert {p: p.read_bytes() for p in dd.folder("shared").rglob("*") if p.is_file()} == before
+    again = dd.run("--drivedegrade-report-overwrite", families="jpeg", severities="1", planner="otherplanner.py")
+    again.assert_outcomes(passed=4)
+    assert load_json(cert)["planner"]["file"].endswith("/otherplanner.py")
+    dd.run(families="jpeg", severities="1", planner="otherplanner.py").assert_outcomes(passed=4)  # its own now
+
+
+def test_stray_temporary_files_are_swept_at_start_up_and_said(dd):
+    """Trust case 12: the temporaries a kill -9 leaves (named exactly as the atomic writer names them, older than
+    the run) in the planner folder and cells/ are removed at start-up and the terminal says so; files that only
+    look alike, or are newer than the run's start, are kept."""
+    import os
+    import time
+
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    folder = dd.folder()
+    old = time.time() - 3600
+    stray = [folder / ".certificate.json.a1b2c3d_.tmp", folder / "cells" / ".jpeg-s1.json.zz9x0q1k.tmp"]
+    kept = [folder / ".notes.txt.a1b2c3d4.tmp", folder / "certificate.json.a1b2c3d4.tmp",
+            folder / ".cells.csv.short.tmp", folder / "cells" / ".jpeg-s1.json.zz9x0q1k.tmp.bak"]
+    for path in stray + kept:
+        path.write_text("partial")
+        os.utime(path, (old, old))
+    future = folder / ".report.html.f0f0f0f0.tmp"
+    future.write_text("in flight")
+    os.utime(future, (time.time() + 3600, time.time() + 3600))
+    result = dd.run(families="jpeg", severities="1")
+    result.assert_outcomes(passed=4)
+    result.stdout.fnmatch_lines(["drivedegrade: removed 2 temporary file(s) left in *rep by an interrupted write: "
+                                 "testplanner/.certificate.json.a1b2c3d_.tmp, "
+                                 "testplanner/cells/.jpeg-s1.json.zz9x0q1k.tmp"])
+    assert not any(p.exists() for p in stray) and all(p.exists() for p in [*kept, future])
+    quiet = dd.run(families="jpeg", severities="1")
+    assert "temporary file(s)" not in quiet.stdout.str()

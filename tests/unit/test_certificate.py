@@ -193,3 +193,37 @@ def test_a_consistent_resealed_certificate_passes_and_incomplete_exits_3(cert_fi
     assert main(["verify", str(cert_file)]) == 3
     err = capsys.readouterr().err
     assert "INCOMPLETE" in err and "missing cell(s): jpeg-s3" in err
+
+
+def _sealed_text(cert_file: Path) -> str:
+    return cert_file.read_text()
+
+
+@pytest.mark.parametrize("edit_text, expected", [
+    (lambda t: t.replace('"quality": ', '"quality": NaN, "was": ', 1), r"a NaN literal at axes\.quality"),
+    (lambda t: t.replace('"removal": ', '"removal": -Infinity, "was": ', 1), r"a -Infinity literal at axes\.removal"),
+    (lambda t: t.replace('"axes": {', '"axes": {"quality": 1.0, ', 1), r"duplicate key 'quality' in axes"),
+    (lambda t: t.replace('{', '{"digest": "' + "0" * 64 + '", ', 1), r"duplicate key 'digest' in the top-level"),
+    (lambda t: t.replace('"cells": [', '"cells": [' + "[" * 100_000 + "]" * 100_000 + ", ", 1),
+     r"nested deeper than 64 levels at line \d+, column \d+"),
+], ids=["nan", "infinity", "duplicate-key", "duplicate-top-level", "deep"])
+def test_strict_json_is_required_with_what_and_where(cert_file: Path, capsys, edit_text, expected) -> None:
+    """Trust case 11: a NaN / Infinity literal, a duplicate key or 100000 nested lists is a CertificateError
+    (not "edited", not a traceback) naming the problem and where; `verify` exits 2, the malformed-file code."""
+    cert_file.write_text(edit_text(_sealed_text(cert_file)))
+    with pytest.raises(cf.CertificateError, match=expected) as caught:
+        cf.load_certificate(cert_file)
+    assert not isinstance(caught.value, cf.CertificateMismatch)
+    assert main(["verify", str(cert_file)]) == 2
+    err = capsys.readouterr().err
+    assert re.search(expected, err) and str(cert_file) in err and "Traceback" not in err
+
+
+def test_strict_parsing_keeps_a_sealed_certificate_and_strings_that_look_nested(cert_file: Path) -> None:
+    """Brackets inside strings do not count as nesting; a sealed certificate loads unchanged, as plain dicts."""
+    assert cf.load_certificate(cert_file) == json.loads(cert_file.read_text())
+    assert type(cf.load_certificate(cert_file)["axes"]) is dict
+    text = '{"command": "' + "[{" * 200 + '", "n": NaNa}'
+    with pytest.raises(cf.CertificateError, match="not valid JSON"):
+        cf.parse_certificate_text(text, "x.json")
+    assert cf.parse_certificate_text('{"command": "' + "[{" * 200 + '"}', "x.json") == {"command": "[{" * 200}

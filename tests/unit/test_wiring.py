@@ -323,3 +323,29 @@ def test_gate_fails_only_on_an_axis_regression():
     assert gate(cert, None, 0.02) == ([], False)
     lines, failed = gate(cert, {**base, "spec_version": "2"}, 0.02)
     assert failed and "spec version" in lines[0]
+
+
+def test_gate_fails_on_what_a_weak_baseline_leaves_uncompared():
+    """Trust case 8: axes null in the baseline, cells it lacks, an incomplete baseline or another planner's
+    fail the gate saying what was not compared; partial / any_planner accept them with the same line."""
+    cert = {"spec_version": "3", "dataset": {"fingerprint": "d", "frames": 8}, "planner": {"name": "a"},
+            "axes": {"quality": 0.8, "removal": 0.5, "mean": 0.65},
+            "cells": [{"cell": "fog-s5", "retention": 0.5}, {"cell": "jpeg-s5", "retention": 0.7}]}
+    base = {**cert, "axes": {"quality": None, "removal": 0.5, "mean": None},
+            "cells": [{"cell": "fog-s5", "retention": 0.5}],
+            "completeness": {"complete": False, "missing_cells": ["jpeg-s5"]}}
+    lines, failed = gate(cert, base, 0.02)
+    assert failed
+    assert lines[0] == ("baseline: FAILED: not compared: the baseline run is incomplete (completeness.complete is "
+                        "false; 1 cell(s) missing); 1 cell(s) of this run have no retention in the baseline: "
+                        "jpeg-s5; axes quality, mean are null in the baseline; certify a complete baseline with "
+                        "this run's families and severities, or pass --drivedegrade-baseline-partial to gate on "
+                        "what both have")
+    lines, failed = gate(cert, base, 0.02, partial=True)
+    assert not failed and lines[0].startswith("baseline (--drivedegrade-baseline-partial): not compared: the ")
+    lines, failed = gate(cert, {**cert, "planner": {"name": "b"}}, 0.02)
+    assert failed and "is of planner 'b' but this run certifies 'a'" in lines[0]
+    assert gate(cert, {**cert, "planner": {"name": "b"}}, 0.02, any_planner=True) == (
+        ["baseline: 0 cell and 0 axis regression(s) beyond tolerance 0.02"], False)
+    lines, failed = gate(cert, {**cert, "dataset": {"fingerprint": "d", "frames": 6}}, 0.02)
+    assert failed and "scored frames: baseline 6, this run 8 (--drivedegrade-frames)" in lines[0]
