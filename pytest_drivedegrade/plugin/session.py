@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -24,6 +24,9 @@ from .context import build_run_context
 from .controller import Outcome
 from .items import CellCollector, CellItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
+
+if TYPE_CHECKING:
+    from ..raypool import RayPlanner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
 
@@ -43,6 +46,14 @@ def _certify_cell(planner: Any, request: pytest.FixtureRequest) -> None:
     session.run_item(item, planner)
 
 
+def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
+    """One cell under --drivedegrade-ray: the planner is the actors' (the controller never builds it)."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    assert isinstance(item, CellItem) and session.remote is not None
+    session.run_item(item, session.remote)
+
+
 class DriveDegradeSession:
     """Registered as a plugin when --drivedegrade is given; one per process, reached through
     ``config.stash[SESSION_KEY]``."""
@@ -60,6 +71,7 @@ class DriveDegradeSession:
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
         self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
+        self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -89,7 +101,8 @@ class DriveDegradeSession:
         if file_path != self.collect_path:
             return None
         collector = CellCollector.from_parent(parent, path=file_path)
-        collector.module, collector.cells, collector.call = self.planner_module, self.cells, _certify_cell
+        call = _certify_cell_in_actors if self.options.ray else _certify_cell
+        collector.module, collector.cells, collector.call = self.planner_module, self.cells, call
         return collector
 
     @pytest.hookimpl(tryfirst=True)
@@ -117,6 +130,13 @@ class DriveDegradeSession:
             raise pytest.UsageError(f"--drivedegrade: {exc}") from None
         self._check_baseline(context)
         self._check_report_dir()
+        if self.options.ray is not None:
+            from .actors import start_planner_actors
+
+            try:
+                self.remote = start_planner_actors(self.config, self.options, context, self.collect_path)
+            except DriveDegradeError as exc:
+                raise pytest.UsageError(f"--drivedegrade-ray: {exc}") from None
 
     def _check_report_dir(self) -> None:
         """Results are written as each cell finishes: a report folder that cannot be created fails now."""
@@ -141,12 +161,15 @@ class DriveDegradeSession:
             raise pytest.UsageError(f"--drivedegrade-baseline: {self.options.baseline_path}: {exc}") from None
 
     def run_item(self, item: CellItem, planner: Any) -> None:
-        from .checks import certify
+        from .checks import certify, prefetch
 
         family, severity = item.drivedegrade_cell
         self._check_name(item, planner)
         try:
             context = self.run_context()
+            coming = self._next_cell(item)
+            if coming is not None:  # planner actors: start the next cell now, so they never wait for this one's end
+                prefetch(context, planner, *coming, store=self.store)
             payload, failures = certify(context, planner, family, severity,
                                         store=self.store, baseline=self.baseline,
                                         tolerance=self.options.tolerance)
@@ -156,6 +179,14 @@ class DriveDegradeSession:
         item.user_properties.extend(payload.properties)
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
+
+    def _next_cell(self, item: CellItem) -> tuple[str, int] | None:
+        """The cell of the item that runs after `item` (None for the last one, or without planner actors)."""
+        if self.remote is None:
+            return None
+        items = item.session.items
+        at = next((i for i, it in enumerate(items) if it is item), len(items))
+        return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)), None)
 
     def _check_name(self, item: CellItem, planner: Any) -> None:
         """The planner's name, checked once when the planner first exists (the first cell): a bad one fails that
@@ -199,10 +230,24 @@ class DriveDegradeSession:
             return
         from .controller import finish_run
 
+        actors = self._close_actors()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store)
+        if self.outcome is not None:
+            self.outcome.lines += actors
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
             session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+    def _close_actors(self) -> list[str]:
+        """Tear the planner actors down (their fixtures' teardown) and disconnect from Ray; the pool's lines."""
+        remote, self.remote = self.remote, None
+        if remote is None:
+            return []
+        return remote.pool.summary() + remote.pool.close()
+
+    def pytest_unconfigure(self, config: pytest.Config) -> None:
+        """Never leave actors or a local cluster behind, whatever ended the session."""
+        self._close_actors()
 
     def pytest_terminal_summary(self, terminalreporter: Any) -> None:
         if self.outcome is not None:
