@@ -3,12 +3,15 @@
 Prints, in one run on this machine:
 - the certification with `-n 2` against shards 1/2 and 2/2 run one after the other plus `drivedegrade merge`
   (wall seconds, ratio, and whether the merged cells.csv equals the unsharded one);
+- the certification on a local Ray cluster with 2 planner actors (`--drivedegrade-ray local`) against `-n 2`
+  (wall seconds, ratio, and whether the two cells.csv are equal);
 - camera_cnn's frames/s at batch 1 against batch 16 on CPU (predict / predict_batch over the same val frames,
   median of 5 passes), and the largest plan difference between the two;
 - the extrapolated wall time of a full nuScenes-val certification for a 1.8 and a 45 frames/s planner on 1, 8
   and 64 GPUs (`drivedegrade estimate`).
 
-    python benchmarks/scale.py [--families jpeg,blackout,...] [--frames N]
+    python benchmarks/scale.py [--families jpeg,blackout,...] [--frames N] [--skip-sharding] [--skip-ray]
+                               [--skip-batches]
 """
 
 from __future__ import annotations
@@ -51,6 +54,17 @@ def sharding(extra: list[str]) -> None:
     sharded = sum(parts) + merge
     print(f"-n 2: {whole:.1f} s; shards 1/2 + 2/2 one after the other ({parts[0]:.1f} + {parts[1]:.1f} s) + merge "
           f"{merge:.1f} s = {sharded:.1f} s; ratio {sharded / whole:.2f}; merged cells.csv identical: {same}")
+
+
+def ray_actors(extra: list[str]) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp)
+        xdist = certify(base / "n2", ["-n", "2", *extra])
+        ray = certify(base / "ray", ["--drivedegrade-ray", "local", "--drivedegrade-ray-actors", "2", *extra])
+        same = (base / "n2" / "camera_cnn" / "cells.csv").read_text() == \
+            (base / "ray" / "camera_cnn" / "cells.csv").read_text()
+    print(f"-n 2: {xdist:.1f} s; Ray local cluster, 2 actors: {ray:.1f} s; ratio {ray / xdist:.2f}; cells.csv "
+          f"identical: {same}")
 
 
 def batches(frames: int | None) -> None:
@@ -106,11 +120,17 @@ def main() -> None:
     parser.add_argument("--families", help="families for the sharding comparison (default: all)")
     parser.add_argument("--frames", type=int, help="frames for the batch comparison (default: all val frames)")
     parser.add_argument("--skip-sharding", action="store_true")
+    parser.add_argument("--skip-ray", action="store_true")
+    parser.add_argument("--skip-batches", action="store_true", help="skip the batch comparison and the estimates")
     args = parser.parse_args()
+    families = ["--drivedegrade-families", args.families] if args.families else []
     if not args.skip_sharding:
-        sharding(["--drivedegrade-families", args.families] if args.families else [])
-    batches(args.frames)
-    estimates()
+        sharding(families)
+    if not args.skip_ray:
+        ray_actors(families)
+    if not args.skip_batches:
+        batches(args.frames)
+        estimates()
 
 
 if __name__ == "__main__":

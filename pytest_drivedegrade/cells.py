@@ -220,6 +220,26 @@ class CellRecord:
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
                    seed_runs=runs, seeds=list(data.get("seeds", [])))
 
+    @classmethod
+    def concat(cls, parts: Sequence[CellRecord]) -> CellRecord:
+        """One cell's record from the records of consecutive frame groups of it (in frame order): the arrays and
+        errors joined in that order, the cost seconds summed. Groups of whole scenes give exactly the record of
+        one sequential run (`reset` and frame_dropout's state restart at each scene)."""
+        if not parts:
+            raise InvalidInput("no record to concatenate")
+        first = parts[0]
+        if any((p.cell, p.family, p.severity) != (first.cell, first.family, first.severity) or p.seed_runs
+               for p in parts):
+            raise InvalidInput(f"cell {first.cell!r}: only single-seed records of one cell are concatenated")
+        arrays: dict[str, Any] = {k: np.concatenate([getattr(p, k) for p in parts])
+                  for k in ("plans", "l2", "collision", "collision_vru", "jerk", "bit1", *PDMS_FIELDS, "map_scored")}
+        seconds: dict[str, float] = {}
+        for p in parts:
+            for k, v in p.seconds.items():
+                seconds[k] = seconds.get(k, 0.0) + float(v)
+        return cls(first.cell, first.family, first.severity, [f for p in parts for f in p.frames], **arrays,
+                   seconds=seconds, errors=[e for p in parts for e in p.errors])
+
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
         return np.linalg.norm(self.plans[:, -1] - clean.plans[:, -1], axis=-1)

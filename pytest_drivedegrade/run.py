@@ -81,6 +81,45 @@ def unread_cameras(cameras: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(c for c in CAMERAS if c not in cameras)
 
 
+#: The frames ``[start, stop)`` of a run's frame list (`RunContext.frames`).
+Span = tuple[int, int]
+
+
+class PlannerElsewhere:
+    """A planner built and run in other processes (`raypool`'s actors): what the controller knows of it (its
+    name, cameras, fingerprint and call style, as the processes that built it reported them) and the one thing
+    it does, a cell on a span of frames. `RunContext.run_cell` hands such a planner its cells."""
+
+    @property
+    def name(self) -> str:
+        raise NotImplementedError
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    @property
+    def info(self) -> PlannerInfo:
+        raise NotImplementedError
+
+    @property
+    def style(self) -> CallStyle:
+        raise NotImplementedError
+
+    def run_cell(self, context: RunContext, family: str, severity: int, *, unread: tuple[str, ...], seed: int,
+                 span: Span) -> CellRecord:
+        """The cell's record on ``context.frames[span[0]:span[1]]``, in frame order."""
+        raise NotImplementedError
+
+    def prefetch(self, context: RunContext, family: str, severity: int, *, unread: tuple[str, ...], seed: int) -> None:
+        """Start the cell on every frame now; a later `run_cell` with the same arguments collects it."""
+
+
+def style_of(planner: Any) -> CallStyle:
+    """How the suite calls `planner` (`planning.call_style`), also for a planner that runs elsewhere."""
+    return planner.style if isinstance(planner, PlannerElsewhere) else call_style(planner)
+
+
 @dataclass
 class RunContext:
     """Per-process state of a certification run."""
@@ -130,6 +169,8 @@ class RunContext:
         return hashlib.sha256("|".join(f.token for f in self.frames).encode()).hexdigest()[:16]
 
     def planner_info(self, planner: Any) -> PlannerInfo:
+        if isinstance(planner, PlannerElsewhere):
+            return planner.info
         key = id(planner)
         if key not in self._planner:
             self._planner[key] = PlannerInfo(planner_cameras(planner), planner_fingerprint(planner, self.planner_path))
@@ -160,6 +201,10 @@ class RunContext:
     def run_seeded_cell(self, planner: Any, family: str, severity: int) -> CellRecord:
         """A ladder cell under every seed of `seeds_for`: the first seed's record carrying the others' runs."""
         seeds = self.seeds_for(family)
+        if isinstance(planner, PlannerElsewhere):  # every seed's frames queued at once, then collected in order
+            unread = unread_cameras(planner_cameras(planner))
+            for s in seeds:
+                planner.prefetch(self, family, severity, unread=unread, seed=s)
         first = self.run_cell(planner, family, severity, seed=seeds[0])
         if len(seeds) > 1:
             first.seed_runs = [self.run_cell(planner, family, severity, seed=s) for s in seeds[1:]]
@@ -309,12 +354,18 @@ class RunContext:
             return describe_failure(exc, frame.token)
 
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
-                 seed: int | None = None) -> CellRecord:
+                 seed: int | None = None, span: Span | None = None) -> CellRecord:
         """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message.
-        `seed` overrides the run's seed (one of `seeds_for`)."""
+        `seed` overrides the run's seed (one of `seeds_for`); `span` runs only ``frames[start:stop]`` (a replay,
+        or one group of a cell run by planner actors), streamed as a run of those frames alone would be."""
         if unread is None:  # the cameras only: the floor model needs no fingerprint
             unread = unread_cameras(planner_cameras(planner))
-        n = len(self.frames)
+        span = span or (0, len(self.frames))
+        if isinstance(planner, PlannerElsewhere):
+            return planner.run_cell(self, family, severity, unread=unread, seed=self.seed if seed is None else seed,
+                                    span=span)
+        frames = self.frames[span[0]:span[1]]
+        n = len(frames)
         plans = np.full((n, HORIZON_STEPS, 2), np.nan)
         l2, col, vru = (np.full((n, HORIZON_STEPS), np.nan) for _ in range(3))
         jerk, bit1 = np.full(n, np.nan), np.full(n, np.nan)
@@ -322,8 +373,7 @@ class RunContext:
         errors: list[str] = []
         spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
         start = last = time.perf_counter()
-        for i, (sample, result) in enumerate(self.stream(planner, family, severity, self.frames, unread=unread,
-                                                                   seed=seed)):
+        for i, (sample, result) in enumerate(self.stream(planner, family, severity, frames, unread=unread, seed=seed)):
             elapsed = time.perf_counter() - last  # predict() plus the lazy decode, injection and input check
             for part in ("decode", "inject", "check"):
                 spent[part] += sample.seconds[part]
@@ -347,7 +397,7 @@ class RunContext:
             last = time.perf_counter()
             spent["metrics"] += last - t1
         spent["total"] = time.perf_counter() - start
-        return CellRecord(cell_id(family, severity), family, severity, [f.token for f in self.frames], plans, l2,
+        return CellRecord(cell_id(family, severity), family, severity, [f.token for f in frames], plans, l2,
                           col, vru, jerk, bit1, seconds=spent, errors=errors, nc=pdms["nc"], dac=pdms["dac"],
                           ttc=pdms["ttc"], ep=pdms["ep"], comfort=pdms["comfort"], pdms=pdms["pdms"],
                           map_scored=pdms["map_scored"])

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 
 from ..cells import CellPayload, CellRecord, Property, cell_id, differing_frames, identical_plans, rear_cameras
-from ..planning import call_style, planner_name
+from ..planning import planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain
-from ..run import MAX_MESSAGES, RunContext
+from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, style_of, unread_cameras
 from ..scoring.baseline import cell_regression
 from ..scoring.records import finite_mean, horizon_metrics
 from ..scoring.retention import record_retention
@@ -51,17 +51,18 @@ def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, 
 
     A planner with ``reset`` keeps state, so its scene is replayed from the scene's first scored frame up to
     this one (reset first), and the state is what it was when the plan moved; a stateless planner is asked
-    about this frame alone.
+    about this frame alone. The replay is a cell on that span (`RunContext.run_cell`), so a planner that runs in
+    Ray actors replays there; a failed frame (a NaN plan: a valid plan is finite) counts as moved.
     """
     frame = context.frames[index]
     first = index
-    if call_style(planner).resets:
+    if style_of(planner).resets:
         while first > 0 and context.frames[first - 1].scene_token == frame.scene_token:
             first -= 1
     found = []
     for cam in unread:
-        *_, (_sample, result) = context.stream(planner, "null", 0, context.frames[first:index + 1], unread=(cam,))
-        if isinstance(result, str) or not identical_plans(result, clean):
+        plan = context.run_cell(planner, "null", 0, unread=(cam,), span=(first, index + 1)).plans[-1]
+        if np.isnan(plan).any() or not identical_plans(plan, clean):
             found.append(cam)
     return found
 
@@ -93,6 +94,21 @@ def _reusable(stored: CellPayload | None) -> CellRecord | None:
     if stored is None or any(run.errors for run in stored.record.runs()):
         return None
     return stored.record
+
+
+def prefetch(context: RunContext, planner: Any, family: str, severity: int, *, store: ResultStore) -> None:
+    """Start a coming cell on a planner that runs elsewhere (Ray actors), so they work on it while the controller
+    finishes the current one; nothing for a local planner, or for a cell `certify` will reuse from the store.
+    Every seed of `seeds_for`, the cameras `certify` blacks out: the arguments its `run_cell` calls use."""
+    if not isinstance(planner, PlannerElsewhere):
+        return
+    cell = cell_id(family, severity)
+    default = context.planner_path.stem if context.planner_path else "planner"
+    if cell == "clean" or _reusable(store.read(planner_name(planner, default), cell, context.run_key(planner))):
+        return  # clean: the first cell, computed once per process; its own call starts it
+    unread = unread_cameras(planner.cameras)
+    for seed in context.seeds_for(family):
+        planner.prefetch(context, family, severity, unread=unread, seed=seed)
 
 
 def certify(context: RunContext, planner: Any, family: str, severity: int, *, store: ResultStore,

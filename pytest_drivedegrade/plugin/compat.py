@@ -1,8 +1,9 @@
 """The few pytest internals the plugin needs, in one place, each with a fallback.
 
-pytest has no public API for these three: telling a fixture function from a plain one, registering the fixtures
-of a module imported by hand (the planner file) with the visibility of a collector's items, and reaching the
-JUnit XML writer to add suite properties from the controller.
+pytest has no public API for these four: telling a fixture function from a plain one, reaching the function a
+fixture decorator wraps (a Ray actor builds the planner fixture outside pytest), registering the fixtures of a
+module imported by hand (the planner file) with the visibility of a collector's items, and reaching the JUnit XML
+writer to add suite properties from the controller.
 """
 
 from __future__ import annotations
@@ -20,6 +21,21 @@ def is_fixture(obj: object) -> bool:
     except ImportError:  # pragma: no cover - a pytest without it: the decorator leaves this attribute
         return hasattr(obj, "_fixture_function_marker") or hasattr(obj, "_pytestfixturefunction")
     return getfixturemarker(obj) is not None
+
+
+def fixture_function(obj: Any) -> tuple[str, Any]:
+    """The name a fixture is requested by and the user's function behind the decorator (`obj` is a fixture)."""
+    from _pytest.fixtures import getfixturemarker
+
+    marker = getfixturemarker(obj)
+    get = getattr(obj, "_get_wrapped_function", None)  # pytest >= 8.4: a FixtureFunctionDefinition
+    if callable(get):
+        function = get()
+    else:  # pragma: no cover - older pytest: the function itself, wrapped to fail when called directly
+        wrapped = getattr(obj, "__pytest_wrapped__", None)
+        function = wrapped.obj if wrapped is not None else obj
+    name = getattr(marker, "name", None) or function.__name__
+    return str(name), function
 
 
 def register_module_fixtures(collector: pytest.Collector, module: ModuleType) -> None:

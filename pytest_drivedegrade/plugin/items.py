@@ -20,14 +20,15 @@ from ..cells import cell_id
 from .compat import is_fixture, register_module_fixtures
 
 
-def import_planner_file(path: Path) -> ModuleType:
-    """Import a planner file as a module, or raise a UsageError that says what is wrong with it."""
+def import_planner_file(path: Path, name: str | None = None) -> ModuleType:
+    """Import a planner file as a module (under `name`, by default ``drivedegrade_planner_<stem>``), or raise a
+    UsageError that says what is wrong with it."""
     if not path.is_file():
         raise pytest.UsageError(f"--drivedegrade: planner file {path} does not exist; give the path of a .py file "
                                 "that defines a `planner` fixture (see planners/template.py)")
     if path.suffix != ".py":
         raise pytest.UsageError(f"--drivedegrade: {path} is not a Python file (.py)")
-    name = f"drivedegrade_planner_{path.stem}"
+    name = name or f"drivedegrade_planner_{path.stem}"
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:  # pragma: no cover - a .py file always has a loader
         raise pytest.UsageError(f"--drivedegrade: {path} cannot be imported")

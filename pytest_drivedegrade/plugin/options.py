@@ -9,13 +9,16 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..shards import Shard
+
+if TYPE_CHECKING:
+    from ..raypool import RayOptions
 
 EGO_FAMILIES = (EGO_NOISE, EGO_BLIND)
 
@@ -68,6 +71,14 @@ OPTIONS: tuple[OptionSpec, ...] = (
                f"(default {DEFAULT_FLAT:g})", {"metavar": "X"}),
     OptionSpec("--drivedegrade-shard", "drivedegrade_shard", "run shard I of N (1-based; scene-contiguous, "
                "balanced by frame count) and write its cells for `drivedegrade merge`", {"metavar": "I/N"}),
+    OptionSpec("--drivedegrade-ray", "drivedegrade_ray", "run the cells' scene groups on a pool of Ray planner "
+               "actors, each building the planner once: `local` starts a local cluster, `auto` joins a running one, "
+               "or ray://HOST:PORT / HOST:PORT (needs the ray extra; not with -n)", {"metavar": "ADDRESS"}),
+    OptionSpec("--drivedegrade-ray-actors", "drivedegrade_ray_actors", "planner actors of --drivedegrade-ray "
+               "(default: 2 on a local cluster; on a cluster, its GPUs / --drivedegrade-ray-gpus, or its CPUs)",
+               {"metavar": "N"}),
+    OptionSpec("--drivedegrade-ray-gpus", "drivedegrade_ray_gpus", "GPUs each planner actor asks for (default 0; "
+               "fractional allowed, e.g. 0.5 puts two actors on one GPU)", {"metavar": "G"}),
     OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
                "M = mean L2) or pdms (the PDMS-like score); both are always computed and reported",
                {"metavar": "METRIC"}),
@@ -169,6 +180,7 @@ class RunOptions:
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
+    ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
 
 
 def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
@@ -194,6 +206,33 @@ def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
     except DriveDegradeError as exc:
         raise pytest.UsageError(str(exc)) from None
     return pem
+
+
+def _ray(config: pytest.Config) -> RayOptions | None:
+    """--drivedegrade-ray ADDRESS and its actors and GPUs, checked: Ray importable, no -n (the actors are the
+    run's parallelism and the controller their only driver: xdist workers would each start a pool)."""
+    address = value(config, "drivedegrade_ray")
+    actors = _number(config, "drivedegrade_ray_actors", int, None, 1, None)
+    gpus = _number(config, "drivedegrade_ray_gpus", float, 0.0, 0.0, None)
+    if address is None:
+        for dest in ("drivedegrade_ray_actors", "drivedegrade_ray_gpus"):
+            if value(config, dest) is not None:
+                raise _fail(dest, "needs --drivedegrade-ray ADDRESS (local, auto or a cluster address)")
+        return None
+    address = str(address).strip()
+    if address not in ("local", "auto") and ":" not in address:
+        raise _fail("drivedegrade_ray", f"expected local, auto, ray://HOST:PORT or HOST:PORT, got {address!r}")
+    workers = getattr(config.option, "numprocesses", None)
+    if workers:
+        raise _fail("drivedegrade_ray", f"cannot be combined with -n {workers} (xdist): the Ray actors run the cells' "
+                    "frames in parallel and the controller must be their only driver; drop -n (or give -n 0)")
+    from ..raypool import RayOptions, import_ray
+
+    try:
+        import_ray()
+    except DriveDegradeError as exc:
+        raise _fail("drivedegrade_ray", str(exc)) from None
+    return RayOptions(address, actors, gpus)
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -250,4 +289,5 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
+        ray=_ray(config),
     )

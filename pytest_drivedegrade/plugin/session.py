@@ -13,7 +13,7 @@ import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -26,6 +26,9 @@ from .context import build_run_context
 from .controller import Outcome, planner_file
 from .items import CellCollector, CellItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
+
+if TYPE_CHECKING:
+    from ..raypool import RayPlanner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
 
@@ -83,6 +86,14 @@ def _refuse_own_output(options: RunOptions) -> None:
             f"{real} baseline.json) and pass the copy, or pass another --drivedegrade-report")
 
 
+def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
+    """One cell under --drivedegrade-ray: the planner is the actors' (the controller never builds it)."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    assert isinstance(item, CellItem) and session.remote is not None
+    session.run_item(item, session.remote)
+
+
 class DriveDegradeSession:
     """Registered as a plugin when --drivedegrade is given; one per process, reached through
     ``config.stash[SESSION_KEY]``."""
@@ -101,6 +112,7 @@ class DriveDegradeSession:
         self.outcome: Outcome | None = None  # controller: the end of the run
         self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
+        self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -131,7 +143,8 @@ class DriveDegradeSession:
         if file_path != self.collect_path:
             return None
         collector = CellCollector.from_parent(parent, path=file_path)
-        collector.module, collector.cells, collector.call = self.planner_module, self.cells, _certify_cell
+        call = _certify_cell_in_actors if self.options.ray else _certify_cell
+        collector.module, collector.cells, collector.call = self.planner_module, self.cells, call
         return collector
 
     @pytest.hookimpl(tryfirst=True)
@@ -159,6 +172,13 @@ class DriveDegradeSession:
             raise pytest.UsageError(f"--drivedegrade: {exc}") from None
         self._check_baseline(context)
         self._check_report_dir()
+        if self.options.ray is not None:
+            from .actors import start_planner_actors
+
+            try:
+                self.remote = start_planner_actors(self.config, self.options, context, self.collect_path)
+            except DriveDegradeError as exc:
+                raise pytest.UsageError(f"--drivedegrade-ray: {exc}") from None
 
     def _check_report_dir(self) -> None:
         """Results are written as each cell finishes: a report folder that cannot be created fails now. The
@@ -203,12 +223,15 @@ class DriveDegradeSession:
                                     "what both have")
 
     def run_item(self, item: CellItem, planner: Any) -> None:
-        from .checks import certify
+        from .checks import certify, prefetch
 
         family, severity = item.drivedegrade_cell
         self._check_name(item, planner)
         try:
             context = self.run_context()
+            coming = self._next_cell(item)
+            if coming is not None:  # planner actors: start the next cell now, so they never wait for this one's end
+                prefetch(context, planner, *coming, store=self.store)
             payload, failures = certify(context, planner, family, severity,
                                         store=self.store, baseline=self.baseline,
                                         tolerance=self.options.tolerance)
@@ -218,6 +241,14 @@ class DriveDegradeSession:
         item.user_properties.extend(payload.properties)
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
+
+    def _next_cell(self, item: CellItem) -> tuple[str, int] | None:
+        """The cell of the item that runs after `item` (None for the last one, or without planner actors)."""
+        if self.remote is None:
+            return None
+        items = item.session.items
+        at = next((i for i, it in enumerate(items) if it is item), len(items))
+        return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)), None)
 
     def _check_name(self, item: CellItem, planner: Any) -> None:
         """The planner's name, checked once when the planner first exists (the first cell): a bad one, or one
@@ -289,10 +320,24 @@ class DriveDegradeSession:
             return
         from .controller import finish_run
 
+        actors = self._close_actors()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path))
+        if self.outcome is not None:
+            self.outcome.lines += actors
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
             session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+    def _close_actors(self) -> list[str]:
+        """Tear the planner actors down (their fixtures' teardown) and disconnect from Ray; the pool's lines."""
+        remote, self.remote = self.remote, None
+        if remote is None:
+            return []
+        return remote.pool.summary() + remote.pool.close()
+
+    def pytest_unconfigure(self, config: pytest.Config) -> None:
+        """Never leave actors or a local cluster behind, whatever ended the session."""
+        self._close_actors()
 
     def pytest_terminal_summary(self, terminalreporter: Any) -> None:
         if self.outcome is not None:

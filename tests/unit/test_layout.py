@@ -22,7 +22,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("data",),
     ("planning", "scoring.metrics", "scoring.pdms"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "run", "store", "shards"),  # running one cell, on one shard of the scenes
+    ("loader", "run", "store", "shards", "raypool"),  # running one cell, on one shard of the scenes or Ray actors
     ("scoring",),  # statistics over finished cells
     ("report",),
     ("plugin", "cli"),

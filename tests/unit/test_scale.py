@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -45,6 +46,29 @@ def test_batched_plans_equal_per_frame_plans(world, camera_cnn, batch):
         # float32 sums in another order: measured up to 1.2e-5 m on this world (the issue asks 1e-5; see README)
         np.testing.assert_allclose(b.plans, a.plans, rtol=0, atol=5e-5)
     assert many.run_key(camera_cnn)["batch"] == batch and "batch" not in one.run_key(camera_cnn)
+
+
+def test_a_cell_joined_from_its_scene_groups_is_the_cell_run_at_once(world, camera_cnn):
+    """What Ray actors return and the controller joins (`CellRecord.concat`): the same record, bit for bit, but
+    for the cost seconds (summed); frame_dropout's state restarts per scene, so whole-scene groups lose nothing."""
+    from pytest_drivedegrade.cells import CellRecord
+    from pytest_drivedegrade.shards import scene_runs
+
+    ctx = context(world, 1)
+    sizes = [len(run) for run in scene_runs(ctx.frames)]
+    assert len(sizes) >= 2
+    spans = [(sum(sizes[:i]), sum(sizes[:i + 1])) for i in range(len(sizes))]
+    for family, severity in (("clean", 0), ("frame_dropout", 5), ("ego_noise", 3)):
+        whole = ctx.run_cell(camera_cnn, family, severity).to_builtins()
+        parts = [ctx.run_cell(camera_cnn, family, severity, span=s) for s in spans]
+        joined = CellRecord.concat(parts).to_builtins()
+        assert joined.pop("seconds")["total"] == pytest.approx(sum(p.seconds["total"] for p in parts))
+        whole.pop("seconds")
+        assert json.dumps(joined, sort_keys=True) == json.dumps(whole, sort_keys=True)  # NaN equal to NaN too
+        assert len(joined["frames"]) == sum(sizes)
+    with pytest.raises(ValueError, match="only single-seed records of one cell"):
+        CellRecord.concat([ctx.run_cell(camera_cnn, "clean", 0, span=spans[0]),
+                           ctx.run_cell(camera_cnn, "jpeg", 1, span=spans[1])])
 
 
 class Faulty:
