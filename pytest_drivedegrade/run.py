@@ -27,7 +27,7 @@ from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, samples
-from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, validate_output
+from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, to_numpy, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
 from .scoring.pdms import PreparedFrame
 from .shards import Shard, shard_frames
@@ -249,8 +249,7 @@ class RunContext:
         try:
             with time_limit(self.timeout * len(batch)):
                 raw = planner.predict_batch(batch, egos, [s.frame.command for s in batch], contexts)
-            if hasattr(raw, "detach") and hasattr(raw, "cpu"):
-                raw = raw.detach().cpu().numpy()
+            raw = to_numpy(raw)
             if len(raw) != len(batch):
                 raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
         except PlannerOutputError as exc:
