@@ -248,7 +248,8 @@ class RunContext:
         egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
         try:
             with time_limit(self.timeout * len(batch)):
-                raw = planner.predict_batch(batch, egos, [s.frame.command for s in batch], contexts)
+                raw = planner.predict_batch([s.view for s in batch], egos, [s.frame.command for s in batch],
+                                            contexts)
             raw = to_numpy(raw)
             if len(raw) != len(batch):
                 raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
@@ -271,10 +272,11 @@ class RunContext:
                 yield s, str(exc)
 
     def _inputs(self, planner: Any, sample: CellSample, style: CallStyle) -> tuple[Any, FrameContext | None]:
-        """The call's private ego status and its context (perturbed in the ego cells)."""
+        """The call's ego status and context (perturbed in the ego cells): every array in them read-only and a
+        copy private to this call, so nothing the planner does to them reaches another frame or cell."""
         frame = sample.frame
         ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
-        context = self.context_of(frame) if style.takes_context else None
+        context = self.context_of(frame).private() if style.takes_context else None
         if is_ego(sample.family):  # the ego cells: the ego status and the context's CAN bus, perturbed or zeroed
             from .corruptions.ego import perturb
 
@@ -289,9 +291,9 @@ class RunContext:
         try:
             with time_limit(self.timeout):
                 if style.takes_context:
-                    raw = planner.predict(sample, ego, frame.command, context=context)
+                    raw = planner.predict(sample.view, ego, frame.command, context=context)
                 else:
-                    raw = planner.predict(sample, ego, frame.command)
+                    raw = planner.predict(sample.view, ego, frame.command)
             written = sample.written()
             if written:
                 return _written_message(frame.token, written)
