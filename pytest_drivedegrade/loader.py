@@ -24,6 +24,7 @@ from .corruptions.ladder import FAMILIES
 from .corruptions.seeding import rng_for
 from .corruptions.temporal import frame_lost
 from .data.frame import Frame
+from .errors import DataError
 
 Decode = Callable[[Frame, str], np.ndarray]
 
@@ -139,12 +140,19 @@ class CellSample(Mapping[str, np.ndarray]):
         self._cache: dict[str, np.ndarray] = {}  # camera -> the planner's private copy
         self.seconds = {"decode": 0.0, "inject": 0.0, "check": 0.0}
         self.view = planner_view(self.__getitem__)  #: what the planner receives as `images`
+        #: Data faults met while producing an image (missing, empty, truncated, wrong-size file): the frame is a
+        #: data error whatever the planner then did (it may have caught the exception and planned without it).
+        self.data_errors: list[str] = []
 
     def __getitem__(self, camera: str) -> np.ndarray:
         if camera not in self._cache:
             if camera not in CAMERAS:
                 raise KeyError(camera)
-            image = np.ascontiguousarray(self._make(camera))
+            try:
+                image = np.ascontiguousarray(self._make(camera))
+            except DataError as exc:
+                self.data_errors.append(str(exc))
+                raise
             image.setflags(write=False)
             start = time.perf_counter()
             copy = image.copy()
