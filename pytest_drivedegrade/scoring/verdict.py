@@ -208,9 +208,10 @@ def undetermined_by_failures(v: dict[str, Any], failed: Mapping[str, Mapping[str
     if not failed:
         return {**v, "reason": None, "failed_cells": {}, "computed_label": v["label"]}
     reason = failure_reason(failed)
+    would = f"would give {v['label']}" if v["label"] != "undetermined" else "leave it open too"
     text = (f"Undetermined: {reason}. Retention, thresholds and axes are computed over the frames that did produce "
-            f"a plan and would give {v['label']}, but a verdict is not sealed on partial results: fix the failures "
-            "named in the cells' messages (planner contract or data set) and rerun.")
+            f"a plan and {would}, but a verdict is not sealed on partial results: fix the failures named in the "
+            "cells' messages (planner contract or data set) and rerun.")
     return {**v, "label": "undetermined", "case": "failed-frames", "text": text, "reason": reason,
             "failed_cells": {k: dict(c) for k, c in failed.items()}, "computed_label": v["label"],
             "ego_label": "undetermined", "borderline": False}

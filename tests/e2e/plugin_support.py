@@ -95,8 +95,10 @@ class TestPlanner:
         future, front = self.frame_truth(context.token)
         plan = np.array(future, dtype=float) + [0.5, 0.0]
         if "CAM_FRONT" in self.cameras:
-            clean = cv2.imread(front)[..., ::-1]
-            d = float(np.abs(images["CAM_FRONT"].astype(np.int16) - clean).mean()) / 255.0
+            delivered = images["CAM_FRONT"]  # first: a data fault in it is the suite's to report
+            clean = cv2.imread(front)  # None where the test broke the file on purpose
+            clean = delivered if clean is None else clean[..., ::-1]
+            d = float(np.abs(delivered.astype(np.int16) - clean).mean()) / 255.0
             plan[:, 1] += {scale_expr}
         if self.read_back:
             plan[:, 1] += float(images["CAM_BACK"].mean()) / 255.0

@@ -13,9 +13,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pytest_drivedegrade.data.frame import Frame
-from pytest_drivedegrade.loader import CellSample, samples
-from pytest_drivedegrade.run import RunContext
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import by_cell, load_json, no_traceback, read_csv, verify_cli  # noqa: E402
+
+from pytest_drivedegrade.data.frame import Frame  # noqa: E402
+from pytest_drivedegrade.loader import CellSample, samples  # noqa: E402
+from pytest_drivedegrade.run import RunContext  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -170,3 +173,77 @@ def test_ego_and_context_arrays_are_read_only_and_private_to_the_call(small_worl
         assert all(np.array_equal(a, b) for a, b in zip(got, want))
     assert all(np.array_equal(a, b) for a, b in zip(vandal.seen[0], reference.seen[0]))
     assert np.abs(context.frames[0].ego.past_xy).max() < 1e3
+
+
+def test_partial_results_are_undetermined_end_to_end(dd, scored_tokens):
+    """Trust case 9 end to end: a 1e200 plan on one jpeg-s5 frame is a contract failure naming the frame and the
+    value (no longer a silent overflow); the certificate's verdict is `undetermined` with the reason, the
+    terminal summary and the HTML report say so, and `drivedegrade verify` agrees."""
+    frame = scored_tokens[2]
+    dd.write_planner(faults={"jpeg-s5": ("huge", frame)})
+    result = dd.run(families="jpeg,blackout", severities="5")
+    result.assert_outcomes(passed=4, failed=1)
+    no_traceback(result)
+    reason = "1 cell with failed frames: jpeg-s5 (1 of 4 frames: 1 planner contract failure)"
+    result.stdout.fnmatch_lines([
+        "cell jpeg-s5: 1 of 4 frames failed the planner contract",
+        f"*frame '{frame}' has a waypoint 1e+200 m from the ego at step 5*beyond the physical bound of 1000 m*",
+        "verdict: undetermined - Undetermined: 1 cell with failed frames*",
+        f"UNDETERMINED by failed frames: {reason}",
+    ], consecutive=False)
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["verdict"]["label"] == "undetermined" and cert["verdict"]["reason"] == reason
+    assert cert["verdict"]["failed_cells"] == {"jpeg-s5": {"frames": 4, "conformance_errors": 1, "data_errors": 0}}
+    assert cert["axes"]["partial"] == ["jpeg-s5"] and cert["thresholds"]["jpeg"]["partial"] is True
+    rows = by_cell(read_csv(dd.folder() / "cells.csv"))
+    assert (rows["jpeg-s5"]["conformance_errors"], rows["jpeg-s5"]["data_errors"], rows["jpeg-s5"]["frames"]) == \
+        ("1", "0", "3")
+    html = (dd.folder() / "report.html").read_text()
+    assert f"Undetermined by failed frames: {reason}" in html
+    check = verify_cli(dd.folder() / "certificate.json")
+    assert check.returncode == 0, check.stderr
+
+
+def test_nothing_compared_is_not_a_passed_null_control_and_clean_has_no_retention(dd):
+    """Trust case 9 end to end: when no frame produced a plan in clean and null, the null control is `not run`
+    (not `passed`), clean shows no retention over its 0 frames (not 1.0), and the verdict is undetermined."""
+    dd.write_planner(faults={"clean": ("raise", None), "null": ("raise", None)})
+    result = dd.run(families="jpeg", severities="5")
+    no_traceback(result)
+    assert "null control: not run (no frame produced a plan in both clean and null)" in result.stdout.str()
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["null_control"]["passed"] is None and cert["null_control"]["ran"] is False
+    clean = next(c for c in cert["cells"] if c["cell"] == "clean")
+    assert clean["frames"] == 0 and clean["retention"] is None and clean["conformance_errors"] == 4
+    assert by_cell(read_csv(dd.folder() / "cells.csv"))["clean"]["retention"] in ("", "nan")
+    assert cert["verdict"]["label"] == "undetermined" and "clean (4 of 4 frames" in cert["verdict"]["reason"]
+    assert "not run" in (dd.folder() / "report.html").read_text()
+
+
+def test_an_empty_jpeg_is_a_data_error_not_the_planners(dd, small_world, scored_tokens, tmp_path):
+    """Trust case 10 end to end: a 0-byte JPEG was reported as "predict() raised" an OpenCV assertion with no
+    file name, and counted against the planner; now it is a data error naming the file and the frame, counted
+    in `data_errors` (cells.csv, certificate) apart from the contract failures, and the verdict is undetermined."""
+    import shutil
+
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+    data = tmp_path / "world"
+    shutil.copytree(small_world, data)
+    frame = next(f for f in NuScenesReader(data, split="val").scorable_frames(limit=4) if f.token == scored_tokens[0])
+    image = Path(frame.cameras["CAM_FRONT"].path)
+    image.write_bytes(b"")
+    dd.write_planner()
+    result = dd.run(data=data, families="jpeg", severities="5")
+    no_traceback(result)
+    out = result.stdout.str()
+    assert "predict() raised" not in out and "failed the planner contract" not in out
+    result.stdout.fnmatch_lines([
+        "cell clean: 1 of 4 frames had data errors (the data set's fault, not the planner's)",
+        f"  frame '{frame.token}': empty image file {image} (frame {frame.token}) (0 bytes)*"], consecutive=False)
+    rows = by_cell(read_csv(dd.folder() / "cells.csv"))
+    assert (rows["jpeg-s5"]["data_errors"], rows["jpeg-s5"]["conformance_errors"]) == ("1", "0")
+    assert rows["blind"]["data_errors"] == "0"  # blind decodes nothing
+    cert = load_json(dd.folder() / "certificate.json")
+    assert next(c for c in cert["cells"] if c["cell"] == "clean")["data_errors"] == 1
+    assert cert["verdict"]["label"] == "undetermined" and "1 data error" in cert["verdict"]["reason"]
