@@ -139,7 +139,6 @@ class CellSample(Mapping[str, np.ndarray]):
         self._made: dict[str, np.ndarray] = {}  # camera -> the image as produced (never handed out)
         self._cache: dict[str, np.ndarray] = {}  # camera -> the planner's private copy
         self.seconds = {"decode": 0.0, "inject": 0.0, "check": 0.0}
-        self.view = planner_view(self.__getitem__)  #: what the planner receives as `images`
         #: Data faults met while producing an image (missing, empty, truncated, wrong-size file): the frame is a
         #: data error whatever the planner then did (it may have caught the exception and planned without it).
         self.data_errors: list[str] = []
@@ -160,6 +159,12 @@ class CellSample(Mapping[str, np.ndarray]):
             self.seconds["check"] += time.perf_counter() - start
             self._made[camera], self._cache[camera] = image, copy
         return self._cache[camera]
+
+    @property
+    def view(self) -> Mapping[str, np.ndarray]:
+        """What the planner receives as `images`: a new read-only mapping over this sample's cameras (made per
+        call and never stored here, so no reference cycle keeps a frame's images alive after the call)."""
+        return planner_view(self.__getitem__)
 
     def written(self) -> list[str]:
         """The cameras whose delivered image no longer equals what was produced (the planner wrote into it)."""
