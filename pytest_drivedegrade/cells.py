@@ -27,8 +27,9 @@ DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
 #: (`ego_blind`, severity 0) the ego status and the context's CAN bus, the images left clean.
 EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
-#: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells.
-RECORD_VERSION = 2
+#: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
+#: (`data_errors`) kept apart from the planner's contract failures (`errors`).
+RECORD_VERSION = 3
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
@@ -132,8 +133,9 @@ class CellRecord:
     Arrays: ``plans`` (F, 6, 2) metres; ``l2``, ``collision``, ``collision_vru`` (F, 6) per step; ``jerk`` and
     ``bit1`` (F,); the PDMS-like score and its sub-scores ``nc, dac, ttc, ep, comfort, pdms`` (F,) in [0, 1]
     (`PDMS_FIELDS`; NaN in a record stored before they existed) and ``map_scored`` (F,) 1.0 where the drivable
-    area was scored (0.0: no map, dac fixed at 1). A frame whose planner output failed conformance carries NaN
-    and is left out of means.
+    area was scored (0.0: no map, dac fixed at 1). A frame that failed carries NaN and is left out of means; its
+    one-line reason is in ``errors`` when the planner broke the contract, in ``data_errors`` when the data did
+    (a missing, empty, truncated, undecodable or wrong-size image).
     """
 
     cell: str
@@ -157,6 +159,7 @@ class CellRecord:
     comfort: Any = None
     pdms: Any = None
     map_scored: Any = None
+    data_errors: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         n = len(self.frames)
@@ -174,11 +177,16 @@ class CellRecord:
                 raise InvalidInput(f"cell {self.cell!r}: {name} has shape {arr.shape}, expected {shape}")
             setattr(self, name, arr)
         self.seeds = [int(s) for s in self.seeds]
+        self.errors, self.data_errors = [str(e) for e in self.errors], [str(e) for e in self.data_errors]
         for run in self.seed_runs:
             if run.frames != self.frames:
                 raise InvalidInput(f"cell {self.cell!r}: a seed run was scored on other frames")
         if self.seed_runs and len(self.seeds) != 1 + len(self.seed_runs):
             raise InvalidInput(f"cell {self.cell!r}: {len(self.seeds)} seeds for {1 + len(self.seed_runs)} runs")
+
+    def failed_frames(self) -> tuple[int, int]:
+        """(planner contract failures, data faults) over every seed run of the cell."""
+        return sum(len(r.errors) for r in self.runs()), sum(len(r.data_errors) for r in self.runs())
 
     def runs(self) -> list[CellRecord]:
         """Every seed's run of this cell: this record first, then ``seed_runs`` (one entry for a single seed)."""
@@ -197,6 +205,7 @@ class CellRecord:
                     for k in ("collision", "collision_vru")})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
+        out["data_errors"] = [str(e) for e in self.data_errors]
         if self.seed_runs:  # only then: a one-seed record keeps its pre-seeds form byte for byte
             out["seeds"] = list(self.seeds)
             out["seed_runs"] = [run.to_builtins() for run in self.seed_runs]
@@ -218,7 +227,7 @@ class CellRecord:
         kw.update({k: data[k] for k in (*PDMS_FIELDS, "map_scored") if data.get(k) is not None})
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
-                   seed_runs=runs, seeds=list(data.get("seeds", [])))
+                   seed_runs=runs, seeds=list(data.get("seeds", [])), data_errors=list(data.get("data_errors", [])))
 
     @classmethod
     def concat(cls, parts: Sequence[CellRecord]) -> CellRecord:
@@ -238,7 +247,8 @@ class CellRecord:
             for k, v in p.seconds.items():
                 seconds[k] = seconds.get(k, 0.0) + float(v)
         return cls(first.cell, first.family, first.severity, [f for p in parts for f in p.frames], **arrays,
-                   seconds=seconds, errors=[e for p in parts for e in p.errors])
+                   seconds=seconds, errors=[e for p in parts for e in p.errors],
+                   data_errors=[e for p in parts for e in p.data_errors])
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""

@@ -22,6 +22,9 @@ EGO_WIDTH: float = 1.85
 #: Planning horizon: six waypoints, 0.5 s apart (t = 0.5 .. 3.0 s); keyframes run at 2 Hz.
 HORIZON_STEPS: int = 6
 STEP_SECONDS: float = 0.5
+#: The physical bound of a plan: a waypoint farther than this (metres) from the ego is a contract failure (3 s
+#: at any road speed stays far inside it), so a huge but finite output (1e200) cannot overflow the metrics.
+MAX_WAYPOINT_M: float = 1000.0
 #: Past trajectory handed to the planner: the last four keyframes (2 s).
 PAST_STEPS: int = 4
 #: The high-level command is LEFT / RIGHT when the final ground-truth waypoint is this far to the side.

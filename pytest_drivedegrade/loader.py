@@ -1,15 +1,19 @@
 """The loader: decode a keyframe's camera images and inject the cell's corruption, on demand.
 
-A `CellSample` is the read-only mapping camera -> image a planner receives. Each camera is decoded and
-corrupted only when the planner reads it, so a planner that reads three cameras costs three decodes; every
-delivered array is read-only. What a cell delivers depends only on (seed, frame, camera, family,
-severity), and for frame_dropout on the frames before it in the same cell, never on the worker layout.
+A `CellSample` is the suite's own record of one frame in one cell (frame, family, severity, seed, what was
+decoded); the planner never sees it. It receives `CellSample.view`, a read-only mapping camera -> image and
+nothing else (SPEC section 11): no attribute, ``__dict__`` or view object leads back to the frame, its ground
+truth, the family or the severity. Each camera is decoded and corrupted only when the planner reads it, so a
+planner that reads three cameras costs three decodes; every delivered array is read-only. What a cell delivers
+depends only on (seed, frame, camera, family, severity), and for frame_dropout on the frames before it in the same
+cell, never on the worker layout.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, ItemsView, Iterator, KeysView, Mapping
+from types import MappingProxyType
 
 import numpy as np
 
@@ -20,6 +24,7 @@ from .corruptions.ladder import FAMILIES
 from .corruptions.seeding import rng_for
 from .corruptions.temporal import frame_lost
 from .data.frame import Frame
+from .errors import DataError
 
 Decode = Callable[[Frame, str], np.ndarray]
 
@@ -71,13 +76,60 @@ def _same_bytes(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.array_equal(a.reshape(-1).view(np.uint8), b.reshape(-1).view(np.uint8)))
 
 
+class _Cameras(Mapping[str, np.ndarray]):
+    """The planner's side of a sample: camera -> image through a closure, and nothing else.
+
+    It is only ever handed out wrapped in a ``MappingProxyType`` (which exposes no route to it), and its views
+    are built over plain data: the ``KeysView`` / ``ValuesView`` / ``ItemsView`` that ``Mapping`` would return
+    keep a ``_mapping`` reference, which would lead back here and, through the closure, to the sample.
+    """
+
+    __slots__ = ("_read",)
+
+    def __init__(self, read: Callable[[str], np.ndarray]) -> None:
+        self._read = read
+
+    def __getitem__(self, camera: str) -> np.ndarray:
+        return self._read(camera)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(CAMERAS)
+
+    def __len__(self) -> int:
+        return len(CAMERAS)
+
+    def __contains__(self, camera: object) -> bool:
+        return camera in CAMERAS
+
+    def keys(self) -> KeysView[str]:
+        return dict.fromkeys(CAMERAS).keys()
+
+    def values(self) -> tuple[np.ndarray, ...]:  # type: ignore[override] # reads every camera, like dict's would
+        return tuple(self._read(cam) for cam in CAMERAS)
+
+    def items(self) -> ItemsView[str, np.ndarray]:
+        return {cam: self._read(cam) for cam in CAMERAS}.items()
+
+    def __repr__(self) -> str:
+        return f"<camera images: {', '.join(CAMERAS)}>"
+
+
+def planner_view(read: Callable[[str], np.ndarray]) -> Mapping[str, np.ndarray]:
+    """The read-only mapping camera -> image a planner receives, reading each camera through `read` on demand."""
+
+    def camera(name: str) -> np.ndarray:
+        return read(name)
+
+    return MappingProxyType(_Cameras(camera))
+
+
 class CellSample(Mapping[str, np.ndarray]):
     """The six degraded camera images of one frame for one cell, produced lazily and read-only.
 
     The planner gets a private copy of each image it reads; the image as produced is kept beside it, so that
     `written` can tell, after the call, whether the planner wrote into its input by any route (``setflags`` then
     a write, an in-place op on a ``torch.from_numpy`` view, a raw memory write). A write changes only that copy:
-    it never reaches the decode cache or another cell.
+    it never reaches the decode cache or another cell. The planner gets `view`, never the sample itself.
     """
 
     def __init__(self, frame: Frame, family: str, severity: int, *, seed: int, decode: Decode,
@@ -87,12 +139,19 @@ class CellSample(Mapping[str, np.ndarray]):
         self._made: dict[str, np.ndarray] = {}  # camera -> the image as produced (never handed out)
         self._cache: dict[str, np.ndarray] = {}  # camera -> the planner's private copy
         self.seconds = {"decode": 0.0, "inject": 0.0, "check": 0.0}
+        #: Data faults met while producing an image (missing, empty, truncated, wrong-size file): the frame is a
+        #: data error whatever the planner then did (it may have caught the exception and planned without it).
+        self.data_errors: list[str] = []
 
     def __getitem__(self, camera: str) -> np.ndarray:
         if camera not in self._cache:
             if camera not in CAMERAS:
                 raise KeyError(camera)
-            image = np.ascontiguousarray(self._make(camera))
+            try:
+                image = np.ascontiguousarray(self._make(camera))
+            except DataError as exc:
+                self.data_errors.append(str(exc))
+                raise
             image.setflags(write=False)
             start = time.perf_counter()
             copy = image.copy()
@@ -100,6 +159,12 @@ class CellSample(Mapping[str, np.ndarray]):
             self.seconds["check"] += time.perf_counter() - start
             self._made[camera], self._cache[camera] = image, copy
         return self._cache[camera]
+
+    @property
+    def view(self) -> Mapping[str, np.ndarray]:
+        """What the planner receives as `images`: a new read-only mapping over this sample's cameras (made per
+        call and never stored here, so no reference cycle keeps a frame's images alive after the call)."""
+        return planner_view(self.__getitem__)
 
     def written(self) -> list[str]:
         """The cameras whose delivered image no longer equals what was produced (the planner wrote into it)."""

@@ -21,7 +21,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from .constants import CAMERAS, HORIZON_STEPS
+from .constants import CAMERAS, HORIZON_STEPS, MAX_WAYPOINT_M
 from .data.frame import Command, EgoStatus
 from .errors import InvalidInput, PlannerOutputError
 
@@ -35,6 +35,7 @@ __all__ = [
     "planner_fingerprint",
     "planner_name",
     "predict_checked",
+    "to_numpy",
     "validate_output",
 ]
 
@@ -71,17 +72,31 @@ def _fail(frame_token: str, problem: str, value: Any) -> PlannerOutputError:
     )
 
 
+def to_numpy(value: Any) -> Any:
+    """A torch tensor (any device) as a numpy array, without importing torch; anything else unchanged.
+
+    numpy has no bfloat16, so a bfloat16 or float16 tensor (a model run under autocast) is widened to float64
+    first: its values are exact in float64, and the output check then sees a float array, not a conversion error.
+    """
+    if not (hasattr(value, "detach") and hasattr(value, "cpu")):
+        return value
+    tensor = value.detach().cpu()
+    if str(getattr(tensor, "dtype", "")) in ("torch.bfloat16", "torch.float16"):
+        tensor = tensor.double()
+    return tensor.numpy()
+
+
 def validate_output(traj: Any, frame_token: str) -> np.ndarray:
     """Check one planner output against the contract and return it as a fresh float64 (6, 2) array.
 
-    Accepts any float array-like (numpy, lists of floats, a CPU torch tensor); rejects a wrong shape, a non-float
-    dtype (int, bool, complex, object) and NaN / inf, raising ``PlannerOutputError`` that names the frame token
-    and shows the value.
+    Accepts any float array-like (numpy, lists of floats, a torch tensor of any float dtype, bfloat16 and float16
+    included); rejects a wrong shape, a non-float dtype (int, bool, complex, object), NaN / inf and a waypoint
+    farther than ``MAX_WAYPOINT_M`` (1 km) from the ego, raising ``PlannerOutputError`` that names the frame
+    token and shows the value.
     """
     if traj is None:
         raise _fail(frame_token, "is None (did predict() forget to return?)", traj)
-    if hasattr(traj, "detach") and hasattr(traj, "cpu"):  # a torch tensor, without importing torch
-        traj = traj.detach().cpu().numpy()
+    traj = to_numpy(traj)
     try:
         arr = np.asarray(traj)
     except Exception as exc:  # noqa: BLE001 - ragged lists and exotic objects
@@ -93,7 +108,15 @@ def validate_output(traj: Any, frame_token: str) -> np.ndarray:
     if not np.isfinite(arr).all():
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise _fail(frame_token, f"is not finite (first at step {bad[0]}, coordinate {bad[1]})", traj)
-    return np.array(arr, dtype=np.float64, copy=True)
+    out = np.array(arr, dtype=np.float64, copy=True)
+    with np.errstate(over="ignore"):  # 1e200 squared is inf: still beyond the bound
+        far = np.hypot(out[:, 0], out[:, 1]) > MAX_WAYPOINT_M
+    if far.any():
+        step = int(np.argmax(far))
+        raise _fail(frame_token, f"has a waypoint {np.hypot(*out[step]):.6g} m from the ego at step {step} "
+                                 f"({out[step, 0]:.6g}, {out[step, 1]:.6g}), beyond the physical bound of "
+                                 f"{MAX_WAYPOINT_M:g} m", traj)
+    return out
 
 
 def predict_checked(

@@ -28,12 +28,19 @@ from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, samples
-from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, validate_output
+from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, to_numpy, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
 from .scoring.pdms import PreparedFrame
 from .shards import Shard, shard_frames
 
-#: One frame's outcome in a stream: its sample and the validated plan, or why the frame failed.
+
+class DataFault(str):
+    """Why a frame failed when the fault is the data's (a missing, empty, truncated, undecodable or wrong-size
+    image), not the planner's: counted in `CellRecord.data_errors`, apart from the contract failures."""
+
+
+#: One frame's outcome in a stream: its sample and the validated plan, or why the frame failed (a `DataFault`
+#: when the data is to blame).
 FrameResult = tuple[CellSample, "np.ndarray | str"]
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
@@ -297,20 +304,24 @@ class RunContext:
         egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
         try:
             with time_limit(self.timeout * len(batch)):
-                raw = planner.predict_batch(batch, egos, [s.frame.command for s in batch], contexts)
-            if hasattr(raw, "detach") and hasattr(raw, "cpu"):
-                raw = raw.detach().cpu().numpy()
+                raw = planner.predict_batch([s.view for s in batch], egos, [s.frame.command for s in batch],
+                                            contexts)
+            raw = to_numpy(raw)
             if len(raw) != len(batch):
                 raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
         except PlannerOutputError as exc:
             for s in batch:
-                yield s, f"frame {s.frame.token!r}: {exc}"
+                yield s, _data_fault(s) or f"frame {s.frame.token!r}: {exc}"
             return
         except Exception as exc:  # noqa: BLE001 - the planner's failure, on every frame of the batch
             for s in batch:
-                yield s, describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
+                yield s, _data_fault(s) or describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
             return
         for s, plan in zip(batch, raw):
+            fault = _data_fault(s)
+            if fault:
+                yield s, fault
+                continue
             written = s.written()
             if written:
                 yield s, _written_message(s.frame.token, written)
@@ -321,10 +332,11 @@ class RunContext:
                 yield s, str(exc)
 
     def _inputs(self, planner: Any, sample: CellSample, style: CallStyle) -> tuple[Any, FrameContext | None]:
-        """The call's private ego status and its context (perturbed in the ego cells)."""
+        """The call's ego status and context (perturbed in the ego cells): every array in them read-only and a
+        copy private to this call, so nothing the planner does to them reaches another frame or cell."""
         frame = sample.frame
         ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
-        context = self.context_of(frame) if style.takes_context else None
+        context = self.context_of(frame).private() if style.takes_context else None
         if is_ego(sample.family):  # the ego cells: the ego status and the context's CAN bus, perturbed or zeroed
             from .corruptions.ego import perturb
 
@@ -339,19 +351,22 @@ class RunContext:
         try:
             with time_limit(self.timeout):
                 if style.takes_context:
-                    raw = planner.predict(sample, ego, frame.command, context=context)
+                    raw = planner.predict(sample.view, ego, frame.command, context=context)
                 else:
-                    raw = planner.predict(sample, ego, frame.command)
-            written = sample.written()
-            if written:
-                return _written_message(frame.token, written)
+                    raw = planner.predict(sample.view, ego, frame.command)
+        except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
+            return _data_fault(sample) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
+                                           describe_failure(exc, frame.token))
+        fault = _data_fault(sample)  # a data fault the planner caught and planned around: still the data's
+        if fault:
+            return fault
+        written = sample.written()
+        if written:
+            return _written_message(frame.token, written)
+        try:
             return validate_output(raw, frame.token)
         except PlannerOutputError as exc:
             return str(exc)
-        except DataError as exc:
-            return f"frame {frame.token!r}: {exc}"
-        except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
-            return describe_failure(exc, frame.token)
 
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
                  seed: int | None = None, span: Span | None = None) -> CellRecord:
@@ -371,6 +386,7 @@ class RunContext:
         jerk, bit1 = np.full(n, np.nan), np.full(n, np.nan)
         pdms = {k: np.full(n, np.nan) for k in (*PDMS_FIELDS, "map_scored")}
         errors: list[str] = []
+        data_errors: list[str] = []
         spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
         start = last = time.perf_counter()
         for i, (sample, result) in enumerate(self.stream(planner, family, severity, frames, unread=unread, seed=seed)):
@@ -379,7 +395,9 @@ class RunContext:
                 spent[part] += sample.seconds[part]
             spent["planner"] += elapsed - sum(sample.seconds.values())
             t1 = time.perf_counter()
-            if isinstance(result, str):
+            if isinstance(result, DataFault):
+                data_errors.append(str(result))
+            elif isinstance(result, str):
                 errors.append(result)
             else:
                 m = frame_metrics(result, sample.frame)
@@ -400,7 +418,14 @@ class RunContext:
         return CellRecord(cell_id(family, severity), family, severity, [f.token for f in frames], plans, l2,
                           col, vru, jerk, bit1, seconds=spent, errors=errors, nc=pdms["nc"], dac=pdms["dac"],
                           ttc=pdms["ttc"], ep=pdms["ep"], comfort=pdms["comfort"], pdms=pdms["pdms"],
-                          map_scored=pdms["map_scored"])
+                          map_scored=pdms["map_scored"], data_errors=data_errors)
+
+
+def _data_fault(sample: CellSample) -> DataFault | None:
+    """The frame's data fault (the first image that could not be produced), naming the frame, or None."""
+    if not sample.data_errors:
+        return None
+    return DataFault(f"frame {sample.frame.token!r}: {sample.data_errors[0]}")
 
 
 def _written_message(token: str, cameras: list[str]) -> str:

@@ -27,23 +27,26 @@ def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
     """The cell's own figures as JUnit testcase properties (`report.columns.TESTCASE`), plain builtins."""
     row: dict[str, Any] = {**horizon_metrics(record), "cell": record.cell, "family": record.family,
                            "severity": int(record.severity), "frames": len(record.frames),
-                           "failed_frames": int(np.isnan(record.l2).any(axis=1).sum()), "resumed": int(resumed)}
+                           "failed_frames": int(np.isnan(record.l2).any(axis=1).sum()),
+                           "data_errors": len(record.data_errors), "resumed": int(resumed)}
     row["l2_avg"] = row["l2_avg_stp3"]
     row["pdms"] = finite_mean(record.pdms)
     return tuple((name, plain(row[name])) for name in TESTCASE)
 
 
 def _conformance(record: CellRecord, seed: int | None = None) -> list[str]:
+    """The cell's failed frames, the data's apart from the planner's: a header each, the first few named."""
     if seed is None and record.seed_runs:  # one block per seed run that failed
         return [line for run, s in zip(record.runs(), record.seeds) for line in _conformance(run, s)]
-    if not record.errors:
-        return []
-    shown = record.errors[:MAX_MESSAGES]
-    more = len(record.errors) - len(shown)
     under = "" if seed is None else f" (corruption seed {seed})"
-    head = (f"cell {record.cell}{under}: {len(record.errors)} of {len(record.frames)} frames failed the planner "
-            "contract")
-    return [head, *(f"  {e}" for e in shown), *([f"  ... and {more} more"] if more else [])]
+    out: list[str] = []
+    for errors, what in ((record.data_errors, "had data errors (the data set's fault, not the planner's)"),
+                         (record.errors, "failed the planner contract")):
+        if errors:
+            shown, more = errors[:MAX_MESSAGES], len(errors) - MAX_MESSAGES
+            out += [f"cell {record.cell}{under}: {len(errors)} of {len(record.frames)} frames {what}",
+                    *(f"  {e}" for e in shown), *([f"  ... and {more} more"] if more > 0 else [])]
+    return out
 
 
 def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, ...], clean: np.ndarray) -> list[str]:
@@ -91,7 +94,7 @@ def _identity(context: RunContext, planner: Any, record: CellRecord, clean: Cell
 def _reusable(stored: CellPayload | None) -> CellRecord | None:
     """A stored record a rerun may reuse: one without per-frame failures. A failed frame may have been a fixed
     data file (a re-extracted JPEG keeps the data set's fingerprint) or a transient hang, so it is run again."""
-    if stored is None or any(run.errors for run in stored.record.runs()):
+    if stored is None or any(stored.record.failed_frames()):
         return None
     return stored.record
 

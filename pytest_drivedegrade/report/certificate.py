@@ -143,7 +143,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "axes": analysis.axes,
         "axes_pdms": analysis.axes_pdms,
         "floor": analysis.floor,
-        "null_control": {**nc, "ran": analysis.null_control is not None},
+        "null_control": {**nc, "ran": nc.get("passed") is not None},
         "verdict": analysis.verdict,
         "settings": {**analysis.settings, "seed": provenance.seed, "timeout": provenance.timeout},
         "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command,
@@ -309,6 +309,9 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
             got = c["plans_digest"]
             expect(f"cells[{i}].plans_digest", got, isinstance(got, str) and bool(_HEX64.match(got)),
                    "64 lowercase hex digits")
+        for k in ("conformance_errors", "data_errors"):  # failed-frame counts (data_errors: spec 3, may be absent)
+            if k in c:
+                expect(f"cells[{i}].{k}", c.get(k), type(c.get(k)) is int and c[k] >= 0, "a count")
     for fam, t in (cert.get("thresholds") or {}).items() if isinstance(cert.get("thresholds"), dict) else ():
         for k in ("s10", "s25"):
             v = t.get(k) if isinstance(t, dict) else t
@@ -316,8 +319,15 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
     axes = cast("dict[str, Any]", cert.get("axes") if isinstance(cert.get("axes"), dict) else {})
     for k in ("quality", "removal", "gap", "mean"):
         expect(f"axes.{k}", axes.get(k), _num(axes.get(k)), "a number or null")
-    label = (cert.get("verdict") or {}).get("label") if isinstance(cert.get("verdict"), dict) else None
+    verdict = cast("dict[str, Any]", cert.get("verdict") if isinstance(cert.get("verdict"), dict) else {})
+    label = verdict.get("label")
     expect("verdict.label", label, label in (*VERDICT_LABELS, "undetermined"), "a verdict label")
+    if "reason" in verdict:  # why the verdict is undetermined by failed frames (SPEC section 11), else null
+        expect("verdict.reason", verdict["reason"], verdict["reason"] is None or isinstance(verdict["reason"], str),
+               "a string or null")
+    if "failed_cells" in verdict:
+        expect("verdict.failed_cells", verdict["failed_cells"], isinstance(verdict["failed_cells"], dict),
+               "an object")
     expect("digest", cert.get("digest"), isinstance(cert.get("digest"), str) and bool(_HEX64.match(cert["digest"])),
            "64 lowercase hex digits")
     return problems

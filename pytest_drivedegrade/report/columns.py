@@ -25,7 +25,9 @@ L2_AVG: tuple[str, ...] = tuple(f"l2_avg_{c}" for c in CONVENTIONS)
 HORIZONS: tuple[str, ...] = tuple(name for kind in ("l2", "collision", "vru") for c in CONVENTIONS
                                   for name in per_horizon(kind, c))
 #: The rest of a cell's summary.
-EXTRA: tuple[str, ...] = ("jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors")
+#: `conformance_errors` counts frames the planner failed, `data_errors` frames whose images could not be produced.
+EXTRA: tuple[str, ...] = ("jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
+                          "data_errors")
 #: The PDMS-like score (spec 3), mean per cell, its sub-scores, and PDMS retention M(cell) / M(clean) (a reward)
 #: with its paired bootstrap CI; all in [0, 1] (retention may exceed 1), empty where not scored.
 PDMS: tuple[str, ...] = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_retention", "pdms_retention_ci_low",
@@ -41,5 +43,5 @@ CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3")
                                      *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored")
 #: JUnit testcase properties of a cell item, known as soon as the cell ran (no retention yet: clean may run on
 #: another worker).
-TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "l2_avg", *per_horizon("l2", "stp3"),
+TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "data_errors", "l2_avg", *per_horizon("l2", "stp3"),
                              *per_horizon("l2", "uniad"), "collision_3s_stp3", "vru_3s_stp3", "jerk", "resumed", "pdms")

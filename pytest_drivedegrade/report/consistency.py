@@ -1,8 +1,9 @@
 """Does a certificate's arithmetic add up? `drivedegrade verify` recomputes, from the certificate's own cells,
 the thresholds (``scoring.retention.tolerance_threshold`` on each family's retention curve), the axes (quality,
 removal, gap, mean, and the ego axis, from S5 retentions and the family groups of the ladder) and the verdict
-label (from those axes and the flat line in ``verdict.flat`` / ``settings.flat``), and names every field that
-disagrees with both values.
+label (from those axes and the flat line in ``verdict.flat`` / ``settings.flat``; ``undetermined`` whenever a
+cell has failed frames, its ``conformance_errors`` or ``data_errors`` above 0, SPEC section 11), and names every
+field that disagrees with both values.
 
 A digest, and even a signature, only says the file is what someone wrote; this says that what was written is
 self-consistent, so a hand-made certificate whose cells and axes disagree fails even when resealed.
@@ -120,8 +121,16 @@ def check_axes(axes: Mapping[str, Any], cells: Sequence[Mapping[str, Any]], key:
     return problems
 
 
-def check_verdict(cert: Mapping[str, Any]) -> list[str]:
-    """The label from the certificate's (checked) axes and its flat line; the flat line agrees with settings."""
+def _failed(cells: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The cells with failed frames (planner contract failures or data faults), as the certificate counts them."""
+    return [str(c.get("cell")) for c in cells
+            if any(isinstance(c.get(k), int) and c[k] > 0 for k in ("conformance_errors", "data_errors"))]
+
+
+def check_verdict(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]] = ()) -> list[str]:
+    """The label from the certificate's (checked) axes and its flat line, or ``undetermined`` when a cell has
+    failed frames (then ``verdict.failed_cells`` must name exactly those cells); the flat line agrees with
+    settings."""
     from ..scoring.verdict import ego_label, verdict
 
     v, settings = _section(cert, "verdict"), _section(cert, "settings")
@@ -135,11 +144,27 @@ def check_verdict(cert: Mapping[str, Any]) -> list[str]:
     axes = _section(cert, "axes_pdms" if metric == "pdms" else "axes")
     plain = {k: _number(axes.get(k)) for k in ("quality", "removal", "gap")}
     label = verdict(plain, flat)["label"]
-    if v.get("label") != label:
+    failed = _failed(cells)
+    if failed:
+        if v.get("label") != "undetermined":
+            problems.append(f"verdict.label: certificate says {v.get('label')!r}, but {len(failed)} of its cells "
+                            f"have failed frames ({', '.join(failed[:8])}), which makes it 'undetermined'")
+        recorded = v.get("failed_cells")
+        named = sorted(map(str, recorded)) if isinstance(recorded, Mapping) else recorded
+        if named != sorted(failed):
+            problems.append(f"verdict.failed_cells: certificate names {named!r}, its cells with failed frames are "
+                            f"{failed!r}")
+        if "computed_label" in v and v.get("computed_label") != label:
+            problems.append(f"verdict.computed_label: certificate says {v.get('computed_label')!r}, its axes and "
+                            f"flat line {flat:g} give {label!r}")
+    elif v.get("label") != label:
         problems.append(f"verdict.label: certificate says {v.get('label')!r}, its axes and flat line {flat:g} "
                         f"give {label!r}")
+    elif v.get("failed_cells"):
+        problems.append(f"verdict.failed_cells: certificate names {sorted(v['failed_cells'])!r}, but none of its "
+                        "cells has failed frames")
     if "ego_label" in v and "ego_removal" in axes:
-        expected = ego_label(_number(axes.get("ego_removal")), flat)
+        expected = "undetermined" if failed else ego_label(_number(axes.get("ego_removal")), flat)
         if v.get("ego_label") != expected:
             problems.append(f"verdict.ego_label: certificate says {v.get('ego_label')!r}, its ego axis gives "
                             f"{expected!r}")
@@ -161,7 +186,7 @@ def check_consistency(cert: Mapping[str, Any], groups: Any = None) -> list[str]:
         problems += check_axes(cert["axes"], cells, "retention", "axes", groups)
     if isinstance(cert.get("axes_pdms"), Mapping) and any("pdms_retention" in c for c in cells):
         problems += check_axes(cert["axes_pdms"], cells, "pdms_retention", "axes_pdms", groups)
-    return problems + check_verdict(cert)
+    return problems + check_verdict(cert, cells)
 
 
 def incompleteness(cert: Mapping[str, Any]) -> str | None:

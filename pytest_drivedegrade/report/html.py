@@ -108,6 +108,7 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
               f"{_fmt(s.retention_ci_high)}", "l2": _fmt(s.l2_avg), "col": _fmt(s.metrics.get("collision_3s_stp3")),
               "shift": _fmt(s.metrics.get("endpoint_shift")), "energy": _fmt(s.metrics.get("energy")),
               "sep": _fmt(s.separable_from_null), "errors": s.conformance_errors,
+              "data_errors": s.data_errors,
               "low": math.isfinite(s.retention) and s.retention < 0.9} for s in analysis.summaries]
     axes = {k: _fmt(v) for k, v in analysis.axes.items() if k != "missing" and not k.endswith("_ci")}
     ranges = {k: _range(analysis.axes.get(f"{k}_ci")) for k in ("quality", "removal", "gap", "mean")}

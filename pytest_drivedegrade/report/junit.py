@@ -19,7 +19,7 @@ from .columns import PDMS, STABLE, per_horizon
 #: Testcase properties of a finished summary, in the order they appear in the XML.
 CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"), "collision_3s_stp3",
                    "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
-                   *PDMS)
+                   "data_errors", *PDMS)
 
 SUITE_PREFIX = "drivedegrade_"
 
@@ -56,7 +56,8 @@ def suite_properties(analysis: RunAnalysis | Mapping[str, Any]) -> list[tuple[st
     out += [("verdict", verdict["label"]), ("verdict_flat", verdict["flat"]),
             ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"]),
             ("verdict_confidence", verdict.get("confidence")),
-            ("verdict_ego_label", verdict.get("ego_label")), ("verdict_metric", verdict.get("metric", "l2"))]
+            ("verdict_ego_label", verdict.get("ego_label")), ("verdict_metric", verdict.get("metric", "l2")),
+            ("verdict_reason", verdict.get("reason"))]
     for k in ("quality", "removal", "gap", "mean"):
         ci = data["axes"].get(f"{k}_ci") or (None, None)
         out += [(f"axis_{k}_ci_low", ci[0]), (f"axis_{k}_ci_high", ci[1])]

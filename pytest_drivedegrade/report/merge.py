@@ -114,6 +114,7 @@ def _records(table: Any, shards: Sequence[ShardResult], cells: Sequence[str]) ->
             np.stack([rows[f"l2_{j}"] for j in steps], axis=1), np.stack([rows[f"col_{j}"] for j in steps], axis=1),
             np.stack([rows[f"vru_{j}"] for j in steps], axis=1), rows["jerk"].to_numpy(),
             rows["bit1"].to_numpy(), seconds=seconds, errors=[e for p in parts for e in p.record.errors],
+            data_errors=[e for p in parts for e in p.record.data_errors],
             **{name: rows[name].to_numpy() for name in (*PDMS_FIELDS, "map_scored")})
     return {c: records[c] for c in cells if c in records}
 

@@ -79,8 +79,12 @@ def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
              f"axes: quality {format_value(ax.get('quality'))}  removal {format_value(ax.get('removal'))}  "
              f"gap {format_value(ax.get('gap'))}  mean {format_value(ax.get('mean'))}"]
     lines += pdms_ego_lines(analysis)
+    if verdict.get("reason"):
+        lines.append(f"UNDETERMINED by failed frames: {verdict['reason']}")
     nc = analysis.null_control
-    if nc is not None:
+    if nc is not None and nc.get("passed") is None:
+        lines.append("null control: not run (no frame produced a plan in both clean and null)")
+    elif nc is not None:
         state = "passed" if nc["passed"] else "FAILED"
         lines.append(f"null control: {state} (max abs diff {nc['max_abs_diff']:.3g} m)")
     clean = next((s for s in analysis.summaries if s.cell == "clean"), None)

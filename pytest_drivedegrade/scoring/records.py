@@ -50,7 +50,8 @@ class CellSummary:
     retention_ci_high: float
     metrics: dict[str, float] = field(default_factory=dict)
     separable_from_null: bool | None = None
-    conformance_errors: int = 0
+    conformance_errors: int = 0  #: frames whose planner broke the contract (every seed run counted)
+    data_errors: int = 0  #: frames whose images could not be produced (the data's fault, not the planner's)
 
     def flat(self) -> dict[str, Any]:
         """One flat mapping (the CSV row / certificate cell without provenance)."""

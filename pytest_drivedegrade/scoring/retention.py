@@ -89,7 +89,8 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
 
     A cell run under several seeds reports the mean over its seed runs of every metric and of retention, and
     takes its CI from `ci` (the two-level bootstrap of ``intervals``); `frames` counts the frames finite in
-    every run, `conformance_errors` the failures of all runs.
+    every run, `conformance_errors` and `data_errors` the failures of all runs. A cell with no scored frame has
+    no retention (NaN), the clean cell included: 1.0 over 0 frames would claim what was never measured.
     """
     if record.frames != clean.frames:
         raise InvalidInput(f"cell {record.cell!r} was scored on other frames than the clean cell")
@@ -105,18 +106,20 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
         low, high = ci if ci is not None else (math.nan, math.nan)
         finite = np.all([np.isfinite(run.l2_avg_per_frame(convention)) for run in runs], axis=0)
         return CellSummary(record.cell, record.family, record.severity, int(finite.sum()), l2, r, low, high,
-                           metrics, conformance_errors=sum(len(run.errors) for run in runs))
+                           metrics, conformance_errors=sum(len(run.errors) for run in runs),
+                           data_errors=sum(len(run.data_errors) for run in runs))
     metrics = horizon_metrics(record)
     metrics["endpoint_shift"] = finite_mean(record.endpoint_shift(clean))
     metrics["energy"] = float(retention(finite_mean(clean.bit1), finite_mean(record.bit1), "reward"))
     metrics.update(pdms_metrics(record, clean, n_resamples=n_resamples, seed=seed))
     if record.cell == clean.cell:
-        r, ci = 1.0, (1.0, 1.0)
+        r, ci = (1.0, (1.0, 1.0)) if np.isfinite(m_clean).any() else (math.nan, (math.nan, math.nan))
     else:
         r = paired_retention(m_clean, m_cell, kind)
         ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed)
     return CellSummary(record.cell, record.family, record.severity, int(np.isfinite(m_cell).sum()),
-                       finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors))
+                       finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors),
+                       data_errors=len(record.data_errors))
 
 
 def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DEFAULT_RESAMPLES,

@@ -153,11 +153,17 @@ def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
     how far they wandered.
 
     ``max_l2_change`` is the largest waypoint displacement (m) over frames and steps; it is the wander that
-    ``separable_from_null`` compares cells against.
+    ``separable_from_null`` compares cells against. ``frames_compared`` counts the frames with a plan in both;
+    with none, nothing was compared: ``passed`` is None (not run), never a pass over failed frames.
     """
     a, b = np.asarray(clean_plans, dtype=np.float64), np.asarray(null_plans, dtype=np.float64)
     if a.shape != b.shape:
         raise InvalidInput(f"null-control plans have shape {b.shape}, clean plans {a.shape}")
+    compared = int((np.isfinite(a).reshape(len(a), -1).all(axis=1) & np.isfinite(b).reshape(len(b), -1).all(axis=1))
+                   .sum()) if a.size else 0
+    if compared == 0:
+        return {"passed": None, "max_abs_diff": None, "max_l2_change": None, "frames_changed": 0,
+                "frames_compared": 0}
     passed = identical_plans(a, b)
     diff = np.abs(a - b)
     disp = np.linalg.norm(a - b, axis=-1) if a.size else np.zeros(0)
@@ -166,7 +172,49 @@ def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
         "max_abs_diff": 0.0 if passed else float(np.nanmax(diff, initial=0.0)),
         "max_l2_change": 0.0 if passed else float(np.nanmax(disp, initial=0.0)),
         "frames_changed": int(len(differing_frames(a, b))) if a.size else 0,
+        "frames_compared": compared,
     }
+
+
+def failed_cells(records: Iterable[CellRecord], order: Sequence[str] = ()) -> dict[str, dict[str, int]]:
+    """The cells with failed frames, in report order: cell -> frames run (every seed run counted), the planner's
+    contract failures (``conformance_errors``) and the data faults (``data_errors``)."""
+    out = {}
+    for r in sorted(records, key=lambda r: report_order(r.family, r.severity, order)):
+        planner, data = r.failed_frames()
+        if planner or data:
+            out[r.cell] = {"frames": sum(len(run.frames) for run in r.runs()), "conformance_errors": planner,
+                           "data_errors": data}
+    return out
+
+
+def failure_reason(failed: Mapping[str, Mapping[str, int]], shown: int = 8) -> str:
+    """One sentence naming the cells with failed frames and their counts, e.g. ``2 cells have failed frames:
+    clean (1 of 8 frames: 1 data error), jpeg-s5 (2 of 8 frames: 2 planner contract failures)``."""
+    def counts(c: Mapping[str, int]) -> str:
+        parts = [f"{n} {what}{'s' if n != 1 else ''}" for n, what in
+                 ((c["conformance_errors"], "planner contract failure"), (c["data_errors"], "data error")) if n]
+        return f"{c['conformance_errors'] + c['data_errors']} of {c['frames']} frames: {', '.join(parts)}"
+
+    items = [f"{cell} ({counts(c)})" for cell, c in list(failed.items())[:shown]]
+    more = f", and {len(failed) - shown} more" if len(failed) > shown else ""
+    return f"{len(failed)} cell{'s' if len(failed) != 1 else ''} with failed frames: {', '.join(items)}{more}"
+
+
+def undetermined_by_failures(v: dict[str, Any], failed: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
+    """The verdict of a run with failed frames (SPEC section 11): ``undetermined`` with the `reason`, the label
+    the axes give over the frames that did produce a plan kept as ``computed_label`` (flagged, not claimed).
+    Without failures: the verdict as is, with ``reason`` None and no failed cells."""
+    if not failed:
+        return {**v, "reason": None, "failed_cells": {}, "computed_label": v["label"]}
+    reason = failure_reason(failed)
+    would = f"would give {v['label']}" if v["label"] != "undetermined" else "leave it open too"
+    text = (f"Undetermined: {reason}. Retention, thresholds and axes are computed over the frames that did produce "
+            f"a plan and {would}, but a verdict is not sealed on partial results: fix the failures named in the "
+            "cells' messages (planner contract or data set) and rerun.")
+    return {**v, "label": "undetermined", "case": "failed-frames", "text": text, "reason": reason,
+            "failed_cells": {k: dict(c) for k, c in failed.items()}, "computed_label": v["label"],
+            "ego_label": "undetermined", "borderline": False}
 
 
 def separable_from_null(endpoint_shift: float, wander: float) -> bool:
@@ -196,6 +244,9 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     in a cell drops out of that cell's comparison only). A cell run under several seeds has the mean of its
     per-seed retentions and the two-level bootstrap's CI.
 
+    A cell with failed frames (planner contract or data) makes the verdict ``undetermined`` with the reason
+    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``.
+
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
     floor's clean l2_avg when it was run; `seeds` the run's ``--drivedegrade-seeds`` (recorded in the
     settings). With `intervals` (the default) the thresholds, axes and verdict get their intervals from one
@@ -221,7 +272,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
                                 ci=_seed_ci(res, r)) for r in by_cell.values()]  # a resumed duplicate counts once
     summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
     nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
-    wander = nc["max_l2_change"] if nc else 0.0
+    wander = (nc or {}).get("max_l2_change") or 0.0
     for s in summaries:
         if s.cell not in ("clean", "null"):
             s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
@@ -256,6 +307,12 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     v["borderline"] = confidence is not None and confidence < iv.BORDERLINE
     if v["borderline"]:
         v["text"] += iv.borderline_text(cast(float, confidence))
+    failed = failed_cells(by_cell.values(), groups.order)
+    v = undetermined_by_failures(v, failed)
+    partial = list(failed)  # the figures are still computed, and flagged as resting on partial cells
+    ax["partial"] = ax_pdms["partial"] = partial
+    for fam, entry in th.items():
+        entry["partial"] = any(by_cell[c].family == fam for c in partial)
     settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
                 "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
                 "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric, "seeds": int(seeds),

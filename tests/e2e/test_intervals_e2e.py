@@ -29,19 +29,32 @@ NEW_THRESHOLD_KEYS = ("s10_ci", "s25_ci", "s10_never", "s25_never")
 NEW_AXIS_KEYS = ("quality_ci", "removal_ci", "gap_ci", "mean_ci")
 NEW_VERDICT_KEYS = ("confidence", "borderline")
 NEW_SETTINGS_KEYS = ("seeds", "seed_values", "intervals")
+#: Fields the Trust issue adds (partial results, data faults), with their values in a run without failures.
+TRUST_FIELDS = {"data_errors": 0, "partial": [], "reason": None, "failed_cells": {}, "frames_compared": 4}
+
+
+def without_trust(entry: dict) -> dict:
+    """`entry` without the Trust fields, each checked to hold its no-failure value first (a threshold's
+    `partial` is False; a CSV cell is text)."""
+    for key in set(entry) & set(TRUST_FIELDS):
+        assert entry[key] in (TRUST_FIELDS[key], False, str(TRUST_FIELDS[key])), (key, entry[key])
+    return {k: v for k, v in entry.items() if k not in TRUST_FIELDS and k != "computed_label"}
 
 
 def comparable(folder: Path) -> dict:
     """What a seeds=1 run must keep from before intervals: cells.csv rows (fingerprints aside) and the
     certificate's result sections with the issue-15 fields removed."""
-    rows = [{k: v for k, v in r.items() if k not in VOLATILE_COLUMNS} for r in read_csv(folder / "cells.csv")]
+    rows = [without_trust({k: v for k, v in r.items() if k not in VOLATILE_COLUMNS})
+            for r in read_csv(folder / "cells.csv")]
     cert = load_json(folder / "certificate.json")
-    thresholds = {f: {k: v for k, v in t.items() if k not in NEW_THRESHOLD_KEYS} for f, t in cert["thresholds"].items()}
-    verdict = {k: v for k, v in cert["verdict"].items() if k not in NEW_VERDICT_KEYS}
+    thresholds = {f: without_trust({k: v for k, v in t.items() if k not in NEW_THRESHOLD_KEYS})
+                  for f, t in cert["thresholds"].items()}
+    verdict = without_trust({k: v for k, v in cert["verdict"].items() if k not in NEW_VERDICT_KEYS})
+    assert cert["verdict"]["computed_label"] == cert["verdict"]["label"]
     verdict["text"] = verdict["text"].split(" Borderline:")[0]
-    return {"csv": rows, "cells": cert["cells"], "thresholds": thresholds,
-            "axes": {k: v for k, v in cert["axes"].items() if k not in NEW_AXIS_KEYS}, "verdict": verdict,
-            "null_control": cert["null_control"],
+    return {"csv": rows, "cells": [without_trust(c) for c in cert["cells"]], "thresholds": thresholds,
+            "axes": without_trust({k: v for k, v in cert["axes"].items() if k not in NEW_AXIS_KEYS}),
+            "verdict": verdict, "null_control": without_trust(cert["null_control"]),
             "settings": {k: v for k, v in cert["settings"].items() if k not in NEW_SETTINGS_KEYS}}
 
 

@@ -292,7 +292,7 @@ def test_family_groups_from_the_registry_match_the_spec() -> None:
 def test_null_control_identical_and_wandering() -> None:
     plans = np.random.default_rng(0).normal(size=(4, 6, 2))
     assert vd.null_control(plans, plans.copy()) == {"passed": True, "max_abs_diff": 0.0, "max_l2_change": 0.0,
-                                                    "frames_changed": 0}
+                                                    "frames_changed": 0, "frames_compared": 4}
     moved = plans.copy()
     moved[2, 5] += [0.3, 0.4]
     nc = vd.null_control(plans, moved)
@@ -378,3 +378,70 @@ def test_incompatible_baseline_is_a_clear_error(spec, data, match) -> None:
     base = cert_like({}, {})
     with pytest.raises(bl.BaselineError, match=match):
         bl.compare_to_baseline(cert_like({}, {}, spec, data), base)
+
+
+# --- partial results (Trust case 9) ----------------------------------------------------------------------------
+
+
+def fail_frames(rec: CellRecord, frames: list[int], *, data: bool = False) -> CellRecord:
+    """`rec` with `frames` failed as the run records them: NaN rows and one message each."""
+    for i in frames:
+        for name in ("plans", "l2", "collision", "collision_vru"):
+            getattr(rec, name)[i] = np.nan
+        rec.jerk[i] = rec.bit1[i] = np.nan
+        (rec.data_errors if data else rec.errors).append(f"frame 'tok{i:03d}': failed")
+    return rec
+
+
+def test_failed_frames_make_the_verdict_undetermined_with_the_reason() -> None:
+    """Trust case 9: a cell with failed frames (planner or data) makes the verdict `undetermined`, the reason
+    naming the cells and their counts; the axes are still computed (the label they give kept, flagged)."""
+    recs, _ = synthetic_run(8)
+    whole = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    assert whole.verdict["label"] == "camera-reliant" and whole.verdict["reason"] is None
+    by = {r.cell: r for r in recs}
+    fail_frames(by["jpeg-s5"], [1, 2])
+    fail_frames(by["fog-s2"], [3], data=True)
+    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    v = res.verdict
+    assert v["label"] == "undetermined" and v["case"] == "failed-frames" and v["ego_label"] == "undetermined"
+    assert v["computed_label"] == "camera-reliant" and v["borderline"] is False
+    assert v["reason"] == ("2 cells with failed frames: jpeg-s5 (2 of 8 frames: 2 planner contract failures), "
+                           "fog-s2 (1 of 8 frames: 1 data error)")
+    assert v["failed_cells"] == {"jpeg-s5": {"frames": 8, "conformance_errors": 2, "data_errors": 0},
+                                 "fog-s2": {"frames": 8, "conformance_errors": 0, "data_errors": 1}}
+    assert v["reason"] in v["text"]
+    assert res.axes["quality"] is not None and res.axes["partial"] == ["jpeg-s5", "fog-s2"]
+    assert res.thresholds["jpeg"]["partial"] is True and res.thresholds["snow"]["partial"] is False
+    summary = {s.cell: s for s in res.summaries}
+    assert (summary["jpeg-s5"].conformance_errors, summary["jpeg-s5"].data_errors) == (2, 0)
+    assert (summary["fog-s2"].conformance_errors, summary["fog-s2"].data_errors, summary["fog-s2"].frames) == (0, 1, 7)
+
+
+def test_a_cell_with_no_scored_frame_has_no_retention_and_the_null_control_is_not_run() -> None:
+    """Trust case 9: a clean cell whose every frame failed shows no retention (NaN, not 1.0 over 0 frames), and
+    the null control, with nothing compared, is not run (passed None), not passed."""
+    recs, _ = synthetic_run(5)
+    by = {r.cell: r for r in recs}
+    fail_frames(by["clean"], list(range(5)))
+    fail_frames(by["null"], list(range(5)))
+    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=20)
+    clean = res.summaries[0]
+    assert clean.cell == "clean" and clean.frames == 0 and math.isnan(clean.retention)
+    assert math.isnan(clean.retention_ci_low) and math.isnan(clean.retention_ci_high)
+    assert res.null_control == {"passed": None, "max_abs_diff": None, "max_l2_change": None, "frames_changed": 0,
+                                "frames_compared": 0}
+    assert res.verdict["label"] == "undetermined" and "clean (5 of 5 frames" in res.verdict["reason"]
+    assert all(math.isnan(s.retention) for s in res.summaries)
+
+
+def test_record_keeps_data_errors_apart_through_builtins() -> None:
+    """Trust case 10: data faults travel in their own list (record version 3) and count apart."""
+    recs, _ = synthetic_run(4)
+    rec = fail_frames(fail_frames(recs[4], [0]), [2], data=True)
+    back = CellRecord.from_builtins(json.loads(json.dumps(rec.to_builtins())))
+    assert back.errors == ["frame 'tok000': failed"] and back.data_errors == ["frame 'tok002': failed"]
+    assert back.failed_frames() == (1, 1)
+    from pytest_drivedegrade.cells import RECORD_VERSION
+
+    assert RECORD_VERSION == 3

@@ -44,7 +44,8 @@ def test_certificate_has_the_stable_keys(cert_file: Path) -> None:
     assert cert["dataset"]["fingerprint"] == "sha256:data" and cert["dataset"]["split"] == "val"
     cell = cert["cells"][3]
     assert {"cell", "family", "severity", "l2_avg", "retention", "retention_ci_low", "retention_ci_high"} <= set(cell)
-    assert set(cert["thresholds"]["fog"]) == {"s10", "s25", "s10_ci", "s25_ci", "s10_never", "s25_never"}
+    assert set(cert["thresholds"]["fog"]) == {"s10", "s25", "s10_ci", "s25_ci", "s10_never", "s25_never",
+                                              "partial"}
     assert {"quality", "removal", "gap", "mean"} <= set(cert["axes"]) and "l2_avg" in cert["floor"]
     assert {"passed", "max_abs_diff"} <= set(cert["null_control"])
     # the synthetic planner degrades on both axes (S5 retention ~0.77 on quality, ~0.62 on removal)
@@ -227,3 +228,33 @@ def test_strict_parsing_keeps_a_sealed_certificate_and_strings_that_look_nested(
     with pytest.raises(cf.CertificateError, match="not valid JSON"):
         cf.parse_certificate_text(text, "x.json")
     assert cf.parse_certificate_text('{"command": "' + "[{" * 200 + '"}', "x.json") == {"command": "[{" * 200}
+
+
+def test_verify_requires_undetermined_when_a_cell_has_failed_frames(tmp_path: Path, capsys) -> None:
+    """Trust case 9: `drivedegrade verify` recomputes the verdict under the failed-frames rule: a sealed
+    certificate whose cells count failed frames passes only as `undetermined` naming exactly those cells, and
+    a forger who puts the axes' label back is caught."""
+    from test_analysis import fail_frames
+
+    from pytest_drivedegrade.report.consistency import check_consistency
+
+    recs, _ = synthetic_run(12)
+    fail_frames(next(r for r in recs if r.cell == "snow-s5"), [4], data=True)
+    path = cf.write_certificate(tmp_path / "certificate.json",
+                                cf.build_certificate(vd.analyse_run(recs, groups=GROUPS, n_resamples=50), PROV))
+    cert = cf.verify(path)
+    assert cert["verdict"]["label"] == "undetermined" and "snow-s5 (1 of 12 frames: 1 data error)" in \
+        cert["verdict"]["reason"]
+    snow = next(c for c in cert["cells"] if c["cell"] == "snow-s5")
+    assert (snow["data_errors"], snow["conformance_errors"]) == (1, 0)
+    assert check_consistency(cert, GROUPS) == []
+    reseal(path, lambda d: d["verdict"].update(label=d["verdict"]["computed_label"], failed_cells={}))
+    problems = check_consistency(cf.verify(path), GROUPS)
+    assert problems[0].startswith("verdict.label: certificate says 'camera-reliant', but 1 of its cells have "
+                                  "failed frames (snow-s5)")
+    assert "verdict.failed_cells: certificate names [], its cells with failed frames are ['snow-s5']" in problems[1]
+    reseal(path, lambda d: d["verdict"].update(label="undetermined", failed_cells={"snow-s5": {}}, reason="x"))
+    assert check_consistency(cf.verify(path), GROUPS) == []
+    reseal(path, lambda d: next(c for c in d["cells"] if c["cell"] == "snow-s5").update(data_errors="1"))
+    with pytest.raises(cf.CertificateError, match=r"cells\[\d+\]\.data_errors: expected a count"):
+        cf.verify(path)

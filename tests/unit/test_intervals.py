@@ -202,13 +202,15 @@ def test_one_seed_analysis_equals_the_pre_interval_golden_but_for_new_fields():
     assert len(got["summaries"]) == len(golden["summaries"])
     assert [{k: s[k] for k in g} for s, g in zip(got["summaries"], golden["summaries"])] == golden["summaries"]
     assert got["floor"] == golden["floor"]
-    assert got["null_control"] == golden["null_control"]
+    assert got["null_control"] == {**golden["null_control"], "frames_compared": 40}
     for fam, t in golden["thresholds"].items():
         assert {k: got["thresholds"][fam][k] for k in t} == t
-        assert set(got["thresholds"][fam]) - set(t) == {"s10_ci", "s25_ci", "s10_never", "s25_never"}
+        assert set(got["thresholds"][fam]) - set(t) == {"s10_ci", "s25_ci", "s10_never", "s25_never", "partial"}
+        assert got["thresholds"][fam]["partial"] is False
     assert {k: got["axes"][k] for k in golden["axes"]} == golden["axes"]
     assert set(got["axes"]) - set(golden["axes"]) == {"quality_ci", "removal_ci", "gap_ci", "mean_ci", "ego",
-                                                      "ego_removal"}
+                                                      "ego_removal", "partial"}
+    assert got["axes"]["partial"] == [] and got["verdict"]["reason"] is None
     assert {k: got["verdict"][k] for k in golden["verdict"]} == golden["verdict"]
     assert {k: got["settings"][k] for k in golden["settings"]} == golden["settings"]
     assert got["settings"]["seeds"] == 1 and got["settings"]["seed_values"] == [0]

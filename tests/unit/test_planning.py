@@ -158,3 +158,30 @@ def test_names_are_printable_bidi_free_and_short() -> None:
     assert planner_name(Declares(name="ü" * 64), "x") == "ü" * 64
     with pytest.raises(InvalidInput, match="file name"):
         planner_name(Declares(), "bad\u202ename")
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_half_precision_tensors_are_accepted(dtype) -> None:
+    """Trust case 12: a bfloat16 / float16 plan (a model under autocast) is a float plan, widened to float64,
+    not "predict() raised" (numpy has no bfloat16, so ``tensor.numpy()`` itself fails)."""
+    plan = torch.tensor(GOOD + 0.5, dtype=dtype)
+    out = validate_output(plan, "tok")
+    assert out.dtype == np.float64
+    np.testing.assert_array_equal(out, plan.double().numpy())
+    np.testing.assert_array_equal(out, GOOD + 0.5)  # halves are exact in both formats
+    with pytest.raises(PlannerOutputError, match="not finite"):
+        validate_output(torch.full((6, 2), float("nan"), dtype=dtype), "tok")
+
+
+@pytest.mark.parametrize(("value", "distance"), [(1e200, "1e\\+200 m"), (1e308, "1e\\+308 m"), (1000.1, "1000.14 m"),
+                                                   (-1000.1, "1000.14 m")])
+def test_waypoints_beyond_a_kilometre_are_contract_failures(value, distance) -> None:
+    """Trust case 9: a huge but finite plan (1e200) is refused naming the frame, the step and the value, instead
+    of overflowing every metric with no error reported; 1 km from the ego is the physical bound."""
+    plan = GOOD.astype(np.float64)
+    plan[4, 0] = value
+    with pytest.raises(PlannerOutputError, match=f"frame 'tok-9'.* waypoint {distance} from the ego at step 4 "
+                                                 r".*beyond the physical bound of 1000 m"):
+        validate_output(plan, "tok-9")
+    plan[4, 0] = 999.0  # just inside: accepted
+    assert validate_output(plan, "tok")[4, 0] == 999.0

@@ -4,6 +4,7 @@ independent of the world's own writer; and on bad data."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import cv2
@@ -256,3 +257,68 @@ def test_contiguous_subset_shares_and_centres_runs_per_scene():
     assert got == ["a3", "a4", "a5", "b1", "b2", "c1"]
     assert [f.token for f in contiguous_subset(frames, 2)] == ["a4", "b2"]  # type: ignore[arg-type]
 
+
+
+@pytest.mark.parametrize(("content", "problem"), [
+    (b"", r"empty image file .*\(frame s1-0\) \(0 bytes\)"),
+    (b"\x00garbage, not an image", r"undecodable image .*\(frame s1-0\)"),
+    (cv2.imencode(".jpg", np.zeros((1, 1, 3), np.uint8))[1].tobytes(),
+     r"wrong-size image .*\(frame s1-0\): 1 x 1 pixels, but sample_data and the calibration say 160 x 90"),
+    (cv2.imencode(".png", np.zeros((90, 161, 3), np.uint8))[1].tobytes(),
+     r"wrong-size image .*\(frame s1-0\): 161 x 90 pixels, but .* say 160 x 90"),
+])
+def test_empty_undecodable_and_wrong_size_images_are_data_errors_naming_file_and_frame(fixture_root, content,
+                                                                                         problem):
+    """Trust case 10: a 0-byte JPEG (an OpenCV assertion before), a file that is no image, a 1 x 1 image and
+    one a pixel too wide are DataErrors naming the file and the frame token, never decoded silently."""
+    frame = NuScenesReader(fixture_root, split="mini_val").scorable_frames()[0]
+    cam = frame.cameras["CAM_FRONT"]
+    open(cam.path, "wb").write(content)
+    with pytest.raises(DataError, match=problem) as err:
+        NuScenesReader.load_image(cam)
+    assert cam.path in str(err.value)
+
+
+@pytest.mark.parametrize("name", ["../../../../etc/passwd", "/etc/passwd", "samples/../../outside.jpg", ".."])
+def test_file_names_that_leave_the_data_root_are_refused_naming_the_row(fixture_root, name):
+    """Trust case 10: a sample_data file name that leaves the data root (`../../../../etc/passwd` was read) is a
+    DataError at start-up naming the table and the record's token; one that stays inside after `..` is fine."""
+    _edit(fixture_root, "sample_data", lambda rows: [dict(r, filename=name) if r["token"] == "sd-s1-0-CAM_BACK"
+                                                     else r for r in rows])
+    with pytest.raises(DataError, match=r"sample_data.json: the record with token 'sd-s1-0-CAM_BACK': filename "
+                                         f"'{re.escape(name)}' leaves the data root"):
+        NuScenesReader(fixture_root, split="mini_val").scorable_frames()
+
+
+def test_a_name_that_stays_inside_the_root_is_accepted(fixture_root):
+    def detour(rows):
+        for r in rows:
+            if r["token"] == "sd-s1-0-CAM_BACK":
+                r["filename"] = "samples/CAM_FRONT/../" + r["filename"].removeprefix("samples/")
+        return rows
+
+    _edit(fixture_root, "sample_data", detour)
+    frame = NuScenesReader(fixture_root, split="mini_val").scorable_frames()[0]
+    assert NuScenesReader.load_image(frame.cameras["CAM_BACK"]).shape == (90, 160, 3)
+
+
+@pytest.mark.parametrize(("table", "edit", "problem"), [
+    ("sample", lambda rows: {"records": rows}, r"sample.json is a JSON dict, not a list of records"),
+    ("sample_data", lambda rows: [*rows[:3], "sd-x", *rows[3:]], r"sample_data.json: record 3 is a JSON str, "
+                                                                   "not an object"),
+    ("sample_data", lambda rows: [{k: v for k, v in r.items() if k != "filename" or r["token"] != "sd-s0-1-CAM_BACK"}
+                                  for r in rows],
+     r"sample_data.json: the record with token 'sd-s0-1-CAM_BACK' lacks the field 'filename'"),
+    ("sample_data", lambda rows: [dict(r, width="160") if r["token"] == "sd-s1-4-CAM_FRONT" else r for r in rows],
+     r"sample_data.json: the record with token 'sd-s1-4-CAM_FRONT' has width='160' \(str\), expected int"),
+    ("ego_pose", lambda rows: [dict(r, timestamp=True) if r["token"] == "pose-s1-2" else r for r in rows],
+     r"ego_pose.json: the record with token 'pose-s1-2' has timestamp=True \(bool\), expected int"),
+    ("scene", lambda rows: [dict(rows[0], token=7), *rows[1:]],
+     r"scene.json: record 0 has token=7 \(int\), expected str"),
+])
+def test_malformed_table_rows_are_named_by_table_and_token_at_start_up(fixture_root, table, edit, problem):
+    """Trust case 10: a table that is not a list of objects, a row missing a required key or with a wrong type
+    is a DataError naming the table file and the row's token when the reader opens, not a KeyError later."""
+    _edit(fixture_root, table, edit)
+    with pytest.raises(DataError, match=problem):
+        NuScenesReader(fixture_root, split="all")

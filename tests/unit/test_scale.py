@@ -66,6 +66,10 @@ def test_a_cell_joined_from_its_scene_groups_is_the_cell_run_at_once(world, came
         whole.pop("seconds")
         assert json.dumps(joined, sort_keys=True) == json.dumps(whole, sort_keys=True)  # NaN equal to NaN too
         assert len(joined["frames"]) == sum(sizes)
+    parts = [ctx.run_cell(camera_cnn, "clean", 0, span=s) for s in spans[:2]]
+    parts[0].errors, parts[1].data_errors = ["frame 'a': planner"], ["frame 'b': data"]
+    joined_record = CellRecord.concat(parts)  # failures travel apart: a data fault is never the planner's
+    assert (joined_record.errors, joined_record.data_errors) == (["frame 'a': planner"], ["frame 'b': data"])
     with pytest.raises(ValueError, match="only single-seed records of one cell"):
         CellRecord.concat([ctx.run_cell(camera_cnn, "clean", 0, span=spans[0]),
                            ctx.run_cell(camera_cnn, "jpeg", 1, span=spans[1])])
