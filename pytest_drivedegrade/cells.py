@@ -136,6 +136,7 @@ class CellRecord:
     comfort: Any = None
     pdms: Any = None
     map_scored: Any = None
+    reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
 
     def __post_init__(self) -> None:
         n = len(self.frames)
@@ -153,6 +154,9 @@ class CellRecord:
                 raise InvalidInput(f"cell {self.cell!r}: {name} has shape {arr.shape}, expected {shape}")
             setattr(self, name, arr)
         self.seeds = [int(s) for s in self.seeds]
+        self.reused = int(self.reused)
+        if not 0 <= self.reused <= n:
+            raise InvalidInput(f"cell {self.cell!r}: {self.reused} reused frames of {n}")
         for run in self.seed_runs:
             if run.frames != self.frames:
                 raise InvalidInput(f"cell {self.cell!r}: a seed run was scored on other frames")
@@ -172,6 +176,8 @@ class CellRecord:
                     for k in ("collision", "collision_vru")})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
+        if self.reused:  # only then: a record without reuse keeps its earlier form (and digest) byte for byte
+            out["reused"] = self.reused
         if self.seed_runs:  # only then: a one-seed record keeps its pre-seeds form byte for byte
             out["seeds"] = list(self.seeds)
             out["seed_runs"] = [run.to_builtins() for run in self.seed_runs]
@@ -193,7 +199,7 @@ class CellRecord:
         kw.update({k: data[k] for k in (*PDMS_FIELDS, "map_scored") if data.get(k) is not None})
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
-                   seed_runs=runs, seeds=list(data.get("seeds", [])))
+                   seed_runs=runs, seeds=list(data.get("seeds", [])), reused=int(data.get("reused", 0)))
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
