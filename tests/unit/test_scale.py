@@ -231,3 +231,15 @@ def test_reused_frames_skip_the_batch(world, camera_cnn):
     blackout = ctx.run_cell(planner, "blackout", 2, clean=clean)
     assert planner.batches == [] and blackout.reused == n
     assert_same_record(blackout, ctx.run_cell(planner, "blackout", 2))
+
+
+def test_the_device_and_batched_no_reuse_enter_the_run_key(world, camera_cnn):
+    def key(**kw):
+        ctx = RunContext.open(data_root=world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None, **kw)
+        return ctx.run_key(camera_cnn)
+
+    plain = key()
+    assert "device" not in plain and "reuse" not in plain  # a CPU run keeps the key (and stored cells) it had
+    assert key(device="cuda:0")["device"] == "cuda:0"
+    assert key(reuse=False) == plain  # at batch 1 reuse changes no bit
+    assert key(batch=8, reuse=False)["reuse"] is False and "reuse" not in key(batch=8)
