@@ -6,12 +6,17 @@ Prints, in one run on this machine:
 - the certification on a local Ray cluster with 2 planner actors (`--drivedegrade-ray local`) against `-n 2`
   (wall seconds, ratio, and whether the two cells.csv are equal);
 - camera_cnn's frames/s at batch 1 against batch 16 on CPU (predict / predict_batch over the same val frames,
-  median of 5 passes), and the largest plan difference between the two;
+  median of 5 passes), the network alone on preprocessed views beside the whole call (OpenCV's INTER_AREA
+  preprocessing is per frame in both), and the largest plan difference between the two;
+- predictions saved by reuse: the full ladder for camera_cnn with `-n 2`, with and without
+  `--drivedegrade-no-reuse`: predict() calls counted in the planner (a worker that has not run clean computes
+  it once for itself: counted), the ledger's predictions and reused frames, wall seconds, and whether the two
+  runs' cells.csv are identical;
 - the extrapolated wall time of a full nuScenes-val certification for a 1.8 and a 45 frames/s planner on 1, 8
   and 64 GPUs (`drivedegrade estimate`).
 
     python benchmarks/scale.py [--families jpeg,blackout,...] [--frames N] [--skip-sharding] [--skip-ray]
-                               [--skip-batches]
+                               [--skip-batches] [--skip-reuse]
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +35,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def certify(report: Path, extra: list[str]) -> float:
-    cmd = [sys.executable, "-m", "pytest", "--drivedegrade", "planners/camera_cnn.py", "-q", "-p", "no:randomly",
+def certify(report: Path, extra: list[str], planner: str = "planners/camera_cnn.py") -> float:
+    cmd = [sys.executable, "-m", "pytest", "--drivedegrade", planner, "-q", "-p", "no:randomly",
            "--drivedegrade-report", str(report), *extra]
     start = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -85,25 +91,96 @@ def batches(frames: int | None) -> None:
                                                unread=("CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"))]
     egos, cmds = [f.ego for f in ctx.frames], [f.command for f in ctx.frames]
 
+    from pytest_drivedegrade.scoring.floor import ego_features
+
+    pix = np.stack([camera_cnn.preprocess(im) for im in images])
+    feats = np.stack([ego_features(e, c) for e, c in zip(egos, cmds)])
+    n = len(images)
+
     def one() -> np.ndarray:
         return np.stack([planner.predict(im, e, c) for im, e, c in zip(images, egos, cmds)])
 
     def sixteen() -> np.ndarray:
         return np.concatenate([planner.predict_batch(images[i:i + 16], egos[i:i + 16], cmds[i:i + 16], [])
-                               for i in range(0, len(images), 16)])
+                               for i in range(0, n, 16)])
+
+    def network(b: int) -> Callable[[], np.ndarray]:
+        return lambda: np.concatenate([planner.predict_many(pix[i:i + b], feats[i:i + b]) for i in range(0, n, b)])
+
+    def preprocess() -> np.ndarray:
+        return np.stack([camera_cnn.preprocess(im) for im in images])
 
     times = {}
-    for name, fn in (("batch 1", one), ("batch 16", sixteen)):
+    for name, fn in (("batch 1", one), ("batch 16", sixteen), ("network 1", network(1)),
+                     ("network 16", network(16)), ("preprocess", preprocess)):
+        fn()  # warm-up
         runs = []
         for _ in range(5):
             start = time.perf_counter()
             out = fn()
             runs.append(time.perf_counter() - start)
-        times[name] = (len(images) / statistics.median(runs), out)
+        times[name] = (n / statistics.median(runs), out)
     diff = float(np.abs(times["batch 1"][1] - times["batch 16"][1]).max())
-    print(f"camera_cnn on CPU, one thread, {len(images)} val frames (decoded images cached): batch 1 "
+    print(f"camera_cnn on CPU, one thread, {n} val frames (decoded images cached): batch 1 "
           f"{times['batch 1'][0]:.0f} frames/s, batch 16 {times['batch 16'][0]:.0f} frames/s, ratio "
-          f"{times['batch 16'][0] / times['batch 1'][0]:.2f}; largest plan difference {diff:.2e} m")
+          f"{times['batch 16'][0] / times['batch 1'][0]:.2f}; largest plan difference {diff:.2e} m; the network "
+          f"alone {times['network 1'][0]:.0f} vs {times['network 16'][0]:.0f} frames/s (ratio "
+          f"{times['network 16'][0] / times['network 1'][0]:.2f}), OpenCV preprocessing alone "
+          f"{times['preprocess'][0]:.0f} frames/s")
+
+
+COUNTED = '''
+import sys
+
+import pytest
+import torch
+
+sys.path.insert(0, {planners!r})
+from camera_cnn import CameraCNNPlanner  # noqa: E402
+
+
+class Counted(CameraCNNPlanner):
+    """camera_cnn, appending one line per predict() call to a file (every worker process)."""
+
+    def predict(self, images, ego, cmd):
+        with open({count!r}, "a") as f:
+            f.write("1\\n")
+        return super().predict(images, ego, cmd)
+
+
+@pytest.fixture(scope="session")
+def planner():
+    torch.set_num_threads(1)
+    return Counted()
+'''
+
+
+def reuse(frames: int | None) -> None:
+    """The full ladder with and without reuse under -n 2: predict() calls, the ledger, wall seconds."""
+    import json
+
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp)
+        extra = ["-n", "2"] + (["--drivedegrade-frames", str(frames)] if frames else [])
+        rows = {}
+        count, planner = base / "count.txt", base / "counted.py"  # one file: one fingerprint, comparable cells
+        planner.write_text(COUNTED.format(planners=str(ROOT / "planners"), count=str(count)))
+        for label, flags in (("with reuse", []), ("--drivedegrade-no-reuse", ["--drivedegrade-no-reuse"])):
+            report = base / f"rep{len(rows)}"
+            wall = certify(report, [*extra, *flags], planner=str(planner))
+            cost = json.loads((report / "camera_cnn" / "certificate.json").read_text())["cost"]
+            calls = len(count.read_text().splitlines())
+            count.unlink()
+            rows[label] = (wall, calls, cost["predictions"], cost["reused"],
+                           (report / "camera_cnn" / "cells.csv").read_text())
+        n_frames = frames or "all"
+        for label, (wall, calls, made, reused, _) in rows.items():
+            print(f"camera_cnn full ladder, -n 2, {n_frames} frames, {label}: {calls} predict() calls (ledger: "
+                  f"{made} predictions, {reused} reused), {wall:.1f} s wall")
+        on, off = rows["with reuse"], rows["--drivedegrade-no-reuse"]
+        print(f"reuse saves {off[1] - on[1]} predict() calls ({100 * (off[1] - on[1]) / off[1]:.1f} %, the clean "
+              f"cell a worker computed for itself included) and {off[0] - on[0]:.1f} s; cells.csv identical: "
+              f"{on[4] == off[4]}")
 
 
 def estimates() -> None:
@@ -122,6 +199,7 @@ def main() -> None:
     parser.add_argument("--skip-sharding", action="store_true")
     parser.add_argument("--skip-ray", action="store_true")
     parser.add_argument("--skip-batches", action="store_true", help="skip the batch comparison and the estimates")
+    parser.add_argument("--skip-reuse", action="store_true")
     args = parser.parse_args()
     families = ["--drivedegrade-families", args.families] if args.families else []
     if not args.skip_sharding:
@@ -130,6 +208,9 @@ def main() -> None:
         ray_actors(families)
     if not args.skip_batches:
         batches(args.frames)
+    if not args.skip_reuse:
+        reuse(args.frames)
+    if not args.skip_batches:
         estimates()
 
 

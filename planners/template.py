@@ -38,11 +38,18 @@ class MyPlanner:
     cameras: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT")
     # Optional: the report folder name (default: this file's stem).
     name = "my_planner"
+    # Optional (default True): the same inputs give the same plan. Then, without a reset(), a frame whose inputs
+    # equal the clean cell's on every camera declared above (blackout of cameras it does not read, frame_dropout
+    # frames that dropped none of them) reuses the clean plan instead of calling predict. Set False for a
+    # sampling planner; a GPU model should seed itself and use deterministic kernels instead.
+    deterministic = True
 
     def __init__(self, weights: Path | None = None) -> None:
         # (2) Load the model here. The fixture is session-scoped, so this runs once per pytest worker
         #     (once per process under -n 2), never once per frame.
         #     e.g. self.model = torch.jit.load(weights).eval(); torch.set_num_threads(1)
+        #     The run's --drivedegrade-device (cpu, cuda, cuda:N) is planner_device() (from
+        #     pytest_drivedegrade.planning), or drivedegrade_context.device in a fixture that requests it.
         self.weights = weights
 
     def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:

@@ -160,6 +160,7 @@ class CellRecord:
     pdms: Any = None
     map_scored: Any = None
     data_errors: list[str] = field(default_factory=list)
+    reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
 
     def __post_init__(self) -> None:
         n = len(self.frames)
@@ -178,6 +179,9 @@ class CellRecord:
             setattr(self, name, arr)
         self.seeds = [int(s) for s in self.seeds]
         self.errors, self.data_errors = [str(e) for e in self.errors], [str(e) for e in self.data_errors]
+        self.reused = int(self.reused)
+        if not 0 <= self.reused <= n:
+            raise InvalidInput(f"cell {self.cell!r}: {self.reused} reused frames of {n}")
         for run in self.seed_runs:
             if run.frames != self.frames:
                 raise InvalidInput(f"cell {self.cell!r}: a seed run was scored on other frames")
@@ -206,6 +210,8 @@ class CellRecord:
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
         out["data_errors"] = [str(e) for e in self.data_errors]
+        if self.reused:  # only then: a record without reuse keeps its earlier form (and digest) byte for byte
+            out["reused"] = self.reused
         if self.seed_runs:  # only then: a one-seed record keeps its pre-seeds form byte for byte
             out["seeds"] = list(self.seeds)
             out["seed_runs"] = [run.to_builtins() for run in self.seed_runs]
@@ -227,7 +233,8 @@ class CellRecord:
         kw.update({k: data[k] for k in (*PDMS_FIELDS, "map_scored") if data.get(k) is not None})
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
-                   seed_runs=runs, seeds=list(data.get("seeds", [])), data_errors=list(data.get("data_errors", [])))
+                   seed_runs=runs, seeds=list(data.get("seeds", [])), data_errors=list(data.get("data_errors", [])),
+                   reused=int(data.get("reused", 0)))
 
     @classmethod
     def concat(cls, parts: Sequence[CellRecord]) -> CellRecord:
@@ -248,7 +255,7 @@ class CellRecord:
                 seconds[k] = seconds.get(k, 0.0) + float(v)
         return cls(first.cell, first.family, first.severity, [f for p in parts for f in p.frames], **arrays,
                    seconds=seconds, errors=[e for p in parts for e in p.errors],
-                   data_errors=[e for p in parts for e in p.data_errors])
+                   data_errors=[e for p in parts for e in p.data_errors], reused=sum(p.reused for p in parts))
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""

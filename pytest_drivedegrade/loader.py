@@ -7,6 +7,11 @@ truth, the family or the severity. Each camera is decoded and corrupted only whe
 planner that reads three cameras costs three decodes; every delivered array is read-only. What a cell delivers
 depends only on (seed, frame, camera, family, severity), and for frame_dropout on the frames before it in the same
 cell, never on the worker layout.
+
+`equals_clean` says, from the cell alone (family, severity, the planner's declared cameras, frame_dropout's
+source frames) and without decoding or comparing a pixel, when a sample delivers exactly the clean images on
+every camera a planner reads: the run then reuses the clean plan of a deterministic planner instead of asking it
+again.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from .cells import cell_id, is_ego
+from .cells import DIAGNOSTIC, cell_id, is_ego
 from .constants import CAMERAS
 from .corruptions.api import corrupt
 from .corruptions.ladder import FAMILIES
@@ -123,6 +128,22 @@ def planner_view(read: Callable[[str], np.ndarray]) -> Mapping[str, np.ndarray]:
     return MappingProxyType(_Cameras(camera))
 
 
+def may_equal_clean(family: str, severity: int, cameras: tuple[str, ...]) -> bool:
+    """Whether some frame of the cell may deliver the clean images on every camera of `cameras` (the planner's
+    declared ones), decided from the cell alone; `CellSample.equals_clean` decides it per frame.
+
+    blackout: when none of its cameras is read (S1-S3 for a front-only planner); frame_dropout: a frame where
+    no read camera was dropped; any other ladder family changes every camera it touches, so only a planner that
+    reads no camera. Never the diagnostic cells (clean itself; null and blind are the controls) nor the ego
+    cells (the images are clean there, but the ego status the planner gets is not).
+    """
+    if family in DIAGNOSTIC or is_ego(family) or family not in FAMILIES:
+        return False
+    if family == "blackout":
+        return not set(cameras) & set(FAMILIES[family].value(severity))
+    return family == "frame_dropout" or not cameras
+
+
 class CellSample(Mapping[str, np.ndarray]):
     """The six degraded camera images of one frame for one cell, produced lazily and read-only.
 
@@ -142,6 +163,20 @@ class CellSample(Mapping[str, np.ndarray]):
         #: Data faults met while producing an image (missing, empty, truncated, wrong-size file): the frame is a
         #: data error whatever the planner then did (it may have caught the exception and planned without it).
         self.data_errors: list[str] = []
+        #: Set by the run when the clean cell's plan was reused for this frame (nothing was read or predicted):
+        #: the clean frame's bit-1 density, which is what the planner would have read.
+        self.reused_bit1: float | None = None
+
+    def equals_clean(self, cameras: tuple[str, ...]) -> bool:
+        """Whether this frame delivers the clean image on every camera of `cameras` (the planner's declared
+        ones), from the cell's definition alone: no image is decoded or compared (see `may_equal_clean`). For
+        frame_dropout, a read camera equals clean when its source is this very frame (not dropped, not held)."""
+        if not may_equal_clean(self.family, self.severity, cameras):
+            return False
+        if self.family != "frame_dropout":
+            return True
+        source = self._dropout or {}
+        return all((held := source.get(cam)) is not None and held.token == self.frame.token for cam in cameras)
 
     def __getitem__(self, camera: str) -> np.ndarray:
         if camera not in self._cache:

@@ -1,10 +1,12 @@
 """The planner contract (SPEC section 2): what a planner is, what it must return, and how it is identified.
 
 A planner is any object with ``predict(images, ego, cmd)`` returning a ``(6, 2)`` float array of waypoints at
-t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Two attributes are optional:
+t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Three attributes are optional:
 
 - ``cameras``: the camera names it reads (default all six); a claim the null control checks.
 - ``name``: the report folder name (default the planner file's stem).
+- ``deterministic``: False for a planner whose plan may differ on identical inputs (default True); only then
+  does the suite call it on frames whose inputs equal the clean cell's instead of reusing the clean plan.
 
 A planner file (or the user's ``conftest.py``) provides it through a pytest fixture named ``planner``. Loading
 that file as a plugin module is the pytest plugin's job; this module only judges the object it yields.
@@ -32,6 +34,7 @@ __all__ = [
     "Planner",
     "call_style",
     "planner_cameras",
+    "planner_device",
     "planner_fingerprint",
     "planner_name",
     "predict_checked",
@@ -41,6 +44,18 @@ __all__ = [
 
 #: The fixture name a planner file or conftest.py must define.
 FIXTURE_NAME = "planner"
+#: The environment variable that carries --drivedegrade-device to a planner built anywhere (the planner fixture,
+#: an xdist worker, a Ray actor the fixture starts): the plugin sets it for the run.
+DEVICE_ENV = "DRIVEDEGRADE_DEVICE"
+
+
+def planner_device(default: str = "cpu") -> str:
+    """Where the run wants the planner to compute: ``$DRIVEDEGRADE_DEVICE`` (``cpu``, ``cuda``, ``cuda:N``), which
+    the plugin sets from --drivedegrade-device for the whole run, else `default`. A planner that supports a GPU
+    builds itself there (``CameraCNNPlanner(device=planner_device())``); the device is part of the run key."""
+    import os
+
+    return (os.environ.get(DEVICE_ENV) or default).strip().lower()
 #: At most this many characters of an offending value go into an error message.
 _VALUE_CHARS = 400
 
@@ -129,10 +144,20 @@ def predict_checked(
 @dataclass(frozen=True)
 class CallStyle:
     """How the suite calls a planner (SPEC section 8): with the frame context when ``predict`` declares a
-    parameter named ``context``; ``reset(scene_token)`` before each scene when the planner has a ``reset``."""
+    parameter named ``context``; ``reset(scene_token)`` before each scene when the planner has a ``reset``.
+
+    `deterministic` is the planner's optional ``deterministic`` attribute (default True: the same inputs give
+    the same plan, which the null control checks). A deterministic planner without ``reset`` is not asked
+    again for a frame whose inputs equal the clean cell's: the clean plan is reused (``reuses``)."""
 
     takes_context: bool
     resets: bool
+    deterministic: bool = True
+
+    @property
+    def reuses(self) -> bool:
+        """Whether the clean plan of a frame may stand for a prediction on inputs equal to the clean ones."""
+        return self.deterministic and not self.resets
 
 
 def call_style(planner: Any) -> CallStyle:
@@ -144,7 +169,11 @@ def call_style(planner: Any) -> CallStyle:
         params = inspect.signature(predict).parameters
     except (TypeError, ValueError):  # a builtin or C extension without a signature: the three-argument form
         params = {}  # type: ignore[assignment]
-    return CallStyle("context" in params, callable(getattr(planner, "reset", None)))
+    deterministic = getattr(planner, "deterministic", True)
+    if not isinstance(deterministic, (bool, np.bool_)):
+        raise InvalidInput(f"planner.deterministic must be True or False, got {deterministic!r} "
+                           f"({type(deterministic).__name__})")
+    return CallStyle("context" in params, callable(getattr(planner, "reset", None)), bool(deterministic))
 
 
 def planner_cameras(planner: Any) -> tuple[str, ...]:

@@ -26,7 +26,7 @@ from typing import Any
 from .cells import CellRecord
 from .data.frame import Frame
 from .errors import DriveDegradeError, InvalidInput
-from .planning import CallStyle, call_style, planner_name
+from .planning import DEVICE_ENV, CallStyle, call_style, planner_name
 from .run import PlannerElsewhere, PlannerInfo, RunContext, Span
 from .shards import partition, scene_runs
 
@@ -87,6 +87,7 @@ class PlannerActor:
     def start(self) -> dict[str, Any]:
         """Open the data and build the planner; what the controller needs to know of them, or ``{"error": why}``.
         A bad ``cameras`` or ``name`` is reported as such and fails the cells, as in a local run."""
+        os.environ[DEVICE_ENV] = str(self.open_kwargs.get("device", "cpu"))  # the run's device, on any cluster
         try:
             self.context = context = RunContext.open(**self.open_kwargs)
             self.planner, self.close = self.build(context)

@@ -27,7 +27,7 @@ from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
-from .loader import CellSample, samples
+from .loader import CellSample, may_equal_clean, samples
 from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, to_numpy, validate_output
 from .scoring.metrics import bit1_density, frame_metrics
 from .scoring.pdms import PreparedFrame
@@ -142,6 +142,8 @@ class RunContext:
     frames_total: int = 0  #: scored frames of the whole run (all shards)
     seeds: int = 1  #: --drivedegrade-seeds: random families run under seed, seed + 1, ..., seed + seeds - 1
     batch: int = 1  #: --drivedegrade-batch: frames per predict_batch() call (stateless planners only)
+    reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
+    device: str = "cpu"  #: --drivedegrade-device: where a planner that supports it runs (`planner_device`)
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -152,7 +154,8 @@ class RunContext:
     @classmethod
     def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
              planner_path: Path | None, shard: Shard | None = None, seeds: int = 1,
-             batch: int = 1, digest_cache: Path | None = None) -> RunContext:
+             batch: int = 1, digest_cache: Path | None = None, reuse: bool = True,
+             device: str = "cpu") -> RunContext:
         """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
         DataError naming the file or token. The dataset fingerprint covers the content of the files every
         scored frame of the run (all shards) is read from (`data.content`), with file digests cached in
@@ -168,7 +171,7 @@ class RunContext:
             chosen = shard_frames(chosen, shard)
         return cls(reader, chosen, seed, timeout, fingerprint, planner_path,
                    frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total,
-                   seeds=seeds, batch=batch)
+                   seeds=seeds, batch=batch, reuse=reuse, device=device)
 
     @property
     def frames_key(self) -> str:
@@ -196,6 +199,10 @@ class RunContext:
             key["seeds"] = self.seeds
         if self.batch > 1:  # batched plans equal per-frame ones within 1e-5 m, not bit for bit
             key["batch"] = self.batch
+            if not self.reuse:  # reused frames skip the batch, so reuse changes which frames share one
+                key["reuse"] = False
+        if self.device != "cpu":  # another device's kernels round differently
+            key["device"] = self.device
         return key
 
     def seeds_for(self, family: str) -> list[int]:
@@ -205,16 +212,18 @@ class RunContext:
             return [self.seed + k for k in range(self.seeds)]
         return [self.seed]
 
-    def run_seeded_cell(self, planner: Any, family: str, severity: int) -> CellRecord:
-        """A ladder cell under every seed of `seeds_for`: the first seed's record carrying the others' runs."""
+    def run_seeded_cell(self, planner: Any, family: str, severity: int, *,
+                        clean: CellRecord | None = None) -> CellRecord:
+        """A ladder cell under every seed of `seeds_for`: the first seed's record carrying the others' runs.
+        `clean` is the run's clean cell, whose plans frames with inputs equal to clean's reuse (`stream`)."""
         seeds = self.seeds_for(family)
         if isinstance(planner, PlannerElsewhere):  # every seed's frames queued at once, then collected in order
             unread = unread_cameras(planner_cameras(planner))
             for s in seeds:
                 planner.prefetch(self, family, severity, unread=unread, seed=s)
-        first = self.run_cell(planner, family, severity, seed=seeds[0])
+        first = self.run_cell(planner, family, severity, seed=seeds[0], clean=clean)
         if len(seeds) > 1:
-            first.seed_runs = [self.run_cell(planner, family, severity, seed=s) for s in seeds[1:]]
+            first.seed_runs = [self.run_cell(planner, family, severity, seed=s, clean=clean) for s in seeds[1:]]
             first.seeds = seeds
         return first
 
@@ -234,6 +243,14 @@ class RunContext:
                 self._decoded[key] = image
                 self._decoded_bytes += image.nbytes
         return image
+
+    def reuses_clean(self, planner: Any, family: str, severity: int) -> bool:
+        """Whether frames of this cell may reuse the clean plans: reuse is on (not --drivedegrade-no-reuse), the
+        planner is deterministic and has no ``reset`` (`CallStyle.reuses`), and some frame of the cell may
+        deliver the clean images on every camera the planner declares (`loader.may_equal_clean`). Never the
+        clean, null, blind or ego cells."""
+        return self.reuse and call_style(planner).reuses and \
+            may_equal_clean(family, severity, planner_cameras(planner))
 
     def clean_record(self, planner: Any, stored: Callable[[], CellRecord | None] = lambda: None) -> CellRecord:
         """The clean cell, once per process: the clean item's result and the reference of the null control and
@@ -259,23 +276,34 @@ class RunContext:
         return found
 
     def stream(self, planner: Any, family: str, severity: int, frames: list[Frame], *,
-               unread: tuple[str, ...], seed: int | None = None) -> Iterator[FrameResult]:
+               unread: tuple[str, ...], seed: int | None = None,
+               clean: CellRecord | None = None) -> Iterator[FrameResult]:
         """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each
         frame its sample and the validated plan, or the one-line reason the frame failed.
 
         ``reset(scene_token)`` runs before the first frame of each scene, so no state crosses a scene or a
         cell; the context goes in when ``predict`` takes it; each call gets private copies of its inputs, and a
         write into an input image fails the frame naming the camera.
+
+        With `clean` (the run's clean cell), a deterministic planner without ``reset`` is not called on a frame
+        whose sample equals clean on every camera it reads (`CellSample.equals_clean`, decided structurally):
+        the clean plan is yielded instead (bit for bit what the call would return) and the sample is marked
+        (``reused_bit1``). A frame that failed in clean is called again.
         """
         style = call_style(planner)
         scene = None
         seed = self.seed if seed is None else seed
+        reuse = self._reuser(style, clean, unread)
         if self.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
             yield from self._stream_batched(planner, samples(frames, family, severity, seed=seed,
-                                                             decode=self.decode, unread=unread))
+                                                             decode=self.decode, unread=unread), reuse)
             return
         for sample in samples(frames, family, severity, seed=seed, decode=self.decode, unread=unread):
             frame = sample.frame
+            reused = reuse(sample)
+            if reused is not None:  # a reusing planner has no reset, so no scene is skipped
+                yield sample, reused
+                continue
             if style.resets and frame.scene_token != scene:
                 try:
                     planner.reset(frame.scene_token)
@@ -287,17 +315,48 @@ class RunContext:
             scene = frame.scene_token
             yield sample, self._predict(planner, sample, style)
 
-    def _stream_batched(self, planner: Any, stream: Iterator[CellSample]) -> Iterator[FrameResult]:
+    def _reuser(self, style: CallStyle, clean: CellRecord | None,
+                unread: tuple[str, ...]) -> Callable[[CellSample], np.ndarray | None]:
+        """A sample -> the clean plan to reuse for it, or None to predict (see `stream`)."""
+        if clean is None or not self.reuse or not style.reuses:
+            return lambda sample: None
+        if clean.family != "clean":
+            raise DriveDegradeError(f"the plans to reuse must be the clean cell's, not {clean.cell!r}'s")
+        cameras = tuple(c for c in CAMERAS if c not in unread)
+        index = {token: i for i, token in enumerate(clean.frames)}
+
+        def reuse(sample: CellSample) -> np.ndarray | None:
+            i = index.get(sample.frame.token)
+            if i is None or not sample.equals_clean(cameras) or not np.isfinite(clean.plans[i]).all():
+                return None
+            sample.reused_bit1 = float(clean.bit1[i])
+            return np.array(clean.plans[i], dtype=np.float64, copy=True)
+
+        return reuse
+
+    def _stream_batched(self, planner: Any, stream: Iterator[CellSample],
+                        reuse: Callable[[CellSample], np.ndarray | None]) -> Iterator[FrameResult]:
         """`--drivedegrade-batch B`: B frames per ``predict_batch(images, egos, cmds, contexts)`` call, in order;
-        each frame's output is checked (and its inputs for writes) as a single prediction's would be."""
-        pending: list[CellSample] = []
+        each frame's output is checked (and its inputs for writes) as a single prediction's would be. A frame
+        that reuses the clean plan skips the batch (B counts the frames predicted) and keeps its place."""
+        pending: list[tuple[CellSample, np.ndarray | None]] = []
+        todo = 0
         for sample in stream:
-            pending.append(sample)
-            if len(pending) == self.batch:
-                yield from self._predict_batch(planner, pending)
-                pending = []
+            reused = reuse(sample)
+            pending.append((sample, reused))
+            todo += reused is None
+            if todo == self.batch:
+                yield from self._flush(planner, pending)
+                pending, todo = [], 0
         if pending:
-            yield from self._predict_batch(planner, pending)
+            yield from self._flush(planner, pending)
+
+    def _flush(self, planner: Any, pending: list[tuple[CellSample, np.ndarray | None]]) -> Iterator[FrameResult]:
+        """The pending frames in order: the reused ones as they are, the others from one batch call."""
+        todo = [s for s, reused in pending if reused is None]
+        predicted = iter(self._predict_batch(planner, todo) if todo else ())
+        for sample, reused in pending:
+            yield (sample, reused) if reused is not None else next(predicted)
 
     def _predict_batch(self, planner: Any, batch: list[CellSample]) -> Iterator[FrameResult]:
         inputs = [self._inputs(planner, s, CallStyle(True, False)) for s in batch]
@@ -369,10 +428,12 @@ class RunContext:
             return str(exc)
 
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
-                 seed: int | None = None, span: Span | None = None) -> CellRecord:
+                 seed: int | None = None, span: Span | None = None, clean: CellRecord | None = None) -> CellRecord:
         """Every frame of one cell through the planner; per-frame failures become NaN rows plus a message.
         `seed` overrides the run's seed (one of `seeds_for`); `span` runs only ``frames[start:stop]`` (a replay,
-        or one group of a cell run by planner actors), streamed as a run of those frames alone would be."""
+        or one group of a cell run by planner actors), streamed as a run of those frames alone would be; with
+        `clean`, frames whose inputs equal clean's reuse its plans (`stream`) and the record counts them
+        (``reused``). Planner actors do not reuse: each predicts every frame it is sent."""
         if unread is None:  # the cameras only: the floor model needs no fingerprint
             unread = unread_cameras(planner_cameras(planner))
         span = span or (0, len(self.frames))
@@ -388,8 +449,10 @@ class RunContext:
         errors: list[str] = []
         data_errors: list[str] = []
         spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
+        reused = 0
         start = last = time.perf_counter()
-        for i, (sample, result) in enumerate(self.stream(planner, family, severity, frames, unread=unread, seed=seed)):
+        for i, (sample, result) in enumerate(self.stream(planner, family, severity, frames, unread=unread, seed=seed,
+                                                         clean=clean)):
             elapsed = time.perf_counter() - last  # predict() plus the lazy decode, injection and input check
             for part in ("decode", "inject", "check"):
                 spent[part] += sample.seconds[part]
@@ -403,7 +466,11 @@ class RunContext:
                 m = frame_metrics(result, sample.frame)
                 plans[i], l2[i], col[i], vru[i] = result, m["l2"], m["collision"], m["collision_vru"]
                 jerk[i] = m["jerk"]
-                bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
+                if sample.reused_bit1 is not None:  # what the planner would have read: clean's images
+                    reused += 1
+                    bit1[i] = sample.reused_bit1
+                else:
+                    bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
                 t2 = time.perf_counter()
                 scored = self.pdms_frame(sample.frame).score(result)
                 for k in PDMS_FIELDS:
@@ -418,7 +485,7 @@ class RunContext:
         return CellRecord(cell_id(family, severity), family, severity, [f.token for f in frames], plans, l2,
                           col, vru, jerk, bit1, seconds=spent, errors=errors, nc=pdms["nc"], dac=pdms["dac"],
                           ttc=pdms["ttc"], ep=pdms["ep"], comfort=pdms["comfort"], pdms=pdms["pdms"],
-                          map_scored=pdms["map_scored"], data_errors=data_errors)
+                          map_scored=pdms["map_scored"], data_errors=data_errors, reused=reused)
 
 
 def _data_fault(sample: CellSample) -> DataFault | None:

@@ -23,6 +23,7 @@ from ..errors import DriveDegradeError
 from ..planning import FIXTURE_NAME
 from ..run import RunContext
 from .compat import fixture_function, is_fixture
+from .context import cache_root
 from .options import RunOptions
 
 if TYPE_CHECKING:
@@ -121,7 +122,8 @@ def start_planner_actors(config: pytest.Config, options: RunOptions, context: Ru
                        if Path(getattr(p, "__file__", "") or ".") == collect_path), None) or "conftest"
     open_kwargs = {"data_root": context.reader.root, "split": options.split, "frames": options.frames,
                    "seed": options.seed, "timeout": options.timeout, "planner_path": options.planner_path,
-                   "shard": options.shard, "seeds": options.seeds, "batch": options.batch}
+                   "shard": options.shard, "seeds": options.seeds, "batch": options.batch, "device": options.device,
+                   "digest_cache": cache_root(config) / "digests"}
     default = options.planner_path.stem if options.planner_path else "planner"
     pool = RayPool.start(options.ray, open_kwargs=open_kwargs, build=PlannerFile(collect_path, module),
                          default_name=default, context=context)

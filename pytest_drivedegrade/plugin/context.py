@@ -34,12 +34,14 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
                                     progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
     return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
                            timeout=options.timeout, planner_path=options.planner_path, shard=options.shard,
-                           seeds=options.seeds, batch=options.batch, digest_cache=cache_root(config) / "digests")
+                           seeds=options.seeds, batch=options.batch, digest_cache=cache_root(config) / "digests",
+                           reuse=options.reuse, device=options.device)
 
 
 @pytest.fixture(scope="session")
 def drivedegrade_context(request: pytest.FixtureRequest) -> RunContext:
-    """The run's context (data reader, scored frames), built once per process; a data problem fails the cell."""
+    """The run's context (data reader, scored frames, ``device``: --drivedegrade-device, where the planner should
+    run), built once per process; a data problem fails the cell."""
     try:
         return request.config.stash[SESSION_KEY].run_context()
     except DriveDegradeError as exc:

@@ -165,7 +165,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
                            seeds=options.seeds, metric=options.metric)
     analysis.floor.update(floor_ego)
-    analysis.settings["batch"] = options.batch
+    analysis.settings.update(batch=options.batch, reuse=options.reuse, device=options.device)
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
@@ -192,7 +192,8 @@ def cost_line(cost: Mapping[str, Any]) -> str:
     """The cost ledger in one line of the terminal summary."""
     sec = cost["seconds"]
     fps = cost.get("planner_frames_per_second")
-    return (f"cost: {cost['predictions']} predictions ({cost['reused']} reused); seconds in cells: planner "
+    return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
+            f"cells: planner "
             f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
             f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
 
@@ -237,7 +238,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
-                              batch=options.batch,
+                              batch=options.batch, reuse=options.reuse, device=options.device,
                               frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in expected],
                               missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),

@@ -50,6 +50,12 @@ OPTIONS: tuple[OptionSpec, ...] = (
                {"metavar": "INT"}),
     OptionSpec("--drivedegrade-batch", "drivedegrade_batch", "frames per predict_batch() call for a planner "
                "that has predict_batch and no reset (default 1: one predict() per frame)", {"metavar": "B"}),
+    OptionSpec("--drivedegrade-no-reuse", "drivedegrade_no_reuse", "call the planner on every frame, also where "
+               "its inputs equal the clean cell's (default: a deterministic planner without reset reuses the clean "
+               "plan there, e.g. blackout of cameras it does not read)", {"action": "store_true"}),
+    OptionSpec("--drivedegrade-device", "drivedegrade_device", "where the planner runs: cpu (default), cuda or "
+               "cuda:N; a planner reads it as drivedegrade_context.device or $DRIVEDEGRADE_DEVICE",
+               {"metavar": "DEVICE"}),
     OptionSpec("--drivedegrade-seeds", "drivedegrade_seeds", "run each random family's cells under N corruption "
                "seeds (seed, seed+1, ...) and fold them into the intervals (default 1)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-report", "drivedegrade_report", "folder for <planner>/cells.csv, report.html and "
@@ -176,6 +182,8 @@ class RunOptions:
     batch: int = 1
     metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
+    reuse: bool = True  #: frames whose inputs equal clean's reuse the clean plan (off: --drivedegrade-no-reuse)
+    device: str = "cpu"  #: --drivedegrade-device, checked
     sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
@@ -235,6 +243,31 @@ def _ray(config: pytest.Config) -> RayOptions | None:
     return RayOptions(address, actors, gpus)
 
 
+def _device(config: pytest.Config) -> str:
+    """cpu, cuda or cuda:N; CUDA only where torch sees that device, so a GPU run never silently runs on CPU."""
+    raw = value(config, "drivedegrade_device")
+    device = str(raw or "cpu").strip().lower()
+    if device == "cpu":
+        return device
+    head, _, index = device.partition(":")
+    if head != "cuda" or (index and not index.isdigit()):
+        raise _fail("drivedegrade_device", f"unknown device {raw!r}; valid devices: cpu, cuda, cuda:N")
+    try:
+        import torch
+    except ImportError:
+        raise _fail("drivedegrade_device", f"{device} needs PyTorch with CUDA, and torch is not installed; "
+                    "run on cpu or install a CUDA build of torch") from None
+    if not torch.cuda.is_available():
+        raise _fail("drivedegrade_device", f"{device} asked for, but this machine has no CUDA device torch can use "
+                    f"(torch {torch.__version__}, built with CUDA {torch.version.cuda or 'none'}); run on cpu, or "
+                    "on a machine with a GPU")
+    count = torch.cuda.device_count()
+    if index and int(index) >= count:
+        raise _fail("drivedegrade_device", f"{device}: this machine has {count} CUDA device(s), numbered 0 to "
+                    f"{count - 1}")
+    return device
+
+
 def parse(config: pytest.Config) -> RunOptions:
     """Read and check every option; raise pytest.UsageError naming the first bad one."""
     from ..corruptions.ladder import FAMILIES, SEVERITIES
@@ -290,4 +323,6 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
         ray=_ray(config),
+        reuse=not _flag(config, "drivedegrade_no_reuse"),
+        device=_device(config),
     )

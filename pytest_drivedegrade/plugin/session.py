@@ -113,6 +113,7 @@ class DriveDegradeSession:
         self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
+        self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -135,7 +136,39 @@ class DriveDegradeSession:
             except CertificateError as exc:
                 raise pytest.UsageError(f"--drivedegrade-baseline: {exc}") from None
         config.args = [str(collect_path)]  # collect the cells, not the rest of the test tree
-        return cls(config, options, collect_path, module, baseline)
+        session = cls(config, options, collect_path, module, baseline)
+        session.use_device()
+        return session
+
+    def use_device(self) -> None:
+        """--drivedegrade-device for every planner of the run: ``$DRIVEDEGRADE_DEVICE`` set for this process and
+        the workers and actors it starts (restored at the end, `pytest_unconfigure`); on CUDA, cuDNN made
+        deterministic (no autotuned kernel choice, no TF32 convolutions) so a GPU run is bit-reproducible."""
+        import os
+
+        from ..planning import DEVICE_ENV
+
+        self._device_env = os.environ.get(DEVICE_ENV)
+        os.environ[DEVICE_ENV] = self.options.device
+        if self.options.device != "cpu":
+            import torch
+
+            torch.backends.cudnn.deterministic = True
+            torch.backends.cudnn.benchmark = False
+            torch.backends.cudnn.allow_tf32 = False
+
+    def pytest_unconfigure(self, config: pytest.Config) -> None:
+        """Never leave actors or a local cluster behind, whatever ended the session; restore the device variable."""
+        import os
+
+        self._close_actors()
+
+        from ..planning import DEVICE_ENV
+
+        if self._device_env is None:
+            os.environ.pop(DEVICE_ENV, None)
+        else:
+            os.environ[DEVICE_ENV] = self._device_env
 
     # --- collection ------------------------------------------------------------------------------------------
 
@@ -334,10 +367,6 @@ class DriveDegradeSession:
         if remote is None:
             return []
         return remote.pool.summary() + remote.pool.close()
-
-    def pytest_unconfigure(self, config: pytest.Config) -> None:
-        """Never leave actors or a local cluster behind, whatever ended the session."""
-        self._close_actors()
 
     def pytest_terminal_summary(self, terminalreporter: Any) -> None:
         if self.outcome is not None:

@@ -191,8 +191,10 @@ def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, Any] | None:
     rows = [{"part": names.get(k, k), "seconds": f"{v:.1f}", "share": f"{100 * v / total:.1f} %"}
             for k, v in sorted(sec.items(), key=lambda kv: -kv[1])]
     fps = cost.get("planner_frames_per_second")
+    cells = cost.get("cells", {})
+    reused_cells = ", ".join(f"{c} {int(v['reused'])}" for c, v in cells.items() if v.get("reused"))
     return {"predictions": cost["predictions"], "reused": cost.get("reused", 0), "rows": rows,
-            "fps": f"{fps:.1f}" if fps else "—"}
+            "fps": f"{fps:.1f}" if fps else "—", "reused_cells": reused_cells}
 
 
 def write_report(path: str | os.PathLike[str], analysis: RunAnalysis, provenance: Provenance, **kwargs: Any) -> Path:

@@ -29,7 +29,7 @@ SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
 #: Manifest fields every shard of one run shares.
 SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "seeds",
-            "count", "flat", "metric", "batch", "frames_total", "cells")
+            "count", "flat", "metric", "batch", "reuse", "device", "frames_total", "cells")
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,8 @@ class Merged:
     floor_extra: dict[str, float]  #: the floor's ego_removal, when the shards ran the ego cells
     metric: str = "l2"
     batch: int = 1
+    reuse: bool = True
+    device: str = "cpu"
 
 
 def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str]:
@@ -145,7 +147,7 @@ def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str
     analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
                            floor_l2=merged.floor_l2, metric=merged.metric)
     analysis.floor.update(merged.floor_extra)
-    analysis.settings["batch"] = merged.batch
+    analysis.settings.update(batch=merged.batch, reuse=merged.reuse, device=merged.device)
     montage = None
     if merged.front is not None and Path(merged.front[1]).is_file():
         from ..data.images import decode_rgb
@@ -224,11 +226,13 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     front = shards[0].manifest.get("front")
     return Merged(records, prov, key, floor, gt, float(first["flat"]), [c for c in cells if c not in records],
                   missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None,
-                  floor_extra, str(first.get("metric", "l2")), int(first.get("batch", 1)))
+                  floor_extra, str(first.get("metric", "l2")), int(first.get("batch", 1)),
+                  bool(first.get("reuse", True)), str(first.get("device", "cpu")))
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
                    flat: float, seeds: int, metric: str, batch: int, frames_total: int, cells: Sequence[str],
+                   reuse: bool = True, device: str = "cpu",
                    missing: Sequence[str],
                    floor_l2: Sequence[float] | None, floor_ego_blind_l2: Sequence[float] | None,
                    gt: Mapping[str, Any], data_root: str,
@@ -238,7 +242,7 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "planner_fingerprint": provenance.planner_fingerprint,
             "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
             "spec_version": provenance.spec_version, "seed": provenance.seed, "seeds": seeds, "flat": flat,
-            "metric": metric, "batch": batch,
+            "metric": metric, "batch": batch, "reuse": reuse, "device": device,
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "data_source": provenance.data_source, "tool_version": provenance.tool_version,
             "frames_requested": provenance.frames_requested, "timeout": provenance.timeout,

@@ -102,20 +102,23 @@ COST_PARTS: tuple[str, ...] = ("decode", "inject", "planner", "metrics", "pdms",
 
 
 def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
-    """What the run cost: predictions made (frames predicted, every seed run counted) and reused, and seconds
+    """What the run cost: predictions made (frames predicted, every seed run counted) and reused (frames whose
+    inputs equal clean's, given the clean plan instead of a call; `CellRecord.reused`), and seconds
     decoding, injecting, planning, scoring and checking inputs, in total and per cell; the planner's frames per
     second. Seconds are process CPU-wall time inside the cells (workers add up), not the run's wall time."""
     per_cell: dict[str, dict[str, float]] = {}
     totals = dict.fromkeys(COST_PARTS, 0.0)
-    predictions = 0
+    predictions = reused = 0
     for record in records:
         runs = [record, *getattr(record, "seed_runs", [])]
-        made = sum(len(r.frames) for r in runs)
+        saved = sum(int(getattr(r, "reused", 0)) for r in runs)
+        made = sum(len(r.frames) for r in runs) - saved
         spent = {part: sum(float(r.seconds.get(part, 0.0)) for r in runs) for part in COST_PARTS}
-        per_cell[record.cell] = {"predictions": made, **spent}
+        per_cell[record.cell] = {"predictions": made, "reused": saved, **spent}
         predictions += made
+        reused += saved
         for part in COST_PARTS:
             totals[part] += spent[part]
-    return {"predictions": predictions, "reused": 0, "seconds": totals, "cells": per_cell,
+    return {"predictions": predictions, "reused": reused, "seconds": totals, "cells": per_cell,
             "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None}
 

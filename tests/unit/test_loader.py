@@ -89,3 +89,54 @@ def test_null_blind_and_clean_cells():
     assert all(not blind[c].any() and blind[c].shape == (H, W, 3) for c in CAMERAS)
     clean = next(samples(frame, "clean", 0, seed=0, decode=decode))
     np.testing.assert_array_equal(clean["CAM_BACK"], decode.image("tok0", "CAM_BACK"))
+
+
+FRONT3 = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT")
+
+
+def _equals_clean_by_pixels(sample, cameras) -> bool:
+    """The ground truth the structural predicate must match: every read camera's delivered image is the clean one
+    (the synthetic images differ between frames and cameras, so equal pixels mean the same source)."""
+    return all(np.array_equal(sample[c], Decoder().image(sample.frame.token, c)) for c in cameras)
+
+
+@pytest.mark.parametrize(("cameras", "reusable"), [
+    (FRONT3, {1: True, 2: True, 3: True, 4: False, 5: False}),  # S1-S3 black out rear cameras only
+    (CAMERAS, dict.fromkeys(range(1, 6), False)),  # every severity blacks out a camera it reads
+    (("CAM_BACK",), {1: False, 2: True, 3: False, 4: True, 5: True}),
+    ((), dict.fromkeys(range(1, 6), True)),  # reads nothing: every sample equals clean on what it reads
+])
+def test_blackout_equals_clean_per_severity_without_decoding(cameras, reusable):
+    for severity, expected in reusable.items():
+        decode = Decoder()
+        for sample in samples(make_frames(3), "blackout", severity, seed=0, decode=decode):
+            calls = len(decode.calls)
+            assert sample.equals_clean(cameras) is expected, (cameras, severity)
+            assert len(decode.calls) == calls  # decided from the cell alone: nothing decoded, no pixel compared
+            assert _equals_clean_by_pixels(sample, cameras) is expected
+
+
+@pytest.mark.parametrize("cameras", [FRONT3, CAMERAS, ("CAM_FRONT",)])
+def test_frame_dropout_equals_clean_exactly_where_no_read_camera_was_dropped(cameras):
+    decode = Decoder()
+    seen = []
+    for sample in samples(make_frames(40, scenes=2), "frame_dropout", 3, seed=1, decode=decode):
+        calls = len(decode.calls)
+        got = sample.equals_clean(cameras)
+        assert len(decode.calls) == calls  # from the dropout state (source frames) alone: nothing decoded
+        seen.append((got, _equals_clean_by_pixels(sample, cameras)))
+    assert all(got == truth for got, truth in seen)
+    assert {got for got, _ in seen} == {True, False}  # at S3 (p = 0.3) both happen in 40 frames
+
+
+@pytest.mark.parametrize("family", ["clean", "null", "blind", "ego_noise", "ego_blind", "jpeg", "occlusion",
+                                    "mud_splash"])
+def test_other_cells_never_equal_clean_for_a_planner_that_reads_cameras(family):
+    from pytest_drivedegrade.loader import may_equal_clean
+
+    severity = 0 if family in ("clean", "null", "blind", "ego_blind") else 2
+    for sample in samples(make_frames(2), family, severity, seed=0, decode=Decoder()):
+        assert not sample.equals_clean(FRONT3)
+    assert not may_equal_clean(family, severity, FRONT3)
+    # a camera-less planner reads nothing a ladder family changes; the controls and ego cells stay excluded
+    assert may_equal_clean(family, severity, ()) is (family in ("jpeg", "occlusion", "mud_splash"))

@@ -43,8 +43,8 @@ def test_batched_plans_equal_per_frame_plans(world, camera_cnn, batch):
     for family, severity in (("clean", 0), ("fog", 3), ("frame_dropout", 5)):
         a, b = one.run_cell(camera_cnn, family, severity), many.run_cell(camera_cnn, family, severity)
         assert not a.errors and not b.errors
-        # float32 sums in another order: measured up to 1.2e-5 m on this world (the issue asks 1e-5; see README)
-        np.testing.assert_allclose(b.plans, a.plans, rtol=0, atol=5e-5)
+        # float32 sums in another order (mkldnn's batched 1x1 convolution, gemm for gemv): within 1e-5 m
+        np.testing.assert_allclose(b.plans, a.plans, rtol=0, atol=1e-5)
     assert many.run_key(camera_cnn)["batch"] == batch and "batch" not in one.run_key(camera_cnn)
 
 
@@ -155,10 +155,119 @@ def test_report_shows_the_cost_panel():
     from pytest_drivedegrade.scoring.verdict import analyse_run
 
     recs, _ = synthetic_run(8)
-    cost = {"predictions": 1234, "reused": 0, "planner_frames_per_second": 50.0,
-            "seconds": {"planner": 6.0, "inject": 3.0, "decode": 1.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}}
+    cost = {"predictions": 1234, "reused": 16, "planner_frames_per_second": 50.0,
+            "seconds": {"planner": 6.0, "inject": 3.0, "decode": 1.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0},
+            "cells": {"clean": {"predictions": 8, "reused": 0}, "blackout-s1": {"predictions": 0, "reused": 8},
+                      "frame_dropout-s2": {"predictions": 0, "reused": 8}}}
     html = render_report(analyse_run(recs, n_resamples=20), Provenance("p", "f", "d", "val", "3.0.0"), cost=cost)
-    assert "<h2>Cost</h2>" in html and "1234 predictions (0 reused)" in html and "50.0" in html
+    assert "<h2>Cost</h2>" in html and "1234 predictions, and 16 frames that reused the clean plan" in html
+    assert "camera the planner reads): blackout-s1 8, frame_dropout-s2 8;" in html and "50.0" in html
     assert "planner (predict)</td><td class=\"n\">6.0</td><td class=\"n\">60.0 %" in html
     assert "<h2>Cost</h2>" not in render_report(analyse_run(recs, n_resamples=20),
                                                  Provenance("p", "f", "d", "val", "3.0.0"))
+
+
+class Counting:
+    """camera_cnn behind a counter of the frames it is asked to plan (predict and predict_batch)."""
+
+    cameras = ("CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT")
+
+    def __init__(self, inner, **attrs) -> None:
+        self.inner, self.calls, self.batches = inner, 0, []
+        self.__dict__.update(attrs)
+
+    def predict(self, images, ego, cmd):
+        self.calls += 1
+        return self.inner.predict(images, ego, cmd)
+
+    def predict_batch(self, images, egos, cmds, contexts):
+        self.batches.append(len(images))
+        return self.inner.predict_batch(images, egos, cmds, contexts)
+
+
+SAME_FIELDS = ("plans", "l2", "collision", "collision_vru", "jerk", "bit1", "nc", "dac", "ttc", "ep", "comfort",
+               "pdms", "map_scored")
+
+
+def assert_same_record(a, b):
+    from pytest_drivedegrade.cells import identical_plans
+
+    for name in SAME_FIELDS:
+        assert identical_plans(getattr(a, name), getattr(b, name)), name
+    assert a.errors == b.errors and a.frames == b.frames
+
+
+def test_reuse_skips_predict_where_inputs_equal_clean_and_changes_nothing(world, camera_cnn):
+    ctx, planner = context(world, 1), Counting(camera_cnn)
+    n = len(ctx.frames)
+    clean = ctx.run_cell(planner, "clean", 0)
+    assert planner.calls == n and clean.reused == 0
+    for (family, severity), known in {("blackout", 1): n, ("blackout", 2): n, ("blackout", 3): n,
+                                      ("blackout", 4): 0, ("blackout", 5): 0, ("jpeg", 3): 0,
+                                      ("frame_dropout", 3): None}.items():
+        assert ctx.reuses_clean(planner, family, severity) is (known != 0)
+        planner.calls = 0
+        reused = ctx.run_cell(planner, family, severity, clean=clean)
+        made = planner.calls
+        full = ctx.run_cell(planner, family, severity)
+        assert planner.calls - made == n and full.reused == 0  # without the clean record: every frame predicted
+        assert_same_record(reused, full)
+        assert reused.reused + made == n, family
+        if known is None:  # frame_dropout S3: the frames where none of the three front cameras was dropped
+            assert 0 < reused.reused < n
+        else:
+            assert reused.reused == known, (family, severity)
+    cost = cost_ledger([clean, ctx.run_cell(planner, "blackout", 1, clean=clean)])
+    assert (cost["predictions"], cost["reused"]) == (n, n)
+    assert cost["cells"]["blackout-s1"]["predictions"] == 0 and cost["cells"]["blackout-s1"]["reused"] == n
+
+
+def test_no_reuse_for_nondeterministic_or_stateful_planners_or_when_turned_off(world, camera_cnn):
+    ctx = context(world, 1)
+    n = len(ctx.frames)
+    clean = ctx.run_cell(Counting(camera_cnn), "clean", 0)
+
+    class WithReset(Counting):
+        def reset(self, scene_token):
+            pass
+
+    for planner in (Counting(camera_cnn, deterministic=False), WithReset(camera_cnn)):
+        assert not ctx.reuses_clean(planner, "blackout", 1)
+        record = ctx.run_cell(planner, "blackout", 1, clean=clean)
+        assert record.reused == 0 and planner.calls == n
+    off = RunContext.open(data_root=world, split="val", frames=None, seed=0, timeout=0.0, planner_path=None,
+                          reuse=False)
+    planner = Counting(camera_cnn)
+    assert not off.reuses_clean(planner, "blackout", 1)
+    assert off.run_cell(planner, "blackout", 1, clean=clean).reused == 0 and planner.calls == n
+    with pytest.raises(Exception, match="must be True or False"):
+        ctx.run_cell(Counting(camera_cnn, deterministic="no"), "blackout", 1, clean=clean)
+
+
+def test_reused_frames_skip_the_batch(world, camera_cnn):
+    ctx, planner = context(world, 4), Counting(camera_cnn)
+    n = len(ctx.frames)
+    clean = ctx.run_cell(planner, "clean", 0)
+    planner.batches = []
+    record = ctx.run_cell(planner, "frame_dropout", 3, clean=clean)
+    assert planner.calls == 0 and not record.errors
+    assert sum(planner.batches) == n - record.reused and 0 < record.reused < n
+    assert all(b == 4 for b in planner.batches[:-1]) and 0 < planner.batches[-1] <= 4  # B counts predicted frames
+    full = ctx.run_cell(planner, "frame_dropout", 3)
+    np.testing.assert_allclose(record.plans, full.plans, rtol=0, atol=1e-5)  # other batch companions: rounding
+    planner.batches = []
+    blackout = ctx.run_cell(planner, "blackout", 2, clean=clean)
+    assert planner.batches == [] and blackout.reused == n
+    assert_same_record(blackout, ctx.run_cell(planner, "blackout", 2))
+
+
+def test_the_device_and_batched_no_reuse_enter_the_run_key(world, camera_cnn):
+    def key(**kw):
+        ctx = RunContext.open(data_root=world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None, **kw)
+        return ctx.run_key(camera_cnn)
+
+    plain = key()
+    assert "device" not in plain and "reuse" not in plain  # a CPU run keeps the key (and stored cells) it had
+    assert key(device="cuda:0")["device"] == "cuda:0"
+    assert key(reuse=False) == plain  # at batch 1 reuse changes no bit
+    assert key(batch=8, reuse=False)["reuse"] is False and "reuse" not in key(batch=8)

@@ -218,8 +218,11 @@ class FakeContext:
         self.ran.append(cell_id(family, severity))
         return self.records[cell_id(family, severity)]
 
-    def run_seeded_cell(self, planner: Any, family: str, severity: int) -> CellRecord:
+    def run_seeded_cell(self, planner: Any, family: str, severity: int, clean: Any = None) -> CellRecord:
         return self.run_cell(planner, family, severity)  # one seed: the cell's only run
+
+    def reuses_clean(self, planner: Any, family: str, severity: int) -> bool:
+        return False  # these checks are about the cells' records, not about reuse
 
     def clean_record(self, planner: Any, stored: Any = lambda: None) -> CellRecord:
         if self._clean is None:
