@@ -248,7 +248,10 @@ class RunContext:
         """Whether frames of this cell may reuse the clean plans: reuse is on (not --drivedegrade-no-reuse), the
         planner is deterministic and has no ``reset`` (`CallStyle.reuses`), and some frame of the cell may
         deliver the clean images on every camera the planner declares (`loader.may_equal_clean`). Never the
-        clean, null, blind or ego cells."""
+        clean, null, blind or ego cells; never on planner actors (`PlannerElsewhere`: each actor predicts every
+        frame it is sent)."""
+        if isinstance(planner, PlannerElsewhere):
+            return False
         return self.reuse and call_style(planner).reuses and \
             may_equal_clean(family, severity, planner_cameras(planner))
 

@@ -126,18 +126,20 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         return _reusable(store.read(name, which, key))
 
     stored = stored_record(cell)
+    unread = context.planner_info(planner).unread
+    rear = rear_cameras()
+    rear_is_null = cell == cell_id("blackout", 3) and set(rear) <= set(unread)
     if cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
         record = context.clean_record(planner, lambda: stored)
     elif stored is not None:
         record = stored
-    else:  # frames whose inputs equal clean's take its plans: the clean cell of this process, computed or stored
+    else:  # frames whose inputs equal clean's take its plans: the clean cell of this process, computed or stored;
+        # never in a cell that is itself a null control (blackout-s3 for a planner that does not read the rear
+        # cameras), which must call the planner to catch an undeclared camera read
         clean = context.clean_record(planner, lambda: stored_record("clean")) \
-            if context.reuses_clean(planner, family, severity) else None
+            if context.reuses_clean(planner, family, severity) and not rear_is_null else None
         record = context.run_seeded_cell(planner, family, severity, clean=clean)
     failures = _conformance(record)
-    unread = context.planner_info(planner).unread
-    rear = rear_cameras()
-    rear_is_null = cell == cell_id("blackout", 3) and set(rear) <= set(unread)
     if (cell == "null" or rear_is_null or baseline is not None) and cell != "clean":
         clean = context.clean_record(planner, lambda: stored_record("clean"))
         if cell == "null" or rear_is_null:

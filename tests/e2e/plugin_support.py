@@ -62,12 +62,15 @@ def current_cell():
 class TestPlanner:
     """Ground truth plus 0.5 m, drifting sideways with the damage to the front camera when it reads that camera.
 
-    `faults` maps a cell id to (fault, frame token or None for every frame): how it misbehaves there.
+    `faults` maps a cell id to (fault, frame token or None for every frame): how it misbehaves there. Its output
+    then depends on the cell, not on its inputs alone, so it says it is not deterministic (the suite must call it
+    in every cell rather than reuse a clean plan where the inputs equal clean's).
     """
 
     cameras = {cameras!r}
     name = {name!r}
     faults = {faults!r}
+    deterministic = not faults
     read_back = {read_back!r}
     count_file = {count_file!r}
     marker = {marker!r}
