@@ -18,6 +18,7 @@ The contract (SPEC section 2):
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -60,8 +61,12 @@ class MyPlanner:
         return np.stack([speed * t, np.zeros_like(t)], axis=1)
 
     def fingerprint(self) -> str:
-        """Optional: identifies the weights in the certificate (default: a hash of this file and any state_dict)."""
-        return "my_planner-untrained"
+        """Optional: identifies the weights in the certificate and the run key (the suite adds this file's source
+        and any torch state_dict it finds). Hash what you load: a constant here would let a retrained model
+        reuse the stored cells of the old one."""
+        if self.weights is None or not Path(self.weights).is_file():
+            return "my_planner-untrained"
+        return hashlib.sha256(Path(self.weights).read_bytes()).hexdigest()
 
 
 @pytest.fixture(scope="session")

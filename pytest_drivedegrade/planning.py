@@ -267,9 +267,10 @@ def _source_bytes(planner: Any, path: str | Path | None) -> bytes:
 def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
     """A SHA-256 hex digest identifying a planner: its file's source plus its weights or declared state.
 
-    State, in order of preference: a ``fingerprint`` attribute (a string, or a callable returning one), the
-    bytes of a torch ``state_dict`` (on the planner or its ``model`` / ``net``), nothing. The planner's class
-    name and declared cameras are included too, since they change what the suite tests.
+    State: a ``fingerprint`` attribute (a string, or a callable returning one) and the bytes of a torch
+    ``state_dict`` (on the planner or its ``model`` / ``net``), each when present: a declared fingerprint never
+    hides the weights actually loaded (a constant one would let a retrained model reuse the old model's cells).
+    The planner's class name and declared cameras are included too, since they change what the suite tests.
     """
     digest = hashlib.sha256(b"drivedegrade-planner-v1|")
     digest.update(_source_bytes(planner, path))
@@ -279,9 +280,8 @@ def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
         declared = declared()
     if declared is not None:
         digest.update(b"|fingerprint|" + str(declared).encode())
-    else:
-        state = _state_bytes(planner)
-        if state is not None:
-            digest.update(b"|state|" + state)
+    state = _state_bytes(planner)
+    if state is not None:
+        digest.update(b"|state|" + state)
     digest.update(b"|cameras|" + ",".join(planner_cameras(planner)).encode())
     return digest.hexdigest()

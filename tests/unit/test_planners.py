@@ -163,6 +163,33 @@ def test_template_runs_through_the_contract() -> None:
     assert len(planner_fingerprint(plan, PLANNERS / "template.py")) == 64
 
 
+def test_retrained_weights_change_the_fingerprint_even_behind_a_constant_one(tmp_path) -> None:
+    """Trust case 5: a new weights file must change the run key. The template hashes the file it loads, and a
+    planner whose fingerprint() is a constant still changes with the state_dict it actually holds."""
+    mod = load_planner_module("template")
+    weights = tmp_path / "my_planner.pt"
+    weights.write_bytes(b"weights v1")
+    fp1 = planner_fingerprint(mod.MyPlanner(weights), PLANNERS / "template.py")
+    weights.write_bytes(b"weights v2, retrained")
+    assert planner_fingerprint(mod.MyPlanner(weights), PLANNERS / "template.py") != fp1
+    assert planner_fingerprint(mod.MyPlanner(), PLANNERS / "template.py") != fp1
+
+    class Constant:
+        fingerprint = "my-model"
+
+        def __init__(self) -> None:
+            self.model = torch.nn.Linear(2, 2)
+
+    a, b = Constant(), Constant()
+    with torch.no_grad():
+        b.model.weight.copy_(a.model.weight + 1e-3)
+        b.model.bias.copy_(a.model.bias)
+    assert planner_fingerprint(a, tmp_path / "p.py") != planner_fingerprint(b, tmp_path / "p.py")
+    with torch.no_grad():
+        b.model.weight.copy_(a.model.weight)
+    assert planner_fingerprint(a, tmp_path / "p.py") == planner_fingerprint(b, tmp_path / "p.py")
+
+
 # --- planner files through a pytest fixture ------------------------------------------------------------------
 
 CONTRACT_TEST = """
