@@ -57,24 +57,48 @@ def scene_runs(frames: list[Frame]) -> list[list[Frame]]:
 def partition(frames: list[Frame], count: int) -> list[list[Frame]]:
     """`count` scene-contiguous shards balanced by frame count.
 
-    Shard k ends at the scene boundary closest to k/count of the frames (never empty: each shard keeps at least
-    one scene). A DriveDegradeError when there are fewer scenes than shards.
+    The cuts lie on scene boundaries, as close as they can be to k/count of the frames: the largest distance of a
+    cut from its ideal position is the smallest possible (then their sum), found by dynamic programming over the
+    boundaries (a greedy cut can be forced far off later on). Never empty: each shard keeps at least one scene.
+    A DriveDegradeError when there are fewer scenes than shards.
     """
     runs = scene_runs(frames)
     if count > len(runs):
         raise DriveDegradeError(f"cannot split {len(runs)} scene(s) into {count} shards: use at most "
                                 f"{len(runs)} shards (a scene is never split)")
-    sizes = [len(r) for r in runs]
-    total = sum(sizes)
-    bounds: list[int] = []  # index of the first scene of shards 2..count
-    cumulative = [sum(sizes[:i]) for i in range(len(sizes) + 1)]
+    n, total = len(runs), len(frames)
+    cumulative = [0]
+    for run in runs:
+        cumulative.append(cumulative[-1] + len(run))
+    # cost[b]: the best (largest deviation, summed deviation) of the cuts so far with the last one at boundary b
+    cost: dict[int, tuple[float, float]] = {0: (0.0, 0.0)}
+    came_from: list[dict[int, int]] = []
     for k in range(1, count):
         ideal = total * k / count
-        low = (bounds[-1] if bounds else 0) + 1  # at least one scene in the shard before
-        high = len(runs) - (count - k)  # and at least one in each shard after
-        best = min(range(low, high + 1), key=lambda b: (abs(cumulative[b] - ideal), b))
-        bounds.append(best)
-    edges = [0, *bounds, len(runs)]
+        earlier = sorted(cost)
+        best: tuple[tuple[float, float], int] | None = None  # the best cut k - 1 before boundary b
+        nxt: dict[int, tuple[float, float]] = {}
+        back: dict[int, int] = {}
+        j = 0
+        for b in range(k, n - (count - k) + 1):
+            while j < len(earlier) and earlier[j] < b:
+                if best is None or cost[earlier[j]] < best[0]:
+                    best = (cost[earlier[j]], earlier[j])
+                j += 1
+            assert best is not None  # boundary k - 1 (or 0) is always earlier
+            (worst, summed), before = best
+            off = abs(cumulative[b] - ideal)
+            nxt[b], back[b] = (max(worst, off), summed + off), before
+        cost = nxt
+        came_from.append(back)
+    bounds: list[int] = []
+    if count > 1:
+        at = min(cost, key=lambda b: (cost[b], b))
+        for back in reversed(came_from):
+            bounds.append(at)
+            at = back[at]
+        bounds.reverse()
+    edges = [0, *bounds, n]
     return [[f for run in runs[a:b] for f in run] for a, b in zip(edges[:-1], edges[1:])]
 
 
