@@ -14,6 +14,8 @@ from test_temporal import TEMPORAL  # noqa: E402
 
 from pytest_drivedegrade.cli import main  # noqa: E402
 
+PLANNERS = Path(__file__).resolve().parents[2] / "planners"
+
 pytest_plugins = ["plugin_support"]
 
 SAME = ("cells", "thresholds", "axes", "verdict", "floor", "null_control", "spec_version", "planner", "dataset",
@@ -86,3 +88,20 @@ def test_more_shards_than_scenes_is_a_usage_error(dd, two_scene_world):
     result = run(dd, two_scene_world, "--drivedegrade-shard", "3/3", report="x")
     assert result.ret == 4
     assert "cannot split 2 scene(s) into 3 shards" in result.stderr.str()
+
+
+@pytest.mark.parametrize("planner", ["camera_cnn.py", "temporal_cnn.py"])
+def test_the_reference_planners_merge_to_their_unsharded_cells(dd, two_scene_world, planner):
+    """Issue 'Real scale', done-when: two shards merged give cells.csv equal, byte for byte, to the single-process
+    run for camera_cnn and for the temporal reference planner (which resets per scene and reads the context)."""
+    kw = {"planner": str(PLANNERS / planner), "data": two_scene_world, "families": "frame_dropout,jpeg",
+          "severities": "3,5"}
+    dd.run("-p", "no:xdist", "--drivedegrade-frames", "8", report="full", **kw).assert_outcomes(passed=7)
+    for i in (1, 2):
+        dd.run("-p", "no:xdist", "--drivedegrade-frames", "8", "--drivedegrade-shard", f"{i}/2", report="sh",
+               **kw).assert_outcomes(passed=7)
+    name = planner.removesuffix(".py")
+    shards, out = dd.pytester.path / "sh" / name, dd.pytester.path / "merged"
+    assert main(["merge", str(shards / "shard-1-of-2"), str(shards / "shard-2-of-2"), "--out", str(out)]) == 0
+    full = dd.pytester.path / "full" / name
+    assert (out / name / "cells.csv").read_text() == (full / "cells.csv").read_text()
