@@ -168,6 +168,8 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     analysis.settings.update(batch=options.batch, reuse=options.reuse, device=options.device)
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())
+    # the stored cells this run took instead of computing them (resume): said in the certificate, not only here
+    cost["resumed_cells"] = sorted(c for c, p in run.payloads.items() if p.resumed)
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
                                   montage=front_montage(context, options.seed), cost=cost,

@@ -269,6 +269,8 @@ def test_an_edited_stored_cell_is_recomputed_and_reported(dd):
     assert json.loads(path.read_text())["record"]["plans"] == original["record"]["plans"]
     _, cases = junit(dd.pytester.path / "again.xml")
     assert cases["jpeg-s1"]["resumed"] == "0" and cases["clean"]["resumed"] == "1"
+    cost = load_json(dd.folder() / "certificate.json")["cost"]  # the certificate lists the reused cells too
+    assert cost["resumed_cells"] == ["blind", "clean", "null"]
 
 
 def test_a_bidi_planner_name_is_a_clear_error_checked_once(dd):
