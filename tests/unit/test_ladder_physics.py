@@ -346,17 +346,23 @@ def test_gaussian_noise_sigma(width, severity):
     assert within(measured, expected, 0.01), (declared("gaussian_noise", severity), measured, expected)
 
 
-def _blur_cases() -> list:
+def _cases(known_gap) -> list:
+    """(width, severity) params over the widths and severities; a strict xfail where ``known_gap(width,
+    severity)`` names a known gap between an operator and its declared value."""
     cases = []
     for width in WIDTHS:
         for severity in SEVERITIES:
-            marks = ()
-            if declared("gaussian_blur", severity, width) < 0.4:
-                marks = pytest.mark.xfail(strict=True, reason=(
-                    "sigma 0.25 px (S1 at 800 px): OpenCV samples the Gaussian at whole pixels, a 3-tap kernel "
-                    "[0.0003, 0.9993, 0.0003] whose sigma is 0.026 px; the blur needs an area-sampled kernel"))
+            reason = known_gap(width, severity)
+            marks = pytest.mark.xfail(strict=True, reason=reason) if reason else ()
             cases.append(pytest.param(width, severity, marks=marks, id=f"{width}-S{severity}"))
     return cases
+
+
+def _blur_cases() -> list:
+    return _cases(lambda width, severity: (
+        "sigma 0.25 px (S1 at 800 px): OpenCV samples the Gaussian at whole pixels, a 3-tap kernel "
+        "[0.0003, 0.9993, 0.0003] whose sigma is 0.026 px; the blur needs an area-sampled kernel"
+    ) if declared("gaussian_blur", severity, width) < 0.4 else None)
 
 
 @pytest.mark.parametrize(("width", "severity"), _blur_cases())
@@ -451,17 +457,11 @@ def test_fog_follows_koschmieder_on_the_depth_prior(width, severity):
 
 
 def _raindrop_cases() -> list:
-    cases = []
-    for width in WIDTHS:
-        for severity in SEVERITIES:
-            marks = ()
-            if severity in (1, 2, 3):
-                marks = pytest.mark.xfail(strict=True, reason=(
-                    "raindrop overshoots its fraction (measured 1.15x at S1, 1.21x at S2, 1.11x at S3): drops are "
-                    "added in batches sized with r_lo * r_hi for the mean squared radius (E[r^2] is 1.34x that "
-                    "for a log-uniform radius), and the last batch is kept whole"))
-            cases.append(pytest.param(width, severity, marks=marks, id=f"{width}-S{severity}"))
-    return cases
+    return _cases(lambda width, severity: (
+        "raindrop overshoots its fraction (measured 1.15x at S1, 1.21x at S2, 1.11x at S3): drops are "
+        "added in batches sized with r_lo * r_hi for the mean squared radius (E[r^2] is 1.34x that "
+        "for a log-uniform radius), and the last batch is kept whole"
+    ) if severity in (1, 2, 3) else None)
 
 
 @pytest.mark.parametrize(("width", "severity"), _raindrop_cases())
