@@ -120,12 +120,9 @@ class _Cameras(Mapping[str, np.ndarray]):
 
 
 def planner_view(read: Callable[[str], np.ndarray]) -> Mapping[str, np.ndarray]:
-    """The read-only mapping camera -> image a planner receives, reading each camera through `read` on demand."""
-
-    def camera(name: str) -> np.ndarray:
-        return read(name)
-
-    return MappingProxyType(_Cameras(camera))
+    """The read-only mapping camera -> image a planner receives, reading each camera through `read` on demand
+    (the proxy exposes no route to the mapping behind it, hence none to `read` or its sample)."""
+    return MappingProxyType(_Cameras(read))
 
 
 def may_equal_clean(family: str, severity: int, cameras: tuple[str, ...]) -> bool:
@@ -164,8 +161,8 @@ class CellSample(Mapping[str, np.ndarray]):
         #: data error whatever the planner then did (it may have caught the exception and planned without it).
         self.data_errors: list[str] = []
         #: Set by the run when the clean cell's plan was reused for this frame (nothing was read or predicted):
-        #: the clean frame's bit-1 density, which is what the planner would have read.
-        self.reused_bit1: float | None = None
+        #: the frame's index in the clean record, whose row of figures the frame then takes.
+        self.reused_from: int | None = None
 
     def equals_clean(self, cameras: tuple[str, ...]) -> bool:
         """Whether this frame delivers the clean image on every camera of `cameras` (the planner's declared

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .cells import PDMS_FIELDS, RECORD_VERSION, CellRecord, cell_id, is_ego
+from .cells import PDMS_FIELDS, REAR_BLACKOUT_SEVERITY, RECORD_VERSION, CellRecord, cell_id, is_ego
 from .constants import CAMERAS, HORIZON_STEPS
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.content import content_fingerprint
@@ -248,9 +248,11 @@ class RunContext:
         """Whether frames of this cell may reuse the clean plans: reuse is on (not --drivedegrade-no-reuse), the
         planner is deterministic and has no ``reset`` (`CallStyle.reuses`), and some frame of the cell may
         deliver the clean images on every camera the planner declares (`loader.may_equal_clean`). Never the
-        clean, null, blind or ego cells; never on planner actors (`PlannerElsewhere`: each actor predicts every
-        frame it is sent)."""
-        if isinstance(planner, PlannerElsewhere):
+        clean, null, blind or ego cells, nor blackout S3 (`REAR_BLACKOUT_SEVERITY`): when it blacks out only
+        cameras the planner does not read, it is the rear cameras' null control and must call the planner to
+        catch an undeclared read. Never on planner actors (`PlannerElsewhere`: each predicts every frame it is
+        sent). The one decision: `stream` asks it once per cell."""
+        if isinstance(planner, PlannerElsewhere) or (family, severity) == ("blackout", REAR_BLACKOUT_SEVERITY):
             return False
         return self.reuse and call_style(planner).reuses and \
             may_equal_clean(family, severity, planner_cameras(planner))
@@ -291,12 +293,13 @@ class RunContext:
         With `clean` (the run's clean cell), a deterministic planner without ``reset`` is not called on a frame
         whose sample equals clean on every camera it reads (`CellSample.equals_clean`, decided structurally):
         the clean plan is yielded instead (bit for bit what the call would return) and the sample is marked
-        (``reused_bit1``). A frame that failed in clean is called again.
+        (``reused_from``: its index in clean). A frame that failed in clean is called again.
         """
         style = call_style(planner)
         scene = None
         seed = self.seed if seed is None else seed
-        reuse = self._reuser(style, clean, unread)
+        reuse = self._reuser(clean, unread) if clean is not None and self.reuses_clean(planner, family, severity) \
+            else _predict_every_frame
         if self.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
             yield from self._stream_batched(planner, samples(frames, family, severity, seed=seed,
                                                              decode=self.decode, unread=unread), reuse)
@@ -318,11 +321,9 @@ class RunContext:
             scene = frame.scene_token
             yield sample, self._predict(planner, sample, style)
 
-    def _reuser(self, style: CallStyle, clean: CellRecord | None,
-                unread: tuple[str, ...]) -> Callable[[CellSample], np.ndarray | None]:
-        """A sample -> the clean plan to reuse for it, or None to predict (see `stream`)."""
-        if clean is None or not self.reuse or not style.reuses:
-            return lambda sample: None
+    def _reuser(self, clean: CellRecord, unread: tuple[str, ...]) -> Callable[[CellSample], np.ndarray | None]:
+        """A sample -> the clean plan to reuse for it, or None to predict (see `stream`), in a cell that may
+        reuse (`reuses_clean`)."""
         if clean.family != "clean":
             raise DriveDegradeError(f"the plans to reuse must be the clean cell's, not {clean.cell!r}'s")
         cameras = tuple(c for c in CAMERAS if c not in unread)
@@ -332,7 +333,7 @@ class RunContext:
             i = index.get(sample.frame.token)
             if i is None or not sample.equals_clean(cameras) or not np.isfinite(clean.plans[i]).all():
                 return None
-            sample.reused_bit1 = float(clean.bit1[i])
+            sample.reused_from = i
             return np.array(clean.plans[i], dtype=np.float64, copy=True)
 
         return reuse
@@ -465,15 +466,20 @@ class RunContext:
                 data_errors.append(str(result))
             elif isinstance(result, str):
                 errors.append(result)
+            elif sample.reused_from is not None and clean is not None:
+                # clean's plan for this very frame: every figure of the frame is clean's row (the bit-1 density
+                # too: what the planner would have read is clean's images), so nothing is scored twice
+                j = sample.reused_from
+                reused += 1
+                plans[i], l2[i], col[i], vru[i] = result, clean.l2[j], clean.collision[j], clean.collision_vru[j]
+                jerk[i], bit1[i] = clean.jerk[j], clean.bit1[j]
+                for k in (*PDMS_FIELDS, "map_scored"):
+                    pdms[k][i] = getattr(clean, k)[j]
             else:
                 m = frame_metrics(result, sample.frame)
                 plans[i], l2[i], col[i], vru[i] = result, m["l2"], m["collision"], m["collision_vru"]
                 jerk[i] = m["jerk"]
-                if sample.reused_bit1 is not None:  # what the planner would have read: clean's images
-                    reused += 1
-                    bit1[i] = sample.reused_bit1
-                else:
-                    bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
+                bit1[i] = bit1_density(sample.delivered) if sample.delivered else np.nan
                 t2 = time.perf_counter()
                 scored = self.pdms_frame(sample.frame).score(result)
                 for k in PDMS_FIELDS:
@@ -496,6 +502,11 @@ def _data_fault(sample: CellSample) -> DataFault | None:
     if not sample.data_errors:
         return None
     return DataFault(f"frame {sample.frame.token!r}: {sample.data_errors[0]}")
+
+
+def _predict_every_frame(sample: CellSample) -> None:
+    """The reuser of a cell that does not reuse: every frame is predicted."""
+    return None
 
 
 def _written_message(token: str, cameras: list[str]) -> str:

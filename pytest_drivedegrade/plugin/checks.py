@@ -133,11 +133,9 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         record = context.clean_record(planner, lambda: stored)
     elif stored is not None:
         record = stored
-    else:  # frames whose inputs equal clean's take its plans: the clean cell of this process, computed or stored;
-        # never in a cell that is itself a null control (blackout-s3 for a planner that does not read the rear
-        # cameras), which must call the planner to catch an undeclared camera read
+    else:  # frames whose inputs equal clean's take its plans: the clean cell of this process, computed or stored
         clean = context.clean_record(planner, lambda: stored_record("clean")) \
-            if context.reuses_clean(planner, family, severity) and not rear_is_null else None
+            if context.reuses_clean(planner, family, severity) else None
         record = context.run_seeded_cell(planner, family, severity, clean=clean)
     failures = _conformance(record)
     if (cell == "null" or rear_is_null or baseline is not None) and cell != "clean":
