@@ -2,8 +2,9 @@
 
 Each shard run (`--drivedegrade-shard I/N`) leaves `<report>/<planner>/shard-I-of-N/` with `shard.json` (what the
 shard scored, its run key, the floor's per-frame L2, the ground truth for the trajectory panels) and `cells/`.
-The merge reads every shard's per-frame results into one pandas table, checks that the shards belong to one run
-and that none is missing, joins them in shard order (which is scene order, the order of an unsharded run) and
+The merge reads every shard's per-frame results, checks that the shards belong to one run and that none is
+missing, joins each cell's records in shard order (scene order, the order of an unsharded run; `CellRecord.concat`,
+as the Ray pool joins its scene groups) and
 computes and writes exactly what an unsharded run writes. A missing shard is an error naming it, unless
 `allow_incomplete`, when the certificate says `completeness: false`.
 """
@@ -18,8 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import PDMS_FIELDS, CellPayload, CellRecord
-from ..constants import HORIZON_STEPS
+from ..cells import CellPayload, CellRecord
 from ..errors import DriveDegradeError
 from ..scoring.records import finite_mean
 from ..scoring.retention import retention
@@ -74,49 +74,15 @@ def load_shard(folder: Path) -> ShardResult:
     return ShardResult(path.parent, manifest, payloads)
 
 
-def _table(shards: Sequence[ShardResult]) -> Any:
-    """One row per (cell, frame) of every shard: the long table the records are rebuilt from."""
-    import pandas as pd
-
-    frames = []
-    for shard in shards:
-        for cell, payload in shard.payloads.items():
-            r = payload.record
-            n = len(r.frames)
-            cols: dict[str, Any] = {"shard": shard.manifest["index"], "cell": cell, "pos": np.arange(n),
-                                    "token": r.frames, "jerk": r.jerk, "bit1": r.bit1}
-            for name in (*PDMS_FIELDS, "map_scored"):
-                cols[name] = getattr(r, name)
-            for j in range(HORIZON_STEPS):
-                cols[f"x{j}"], cols[f"y{j}"] = r.plans[:, j, 0], r.plans[:, j, 1]
-                cols[f"l2_{j}"], cols[f"col_{j}"], cols[f"vru_{j}"] = r.l2[:, j], r.collision[:, j], \
-                    r.collision_vru[:, j]
-            frames.append(pd.DataFrame(cols))
-    return pd.concat(frames, ignore_index=True)
-
-
-def _records(table: Any, shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, CellRecord]:
-    """Each cell's record over the shards in order, for the cells every given shard has."""
+def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, CellRecord]:
+    """Each cell's record over the shards in order (scene order), for the cells every given shard has: the
+    per-shard records joined by `CellRecord.concat`, as the Ray pool joins its scene groups."""
     records = {}
-    for cell, rows in table.sort_values(["shard", "pos"], kind="stable").groupby("cell", sort=False):
-        parts = [s.payloads[cell] for s in shards if cell in s.payloads]
-        if len(parts) != len(shards):
-            continue
-        first = parts[0].record
-        steps = range(HORIZON_STEPS)
-        plans = np.stack([np.stack([rows[f"x{j}"], rows[f"y{j}"]], axis=-1) for j in steps], axis=1)
-        seconds: dict[str, float] = {}
-        for p in parts:
-            for k, v in p.record.seconds.items():
-                seconds[k] = seconds.get(k, 0.0) + float(v)
-        records[str(cell)] = CellRecord(
-            str(cell), first.family, first.severity, [str(t) for t in rows["token"]], plans,
-            np.stack([rows[f"l2_{j}"] for j in steps], axis=1), np.stack([rows[f"col_{j}"] for j in steps], axis=1),
-            np.stack([rows[f"vru_{j}"] for j in steps], axis=1), rows["jerk"].to_numpy(),
-            rows["bit1"].to_numpy(), seconds=seconds, errors=[e for p in parts for e in p.record.errors],
-            data_errors=[e for p in parts for e in p.record.data_errors],
-            **{name: rows[name].to_numpy() for name in (*PDMS_FIELDS, "map_scored")})
-    return {c: records[c] for c in cells if c in records}
+    for cell in cells:
+        parts = [s.payloads[cell].record for s in shards if cell in s.payloads]
+        if parts and len(parts) == len(shards):
+            records[cell] = CellRecord.concat(parts)
+    return records
 
 
 @dataclass(frozen=True)
@@ -204,7 +170,7 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
-    records = _records(_table(shards), shards, cells)
+    records = _records(shards, cells)
     if "clean" not in records:
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
                                 "shard (finished cells are reused)")

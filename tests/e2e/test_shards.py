@@ -105,3 +105,8 @@ def test_the_reference_planners_merge_to_their_unsharded_cells(dd, two_scene_wor
     assert main(["merge", str(shards / "shard-1-of-2"), str(shards / "shard-2-of-2"), "--out", str(out)]) == 0
     full = dd.pytester.path / "full" / name
     assert (out / name / "cells.csv").read_text() == (full / "cells.csv").read_text()
+    # the cost ledger joins too: predictions made and frames that reused the clean plan (camera_cnn reuses in
+    # frame_dropout, the temporal planner never)
+    a, b = (load_json(f / "certificate.json")["cost"] for f in (full, out / name))
+    assert (b["predictions"], b["reused"]) == (a["predictions"], a["reused"])
+    assert (a["reused"] > 0) is (planner == "camera_cnn.py")
