@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from pytest_drivedegrade.constants import HORIZON_STEPS
-from pytest_drivedegrade.planning import Command, EgoStatus, planner_device
+from pytest_drivedegrade.planning import Command, EgoStatus, deterministic_cuda, planner_device
 from pytest_drivedegrade.scoring.floor import FEATURE_SIZE, OUTPUT_SIZE, ego_features
 
 WEIGHTS = Path(__file__).with_name("camera_cnn.pt")
@@ -149,16 +149,6 @@ class PlanHead(nn.Module):
     def forward(self, facts: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         facts, z = facts.double(), z.double()
         return (self.base(z) + self.head(torch.cat([facts, z], dim=1))) * self.y_std + self.y_mean
-
-
-def deterministic_cuda() -> None:
-    """cuDNN without autotuning (``benchmark``: the fastest kernel is chosen by timing, so it can change between
-    runs), with only deterministic kernels and without TF32 (10-bit mantissa convolutions): a CUDA run is then
-    bit-reproducible run to run, and within float rounding of the CPU plans. Process-wide torch settings."""
-    torch.backends.cudnn.benchmark = False
-    torch.backends.cudnn.deterministic = True
-    torch.backends.cudnn.allow_tf32 = False
-    torch.backends.cuda.matmul.allow_tf32 = False
 
 
 class CameraCNNPlanner:

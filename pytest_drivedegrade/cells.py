@@ -50,6 +50,11 @@ def is_ego(family: str) -> bool:
     return family in EGO_FAMILIES
 
 
+def is_camera_ladder(family: str) -> bool:
+    """A family of the camera ladder: not a diagnostic cell (clean, null, blind), not an ego cell."""
+    return family not in DIAGNOSTIC and not is_ego(family)
+
+
 def run_order(families: Iterable[str], severities: Iterable[int], *,
               ego: Iterable[str] | bool = EGO_FAMILIES) -> list[tuple[str, int]]:
     """(family, severity) of every cell in run order: clean first, the ladder, the ego cells (`ego_noise` at the

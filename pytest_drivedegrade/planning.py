@@ -56,6 +56,22 @@ def planner_device(default: str = "cpu") -> str:
     import os
 
     return (os.environ.get(DEVICE_ENV) or default).strip().lower()
+
+
+def deterministic_cuda() -> None:
+    """cuDNN without autotuning (``benchmark``: the fastest kernel is chosen by timing, so it can change between
+    runs), with only deterministic kernels and without TF32 (10-bit mantissa convolutions and matmuls): a CUDA
+    run is then bit-reproducible run to run, and within float rounding of the CPU plans. Process-wide torch
+    settings; the plugin applies them for --drivedegrade-device cuda, and a planner built elsewhere (a Ray
+    actor) may call it too."""
+    import torch
+
+    torch.backends.cudnn.benchmark = False
+    torch.backends.cudnn.deterministic = True
+    torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
+
+
 #: At most this many characters of an offending value go into an error message.
 _VALUE_CHARS = 400
 

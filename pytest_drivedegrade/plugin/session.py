@@ -146,16 +146,12 @@ class DriveDegradeSession:
         deterministic (no autotuned kernel choice, no TF32 convolutions) so a GPU run is bit-reproducible."""
         import os
 
-        from ..planning import DEVICE_ENV
+        from ..planning import DEVICE_ENV, deterministic_cuda
 
         self._device_env = os.environ.get(DEVICE_ENV)
         os.environ[DEVICE_ENV] = self.options.device
         if self.options.device != "cpu":
-            import torch
-
-            torch.backends.cudnn.deterministic = True
-            torch.backends.cudnn.benchmark = False
-            torch.backends.cudnn.allow_tf32 = False
+            deterministic_cuda()
 
     def pytest_unconfigure(self, config: pytest.Config) -> None:
         """Never leave actors or a local cluster behind, whatever ended the session; restore the device variable."""

@@ -21,7 +21,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from ..cells import DIAGNOSTIC, cell_id, is_ego
+from ..cells import cell_id, is_camera_ladder
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
 from .certificate import DIGITS
@@ -58,7 +58,7 @@ def _curves(cells: Sequence[Mapping[str, Any]], key: str) -> dict[str, dict[int,
     curves: dict[str, dict[int, float]] = {}
     for c in cells:
         fam = c.get("family")
-        if isinstance(fam, str) and fam not in DIAGNOSTIC and not is_ego(fam):
+        if isinstance(fam, str) and is_camera_ladder(fam):
             value = _number(c.get(key))
             curves.setdefault(fam, {})[int(c.get("severity", 0))] = math.nan if value is None else value
     return curves

@@ -17,7 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from ..cells import DIAGNOSTIC, is_ego
+from ..cells import is_camera_ladder
 from ..constants import EGO_LENGTH, EGO_WIDTH
 from ..scoring.records import CellSummary
 from ..scoring.retention import THRESHOLD_LEVELS
@@ -71,7 +71,7 @@ def image_data_uri(rgb: np.ndarray) -> str:
 def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
     out: dict[str, list[CellSummary]] = {}
     for s in summaries:
-        if s.family not in DIAGNOSTIC and not is_ego(s.family):
+        if is_camera_ladder(s.family):
             out.setdefault(s.family, []).append(s)
     return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
 

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellRecord, is_ego
+from ..cells import CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
 from .metrics import CONVENTIONS, at_horizons
 
@@ -94,7 +94,7 @@ class RunAnalysis:
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""
         return {s.family: s.retention for s in self.summaries
-                if s.severity == 5 and s.family not in DIAGNOSTIC and not is_ego(s.family)}
+                if s.severity == 5 and is_camera_ladder(s.family)}
 
 
 #: The time parts a cell records (``CellRecord.seconds``), as the cost ledger reports them.

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, PDMS_FIELDS, CellRecord, is_ego
+from ..cells import PDMS_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
 from .records import CellSummary, finite_mean, horizon_metrics
 
@@ -163,6 +163,6 @@ def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, Any]]:
     cells)."""
     curves: dict[str, dict[int, float]] = {}
     for s in summaries:
-        if s.family not in DIAGNOSTIC and not is_ego(s.family):
+        if is_camera_ladder(s.family):
             curves.setdefault(s.family, {})[s.severity] = s.retention
     return {fam: {k: tolerance_threshold(c, lvl) for k, lvl in THRESHOLD_LEVELS.items()} for fam, c in curves.items()}

@@ -13,7 +13,16 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellRecord, cell_id, differing_frames, identical_plans, is_ego, report_order
+from ..cells import (
+    DIAGNOSTIC,
+    CellRecord,
+    cell_id,
+    differing_frames,
+    identical_plans,
+    is_camera_ladder,
+    is_ego,
+    report_order,
+)
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from . import intervals as iv
@@ -283,7 +292,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     if res is not None:
         curves: dict[str, dict[int, str]] = {}
         for s in summaries:
-            if s.family not in DIAGNOSTIC and not is_ego(s.family):
+            if is_camera_ladder(s.family):
                 curves.setdefault(s.family, {})[s.severity] = s.cell
         for fam, entry in iv.threshold_intervals(res, curves).items():
             th[fam].update(entry)
