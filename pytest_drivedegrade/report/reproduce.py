@@ -115,6 +115,10 @@ def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], rep
                                  ("--drivedegrade-timeout", settings.get("timeout"), None)):
         if value is not None and value != default:
             argv += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
+    if settings.get("device", "cpu") != "cpu":  # the device enters the run key: the cells are that device's
+        argv += ["--drivedegrade-device", str(settings["device"])]
+    if settings.get("reuse") is False:  # with batches, reuse changes which frames share one
+        argv += ["--drivedegrade-no-reuse"]
     if data is not None:
         argv += ["--drivedegrade-data", str(data)]
     # collect only the sampled cells' families and severities, then select the cells themselves with -k

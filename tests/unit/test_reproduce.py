@@ -126,6 +126,10 @@ def test_rerun_argv_carries_the_certificate_settings(cert_file) -> None:
                  "--drivedegrade-data /data", "--drivedegrade-families fog,jpeg", "--drivedegrade-severities 2,5"):
         assert flag in text, flag
     assert argv[-2:] == ["-k", "clean or null or fog-s2 or jpeg-s5"]
+    assert "--drivedegrade-device" not in text and "--drivedegrade-no-reuse" not in text  # cpu, reuse: defaults
+    cert["settings"].update(device="cuda:1", reuse=False)  # a GPU run with reuse off reruns as such
+    text = " ".join(rp.rerun_argv(cert, Path("/p/planner.py"), cells, Path("/tmp/out"), None))
+    assert "--drivedegrade-device cuda:1" in text and "--drivedegrade-no-reuse" in text
     del cert["dataset"]["frames_requested"]  # a certificate from before: it scored dataset.frames frames
     assert "--drivedegrade-frames 12" in " ".join(rp.rerun_argv(cert, Path("p.py"), ["clean"], Path("o"), None))
 
