@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..cells import DIAGNOSTIC, CellRecord, is_ego
+from ..cells import CellRecord, is_camera_ladder
 from ..scoring.records import CellSummary, RunAnalysis, format_value
 from .certificate import Provenance
 
@@ -40,7 +40,7 @@ class TrajectoryExample:
 
 def most_damaging(summaries: Sequence[CellSummary], n: int = 3) -> list[CellSummary]:
     """The `n` ladder cells with the lowest retention (ties broken by cell id, so the choice is stable)."""
-    ladder = [s for s in summaries if s.family not in DIAGNOSTIC and not is_ego(s.family)
+    ladder = [s for s in summaries if is_camera_ladder(s.family)
               and math.isfinite(s.retention)]
     return sorted(ladder, key=lambda s: (s.retention, s.cell))[:n]
 
@@ -154,9 +154,11 @@ def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
 def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.ndarray | None = None,
                   trajectories: Sequence[TrajectoryExample | Mapping[str, Any]] = (),
                   floor_point: tuple[float, float] = (1.0, 1.0), families: Mapping[str, Any] | None = None,
-                  created: str = "", digest: str = "", cost: Mapping[str, Any] | None = None) -> str:
+                  created: str = "", digest: str = "", cost: Mapping[str, Any] | None = None,
+                  signed_by: str = "") -> str:
     """The page as a string. `montage`: the S4 montage of one front frame (RGB uint8), optional; `cost`: the
-    certificate's cost ledger, shown as a panel."""
+    certificate's cost ledger, shown as a panel; `signed_by`: the signing key's fingerprint ("" unsigned), so the
+    page says what the seal proves."""
     from jinja2 import Environment, FileSystemLoader, StrictUndefined
 
     from . import plots
@@ -174,8 +176,8 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     }
     env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
-    extra = {"created": created, "digest": digest, "traj_cells": [c for t in traj[:1] for c in t["plans"]],
-             "cost": _cost_rows(cost),
+    extra = {"created": created, "digest": digest, "signed_by": signed_by,
+             "traj_cells": [c for t in traj[:1] for c in t["plans"]], "cost": _cost_rows(cost),
              **pdms_ego_context(analysis)}
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
 
@@ -192,7 +194,7 @@ def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, Any] | None:
             for k, v in sorted(sec.items(), key=lambda kv: -kv[1])]
     fps = cost.get("planner_frames_per_second")
     cells = cost.get("cells", {})
-    reused_cells = ", ".join(f"{c} {int(v['reused'])}" for c, v in cells.items() if v.get("reused"))
+    reused_cells = ", ".join(f"{c} {int(v['reused'])}" for c, v in sorted(cells.items()) if v.get("reused"))
     return {"predictions": cost["predictions"], "reused": cost.get("reused", 0), "rows": rows,
             "fps": f"{fps:.1f}" if fps else "—", "reused_cells": reused_cells}
 

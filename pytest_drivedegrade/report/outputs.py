@@ -47,5 +47,6 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     write_cells_csv(folder / "cells.csv", analysis, prov)
     write_report(folder / "report.html", analysis, prov, montage=montage,
                  trajectories=trajectory_examples(records, gt, analysis.summaries),
-                 created=cert.get("created", ""), digest=cert["digest"], cost=cost)
+                 created=cert.get("created", ""), digest=cert["digest"], cost=cost,
+                 signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")))
     return cert, f"wrote {folder / 'report.html'}, cells.csv and certificate.json"

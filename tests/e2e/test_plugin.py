@@ -221,6 +221,9 @@ def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch
     dd.run(*extra, families="jpeg", severities="1").assert_outcomes(passed=4)
     path = dd.folder() / "certificate.json"
     assert load_json(path)["signature"]["algorithm"] == "ed25519"
+    page = (dd.folder() / "report.html").read_text()  # the report says what the seal proves
+    assert "signed (Ed25519, key fingerprint" in page
+    assert load_json(path)["signature"]["public_key_fingerprint"] in page and "integrity only" not in page
     ok = _verify_with(path, "--public-key", str(pub))
     assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
     wrong = _verify_with(path, "--public-key", str(other))
@@ -270,6 +273,7 @@ def test_an_edited_stored_cell_is_recomputed_and_reported(dd):
     _, cases = junit(dd.pytester.path / "again.xml")
     assert cases["jpeg-s1"]["resumed"] == "0" and cases["clean"]["resumed"] == "1"
     cost = load_json(dd.folder() / "certificate.json")["cost"]  # the certificate lists the reused cells too
+    assert "integrity only, unsigned" in (dd.folder() / "report.html").read_text()  # what an unsigned seal proves
     assert cost["resumed_cells"] == ["blind", "clean", "null"]
 
 
