@@ -65,7 +65,7 @@ def measure(device: str, images: list, egos: list, cmds: list, batches: list[int
     """Per call style: (whole-call frames/s, network-only frames/s), and the plans of each style."""
     import camera_cnn
 
-    from pytest_drivedegrade.scoring.floor import ego_features
+    from pytest_drivedegrade.floor import ego_features
 
     planner = camera_cnn.CameraCNNPlanner(device=device)
     n = len(images)

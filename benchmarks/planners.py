@@ -23,9 +23,9 @@ import numpy as np
 import torch
 
 from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.floor import load_or_train_floor
+from pytest_drivedegrade.metrics import trajectory as metrics
 from pytest_drivedegrade.planning import planner_cameras, predict_checked
-from pytest_drivedegrade.scoring import metrics
-from pytest_drivedegrade.scoring.floor import load_or_train_floor
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -91,7 +91,7 @@ def batches(frames: int | None) -> None:
                                                unread=("CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"))]
     egos, cmds = [f.ego for f in ctx.frames], [f.command for f in ctx.frames]
 
-    from pytest_drivedegrade.scoring.floor import ego_features
+    from pytest_drivedegrade.floor import ego_features
 
     pix = np.stack([camera_cnn.preprocess(im) for im in images])
     feats = np.stack([ego_features(e, c) for e, c in zip(egos, cmds)])
@@ -192,7 +192,7 @@ def reuse(frames: int | None) -> None:
 
 
 def estimates() -> None:
-    from pytest_drivedegrade.report.estimate import estimate
+    from pytest_drivedegrade.certificate.estimate import estimate
 
     for fps in (1.8, 45.0):
         rows = estimate(fps, 6019, [1, 8, 64])

@@ -29,8 +29,8 @@ import torch
 from torch import nn
 
 from pytest_drivedegrade.constants import HORIZON_STEPS
+from pytest_drivedegrade.floor import FEATURE_SIZE, OUTPUT_SIZE, ego_features
 from pytest_drivedegrade.planning import Command, EgoStatus, deterministic_cuda, planner_device
-from pytest_drivedegrade.scoring.floor import FEATURE_SIZE, OUTPUT_SIZE, ego_features
 
 WEIGHTS = Path(__file__).with_name("camera_cnn.pt")
 SIDECAR = WEIGHTS.with_suffix(".json")

@@ -14,8 +14,8 @@ from __future__ import annotations
 import pytest
 
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
+from pytest_drivedegrade.floor import EgoMLP, load_or_train_floor, train_split_for
 from pytest_drivedegrade.plugin.context import cache_root
-from pytest_drivedegrade.scoring.floor import EgoMLP, load_or_train_floor, train_split_for
 
 
 @pytest.fixture(scope="session")

@@ -25,8 +25,8 @@ from camera_cnn import WEIGHTS, CameraCNNPlanner, preprocess  # noqa: E402
 
 from pytest_drivedegrade.constants import HORIZON_STEPS  # noqa: E402
 from pytest_drivedegrade.data.context import FrameContext  # noqa: E402
+from pytest_drivedegrade.floor import ego_features  # noqa: E402
 from pytest_drivedegrade.planning import Command, EgoStatus  # noqa: E402
-from pytest_drivedegrade.scoring.floor import ego_features  # noqa: E402
 
 #: Weight of the memory in the blend (0: camera_cnn itself; the facts of a frame 2 s old weigh MEMORY^4).
 MEMORY = 0.4

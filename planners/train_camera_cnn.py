@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from pytest_drivedegrade import floor
 from pytest_drivedegrade.constants import HORIZON_STEPS
-from pytest_drivedegrade.scoring import floor
-from pytest_drivedegrade.scoring.metrics import l2_avg
+from pytest_drivedegrade.metrics.trajectory import l2_avg
 
 HERE = Path(__file__).resolve().parent
 SETTINGS: dict[str, Any] = {

@@ -17,7 +17,7 @@ import numpy as np
 
 from .constants import EGO_BLIND, EGO_NOISE, HORIZON_STEPS
 from .errors import InvalidInput
-from .scoring.metrics import l2_avg
+from .metrics.trajectory import l2_avg
 
 #: Cells that are not ladder families, in report order: clean (severity 0), the null control (the cameras the
 #: planner does not read blacked out; an untouched rerun for a planner that reads all six) and blind (all six

@@ -47,9 +47,9 @@ def _verify(args: argparse.Namespace) -> int:
     """Exit 0 when the certificate is intact (and signed by --public-key's key when given) and its arithmetic
     adds up, 1 when it was edited, its signature fails or its thresholds / axes / verdict disagree with its
     cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
-    from .report.certificate import CertificateMismatch, verify
-    from .report.consistency import check_consistency, incompleteness
-    from .report.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
+    from .certificate.consistency import check_consistency, incompleteness
+    from .certificate.seal import CertificateMismatch, verify
+    from .certificate.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
 
     public_key = load_public_key(args.public_key) if args.public_key else None
     try:
@@ -87,7 +87,7 @@ def _verify(args: argparse.Namespace) -> int:
 def _reproduce(args: argparse.Namespace) -> int:
     """Exit 0 when every rerun cell is bit-identical to the certificate, 1 when one differs, 2 for a usage error
     (a missing file, a certificate that does not verify)."""
-    from .report.reproduce import reproduce
+    from .certificate.reproduce import reproduce
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
                      salt="" if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep)
@@ -95,7 +95,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 def _keygen(args: argparse.Namespace) -> int:
     """Write NAME.key (private, mode 0600) and NAME.pub."""
-    from .report.signing import fingerprint, keygen, load_private_key
+    from .certificate.signing import fingerprint, keygen, load_private_key
 
     key_path, pub_path = keygen(args.name)
     fp = fingerprint(load_private_key(key_path.read_bytes(), str(key_path)).public_key())
@@ -107,7 +107,7 @@ def _merge_signing_key(args: argparse.Namespace) -> object:
     """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text), else None."""
     import os
 
-    from .report.signing import ENV_VAR, load_private_key, read_key_source
+    from .certificate.signing import ENV_VAR, load_private_key, read_key_source
 
     source, where = (args.sign_key, "--sign-key") if args.sign_key else (os.environ.get(ENV_VAR), ENV_VAR)
     if not source:
@@ -117,7 +117,7 @@ def _merge_signing_key(args: argparse.Namespace) -> object:
 
 def _merge(args: argparse.Namespace) -> int:
     """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
-    from .report.merge import merge_shards, write_merged
+    from .certificate.merge import merge_shards, write_merged
 
     command = "drivedegrade merge " + " ".join(args.shards) + f" --out {args.out}"
     key = _merge_signing_key(args)
@@ -131,8 +131,8 @@ def _merge(args: argparse.Namespace) -> int:
 def _compare(args: argparse.Namespace) -> int:
     """Compare certificates: compare.csv and compare.html in --out; exit 2 for an unreadable, edited or
     incomparable certificate."""
-    from .report.certificate import CertificateMismatch
-    from .report.compare import write_compare
+    from .certificate.compare import write_compare
+    from .certificate.seal import CertificateMismatch
 
     try:
         csv_path, html_path, df = write_compare(args.certificates, args.out, force=args.force)
@@ -149,11 +149,11 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _estimate(args: argparse.Namespace) -> int:
     """Wall time of a certification from a planner's frames/s (and a certificate's measured overhead)."""
-    from .report.estimate import estimate, estimate_lines, overhead_per_prediction
+    from .certificate.estimate import estimate, estimate_lines, overhead_per_prediction
 
     overhead = 0.0
     if args.certificate:
-        from .report.certificate import verify
+        from .certificate.seal import verify
 
         overhead = overhead_per_prediction(verify(args.certificate).get("cost"))
     try:

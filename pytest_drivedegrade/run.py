@@ -28,9 +28,9 @@ from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, may_equal_clean, samples
+from .metrics.pdms import PreparedFrame
+from .metrics.trajectory import bit1_density, frame_metrics
 from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, to_numpy, validate_output
-from .scoring.metrics import bit1_density, frame_metrics
-from .scoring.pdms import PreparedFrame
 from .shards import Shard, shard_frames
 
 

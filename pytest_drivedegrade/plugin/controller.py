@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from ..cells import CellPayload, CellRecord, cell_id
+from ..certificate.seal import Provenance
 from ..errors import DriveDegradeError
-from ..report.certificate import Provenance
 from ..run import RunContext
 from ..scoring.records import cost_ledger, finite_mean
 from ..store import ResultStore
@@ -84,7 +84,7 @@ def floor_per_frame(config: pytest.Config, context: RunContext, split: str, line
     """The ego-only floor's clean l2_avg per scored frame (trained on the train split once, cached); None with a
     line saying why when there is no floor. With `ego`, also its ego_blind retention there
     (``ego["ego_removal"]``, for the reliance chart)."""
-    from ..scoring.floor import load_or_train_floor, train_split_for
+    from ..floor import load_or_train_floor, train_split_for
 
     try:
         train = context.reader.with_split(train_split_for(split))
@@ -119,8 +119,8 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
                command: str, planner_file: str = "") -> Provenance:
     """What makes the run traceable, for the certificate and cells.csv."""
     from .. import __version__
+    from ..certificate.seal import runtime_versions
     from ..corruptions.ladder import SPEC_VERSION
-    from ..report.certificate import runtime_versions
 
     source = "embedded world" if options.data is None else str(options.data)
     return Provenance(planner_name=name, planner_fingerprint=str(key["planner_fingerprint"]),
@@ -204,7 +204,7 @@ def signing_key(options: RunOptions) -> Any:
     """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
     if options.sign_key_pem is None:
         return None
-    from ..report.signing import load_private_key
+    from ..certificate.signing import load_private_key
 
     return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")
 
@@ -231,7 +231,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
                  planner_file: str = "") -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
-    from ..report.merge import MANIFEST, shard_manifest
+    from ..certificate.merge import MANIFEST, shard_manifest
 
     shard = options.shard
     assert shard is not None

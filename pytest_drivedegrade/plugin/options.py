@@ -206,7 +206,7 @@ def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
     text = str(raw)
     if not text.strip().startswith("-----BEGIN"):
         text = str(here / text.strip())
-    from ..report.signing import load_private_key, read_key_source
+    from ..certificate.signing import load_private_key, read_key_source
 
     try:
         pem = read_key_source(text, where)

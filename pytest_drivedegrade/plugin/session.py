@@ -126,7 +126,7 @@ class DriveDegradeSession:
             collect_path = conftest_with_planner(config)
         baseline = None
         if options.baseline_path is not None:
-            from ..report.certificate import CertificateError, verify
+            from ..certificate.seal import CertificateError, verify
 
             if not options.baseline_path.is_file():
                 raise pytest.UsageError(f"--drivedegrade-baseline: {options.baseline_path} does not exist")

@@ -7,7 +7,7 @@ metric is named once. Names up to ``retention_ci_high`` are stable (SPEC section
 from __future__ import annotations
 
 from ..constants import REPORT_HORIZONS_S
-from ..scoring.metrics import CONVENTIONS
+from ..metrics.trajectory import CONVENTIONS
 
 
 def per_horizon(kind: str, convention: str) -> tuple[str, ...]:

@@ -18,8 +18,8 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..cells import CellRecord, is_camera_ladder
+from ..certificate.seal import Provenance
 from ..scoring.records import CellSummary, RunAnalysis, format_value
-from .certificate import Provenance
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",

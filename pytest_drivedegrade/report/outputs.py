@@ -10,8 +10,8 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..cells import CellRecord
+from ..certificate.seal import Provenance
 from ..scoring.records import RunAnalysis
-from .certificate import Provenance
 
 
 def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
@@ -29,8 +29,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     missing cells (a crash, Ctrl-C, -k) or shards says so in the certificate, so it is not mistaken for a
     complete baseline. `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` (an Ed25519
     private key) the certificate is signed before it is sealed, so its digest covers the signature."""
-    from .cells import write_cells_csv
-    from .certificate import build_certificate, certificate_text, seal
+    from ..certificate.seal import build_certificate, certificate_text, seal
+    from .cells_csv import write_cells_csv
     from .html import trajectory_examples, write_report
 
     folder = Path(report_dir) / prov.planner_name
@@ -39,7 +39,7 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     if cost is not None:
         cert["cost"] = dict(cost)
     if signing_key is not None:
-        from .signing import sign
+        from ..certificate.signing import sign
 
         cert = sign(cert, signing_key)
     cert = seal(cert)

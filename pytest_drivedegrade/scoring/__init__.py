@@ -1,7 +1,6 @@
-"""Scoring: every number of the certificate, as pure functions over plain data.
+"""Scoring: statistics over finished cells, as pure functions over plain data.
 
-`metrics` scores one plan against its frame (used while a cell runs); `pdms` its PDMS-like safety score;
 `records` holds a cell's summary and the run's analysis; `retention` the retention, its paired bootstrap and the
-thresholds; `verdict` the axes, the label and `analyse_run`; `baseline` the CI gate; `floor` the ego-only
-floor. Nothing here imports pytest.
+thresholds; `intervals` the joint bootstrap; `verdict` the axes, the label and `analyse_run`; `baseline` the CI
+gate. How one plan is scored lives in `metrics/`; the ego-only floor in `floor.py`. Nothing here imports pytest.
 """

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..cells import CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
-from .metrics import CONVENTIONS, at_horizons
+from ..metrics.trajectory import CONVENTIONS, at_horizons
 
 
 def finite_mean(values: Any) -> float:

@@ -24,11 +24,11 @@ import jinja2  # noqa: F401
 import pytest
 import torch._dynamo  # noqa: F401 - torch.manual_seed imports it lazily; twice in one process it fails
 
+import pytest_drivedegrade.floor  # noqa: F401
 import pytest_drivedegrade.plugin.session  # noqa: F401 - with plugin.context: one SESSION_KEY for every run
 import pytest_drivedegrade.report.html  # noqa: F401
 import pytest_drivedegrade.report.plots  # noqa: F401
 import pytest_drivedegrade.run  # noqa: F401
-import pytest_drivedegrade.scoring.floor  # noqa: F401
 
 #: Three ladder families at two severities: 3 diagnostic + 6 ladder cells, a few seconds per run.
 FAMILIES = "jpeg,blackout,gaussian_blur"

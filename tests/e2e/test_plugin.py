@@ -179,7 +179,7 @@ def test_ci_gate(dd):
 
 
 def test_baseline_from_another_dataset_is_a_clear_error(dd):
-    from pytest_drivedegrade.report.certificate import seal, write_certificate
+    from pytest_drivedegrade.certificate.seal import seal, write_certificate
 
     dd.write_planner()
     dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
@@ -208,7 +208,7 @@ def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch
     import hashlib
     import json
 
-    from pytest_drivedegrade.report.signing import keygen
+    from pytest_drivedegrade.certificate.signing import keygen
 
     key, pub = keygen(dd.pytester.path / "issuer")
     _, other = keygen(dd.pytester.path / "other")

@@ -107,7 +107,7 @@ def test_blackout_s3_is_a_null_control_for_a_front_only_planner(dd):
         "report-not-a-folder", "baseline-nan", "baseline-deep", "baseline-duplicate-key"])
 def test_bad_input_is_a_usage_error(dd, planner, options, expected):
     """(Trust case 11 for the baseline-nan, -deep and -duplicate-key cases: a usage error, not an INTERNALERROR.)"""
-    from pytest_drivedegrade.report.certificate import seal
+    from pytest_drivedegrade.certificate.seal import seal
 
     dd.write_planner()
     dd.pytester.makepyfile(broken="import pytest\n\ndef planner(:\n    pass\n",

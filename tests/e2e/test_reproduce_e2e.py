@@ -11,8 +11,8 @@ import pytest
 pytest.register_assert_rewrite("plugin_support")
 from plugin_support import load_json  # noqa: E402
 
+from pytest_drivedegrade.certificate.reproduce import sample_cells  # noqa: E402
 from pytest_drivedegrade.cli import main  # noqa: E402
-from pytest_drivedegrade.report.reproduce import sample_cells  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from test_analysis import GROUPS, synthetic_run
 
+from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.report import certificate as cf
 from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import records as rc
 from pytest_drivedegrade.scoring import verdict as vd
@@ -162,7 +162,7 @@ def reseal(path: Path, change) -> None:
 
 
 def test_verify_recomputes_axes_thresholds_and_verdict_from_the_cells(cert_file: Path, capsys) -> None:
-    from pytest_drivedegrade.report.consistency import check_consistency
+    from pytest_drivedegrade.certificate.consistency import check_consistency
 
     assert check_consistency(cf.verify(cert_file)) == []
     s5 = next(i for i, c in enumerate(json.loads(cert_file.read_text())["cells"]) if c["cell"] == "fog-s5")
@@ -236,7 +236,7 @@ def test_verify_requires_undetermined_when_a_cell_has_failed_frames(tmp_path: Pa
     a forger who puts the axes' label back is caught."""
     from test_analysis import fail_frames
 
-    from pytest_drivedegrade.report.consistency import check_consistency
+    from pytest_drivedegrade.certificate.consistency import check_consistency
 
     recs, _ = synthetic_run(12)
     fail_frames(next(r for r in recs if r.cell == "snow-s5"), [4], data=True)

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from test_analysis import GROUPS, synthetic_run
 
+from pytest_drivedegrade.certificate import seal as cf
+from pytest_drivedegrade.certificate.compare import CompareError, write_compare
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.report import certificate as cf
-from pytest_drivedegrade.report.compare import CompareError, write_compare
 from pytest_drivedegrade.scoring import verdict as vd
 
 PROV = cf.Provenance("a", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)

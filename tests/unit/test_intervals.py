@@ -13,7 +13,7 @@ import pytest
 from test_analysis import GROUPS, ORDER, record, synthetic_run
 
 from pytest_drivedegrade.cells import CellRecord
-from pytest_drivedegrade.report.certificate import canonicalize
+from pytest_drivedegrade.certificate.seal import canonicalize
 from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import intervals as iv
 from pytest_drivedegrade.scoring import retention as rt
@@ -243,7 +243,7 @@ def test_baseline_with_another_seed_count_is_refused_with_a_clear_message():
 
 
 def test_report_terminal_and_junit_show_the_intervals():
-    from pytest_drivedegrade.report.certificate import Provenance
+    from pytest_drivedegrade.certificate.seal import Provenance
     from pytest_drivedegrade.report.html import render_report
     from pytest_drivedegrade.report.junit import suite_properties
     from pytest_drivedegrade.report.terminal import summary_lines

@@ -15,16 +15,16 @@ PACKAGE = Path(__file__).resolve().parents[2] / "pytest_drivedegrade"
 NAME = "pytest_drivedegrade"
 
 #: The pipeline's stages, earliest first; a module may import only from its own stage or earlier ones. A
-#: module belongs to the first stage whose prefix it matches (`scoring.metrics` before `scoring`).
+#: module belongs to the first stage whose prefix it matches (`scoring.records` before `scoring`).
 STAGES: tuple[tuple[str, ...], ...] = (
     ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
     ("corruptions",),
     ("data",),
-    ("planning", "scoring.metrics", "scoring.pdms"),  # the contract a plan must meet, and how one plan is scored
+    ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "run", "store", "shards", "raypool"),  # running one cell, on one shard of the scenes or Ray actors
+    ("loader", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray actors); the floor
     ("scoring",),  # statistics over finished cells
-    ("report",),
+    ("report", "certificate"),  # the certificate (seal, verify, merge, reproduce, compare, estimate) and rendering
     ("plugin", "cli"),
 )
 

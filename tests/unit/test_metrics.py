@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from pytest_drivedegrade.constants import EGO_LENGTH, EGO_WIDTH
 from pytest_drivedegrade.data.frame import AgentBoxes, Command, EgoStatus, Frame
-from pytest_drivedegrade.scoring import metrics
+from pytest_drivedegrade.metrics import trajectory as metrics
 
 STRAIGHT = np.stack([np.arange(1, 7) * 2.0, np.zeros(6)], axis=1)  # 4 m/s straight ahead
 

@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 from pytest_drivedegrade.constants import EGO_LENGTH
 from pytest_drivedegrade.data.frame import AgentBoxes
 from pytest_drivedegrade.data.maps import DrivableArea, MapPolygon
-from pytest_drivedegrade.scoring import pdms as P  # noqa: N812 - P for the score module, as in the paper
+from pytest_drivedegrade.metrics import pdms as P  # noqa: N812 - P for the score module, as in the paper
 
 T = np.arange(1, 7) * 0.5  # waypoint times
 CAR = (4.5, 1.9)

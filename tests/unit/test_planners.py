@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
+from pytest_drivedegrade import floor
 from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.data.frame import Command, EgoStatus, Frame, command_from_future
+from pytest_drivedegrade.metrics.trajectory import l2_avg, l2_per_step
 from pytest_drivedegrade.planning import planner_cameras, planner_fingerprint, predict_checked
-from pytest_drivedegrade.scoring import floor
-from pytest_drivedegrade.scoring.metrics import l2_avg, l2_per_step
 
 ROOT = Path(__file__).resolve().parents[2]
 PLANNERS = ROOT / "planners"

@@ -13,8 +13,9 @@ import pytest
 from test_analysis import GROUPS, synthetic_run
 
 from pytest_drivedegrade import cells as cl
-from pytest_drivedegrade.report import cells, junit
-from pytest_drivedegrade.report.certificate import Provenance
+from pytest_drivedegrade.certificate.seal import Provenance
+from pytest_drivedegrade.report import cells_csv as cells
+from pytest_drivedegrade.report import junit
 from pytest_drivedegrade.scoring import records as rc
 from pytest_drivedegrade.scoring import verdict as vd
 
@@ -179,7 +180,7 @@ def test_user_text_with_dollar_signs_does_not_break_charts(monkeypatch) -> None:
 
 
 def test_csv_fields_that_would_start_a_formula_are_neutralised() -> None:
-    from pytest_drivedegrade.report.cells import _field
+    from pytest_drivedegrade.report.cells_csv import _field
 
     assert [_field(v) for v in ("=HYPERLINK(\"x\")", "+1+1", "-cmd", "@SUM(A1)", "plain")] == \
         ["'=HYPERLINK(\"x\")", "'+1+1", "'-cmd", "'@SUM(A1)", "plain"]

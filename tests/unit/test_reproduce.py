@@ -13,9 +13,9 @@ import pytest
 from test_analysis import GROUPS, synthetic_run
 
 from pytest_drivedegrade.cells import CellRecord, plans_digest
+from pytest_drivedegrade.certificate import reproduce as rp
+from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.report import certificate as cf
-from pytest_drivedegrade.report import reproduce as rp
 from pytest_drivedegrade.scoring import verdict as vd
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
@@ -191,7 +191,7 @@ def test_usage_errors_exit_2(cert_file: Path, tmp_path: Path, capsys) -> None:
 
 
 def test_signature_and_data_checks_come_before_any_rerun(cert_file: Path, tmp_path: Path, capsys) -> None:
-    from pytest_drivedegrade.report import signing
+    from pytest_drivedegrade.certificate import signing
 
     planner = tmp_path / "planner.py"
     planner.write_text("")

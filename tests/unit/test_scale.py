@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pytest_drivedegrade.report.estimate import estimate, overhead_per_prediction
+from pytest_drivedegrade.certificate.estimate import estimate, overhead_per_prediction
 from pytest_drivedegrade.run import RunContext
 from pytest_drivedegrade.scoring.records import cost_ledger
 
@@ -150,7 +150,7 @@ def test_estimate_known_answers():
 def test_report_shows_the_cost_panel():
     from test_analysis import synthetic_run
 
-    from pytest_drivedegrade.report.certificate import Provenance
+    from pytest_drivedegrade.certificate.seal import Provenance
     from pytest_drivedegrade.report.html import render_report
     from pytest_drivedegrade.scoring.verdict import analyse_run
 

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 from test_analysis import GROUPS, synthetic_run
 
+from pytest_drivedegrade.certificate import seal as cf
+from pytest_drivedegrade.certificate import signing as sg
 from pytest_drivedegrade.cli import main
 from pytest_drivedegrade.errors import DriveDegradeError
-from pytest_drivedegrade.report import certificate as cf
-from pytest_drivedegrade.report import signing as sg
 from pytest_drivedegrade.scoring import verdict as vd
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)

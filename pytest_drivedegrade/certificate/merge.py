@@ -23,7 +23,7 @@ from ..cells import CellPayload, CellRecord
 from ..errors import DriveDegradeError
 from ..scoring.records import finite_mean
 from ..scoring.retention import retention
-from .certificate import Provenance
+from .seal import Provenance
 
 SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
@@ -107,8 +107,8 @@ class Merged:
 def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str]:
     """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`
     (the certificate signed with `signing_key` when given); the lines to print."""
+    from ..report.outputs import montage_of, write_outputs
     from ..scoring.verdict import analyse_run
-    from .outputs import montage_of, write_outputs
 
     analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
                            floor_l2=merged.floor_l2, metric=merged.metric)
@@ -130,7 +130,7 @@ def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str
     _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
                                montage=montage, completeness=extra, cost=cost_ledger(merged.records.values()),
                                signing_key=signing_key)
-    from .terminal import summary_lines
+    from ..report.terminal import summary_lines
 
     lines = summary_lines(analysis, merged.missing_cells)
     if merged.missing_shards:

@@ -223,7 +223,7 @@ def tail(path: Path, lines: int = 15) -> str:
 def verified(path: Path, public_key: str | None) -> tuple[dict[str, Any], str]:
     """The certificate when its digest (and, with `public_key`, its signature) verifies, and what was proven;
     ``CertificateError`` otherwise (edited, unreadable, badly signed: a usage error for reproduce)."""
-    from .certificate import verify
+    from .seal import verify
     from .signing import UNSIGNED_TEXT, load_public_key, verify_signature
 
     key = load_public_key(public_key) if public_key else None
@@ -253,7 +253,7 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     Usage errors (a missing planner or certificate, one that does not verify) raise DriveDegradeError."""
     from .. import __version__
     from ..corruptions.ladder import SPEC_VERSION
-    from .certificate import runtime_versions
+    from .seal import runtime_versions
 
     note = progress or (lambda s: print(s, file=sys.stderr, flush=True))
     if not planner.is_file() or planner.suffix != ".py":

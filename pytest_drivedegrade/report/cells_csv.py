@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from ..atomic import atomic_write_text
+from ..certificate.seal import DIGITS, Provenance
 from ..scoring.records import RunAnalysis
-from .certificate import DIGITS, Provenance
 from .columns import CSV as CSV_COLUMNS
 
 #: A spreadsheet reads a field starting with one of these as a formula (CSV injection), e.g. a planner name

@@ -24,7 +24,7 @@ from typing import Any
 from ..cells import cell_id, is_camera_ladder
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
-from .certificate import DIGITS
+from .seal import DIGITS
 
 HALF_UNIT = 0.5 * 10.0 ** -DIGITS  #: the rounding error of one stored number
 TOLERANCE = 2 * HALF_UNIT  #: 1e-6: the certificate's precision

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import DriveDegradeError
-from .certificate import CertificateError, canonical_json, canonicalize
+from .seal import CertificateError, canonical_json, canonicalize
 
 ALGORITHM = "ed25519"
 #: The environment variable that signs every certificate of a run: a key file's path, or the PEM text itself

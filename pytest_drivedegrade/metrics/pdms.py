@@ -45,7 +45,7 @@ import numpy.typing as npt
 
 from ..constants import EGO_LENGTH, EGO_WIDTH, HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import AgentBoxes, Frame
-from .metrics import _overlap_pairs
+from .trajectory import _overlap_pairs
 
 #: Simulation step of the scored states (NAVSIM: 0.1 s) and the states from t = 0 to 3 s.
 SIM_DT: float = 0.1

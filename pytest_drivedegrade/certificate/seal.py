@@ -26,9 +26,9 @@ import numpy as np
 from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..errors import DriveDegradeError
+from ..report.columns import CERTIFICATE_CELL
 from ..scoring.records import RunAnalysis
 from ..scoring.verdict import VERDICT_LABELS
-from .columns import CERTIFICATE_CELL
 
 SCHEMA = "drivedegrade-certificate/1"
 DIGITS = 6

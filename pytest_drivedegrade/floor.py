@@ -20,9 +20,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..atomic import atomic_write_bytes
-from ..constants import HORIZON_STEPS
-from ..data.frame import Command, EgoStatus, Frame
+from .atomic import atomic_write_bytes
+from .constants import HORIZON_STEPS
+from .data.frame import Command, EgoStatus, Frame
 
 #: Bump when features, network or training change: it is part of the cache key and the fingerprint.
 FLOOR_VERSION = "ego_mlp-1"

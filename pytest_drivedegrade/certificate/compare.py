@@ -19,7 +19,7 @@ from typing import Any
 
 from ..atomic import atomic_write_text
 from ..errors import DriveDegradeError
-from .certificate import verify
+from .seal import verify
 
 AXES = ("quality", "removal", "gap", "mean", "ego", "ego_removal")
 PDMS_AXES = ("quality", "removal", "gap", "mean")

@@ -1,0 +1,2 @@
+"""How one plan is scored against its frame: `trajectory` (L2, collisions, jerk, bit density, conventions) and
+`pdms` (the PDMS-like rule-based score). Used while a cell runs; nothing here imports pytest."""
