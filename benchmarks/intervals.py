@@ -29,7 +29,8 @@ def analysis_times(repeat: int, frames: int) -> tuple[float, float]:
     """Median seconds of the analysis without and with intervals, the two interleaved so drift hits both."""
     from test_analysis import synthetic_run
 
-    from pytest_drivedegrade.scoring.verdict import FamilyGroups, analyse_run
+    from pytest_drivedegrade.scoring.analyse import analyse_run
+    from pytest_drivedegrade.scoring.verdict import FamilyGroups
 
     recs, _ = synthetic_run(frames)
     groups = FamilyGroups.from_registry()

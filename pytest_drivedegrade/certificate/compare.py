@@ -15,14 +15,19 @@ import html
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..atomic import atomic_write_text
 from ..errors import DriveDegradeError
+from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds
 from .seal import verify
 
-AXES = ("quality", "removal", "gap", "mean", "ego", "ego_removal")
-PDMS_AXES = ("quality", "removal", "gap", "mean")
+if TYPE_CHECKING:
+    import pandas as pd
+
+#: The axes a row shows: the camera axes and the ego axis on L2 retention; the camera axes on PDMS retention.
+ROW_AXES = (*AXES, *EGO_AXES)
+PDMS_AXES = AXES
 
 
 class CompareError(DriveDegradeError):
@@ -35,26 +40,31 @@ def _clean(cert: Mapping[str, Any], key: str) -> float | None:
     return None if value is None else float(value)
 
 
-def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, Any]:
+def _section(cert: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+    got = cert.get(key)
+    return got if isinstance(got, Mapping) else {}
+
+
+def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, object]:
     """One certificate's comparison row, flat: axes as ``axis_<name>`` / ``pdms_axis_<name>``, thresholds as
     ``<family>_s10`` / ``<family>_s25``."""
-    axes, pdms_axes = cert.get("axes") or {}, cert.get("axes_pdms") or {}
-    verdict = cert.get("verdict") or {}
-    row: dict[str, Any] = {
-        "planner": (cert.get("planner") or {}).get("name"),
-        "planner_fingerprint": (cert.get("planner") or {}).get("fingerprint"),
+    axes, pdms_axes = Axes.from_builtins(cert.get("axes")), Axes.from_builtins(cert.get("axes_pdms"))
+    verdict, planner = _section(cert, "verdict"), _section(cert, "planner")
+    row: dict[str, object] = {
+        "planner": planner.get("name"),
+        "planner_fingerprint": planner.get("fingerprint"),
         "clean_l2": _clean(cert, "l2_avg"),
         "clean_pdms": _clean(cert, "pdms"),
-        **{f"axis_{k}": axes.get(k) for k in AXES},
-        **{f"pdms_axis_{k}": pdms_axes.get(k) for k in PDMS_AXES},
+        **{f"axis_{k}": axes.value(k) for k in ROW_AXES},
+        **{f"pdms_axis_{k}": pdms_axes.value(k) for k in PDMS_AXES},
         "verdict": verdict.get("label"),
         "ego_label": verdict.get("ego_label"),
         "verdict_metric": verdict.get("metric", "l2"),
-        "floor_l2": (cert.get("floor") or {}).get("l2_avg"),
+        "floor_l2": _section(cert, "floor").get("l2_avg"),
     }
-    for fam, t in sorted((cert.get("thresholds") or {}).items()):
-        row[f"{fam}_s10"], row[f"{fam}_s25"] = t.get("s10"), t.get("s25")
-    row.update(spec_version=cert.get("spec_version"), dataset_fingerprint=(cert.get("dataset") or {}).get(
+    for fam, entry in sorted(_section(cert, "thresholds").items()):
+        row.update((f"{fam}_{key}", t.value) for key, t in FamilyThresholds.from_builtins(entry).levels.items())
+    row.update(spec_version=cert.get("spec_version"), dataset_fingerprint=_section(cert, "dataset").get(
         "fingerprint"), certificate=source)
     return row
 
@@ -64,7 +74,7 @@ def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool
     `force` (then they are returned as warnings)."""
     problems = []
     for what in ("spec version", "data set"):
-        seen: dict[Any, list[str]] = {}
+        seen: dict[object, list[str]] = {}
         for path, cert in certs:
             value = cert.get("spec_version") if what == "spec version" else (cert.get("dataset") or {}).get(
                 "fingerprint")
@@ -77,7 +87,7 @@ def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool
     return problems
 
 
-def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> Any:
+def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFrame:
     """The comparison table (a pandas DataFrame), one row per certificate, with the ranks and reversals."""
     import pandas as pd
 
@@ -104,7 +114,7 @@ def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> Any:
     return df[head + [c for c in df.columns if c not in head]]
 
 
-def _html(df: Any, warnings: Sequence[str]) -> str:
+def _html(df: pd.DataFrame, warnings: Sequence[str]) -> str:
     table = df.to_html(index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}",
                        classes="cmp", border=0)
     flagged = df[df["rank_reversal"]]
@@ -131,7 +141,7 @@ A rank reversal: a planner better than another on one ranking and worse on the o
 
 
 def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLike[str], *,
-                  force: bool = False) -> tuple[Path, Path, Any]:
+                  force: bool = False) -> tuple[Path, Path, pd.DataFrame]:
     """Verify and compare the certificates; write ``compare.csv`` and ``compare.html`` into `out`. Returns
     (csv path, html path, the DataFrame)."""
     if not paths:

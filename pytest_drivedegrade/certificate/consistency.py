@@ -19,31 +19,41 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 from ..cells import cell_id, is_camera_ladder
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
+from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds, Threshold
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
+from ..scoring.verdict import FamilyGroups, compute_axes, ego_label, verdict
 from .seal import DIGITS
 
 HALF_UNIT = 0.5 * 10.0 ** -DIGITS  #: the rounding error of one stored number
 TOLERANCE = 2 * HALF_UNIT  #: 1e-6: the certificate's precision
+#: How far each recomputed axis may be off: a mean of stored values is off by their average rounding (<= 5e-7)
+#: plus the axis's own rounding; the gap is a difference of two stored numbers; an ego axis a copy of one.
+AXIS_TOLERANCE: dict[str, float] = {"quality": TOLERANCE, "removal": TOLERANCE, "gap": 3 * HALF_UNIT,
+                                    "mean": TOLERANCE, "ego": TOLERANCE, "ego_removal": TOLERANCE}
+
+Cell = Mapping[str, object]  #: one cell of a certificate, as read
 
 
-def _section(cert: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+def _section(cert: Mapping[str, object], key: str) -> Mapping[str, object]:
     got = cert.get(key)
     return got if isinstance(got, Mapping) else {}
 
 
-def _number(v: Any) -> float | None:
+def _number(v: object) -> float | None:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) else None
 
 
-def _fmt(v: Any) -> str:
+def _fmt(v: object) -> str:
     return "null" if v is None else f"{v:.6f}" if isinstance(v, float) else repr(v)
 
 
-def _compare(problems: list[str], field: str, recorded: Any, recomputed: float | None, tol: float) -> None:
+def _compare(problems: list[str], field: str, recorded: object, recomputed: float | None, tol: float) -> None:
+    """Add a problem naming `field` and both values when the certificate's value is off the recomputed one."""
     got = _number(recorded)
     if recorded is not None and got is None:
         problems.append(f"{field}: certificate says {_fmt(recorded)}, not a number")
@@ -54,13 +64,15 @@ def _compare(problems: list[str], field: str, recorded: Any, recomputed: float |
         problems.append(f"{field}: certificate says {_fmt(got)}, its cells give {_fmt(recomputed)}")
 
 
-def _curves(cells: Sequence[Mapping[str, Any]], key: str) -> dict[str, dict[int, float]]:
+def _curves(cells: Sequence[Cell], key: str) -> dict[str, dict[int, float]]:
     curves: dict[str, dict[int, float]] = {}
     for c in cells:
         fam = c.get("family")
         if isinstance(fam, str) and is_camera_ladder(fam):
             value = _number(c.get(key))
-            curves.setdefault(fam, {})[int(c.get("severity", 0))] = math.nan if value is None else value
+            severity = c.get("severity", 0)
+            curves.setdefault(fam, {})[int(severity) if isinstance(severity, (int, float)) else 0] = \
+                math.nan if value is None else value
     return curves
 
 
@@ -80,59 +92,59 @@ def _threshold_tolerance(curve: Mapping[int, float], level: float) -> float | No
     return TOLERANCE
 
 
-def _axes(s5: Mapping[str, float], groups: Any) -> dict[str, Any]:
-    from ..scoring.verdict import compute_axes
+def recompute_thresholds(curves: Mapping[str, Mapping[int, float]]) -> dict[str, FamilyThresholds]:
+    """Each family's thresholds from its stored retention curve."""
+    return {fam: FamilyThresholds({key: Threshold(tolerance_threshold(curve, level))
+                                   for key, level in THRESHOLD_LEVELS.items()}) for fam, curve in curves.items()}
 
-    return compute_axes(s5, groups)
 
-
-def check_thresholds(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]]) -> list[str]:
+def check_thresholds(cert: Mapping[str, object], cells: Sequence[Cell]) -> list[str]:
     problems: list[str] = []
     recorded = _section(cert, "thresholds")
     curves = _curves(cells, "retention")
     for fam in sorted(set(recorded) - set(curves)):
         problems.append(f"thresholds.{fam}: certificate has thresholds for a family none of its cells has")
-    for fam, curve in curves.items():
+    for fam, got in recompute_thresholds(curves).items():
         entry = recorded.get(fam)
         if not isinstance(entry, Mapping):
             problems.append(f"thresholds.{fam}: missing, its cells give a retention curve")
             continue
         for key, level in THRESHOLD_LEVELS.items():
-            tol = _threshold_tolerance(curve, level)
+            tol = _threshold_tolerance(curves[fam], level)
             if tol is not None:
-                _compare(problems, f"thresholds.{fam}.{key}", entry.get(key), tolerance_threshold(curve, level), tol)
+                _compare(problems, f"thresholds.{fam}.{key}", entry.get(key), got.levels[key].value, tol)
     return problems
 
 
-def check_axes(axes: Mapping[str, Any], cells: Sequence[Mapping[str, Any]], key: str, where: str,
-               groups: Any) -> list[str]:
-    """quality, removal, gap, mean and the ego axis of `axes` against those recomputed from the cells' `key`."""
-    problems: list[str] = []
+def recompute_axes(cells: Sequence[Cell], key: str, groups: FamilyGroups) -> Axes:
+    """The axes (and the ego axis) from the cells' stored `key` retention."""
     s5 = {fam: curve[5] for fam, curve in _curves(cells, key).items() if 5 in curve}
-    got = _axes(s5, groups)
-    for name in ("quality", "removal", "mean"):
-        # a mean of stored values: their average rounding (<= 5e-7) plus the axis's own rounding
-        _compare(problems, f"{where}.{name}", axes.get(name), got[name], TOLERANCE)
-    _compare(problems, f"{where}.gap", axes.get("gap"), got["gap"], 3 * HALF_UNIT)
     by_cell = {c.get("cell"): _number(c.get(key)) for c in cells}
-    for name, cell in (("ego", cell_id(EGO_NOISE, 5)), ("ego_removal", cell_id(EGO_BLIND, 0))):
-        if name in axes:
-            _compare(problems, f"{where}.{name}", axes.get(name), by_cell.get(cell), TOLERANCE)
+    return replace(compute_axes(s5, groups), ego=by_cell.get(cell_id(EGO_NOISE, 5)),
+                   ego_removal=by_cell.get(cell_id(EGO_BLIND, 0)))
+
+
+def check_axes(axes: Mapping[str, object], cells: Sequence[Cell], key: str, where: str,
+               groups: FamilyGroups) -> list[str]:
+    """quality, removal, gap, mean and the ego axis of `axes` against those recomputed from the cells' `key`
+    (an ego axis only where the certificate has it)."""
+    problems: list[str] = []
+    got = recompute_axes(cells, key, groups)
+    for name in (*AXES, *(n for n in EGO_AXES if n in axes)):
+        _compare(problems, f"{where}.{name}", axes.get(name), got.value(name), AXIS_TOLERANCE[name])
     return problems
 
 
-def _failed(cells: Sequence[Mapping[str, Any]]) -> list[str]:
+def _failed(cells: Sequence[Cell]) -> list[str]:
     """The cells with failed frames (planner contract failures or data faults), as the certificate counts them."""
     return [str(c.get("cell")) for c in cells
-            if any(isinstance(c.get(k), int) and c[k] > 0 for k in ("conformance_errors", "data_errors"))]
+            if any(isinstance(n := c.get(k), int) and n > 0 for k in ("conformance_errors", "data_errors"))]
 
 
-def check_verdict(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]] = ()) -> list[str]:
+def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> list[str]:
     """The label from the certificate's (checked) axes and its flat line, or ``undetermined`` when a cell has
     failed frames (then ``verdict.failed_cells`` must name exactly those cells); the flat line agrees with
     settings."""
-    from ..scoring.verdict import ego_label, verdict
-
     v, settings = _section(cert, "verdict"), _section(cert, "settings")
     problems: list[str] = []
     flat = _number(v.get("flat", settings.get("flat", DEFAULT_FLAT)))
@@ -142,8 +154,9 @@ def check_verdict(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]] = 
         _compare(problems, "settings.flat", settings.get("flat"), flat, 0.0)
     metric = v.get("metric", "l2")
     axes = _section(cert, "axes_pdms" if metric == "pdms" else "axes")
-    plain = {k: _number(axes.get(k)) for k in ("quality", "removal", "gap")}
-    label = verdict(plain, flat)["label"]
+    # the label from the certificate's own axes (checked against its cells by `check_axes`)
+    quality, removal, gap, mean = (_number(axes.get(k)) for k in AXES)
+    label = verdict(Axes(quality, removal, gap, mean), flat).label
     failed = _failed(cells)
     if failed:
         if v.get("label") != "undetermined":
@@ -160,9 +173,10 @@ def check_verdict(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]] = 
     elif v.get("label") != label:
         problems.append(f"verdict.label: certificate says {v.get('label')!r}, its axes and flat line {flat:g} "
                         f"give {label!r}")
-    elif v.get("failed_cells"):
-        problems.append(f"verdict.failed_cells: certificate names {sorted(v['failed_cells'])!r}, but none of its "
-                        "cells has failed frames")
+    elif named := v.get("failed_cells"):
+        shown = sorted(map(str, named)) if isinstance(named, (Mapping, list)) else named
+        problems.append(f"verdict.failed_cells: certificate names {shown!r}, but none of its cells has failed "
+                        "frames")
     if "ego_label" in v and "ego_removal" in axes:
         expected = "undetermined" if failed else ego_label(_number(axes.get("ego_removal")), flat)
         if v.get("ego_label") != expected:
@@ -171,13 +185,11 @@ def check_verdict(cert: Mapping[str, Any], cells: Sequence[Mapping[str, Any]] = 
     return problems
 
 
-def check_consistency(cert: Mapping[str, Any], groups: Any = None) -> list[str]:
+def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = None) -> list[str]:
     """Every inconsistency between a certificate's cells and its thresholds, axes and verdict, as
     ``field: certificate says X, its cells give Y``; empty when the arithmetic adds up. `groups` defaults to the
     ladder's family groups (``FamilyGroups.from_registry()``)."""
     if groups is None:
-        from ..scoring.verdict import FamilyGroups
-
         groups = FamilyGroups.from_registry()
     cells = [c for c in cert.get("cells", []) if isinstance(c, Mapping)] if isinstance(cert.get("cells"), list) \
         else []

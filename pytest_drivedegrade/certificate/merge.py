@@ -108,11 +108,11 @@ def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str
     """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`
     (the certificate signed with `signing_key` when given); the lines to print."""
     from ..report.outputs import montage_of, write_outputs
-    from ..scoring.verdict import analyse_run
+    from ..scoring.analyse import analyse_run
 
     analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
-                           floor_l2=merged.floor_l2, metric=merged.metric)
-    analysis.floor.update(merged.floor_extra)
+                           floor_l2=merged.floor_l2, metric=merged.metric,
+                           floor_ego_removal=merged.floor_extra.get("ego_removal"))
     analysis.settings.update(batch=merged.batch, reuse=merged.reuse, device=merged.device)
     montage = None
     if merged.front is not None and Path(merged.front[1]).is_file():

@@ -27,7 +27,7 @@ from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..errors import DriveDegradeError
 from ..report.columns import CERTIFICATE_CELL
-from ..scoring.records import RunAnalysis
+from ..scoring.records import RunAnalysis, null_control_section
 from ..scoring.verdict import VERDICT_LABELS
 
 SCHEMA = "drivedegrade-certificate/1"
@@ -129,7 +129,6 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
     for cell in cells:
         if records is not None and cell["cell"] in records:
             cell["plans_digest"] = records[cell["cell"]].plans_digest()
-    nc = analysis.null_control or {"passed": None, "max_abs_diff": None, "max_l2_change": None}
     return {
         "schema": SCHEMA,
         "spec_version": provenance.spec_version,
@@ -139,12 +138,12 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
                     "frames": provenance.frames, "frames_unscored": provenance.frames_unscored,
                     "frames_requested": provenance.frames_requested, "source": provenance.data_source},
         "cells": cells,
-        "thresholds": analysis.thresholds,
-        "axes": analysis.axes,
-        "axes_pdms": analysis.axes_pdms,
-        "floor": analysis.floor,
-        "null_control": {**nc, "ran": nc.get("passed") is not None},
-        "verdict": analysis.verdict,
+        "thresholds": {fam: t.to_builtins() for fam, t in analysis.thresholds.items()},
+        "axes": analysis.axes.to_builtins(),
+        "axes_pdms": analysis.axes_pdms.to_builtins(),
+        "floor": analysis.floor.to_builtins(),
+        "null_control": null_control_section(analysis.null_control),
+        "verdict": analysis.verdict.to_builtins(),
         "settings": {**analysis.settings, "seed": provenance.seed, "timeout": provenance.timeout},
         "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command,
                  "versions": dict(provenance.versions)},

@@ -155,7 +155,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     from ..report.outputs import write_outputs
     from ..report.terminal import summary_lines
-    from ..scoring.verdict import analyse_run
+    from ..scoring.analyse import analyse_run
 
     floor_ego: dict[str, Any] = {}
     per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
@@ -163,8 +163,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     floor = None if per_frame is None else finite_mean(per_frame)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
     analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
-                           seeds=options.seeds, metric=options.metric)
-    analysis.floor.update(floor_ego)
+                           seeds=options.seeds, metric=options.metric, floor_ego_removal=floor_ego.get("ego_removal"))
     analysis.settings.update(batch=options.batch, reuse=options.reuse, device=options.device)
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())

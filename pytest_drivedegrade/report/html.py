@@ -19,7 +19,16 @@ import numpy as np
 from ..atomic import atomic_write_text
 from ..cells import CellRecord, is_camera_ladder
 from ..certificate.seal import Provenance
-from ..scoring.records import CellSummary, RunAnalysis, format_value
+from ..scoring.records import (
+    AXES,
+    BESIDE_AXES,
+    EGO_AXES,
+    CellSummary,
+    FamilyThresholds,
+    Interval,
+    RunAnalysis,
+    format_value,
+)
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
@@ -61,18 +70,18 @@ def trajectory_examples(records: Mapping[str, CellRecord], gt: Mapping[str, Any]
                               {"clean": clean.plans[i], **{c: records[c].plans[i] for c in cells}}) for i in order]
 
 
-def _fmt(value: Any, digits: int = 3) -> str:
+def _fmt(value: object, digits: int = 3) -> str:
     return format_value(value, digits, missing="—")
 
 
-def _range(ci: Any, digits: int = 3, never: str = "never") -> str:
+def _range(ci: Interval | None, digits: int = 3, never: str = "never") -> str:
     """"low – high" of a [low, high] interval; an open (null) bound reads `never`; "—" without an interval."""
     if not ci:
         return "—"
     return " – ".join(never if v is None else f"{v:.{digits}f}" for v in ci)
 
 
-def _share(value: Any) -> str:
+def _share(value: float | None) -> str:
     return "—" if value is None else f"{100 * value:.0f} %"
 
 
@@ -98,9 +107,7 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
              families: Mapping[str, Any] | None, extra: Mapping[str, Any]) -> dict[str, Any]:
     info = _family_info(families)
     s5 = {s.family: s for s in analysis.summaries if s.severity == 5}
-    thresholds = [{"family": fam, **info.get(fam, {}), "s10": _fmt(t["s10"], 2), "s25": _fmt(t["s25"], 2),
-                   "s10_ci": _range(t.get("s10_ci"), 2), "s25_ci": _range(t.get("s25_ci"), 2),
-                   "s10_never": _share(t.get("s10_never")), "s25_never": _share(t.get("s25_never")),
+    thresholds = [{"family": fam, **info.get(fam, {}), **_threshold_cells(t),
                    "r5": _fmt(s5[fam].retention) if fam in s5 else "—",
                    "ci5": (f"{_fmt(s5[fam].retention_ci_low)} – {_fmt(s5[fam].retention_ci_high)}"
                            if fam in s5 else "—")} for fam, t in analysis.thresholds.items()]
@@ -110,14 +117,22 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
               "sep": _fmt(s.separable_from_null), "errors": s.conformance_errors,
               "data_errors": s.data_errors,
               "low": math.isfinite(s.retention) and s.retention < 0.9} for s in analysis.summaries]
-    axes = {k: _fmt(v) for k, v in analysis.axes.items() if k != "missing" and not k.endswith("_ci")}
-    ranges = {k: _range(analysis.axes.get(f"{k}_ci")) for k in ("quality", "removal", "gap", "mean")}
-    return {"p": provenance, "verdict": analysis.verdict, "label_class": LABEL_CLASS.get(analysis.verdict["label"]),
-            "axes": axes, "ranges": ranges, "confidence": analysis.verdict.get("confidence"),
-            "borderline": bool(analysis.verdict.get("borderline")), "missing": analysis.axes.get("missing", []),
-            "null": analysis.null_control,
-            "floor": {k: _fmt(v) for k, v in analysis.floor.items()}, "settings": analysis.settings,
+    ax, verdict = analysis.axes, analysis.verdict
+    axes = {k: _fmt(ax.value(k)) for k in (*AXES, *BESIDE_AXES, *EGO_AXES)}
+    ranges = {k: _range(ax.interval(k)) for k in AXES}
+    return {"p": provenance, "verdict": verdict, "label_class": LABEL_CLASS.get(verdict.label),
+            "axes": axes, "ranges": ranges, "confidence": verdict.confidence,
+            "borderline": verdict.borderline, "missing": list(ax.missing), "null": analysis.null_control,
+            "floor": {k: _fmt(v) for k, v in analysis.floor.to_builtins().items()}, "settings": analysis.settings,
             "thresholds": thresholds, "cells": cells, "charts": charts, **extra}
+
+
+def _threshold_cells(t: FamilyThresholds) -> dict[str, str]:
+    """A family's thresholds for the table: value, 95 % interval and share never reached, per level."""
+    out = {}
+    for key, x in t.levels.items():
+        out.update({key: _fmt(x.value, 2), f"{key}_ci": _range(x.ci, 2), f"{key}_never": _share(x.never)})
+    return out
 
 
 def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, str | None]:
@@ -126,8 +141,8 @@ def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, 
 
     blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
     return {"heatmap_pdms": plots.retention_heatmap(analysis.summaries, "pdms_retention", "PDMS retention"),
-            "reliance": plots.reliance_chart(analysis.axes, analysis.verdict["flat"], planner=provenance.planner_name,
-                                             blind=blind, floor_ego=(analysis.floor or {}).get("ego_removal"))}
+            "reliance": plots.reliance_chart(analysis.axes, analysis.verdict.flat, planner=provenance.planner_name,
+                                             blind=blind, floor_ego=analysis.floor.ego_removal)}
 
 
 def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
@@ -140,12 +155,11 @@ def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
 
     clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
     mapped = None if clean is None else clean.metrics.get("map_scored")
-    keys = ("quality", "removal", "gap", "mean")
-    return {"axes_both": [{"k": k, "l2": _fmt(analysis.axes.get(k)), "pdms": _fmt((analysis.axes_pdms or {}).get(k))}
-                          for k in keys],
-            "ego": {"ego": _fmt(analysis.axes.get("ego")), "ego_removal": _fmt(analysis.axes.get("ego_removal")),
-                    "label": analysis.verdict.get("ego_label", "undetermined")},
-            "verdict_metric": analysis.verdict.get("metric", "l2"),
+    return {"axes_both": [{"k": k, "l2": _fmt(analysis.axes.value(k)), "pdms": _fmt(analysis.axes_pdms.value(k))}
+                          for k in AXES],
+            "ego": {"ego": _fmt(analysis.axes.ego), "ego_removal": _fmt(analysis.axes.ego_removal),
+                    "label": analysis.verdict.ego_label},
+            "verdict_metric": analysis.verdict.metric,
             "map_scored": mapped is not None and math.isfinite(mapped) and mapped > 0,
             "damaging_pdms": [sub(s) for s in most_damaging(analysis.summaries, n)],
             "clean_pdms": sub(clean) if clean is not None else None}
@@ -168,7 +182,7 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     charts = {
         "curves": plots.tolerance_curves(analysis.summaries, analysis.thresholds),
         "heatmap": plots.retention_heatmap(analysis.summaries),
-        "axes": plots.axes_chart(analysis.axes, analysis.verdict["flat"], planner=provenance.planner_name,
+        "axes": plots.axes_chart(analysis.axes, analysis.verdict.flat, planner=provenance.planner_name,
                                  blind=blind, floor=floor_point),
         "montage": plots.image_data_uri(montage) if montage is not None else None,
         "trajectories": plots.trajectory_panels(traj),

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from ..scoring.records import CellSummary, RunAnalysis
+from ..scoring.records import AXES, BESIDE_AXES, EGO_AXES, CellSummary, RunAnalysis
 from .columns import PDMS, STABLE, per_horizon
 
 #: Testcase properties of a finished summary, in the order they appear in the XML.
@@ -24,7 +24,7 @@ CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "unia
 SUITE_PREFIX = "drivedegrade_"
 
 
-def plain(value: Any) -> str | float | int:
+def plain(value: object) -> str | float | int:
     """A property value xdist and the JUnit writer accept: bool -> "true"/"false", numpy -> builtins."""
     if value is None:
         return "none"
@@ -45,25 +45,21 @@ def cell_properties(summary: CellSummary | Mapping[str, Any]) -> list[tuple[str,
     return [(name, plain(row[name])) for name in CELL_PROPERTIES if name in row]
 
 
-def suite_properties(analysis: RunAnalysis | Mapping[str, Any]) -> list[tuple[str, str | float | int]]:
+def suite_properties(analysis: RunAnalysis) -> list[tuple[str, str | float | int]]:
     """(name, value) pairs for ``record_testsuite_property``: axes, verdict, null control, floor, thresholds."""
-    data = analysis.to_builtins() if isinstance(analysis, RunAnalysis) else dict(analysis)
-    out: list[tuple[str, Any]] = [(f"axis_{k}", data["axes"].get(k))
-                                  for k in ("quality", "removal", "gap", "mean", "dropout", "occlusion", "ego",
-                                            "ego_removal")]
-    out += [(f"axis_pdms_{k}", (data.get("axes_pdms") or {}).get(k)) for k in ("quality", "removal", "gap", "mean")]
-    verdict = data["verdict"]
-    out += [("verdict", verdict["label"]), ("verdict_flat", verdict["flat"]),
-            ("verdict_negative_gap", verdict["negative_gap"]), ("verdict_text", verdict["text"]),
-            ("verdict_confidence", verdict.get("confidence")),
-            ("verdict_ego_label", verdict.get("ego_label")), ("verdict_metric", verdict.get("metric", "l2")),
-            ("verdict_reason", verdict.get("reason"))]
-    for k in ("quality", "removal", "gap", "mean"):
-        ci = data["axes"].get(f"{k}_ci") or (None, None)
-        out += [(f"axis_{k}_ci_low", ci[0]), (f"axis_{k}_ci_high", ci[1])]
-    nc = data.get("null_control") or {}
-    out += [("null_control_passed", nc.get("passed")), ("null_control_max_abs_diff", nc.get("max_abs_diff"))]
-    out += [("floor_l2_avg", (data.get("floor") or {}).get("l2_avg"))]
-    for fam, t in sorted(data.get("thresholds", {}).items()):
-        out += [(f"threshold_{fam}_s10", t.get("s10")), (f"threshold_{fam}_s25", t.get("s25"))]
+    ax, verdict, nc = analysis.axes, analysis.verdict, analysis.null_control
+    out: list[tuple[str, object]] = [(f"axis_{k}", ax.value(k)) for k in (*AXES, *BESIDE_AXES, *EGO_AXES)]
+    out += [(f"axis_pdms_{k}", analysis.axes_pdms.value(k)) for k in AXES]
+    out += [("verdict", verdict.label), ("verdict_flat", verdict.flat), ("verdict_negative_gap", verdict.negative_gap),
+            ("verdict_text", verdict.text), ("verdict_confidence", verdict.confidence),
+            ("verdict_ego_label", verdict.ego_label), ("verdict_metric", verdict.metric),
+            ("verdict_reason", verdict.reason)]
+    for k in AXES:
+        low, high = ax.interval(k) or (None, None)
+        out += [(f"axis_{k}_ci_low", low), (f"axis_{k}_ci_high", high)]
+    out += [("null_control_passed", None if nc is None else nc.passed),
+            ("null_control_max_abs_diff", None if nc is None else nc.max_abs_diff)]
+    out += [("floor_l2_avg", analysis.floor.l2_avg)]
+    for fam, t in sorted(analysis.thresholds.items()):
+        out += [(f"threshold_{fam}_{key}", x.value) for key, x in t.levels.items()]
     return [(SUITE_PREFIX + name, plain(value)) for name, value in out]

@@ -13,13 +13,15 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes as MplAxes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
 from ..cells import is_camera_ladder
 from ..constants import EGO_LENGTH, EGO_WIDTH
-from ..scoring.records import CellSummary
+from ..scoring.records import Axes, CellSummary, FamilyThresholds, Interval, Threshold
 from ..scoring.retention import THRESHOLD_LEVELS
 
 INK, MUTED, ACCENT, GRID = "#1f2933", "#7b8794", "#2463eb", "#e4e7eb"
@@ -39,7 +41,7 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
-def _style(ax: Any) -> None:
+def _style(ax: MplAxes) -> None:
     ax.spines[["top", "right"]].set_visible(False)
     ax.spines[["left", "bottom"]].set_color(MUTED)
     ax.tick_params(colors=INK, labelsize=8)
@@ -76,7 +78,7 @@ def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
     return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
 
 
-def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, Mapping[str, float | None]],
+def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, FamilyThresholds],
                      cols: int = 4) -> str | None:
     """Small multiples: retention vs severity per family (clean at S0 = 1), 95% CI band, 0.90 / 0.75 lines and
     the interpolated thresholds as markers. One shared y range so the panels compare at a glance."""
@@ -96,10 +98,10 @@ def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, 
         ax.plot(sev, [1.0] + [s.retention for s in cells], color=ACCENT, marker="o", markersize=3.5, linewidth=1.6)
         for key, level in THRESHOLD_LEVELS.items():
             ax.axhline(level, color=LEVEL_COLORS[key], linestyle="--", linewidth=0.9)
-            x = thresholds.get(fam, {}).get(key)
-            if x is not None:
-                ax.plot([x], [level], marker="v", color=LEVEL_COLORS[key], markersize=6)
-            span = _span(thresholds.get(fam, {}).get(f"{key}_ci"), x, hi=5.2)
+            t = thresholds[fam].levels[key] if fam in thresholds else Threshold(None)
+            if t.value is not None:
+                ax.plot([t.value], [level], marker="v", color=LEVEL_COLORS[key], markersize=6)
+            span = _span(t.ci, hi=5.2)
             if span is not None:  # the threshold's 95 % interval (to the edge when some resamples never cross)
                 ax.plot(span, [level, level], color=LEVEL_COLORS[key], linewidth=3.2, alpha=0.45,
                         solid_capstyle="butt")
@@ -111,18 +113,18 @@ def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, 
     return to_data_uri(fig)
 
 
-def _span(ci: Any, point: float | None, hi: float) -> tuple[float, float] | None:
+def _span(ci: Interval | None, hi: float) -> tuple[float, float] | None:
     """An interval to draw: an open (null) upper bound runs to `hi`; None when there is nothing to draw."""
-    if not ci or ci[0] is None:
+    if ci is None or ci[0] is None:
         return None
-    return float(ci[0]), float(hi if ci[1] is None else ci[1])
+    return ci[0], hi if ci[1] is None else ci[1]
 
 
-def _yerr(point: float, ci: Any) -> list[list[float]] | None:
+def _yerr(point: float, ci: Interval | None) -> list[list[float]] | None:
     """matplotlib's asymmetric error for one point from its [low, high]; None without a finite interval."""
-    if not ci or ci[0] is None or ci[1] is None:
+    if ci is None or ci[0] is None or ci[1] is None:
         return None
-    return [[max(0.0, point - float(ci[0]))], [max(0.0, float(ci[1]) - point)]]
+    return [[max(0.0, point - ci[0])], [max(0.0, ci[1] - point)]]
 
 
 def _value(summary: CellSummary, key: str) -> float:
@@ -167,7 +169,7 @@ def retention_heatmap(summaries: Sequence[CellSummary], key: str = "retention",
 
 
 def _quadrants(points: Sequence[float | None], flat: float,
-               corners: tuple[str, str, str, str]) -> tuple[Figure, Any, float]:
+               corners: tuple[str, str, str, str]) -> tuple[Figure, MplAxes, float]:
     """The frame both retention-plane charts share: a square plot from `lo` (below every finite point, at
     most 0.5) to 1.08 on both axes, the "flat on both" corner shaded, and the four corner labels
     (top right, bottom right, top left, bottom left; "" for none). Returns (figure, axes, lo)."""
@@ -188,17 +190,18 @@ def _quadrants(points: Sequence[float | None], flat: float,
     return fig, ax, lo
 
 
-def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: float | None = None,
+def axes_chart(axes: Axes, flat: float, *, planner: str, blind: float | None = None,
                floor: tuple[float, float] = (1.0, 1.0)) -> str | None:
     """Quality (x) vs removal (y) S5 retention: the planner, the ego-only floor and the blind point.
 
     The flat line on each axis splits the plane into the verdict regions; the diagonal is gap = 0. The blind
     point sits at (r_blind, r_blind): a planner for which every corruption is as bad as losing all cameras.
     """
-    q, r = axes.get("quality"), axes.get("removal")
+    q, r = axes.quality, axes.removal
     if q is None or r is None:
         return None
-    bounds = [v for k in ("quality_ci", "removal_ci") for v in (axes.get(k) or ()) if v is not None]
+    q_ci, r_ci = axes.interval("quality"), axes.interval("removal")
+    bounds = [v for ci in (q_ci, r_ci) for v in (ci or ()) if v is not None]
     fig, ax, lo = _quadrants([q, r, blind, *floor, *bounds], flat,
                              ("not shown to\nuse cameras", "quality-insensitive", "", "camera-reliant"))
     ax.add_patch(Rectangle((flat, lo - 1), 2, flat - lo + 1, color="#fde68a", alpha=0.5, linewidth=0))
@@ -207,7 +210,7 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     ax.scatter([floor[0]], [floor[1]], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
     if blind is not None and math.isfinite(blind):
         ax.scatter([blind], [blind], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")
-    xerr, yerr = _yerr(q, axes.get("quality_ci")), _yerr(r, axes.get("removal_ci"))
+    xerr, yerr = _yerr(q, q_ci), _yerr(r, r_ci)
     if xerr is not None or yerr is not None:  # the axes' 95 % intervals from the joint bootstrap
         ax.errorbar([q], [r], xerr=xerr, yerr=yerr, fmt="none", ecolor=ACCENT, elinewidth=1.4, capsize=4,
                     zorder=3.5)
@@ -218,14 +221,14 @@ def axes_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: flo
     return to_data_uri(fig)
 
 
-def reliance_chart(axes: Mapping[str, Any], flat: float, *, planner: str, blind: float | None = None,
+def reliance_chart(axes: Axes, flat: float, *, planner: str, blind: float | None = None,
                    floor_ego: float | None = None) -> str | None:
     """Camera removal (x: blackout S5 retention) vs ego removal (y: ego_blind retention), SPEC section 10.
 
     The planner's point; the blind point (every camera off, the ego status kept) at (r_blind, 1); the ego-only
     floor at (1, its own ego_blind retention): it reads no camera, so camera removal cannot touch it.
     """
-    x, y = axes.get("removal"), axes.get("ego_removal")
+    x, y = axes.removal, axes.ego_removal
     if x is None or y is None:
         return None
     fig, ax, lo = _quadrants([x, y, blind, floor_ego], flat,
@@ -252,7 +255,7 @@ def trajectory_panels(examples: Sequence[Mapping[str, Any]]) -> str | None:
     if not examples:
         return None
     fig = _figure(3.4 * len(examples), 4.6)
-    handles: dict[str, Any] = {}
+    handles: dict[str, Line2D] = {}
     for i, ex in enumerate(examples):
         ax = fig.add_subplot(1, len(examples), i + 1)
         _style(ax)
@@ -275,7 +278,7 @@ def trajectory_panels(examples: Sequence[Mapping[str, Any]]) -> str | None:
     return to_data_uri(fig)
 
 
-def _bev_line(ax: Any, plan: Any, color: str, style: str) -> Any:
+def _bev_line(ax: MplAxes, plan: np.ndarray, color: str, style: str) -> Line2D:
     """Draw one trajectory from the ego origin in bird's-eye axes (horizontal = -y, vertical = x)."""
     pts = np.vstack([np.zeros((1, 2)), np.asarray(plan, dtype=float).reshape(-1, 2)])
     ax.plot(-pts[-1, 1], pts[-1, 0], marker="D", color=color, markersize=6, markeredgecolor="white", zorder=4)

@@ -9,6 +9,7 @@ from typing import Any
 
 from ..constants import DEFAULT_TOLERANCE
 from ..errors import DriveDegradeError
+from .records import AXES, Axes
 
 
 class BaselineError(DriveDegradeError):
@@ -48,8 +49,8 @@ SETTINGS: tuple[tuple[str, tuple[str, str], Any, str], ...] = (
     ("verdict metric", ("settings", "verdict_metric"), "l2", "--drivedegrade-metric"),
     ("metric convention", ("settings", "convention"), "stp3", "the tool's default"),
 )
-#: The axes the gate compares.
-GATED_AXES = ("quality", "removal", "mean")
+#: The axes the gate compares (of `records.AXES`; the gap is their difference).
+GATED_AXES = tuple(a for a in AXES if a != "gap")
 
 
 def certificate_settings(cert: Mapping[str, Any]) -> dict[str, Any]:
@@ -134,9 +135,8 @@ def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mappin
     if lacking:
         shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
         out.append(f"{len(lacking)} cell(s) of this run have no retention in the baseline: {shown}")
-    base_axes = baseline.get("axes")
-    base_axes = base_axes if isinstance(base_axes, Mapping) else {}
-    null_axes = [a for a in GATED_AXES if (axes or {}).get(a) is not None and base_axes.get(a) is None]
+    mine, theirs_axes = Axes.from_builtins(axes), Axes.from_builtins(baseline.get("axes"))
+    null_axes = [a for a in GATED_AXES if mine.value(a) is not None and theirs_axes.value(a) is None]
     if null_axes:
         out.append(f"axes {', '.join(null_axes)} are null in the baseline")
     return out
@@ -163,8 +163,9 @@ def compare_to_baseline(current: Mapping[str, Any], baseline: Mapping[str, Any],
     cells = [reg for c in current.get("cells", [])
              if (reg := cell_regression(c["cell"], c.get("retention"), baseline, tolerance))]
     axes = []
+    ours, base_axes = Axes.from_builtins(current.get("axes")), Axes.from_builtins(baseline.get("axes"))
     for name in GATED_AXES:
-        mine, theirs = (current.get("axes") or {}).get(name), (baseline.get("axes") or {}).get(name)
+        mine, theirs = ours.value(name), base_axes.value(name)
         if mine is not None and theirs is not None and theirs - mine > tolerance:
-            axes.append(Regression(f"axis:{name}", float(theirs), float(mine)))
+            axes.append(Regression(f"axis:{name}", theirs, mine))
     return {"cells": cells, "axes": axes}

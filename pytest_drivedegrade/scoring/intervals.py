@@ -16,10 +16,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
+from .records import AXES, AxisIntervals, Interval
 from .retention import THRESHOLD_LEVELS, retention, tolerance_threshold
 
 #: Where the interval resamples' generator starts, apart from the per-cell CI's stream (seeded with `seed` alone).
@@ -115,7 +115,7 @@ def thresholds_per_resample(severities: Sequence[int], curve: np.ndarray, level:
     return out
 
 
-def percentile_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> list[float | None] | None:
+def percentile_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> Interval | None:
     """[low, high]: linear-interpolated percentiles (numpy's default) at (1 - confidence)/2 and its mirror.
 
     +inf ("never") sorts above every number; a bound that touches an infinite order statistic is +inf and is
@@ -132,27 +132,41 @@ def percentile_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> l
             out.append(None)
         else:
             out.append(float(v[lo] + (v[hi] - v[lo]) * (pos - lo)))
-    return out
+    return out[0], out[1]
 
 
-def threshold_intervals(res: Resamples, curves: Mapping[str, Mapping[int, str]]) -> dict[str, dict[str, Any]]:
-    """family -> {"s10_ci", "s25_ci", "s10_never", "s25_never"} from the resampled curves.
+def threshold_intervals(res: Resamples, curves: Mapping[str, Mapping[int, str]]) \
+        -> dict[str, dict[str, tuple[Interval | None, float]]]:
+    """family -> level (s10, s25) -> (95 % interval, never) from the resampled curves.
 
-    `curves` maps family -> severity -> cell id. ``*_never`` is the share of resamples whose curve never falls
+    `curves` maps family -> severity -> cell id. ``never`` is the share of resamples whose curve never falls
     below the level (those count as +inf in the percentiles)."""
-    out: dict[str, dict[str, Any]] = {}
+    out: dict[str, dict[str, tuple[Interval | None, float]]] = {}
     for fam, cells in curves.items():
         sev = sorted(s for s in cells if s > 0 and cells[s] in res.retention)
         if not sev:
             continue
         curve = np.stack([res.retention[cells[s]] for s in sev], axis=1)
-        entry: dict[str, Any] = {}
+        entry: dict[str, tuple[Interval | None, float]] = {}
         for key, level in THRESHOLD_LEVELS.items():
             t = thresholds_per_resample(sev, curve, level)
-            entry[f"{key}_ci"] = percentile_interval(t)
-            entry[f"{key}_never"] = float(np.isinf(t).mean())
+            entry[key] = (percentile_interval(t), float(np.isinf(t).mean()))
         out[fam] = entry
     return out
+
+
+@dataclass(frozen=True)
+class AxisResamples:
+    """The four axes (`records.AXES`) in every resample; None where an axis's families were not all run."""
+
+    quality: np.ndarray | None = None
+    removal: np.ndarray | None = None
+    gap: np.ndarray | None = None
+    mean: np.ndarray | None = None
+
+    def of(self, axis: str) -> np.ndarray | None:
+        got: np.ndarray | None = getattr(self, axis)
+        return got
 
 
 def _mean_of(res: Resamples, s5: Mapping[str, str], names: Sequence[str]) -> np.ndarray | None:
@@ -163,15 +177,17 @@ def _mean_of(res: Resamples, s5: Mapping[str, str], names: Sequence[str]) -> np.
 
 
 def axes_per_resample(res: Resamples, s5: Mapping[str, str], quality: Sequence[str], removal: str,
-                      core: Sequence[str]) -> dict[str, np.ndarray | None]:
+                      core: Sequence[str]) -> AxisResamples:
     """quality, removal, gap and mean in every resample (`s5` maps family -> its S5 cell id)."""
     q, r = _mean_of(res, s5, quality), _mean_of(res, s5, (removal,))
-    return {"quality": q, "removal": r, "gap": None if q is None or r is None else q - r,
-            "mean": _mean_of(res, s5, core)}
+    return AxisResamples(quality=q, removal=r, gap=None if q is None or r is None else q - r,
+                         mean=_mean_of(res, s5, core))
 
 
-def axis_intervals(per_resample: Mapping[str, np.ndarray | None]) -> dict[str, list[float | None] | None]:
-    return {f"{k}_ci": None if v is None else percentile_interval(v) for k, v in per_resample.items()}
+def axis_intervals(per_resample: AxisResamples) -> AxisIntervals:
+    """The axes' 95 % intervals (None for an axis without resamples)."""
+    return AxisIntervals(**{name: None if (v := per_resample.of(name)) is None else percentile_interval(v)
+                            for name in AXES})
 
 
 #: Label codes of the vectorised verdict; -1 is "undetermined".

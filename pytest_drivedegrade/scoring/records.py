@@ -4,9 +4,10 @@ reduce per-frame arrays (NaN frames left out) and format numbers for people."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
-from dataclasses import asdict, dataclass, field
-from typing import Any
+from collections.abc import Iterable, Mapping
+from copy import deepcopy
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, cast
 
 import numpy as np
 
@@ -73,23 +74,239 @@ def horizon_metrics(record: CellRecord) -> dict[str, float]:
     return out
 
 
-@dataclass
-class RunAnalysis:
-    """Everything the reports show, as plain builtins (summaries aside, which ``to_builtins`` flattens)."""
+#: An interval [low, high]; a None bound is open (+inf: a threshold some resamples never reach).
+Interval = tuple[float | None, float | None]
+#: The axes over the camera families (SPEC section 5), each with an interval on L2 retention. The names are the
+#: fields of `Axes` and `AxisIntervals`, the certificate's ``axes`` keys and the reports' rows.
+AXES: tuple[str, ...] = ("quality", "removal", "gap", "mean")
+#: The axes beside them: S5 retention of dropout and occlusion, and the ego axis (SPEC section 10).
+BESIDE_AXES: tuple[str, ...] = ("dropout", "occlusion")
+EGO_AXES: tuple[str, ...] = ("ego", "ego_removal")
 
-    summaries: list[CellSummary]
-    thresholds: dict[str, dict[str, Any]]
-    axes: dict[str, Any]
-    verdict: dict[str, Any]
-    null_control: dict[str, Any] | None
-    floor: dict[str, Any]
-    settings: dict[str, Any]
-    axes_pdms: dict[str, Any] = field(default_factory=dict)  #: the axes on PDMS retention (spec 3)
+
+def _interval(ci: Interval | None) -> list[float | None] | None:
+    return None if ci is None else list(ci)
+
+
+def _number(value: object) -> float | None:
+    """A certificate's value as a float; None for null or anything that is not a number."""
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+@dataclass(frozen=True)
+class AxisIntervals:
+    """The 95 % intervals of the four axes from the joint bootstrap (None: not computed or an axis missing)."""
+
+    quality: Interval | None = None
+    removal: Interval | None = None
+    gap: Interval | None = None
+    mean: Interval | None = None
+
+    def of(self, axis: str) -> Interval | None:
+        """The interval of `axis` (one of `AXES`)."""
+        return cast("Interval | None", getattr(self, axis))
+
+
+@dataclass(frozen=True)
+class Axes:
+    """S5 retention axes of a run (SPEC sections 5 and 10): an axis whose families were not all run is None.
+
+    ``missing`` names the families not run at S5; ``partial`` the cells with failed frames the figures rest on;
+    ``intervals`` is None for the axes on PDMS retention (the resamples are of L2 retention).
+    """
+
+    quality: float | None
+    removal: float | None
+    gap: float | None
+    mean: float | None
+    dropout: float | None = None
+    occlusion: float | None = None
+    missing: tuple[str, ...] = ()
+    ego: float | None = None
+    ego_removal: float | None = None
+    intervals: AxisIntervals | None = None
+    partial: tuple[str, ...] = ()
+
+    def value(self, axis: str) -> float | None:
+        """The value of `axis` (a name of `AXES`, `BESIDE_AXES` or `EGO_AXES`)."""
+        return cast("float | None", getattr(self, axis))
+
+    def interval(self, axis: str) -> Interval | None:
+        return None if self.intervals is None else self.intervals.of(axis)
 
     def to_builtins(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["summaries"] = [s.flat() for s in self.summaries]
+        """The certificate's ``axes`` / ``axes_pdms`` section: the intervals as ``<axis>_ci`` keys (L2 only)."""
+        out: dict[str, Any] = {name: getattr(self, name) for name in (*AXES, *BESIDE_AXES)}
+        out["missing"] = list(self.missing)
+        out.update((name, getattr(self, name)) for name in EGO_AXES)
+        if self.intervals is not None:
+            out.update((f"{name}_ci", _interval(self.intervals.of(name))) for name in AXES)
+        out["partial"] = list(self.partial)
         return out
+
+    @classmethod
+    def from_builtins(cls, data: object) -> Axes:
+        """A certificate's axes section read back (absent or non-numeric values as None)."""
+        got: Mapping[str, Any] = data if isinstance(data, Mapping) else {}
+        values = {name: _number(got.get(name)) for name in (*AXES, *BESIDE_AXES, *EGO_AXES)}
+        intervals = AxisIntervals(**{name: _read_interval(got.get(f"{name}_ci")) for name in AXES}) \
+            if any(f"{name}_ci" in got for name in AXES) else None
+        return cls(**values, missing=tuple(map(str, got.get("missing") or ())), intervals=intervals,
+                   partial=tuple(map(str, got.get("partial") or ())))
+
+
+def _read_interval(value: object) -> Interval | None:
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        return None
+    return _number(value[0]), _number(value[1])
+
+
+@dataclass(frozen=True)
+class Threshold:
+    """One tolerance threshold of a family: the severity where retention first falls below its level (None:
+    never), its 95 % interval and the share of resamples that never fall below (None: no intervals)."""
+
+    value: float | None
+    ci: Interval | None = None
+    never: float | None = None
+
+
+@dataclass(frozen=True)
+class FamilyThresholds:
+    """A family's thresholds by level name (``THRESHOLD_LEVELS``: s10, s25), and whether a cell of the family has
+    failed frames (``partial``)."""
+
+    levels: Mapping[str, Threshold]
+    partial: bool = False
+
+    def to_builtins(self) -> dict[str, Any]:
+        out: dict[str, Any] = {key: t.value for key, t in self.levels.items()}
+        for key, t in self.levels.items():
+            out[f"{key}_ci"] = _interval(t.ci)
+            out[f"{key}_never"] = t.never
+        out["partial"] = self.partial
+        return out
+
+    @classmethod
+    def from_builtins(cls, data: object) -> FamilyThresholds:
+        """A certificate's thresholds entry read back (levels s10, s25; absent values as None)."""
+        got: Mapping[str, Any] = data if isinstance(data, Mapping) else {}
+        return cls({key: Threshold(_number(got.get(key)), _read_interval(got.get(f"{key}_ci")),
+                                   _number(got.get(f"{key}_never"))) for key in ("s10", "s25")},
+                   bool(got.get("partial", False)))
+
+
+@dataclass(frozen=True)
+class NullControl:
+    """The null control against clean (``scoring.verdict.null_control``): passed is None when nothing was
+    compared; ``max_l2_change`` is the wander cells are separated from."""
+
+    passed: bool | None
+    max_abs_diff: float | None
+    max_l2_change: float | None
+    frames_changed: int
+    frames_compared: int
+
+    def to_builtins(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in NULL_CONTROL_FIELDS}
+
+
+NULL_CONTROL_FIELDS: tuple[str, ...] = ("passed", "max_abs_diff", "max_l2_change", "frames_changed",
+                                        "frames_compared")
+
+
+def null_control_section(nc: NullControl | None) -> dict[str, Any]:
+    """The certificate's ``null_control``: the control with ``ran``; three nulls when no null cell ran."""
+    got = nc.to_builtins() if nc is not None else {"passed": None, "max_abs_diff": None, "max_l2_change": None}
+    return {**got, "ran": got["passed"] is not None}
+
+
+@dataclass(frozen=True)
+class Floor:
+    """The ego-only floor's clean L2 against the planner blinded (blind) and at removal S5, and the floor's own
+    ego_blind retention (``ego_removal``, when the ego cells ran; left out of the certificate otherwise)."""
+
+    l2_avg: float | None
+    blackout_s5_l2_avg: float | None
+    blackout_s5_below_floor: bool | None
+    blind_l2_avg: float | None
+    blind_below_floor: bool | None
+    ego_removal: float | None = None
+
+    def to_builtins(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"l2_avg": self.l2_avg, "blackout_s5_l2_avg": self.blackout_s5_l2_avg,
+                               "blackout_s5_below_floor": self.blackout_s5_below_floor,
+                               "blind_l2_avg": self.blind_l2_avg, "blind_below_floor": self.blind_below_floor}
+        if self.ego_removal is not None:
+            out["ego_removal"] = self.ego_removal
+        return out
+
+
+@dataclass(frozen=True)
+class FailedCell:
+    """A cell with failed frames: frames run (every seed run counted), planner contract failures, data faults."""
+
+    frames: int
+    conformance_errors: int
+    data_errors: int
+
+    def to_builtins(self) -> dict[str, int]:
+        return {"frames": self.frames, "conformance_errors": self.conformance_errors,
+                "data_errors": self.data_errors}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The run's label and its prose (SPEC section 5), the metric it is put on, the ego label, the bootstrap's
+    confidence, and why it is undetermined when cells have failed frames (SPEC section 11).
+
+    ``computed_label`` is the label the axes give, kept when failed frames make ``label`` undetermined.
+    """
+
+    label: str
+    case: str
+    flat: float
+    text: str
+    negative_gap: bool
+    metric: str = "l2"
+    ego_label: str = "undetermined"
+    confidence: float | None = None
+    borderline: bool = False
+    reason: str | None = None
+    failed_cells: Mapping[str, FailedCell] = field(default_factory=dict)
+    computed_label: str | None = None
+
+    def to_builtins(self) -> dict[str, Any]:
+        out: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["failed_cells"] = {cell: c.to_builtins() for cell, c in self.failed_cells.items()}
+        return out
+
+
+#: The verdict's fields, in the certificate's order (its keys).
+VERDICT_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(Verdict))
+
+
+@dataclass
+class RunAnalysis:
+    """Everything the reports show: cell summaries and typed figures; ``to_builtins`` gives the plain data the
+    certificate is made of. ``settings`` is the analysis's settings as builtins."""
+
+    summaries: list[CellSummary]
+    thresholds: dict[str, FamilyThresholds]
+    axes: Axes
+    verdict: Verdict
+    null_control: NullControl | None
+    floor: Floor
+    settings: dict[str, Any]
+    axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
+
+    def to_builtins(self) -> dict[str, Any]:
+        return {"summaries": [s.flat() for s in self.summaries],
+                "thresholds": {fam: t.to_builtins() for fam, t in self.thresholds.items()},
+                "axes": self.axes.to_builtins(), "verdict": self.verdict.to_builtins(),
+                "null_control": None if self.null_control is None else self.null_control.to_builtins(),
+                "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
+                "axes_pdms": self.axes_pdms.to_builtins()}
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""

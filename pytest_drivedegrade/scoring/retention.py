@@ -158,7 +158,7 @@ def tolerance_threshold(curve: Mapping[int, float], level: float) -> float | Non
     return None
 
 
-def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, Any]]:
+def thresholds(summaries: Iterable[CellSummary]) -> dict[str, dict[str, float | None]]:
     """family -> {"s10": x|None, "s25": x|None} for every camera ladder family among the summaries (not the ego
     cells)."""
     curves: dict[str, dict[int, float]] = {}

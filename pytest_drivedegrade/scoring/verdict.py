@@ -1,5 +1,5 @@
 """From cell summaries to the run's verdict: the two axes, the label and its prose, the null control, the floor
-comparison, and `analyse_run`, which computes every figure of a run from its cell records.
+comparison and the failed cells, each as a typed figure of ``records``; ``analyse`` puts them together.
 
 Pure functions over plain data (SPEC section 5); nothing here reads files, imports pytest or touches a planner.
 """
@@ -8,26 +8,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import numpy as np
 
-from ..cells import (
-    DIAGNOSTIC,
-    CellRecord,
-    cell_id,
-    differing_frames,
-    identical_plans,
-    is_camera_ladder,
-    is_ego,
-    report_order,
-)
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, report_order
+from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
-from . import intervals as iv
-from .records import CellSummary, RunAnalysis, format_value
-from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
+from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value
 
 VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
 
@@ -67,7 +56,7 @@ def _mean_or_none(values: Mapping[str, float], names: Sequence[str]) -> float | 
     return math.fsum(cast("list[float]", got)) / len(got)  # no None left after the check above
 
 
-def compute_axes(s5: Mapping[str, float], groups: FamilyGroups) -> dict[str, Any]:
+def compute_axes(s5: Mapping[str, float], groups: FamilyGroups) -> Axes:
     """The two axes from S5 retention per family: quality, removal, gap, mean, with dropout/occlusion beside.
 
     An axis whose families were not all run at S5 is None (``missing`` names them), never a guess.
@@ -75,18 +64,14 @@ def compute_axes(s5: Mapping[str, float], groups: FamilyGroups) -> dict[str, Any
     quality = _mean_or_none(s5, groups.quality)
     removal = _mean_or_none(s5, (groups.removal,))
     beside = {n: _mean_or_none(s5, (n,)) for n in groups.beside}
-    return {
-        "quality": quality,
-        "removal": removal,
-        "gap": None if quality is None or removal is None else quality - removal,
-        "mean": _mean_or_none(s5, groups.core),
-        "dropout": beside.get("frame_dropout"),
-        "occlusion": beside.get("occlusion"),
-        "missing": sorted({n for n in (*groups.core, groups.removal, *groups.beside) if n not in s5}),
-    }
+    return Axes(quality=quality, removal=removal,
+                gap=None if quality is None or removal is None else quality - removal,
+                mean=_mean_or_none(s5, groups.core), dropout=beside.get("frame_dropout"),
+                occlusion=beside.get("occlusion"),
+                missing=tuple(sorted({n for n in (*groups.core, groups.removal, *groups.beside) if n not in s5})))
 
 
-def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, Any]:
+def verdict(axes: Axes, flat: float = DEFAULT_FLAT) -> Verdict:
     """Label the planner from its axes (SPEC section 5) and say in plain words which case applies.
 
     quality >= flat and removal >= flat -> not-shown-to-use-cameras; quality >= flat > removal ->
@@ -94,7 +79,7 @@ def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, An
     "undetermined" when a missing axis leaves the label open. A negative gap is flagged.
     """
     # Compared at the certificate's precision (6 decimals), so a reader of the certificate reaches the same label.
-    q, r, gap = (None if v is None else round(v, 6) for v in (axes.get(k) for k in ("quality", "removal", "gap")))
+    q, r, gap = (None if v is None else round(v, 6) for v in (axes.quality, axes.removal, axes.gap))
     nums = f"quality {format_value(q)}, removal {format_value(r)}, flat line {flat:.2f}"
     if q is not None and q < flat:
         label = "camera-reliant"
@@ -118,7 +103,8 @@ def verdict(axes: Mapping[str, Any], flat: float = DEFAULT_FLAT) -> dict[str, An
     if negative:
         text += (f" Negative gap ({gap:.3f}): degraded images hurt more than removed cameras, which usually means "
                  "the planner is misled by corrupted pixels rather than helped by missing ones.")
-    return {"label": label, "case": case, "flat": float(flat), "text": text, "negative_gap": bool(negative)}
+    return Verdict(label=label, case=case, flat=float(flat), text=text, negative_gap=bool(negative),
+                   computed_label=label)
 
 
 #: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default) or PDMS retention.
@@ -138,15 +124,19 @@ def camera_s5(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str,
     return {s.family: retention_of(s, metric) for s in summaries if s.severity == 5 and not is_ego(s.family)}
 
 
-def ego_axes(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float | None]:
-    """The ego axis (SPEC section 10): ``ego`` = ego_noise S5 retention, ``ego_removal`` = ego_blind retention
-    (None when that cell was not run or its retention is not finite)."""
+def ego_axes(summaries: Iterable[CellSummary], metric: str = "l2") -> tuple[float | None, float | None]:
+    """The ego axis (SPEC section 10): (ego, ego_removal) = (ego_noise S5 retention, ego_blind retention), each
+    None when that cell was not run or its retention is not finite."""
     by_cell = {s.cell: retention_of(s, metric) for s in summaries}
-    out: dict[str, float | None] = {}
-    for key, cell in (("ego", cell_id(EGO_NOISE, 5)), ("ego_removal", cell_id(EGO_BLIND, 0))):
-        value = by_cell.get(cell)
-        out[key] = value if value is not None and math.isfinite(value) else None
-    return out
+    got = [by_cell.get(cell) for cell in (cell_id(EGO_NOISE, 5), cell_id(EGO_BLIND, 0))]
+    ego, removal = (v if v is not None and math.isfinite(v) else None for v in got)
+    return ego, removal
+
+
+def run_axes(summaries: Sequence[CellSummary], groups: FamilyGroups, metric: str = "l2") -> Axes:
+    """The camera axes and the ego axis of a run on `metric` retention (no intervals, nothing partial)."""
+    ego, removal = ego_axes(summaries, metric)
+    return replace(compute_axes(camera_s5(summaries, metric), groups), ego=ego, ego_removal=removal)
 
 
 def ego_label(ego_removal: float | None, flat: float = DEFAULT_FLAT) -> str:
@@ -157,7 +147,7 @@ def ego_label(ego_removal: float | None, flat: float = DEFAULT_FLAT) -> str:
     return "ego-reliant" if round(ego_removal, 6) < flat else "ego-insensitive"
 
 
-def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
+def null_control(clean_plans: np.ndarray, null_plans: np.ndarray) -> NullControl:
     """Compare the null-control plans with clean: passed iff bit-identical (`cells.identical_plans`); otherwise
     how far they wandered.
 
@@ -171,59 +161,52 @@ def null_control(clean_plans: Any, null_plans: Any) -> dict[str, Any]:
     compared = int((np.isfinite(a).reshape(len(a), -1).all(axis=1) & np.isfinite(b).reshape(len(b), -1).all(axis=1))
                    .sum()) if a.size else 0
     if compared == 0:
-        return {"passed": None, "max_abs_diff": None, "max_l2_change": None, "frames_changed": 0,
-                "frames_compared": 0}
+        return NullControl(passed=None, max_abs_diff=None, max_l2_change=None, frames_changed=0, frames_compared=0)
     passed = identical_plans(a, b)
     diff = np.abs(a - b)
     disp = np.linalg.norm(a - b, axis=-1) if a.size else np.zeros(0)
-    return {
-        "passed": bool(passed),
-        "max_abs_diff": 0.0 if passed else float(np.nanmax(diff, initial=0.0)),
-        "max_l2_change": 0.0 if passed else float(np.nanmax(disp, initial=0.0)),
-        "frames_changed": int(len(differing_frames(a, b))) if a.size else 0,
-        "frames_compared": compared,
-    }
+    return NullControl(passed=bool(passed), max_abs_diff=0.0 if passed else float(np.nanmax(diff, initial=0.0)),
+                       max_l2_change=0.0 if passed else float(np.nanmax(disp, initial=0.0)),
+                       frames_changed=int(len(differing_frames(a, b))) if a.size else 0, frames_compared=compared)
 
 
-def failed_cells(records: Iterable[CellRecord], order: Sequence[str] = ()) -> dict[str, dict[str, int]]:
+def failed_cells(records: Iterable[CellRecord], order: Sequence[str] = ()) -> dict[str, FailedCell]:
     """The cells with failed frames, in report order: cell -> frames run (every seed run counted), the planner's
     contract failures (``conformance_errors``) and the data faults (``data_errors``)."""
     out = {}
     for r in sorted(records, key=lambda r: report_order(r.family, r.severity, order)):
         planner, data = r.failed_frames()
         if planner or data:
-            out[r.cell] = {"frames": sum(len(run.frames) for run in r.runs()), "conformance_errors": planner,
-                           "data_errors": data}
+            out[r.cell] = FailedCell(sum(len(run.frames) for run in r.runs()), planner, data)
     return out
 
 
-def failure_reason(failed: Mapping[str, Mapping[str, int]], shown: int = 8) -> str:
+def failure_reason(failed: Mapping[str, FailedCell], shown: int = 8) -> str:
     """One sentence naming the cells with failed frames and their counts, e.g. ``2 cells have failed frames:
     clean (1 of 8 frames: 1 data error), jpeg-s5 (2 of 8 frames: 2 planner contract failures)``."""
-    def counts(c: Mapping[str, int]) -> str:
+    def counts(c: FailedCell) -> str:
         parts = [f"{n} {what}{'s' if n != 1 else ''}" for n, what in
-                 ((c["conformance_errors"], "planner contract failure"), (c["data_errors"], "data error")) if n]
-        return f"{c['conformance_errors'] + c['data_errors']} of {c['frames']} frames: {', '.join(parts)}"
+                 ((c.conformance_errors, "planner contract failure"), (c.data_errors, "data error")) if n]
+        return f"{c.conformance_errors + c.data_errors} of {c.frames} frames: {', '.join(parts)}"
 
     items = [f"{cell} ({counts(c)})" for cell, c in list(failed.items())[:shown]]
     more = f", and {len(failed) - shown} more" if len(failed) > shown else ""
     return f"{len(failed)} cell{'s' if len(failed) != 1 else ''} with failed frames: {', '.join(items)}{more}"
 
 
-def undetermined_by_failures(v: dict[str, Any], failed: Mapping[str, Mapping[str, int]]) -> dict[str, Any]:
+def undetermined_by_failures(v: Verdict, failed: Mapping[str, FailedCell]) -> Verdict:
     """The verdict of a run with failed frames (SPEC section 11): ``undetermined`` with the `reason`, the label
     the axes give over the frames that did produce a plan kept as ``computed_label`` (flagged, not claimed).
     Without failures: the verdict as is, with ``reason`` None and no failed cells."""
     if not failed:
-        return {**v, "reason": None, "failed_cells": {}, "computed_label": v["label"]}
+        return replace(v, reason=None, failed_cells={}, computed_label=v.label)
     reason = failure_reason(failed)
-    would = f"would give {v['label']}" if v["label"] != "undetermined" else "leave it open too"
+    would = f"would give {v.label}" if v.label != "undetermined" else "leave it open too"
     text = (f"Undetermined: {reason}. Retention, thresholds and axes are computed over the frames that did produce "
             f"a plan and {would}, but a verdict is not sealed on partial results: fix the failures named in the "
             "cells' messages (planner contract or data set) and rerun.")
-    return {**v, "label": "undetermined", "case": "failed-frames", "text": text, "reason": reason,
-            "failed_cells": {k: dict(c) for k, c in failed.items()}, "computed_label": v["label"],
-            "ego_label": "undetermined", "borderline": False}
+    return replace(v, label="undetermined", case="failed-frames", text=text, reason=reason,
+                   failed_cells=dict(failed), computed_label=v.label, ego_label="undetermined", borderline=False)
 
 
 def separable_from_null(endpoint_shift: float, wander: float) -> bool:
@@ -232,112 +215,15 @@ def separable_from_null(endpoint_shift: float, wander: float) -> bool:
     return bool(math.isfinite(endpoint_shift) and endpoint_shift > wander)
 
 
-def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], removal: str = "blackout") -> dict:
-    """Does the planner stay below the ego-only floor's clean L2 when blinded (blind) or at removal S5?"""
+def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], removal: str = "blackout",
+                     ego_removal: float | None = None) -> Floor:
+    """Does the planner stay below the ego-only floor's clean L2 when blinded (blind) or at removal S5? With the
+    floor's own ego_blind retention (`ego_removal`) when the ego cells ran."""
     by_cell = {s.cell: s.l2_avg for s in summaries}
-    out: dict[str, Any] = {"l2_avg": floor_l2}
-    for key, cell in (("blackout_s5", cell_id(removal, 5)), ("blind", cell_id("blind", 0))):
-        value = by_cell.get(cell)
-        out[f"{key}_l2_avg"] = value
-        out[f"{key}_below_floor"] = None if value is None or floor_l2 is None else bool(value < floor_l2)
-    return out
+    at_removal, blind = by_cell.get(cell_id(removal, 5)), by_cell.get(cell_id("blind", 0))
 
+    def below(value: float | None) -> bool | None:
+        return None if value is None or floor_l2 is None else bool(value < floor_l2)
 
-def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
-                convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
-                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
-                intervals: bool = True, metric: str = "l2") -> RunAnalysis:
-    """Every figure of a run from its cell records (in any order; the result does not depend on it).
-
-    Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
-    in a cell drops out of that cell's comparison only). A cell run under several seeds has the mean of its
-    per-seed retentions and the two-level bootstrap's CI.
-
-    A cell with failed frames (planner contract or data) makes the verdict ``undetermined`` with the reason
-    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``.
-
-    Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
-    floor's clean l2_avg when it was run; `seeds` the run's ``--drivedegrade-seeds`` (recorded in the
-    settings). With `intervals` (the default) the thresholds, axes and verdict get their intervals from one
-    joint bootstrap of every ladder cell (``scoring.intervals``); without, those fields are None. The axes are
-    computed on L2 retention (``axes``, with the ego axis) and on PDMS retention (``axes_pdms``); `metric`
-    ("l2" or "pdms") says which one the verdict is put on.
-    """
-    if metric not in VERDICT_METRICS:
-        raise InvalidInput(f"metric must be one of {', '.join(VERDICT_METRICS)}, got {metric!r}")
-    recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
-    by_cell = {r.cell: r for r in recs}
-    if "clean" not in by_cell:
-        raise InvalidInput("no clean cell among the results: retention needs it (was it deselected with -k?)")
-    groups = groups or FamilyGroups.from_registry()
-    clean = by_cell["clean"]
-    ladder = [r for r in by_cell.values() if r.family not in DIAGNOSTIC]
-    res = None
-    if intervals and n_resamples > 0 and ladder:
-        res = iv.resample_cells(clean.l2_avg_per_frame(convention),
-                                {r.cell: [run.l2_avg_per_frame(convention) for run in r.runs()] for r in ladder},
-                                kind=kind, n_resamples=n_resamples, seed=seed)
-    summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed,
-                                ci=_seed_ci(res, r)) for r in by_cell.values()]  # a resumed duplicate counts once
-    summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
-    nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
-    wander = (nc or {}).get("max_l2_change") or 0.0
-    for s in summaries:
-        if s.cell not in ("clean", "null"):
-            s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
-    ax = {**compute_axes(camera_s5(summaries), groups), **ego_axes(summaries)}
-    ax_pdms = {**compute_axes(camera_s5(summaries, "pdms"), groups), **ego_axes(summaries, "pdms")}
-    th = thresholds(summaries)
-    per: dict[str, Any] = {"quality": None, "removal": None, "gap": None, "mean": None}
-    if res is not None:
-        curves: dict[str, dict[int, str]] = {}
-        for s in summaries:
-            if is_camera_ladder(s.family):
-                curves.setdefault(s.family, {})[s.severity] = s.cell
-        for fam, entry in iv.threshold_intervals(res, curves).items():
-            th[fam].update(entry)
-        s5 = {fam: cells[5] for fam, cells in curves.items() if 5 in cells}
-        per = iv.axes_per_resample(res, s5, groups.quality, groups.removal, groups.core)
-    for t in th.values():
-        for key in THRESHOLD_LEVELS:
-            t.setdefault(f"{key}_ci", None)
-            t.setdefault(f"{key}_never", None)
-    ax.update(iv.axis_intervals(per))
-    on = ax_pdms if metric == "pdms" else ax
-    v = verdict(on, flat)
-    if metric == "pdms":
-        v["text"] = "On PDMS retention: " + v["text"]
-    v["metric"] = metric
-    v["ego_label"] = ego_label(on.get("ego_removal"), flat)
-    # the resamples are of L2 retention: the verdict's confidence is given for a verdict on L2
-    confidence = iv.verdict_confidence(v["label"], per["quality"], per["removal"], flat) \
-        if res is not None and metric == "l2" else None
-    v["confidence"] = confidence
-    v["borderline"] = confidence is not None and confidence < iv.BORDERLINE
-    if v["borderline"]:
-        v["text"] += iv.borderline_text(cast(float, confidence))
-    failed = failed_cells(by_cell.values(), groups.order)
-    v = undetermined_by_failures(v, failed)
-    partial = list(failed)  # the figures are still computed, and flagged as resting on partial cells
-    ax["partial"] = ax_pdms["partial"] = partial
-    for fam, entry in th.items():
-        entry["partial"] = any(by_cell[c].family == fam for c in partial)
-    settings = {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
-                "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
-                "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric, "seeds": int(seeds),
-                "seed_values": [int(seed) + k for k in range(int(seeds))],
-                "intervals": {"computed": res is not None,
-                              "scheme": "seeds then frames" if res is not None and res.n_seeds > 1 else
-                              "paired frames", "percentile": "linear", "never": "+inf (null bound)"}}
-    return RunAnalysis(summaries, th, ax, v, nc, floor_comparison(floor_l2, summaries, groups.removal), settings,
-                       axes_pdms=ax_pdms)
-
-
-def _seed_ci(res: iv.Resamples | None, record: CellRecord) -> tuple[float, float] | None:
-    """A multi-seed cell's CI from the two-level bootstrap (None for a one-run cell: it keeps its own)."""
-    if not record.seed_runs or res is None or record.cell not in res.retention:
-        return None
-    got = iv.percentile_interval(res.retention[record.cell])
-    if got is None:
-        return math.nan, math.nan
-    return (math.nan if got[0] is None else got[0]), (math.inf if got[1] is None else got[1])
+    return Floor(l2_avg=floor_l2, blackout_s5_l2_avg=at_removal, blackout_s5_below_floor=below(at_removal),
+                 blind_l2_avg=blind, blind_below_floor=below(blind), ego_removal=ego_removal)

@@ -21,6 +21,7 @@ from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import records as rc
 from pytest_drivedegrade.scoring import retention as rt
 from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 from pytest_drivedegrade.scoring.verdict import FamilyGroups
 
 ORDER = ("gaussian_blur", "motion_blur", "gaussian_noise", "low_light", "jpeg", "downscale", "color_quant", "fog",
@@ -213,11 +214,11 @@ def test_axes_known_answer() -> None:
     values = s5(0.9, 0.6, 0.8)
     values["gaussian_blur"] = 0.0  # mean of nine: (8 * 0.9 + 0) / 9 = 0.8
     ax = vd.compute_axes(values, GROUPS)
-    assert ax["quality"] == pytest.approx(0.8) and ax["removal"] == pytest.approx(0.6)
-    assert ax["gap"] == pytest.approx(0.2)
-    assert ax["mean"] == pytest.approx((0.8 * 9 + 0.8 + 0.6 + 0.8) / 12)
-    assert ax["dropout"] == pytest.approx(0.8) and ax["occlusion"] == pytest.approx(0.8)
-    assert ax["missing"] == []
+    assert ax.quality == pytest.approx(0.8) and ax.removal == pytest.approx(0.6)
+    assert ax.gap == pytest.approx(0.2)
+    assert ax.mean == pytest.approx((0.8 * 9 + 0.8 + 0.6 + 0.8) / 12)
+    assert ax.dropout == pytest.approx(0.8) and ax.occlusion == pytest.approx(0.8)
+    assert ax.missing == ()
 
 
 def test_quality_axis_is_the_mean_of_the_nine_quality_families_only() -> None:
@@ -227,19 +228,19 @@ def test_quality_axis_is_the_mean_of_the_nine_quality_families_only() -> None:
     values |= {"frame_dropout": 0.3, "blackout": 0.2, "bit_error": 0.1, "raindrop": 0.0, "occlusion": 0.0,
                "mud_splash": 0.0, "lens_dirt": 0.0}
     ax = vd.compute_axes(values, GROUPS)
-    assert ax["quality"] == pytest.approx(0.5, abs=1e-12) and ax["removal"] == 0.2
-    assert ax["gap"] == pytest.approx(0.3, abs=1e-12) and ax["mean"] == pytest.approx(5.1 / 12, abs=1e-12)
+    assert ax.quality == pytest.approx(0.5, abs=1e-12) and ax.removal == 0.2
+    assert ax.gap == pytest.approx(0.3, abs=1e-12) and ax.mean == pytest.approx(5.1 / 12, abs=1e-12)
     values["occlusion"] = values["raindrop"] = 1.0  # contamination and occlusion stay off the quality axis
-    assert vd.compute_axes(values, GROUPS)["quality"] == pytest.approx(0.5, abs=1e-12)
+    assert vd.compute_axes(values, GROUPS).quality == pytest.approx(0.5, abs=1e-12)
 
 
 def test_missing_family_makes_its_axis_none() -> None:
     values = s5(0.99, 0.5)
     del values["fog"], values["occlusion"]
     ax = vd.compute_axes(values, GROUPS)
-    assert ax["quality"] is None and ax["gap"] is None and ax["mean"] is None
-    assert ax["removal"] == 0.5 and ax["occlusion"] is None and ax["missing"] == ["fog", "occlusion"]
-    assert vd.verdict(ax)["label"] == "undetermined"
+    assert ax.quality is None and ax.gap is None and ax.mean is None
+    assert ax.removal == 0.5 and ax.occlusion is None and ax.missing == ("fog", "occlusion")
+    assert vd.verdict(ax).label == "undetermined"
 
 
 @pytest.mark.parametrize(("q", "r", "label", "case"), [
@@ -254,30 +255,30 @@ def test_missing_family_makes_its_axis_none() -> None:
 ])
 def test_verdict_labels(q, r, label, case) -> None:
     v = vd.verdict(vd.compute_axes(s5(q, r), GROUPS), flat=0.95)
-    assert (v["label"], v["case"], v["flat"]) == (label, case, 0.95)
-    assert f"{q:.3f}" in v["text"] and f"{r:.3f}" in v["text"]
-    assert v["negative_gap"] is (q < r)
-    assert ("Negative gap" in v["text"]) is (q < r)
+    assert (v.label, v.case, v.flat) == (label, case, 0.95)
+    assert f"{q:.3f}" in v.text and f"{r:.3f}" in v.text
+    assert v.negative_gap is (q < r)
+    assert ("Negative gap" in v.text) is (q < r)
 
 
 def test_flat_is_a_parameter() -> None:
     ax = vd.compute_axes(s5(0.93, 0.92), GROUPS)
-    assert vd.verdict(ax, flat=0.95)["label"] == "camera-reliant"
-    assert vd.verdict(ax, flat=0.90)["label"] == "not-shown-to-use-cameras"
+    assert vd.verdict(ax, flat=0.95).label == "camera-reliant"
+    assert vd.verdict(ax, flat=0.90).label == "not-shown-to-use-cameras"
 
 
 def test_flat_line_known_answers() -> None:
     """The line is 0.95 unless given; the axes are compared at six decimals (the certificate's), so a value
     that rounds onto the line is on it; each side of a line at 0.80 gives its own case."""
-    on_line = {"quality": 0.9499996, "removal": 0.97, "gap": 0.0}
-    assert vd.verdict(on_line)["flat"] == 0.95 and vd.verdict(on_line)["case"] == "both-flat"
-    below = {"quality": 0.9499994, "removal": 0.97, "gap": 0.0}
-    assert (vd.verdict(below)["label"], vd.verdict(below)["case"]) == ("camera-reliant", "quality-only")
-    at = lambda q, r: vd.verdict({"quality": q, "removal": r, "gap": q - r}, flat=0.80)  # noqa: E731
-    assert (at(0.81, 0.79)["label"], at(0.81, 0.79)["case"]) == ("quality-insensitive", "removal-only")
-    assert (at(0.79, 0.81)["label"], at(0.79, 0.81)["case"]) == ("camera-reliant", "quality-only")
-    assert (at(0.79, 0.79)["case"], at(0.80, 0.80)["case"]) == ("both-below", "both-flat")
-    assert "flat line 0.80" in at(0.81, 0.79)["text"]
+    on_line = rc.Axes(quality=0.9499996, removal=0.97, gap=0.0, mean=None)
+    assert vd.verdict(on_line).flat == 0.95 and vd.verdict(on_line).case == "both-flat"
+    below = rc.Axes(quality=0.9499994, removal=0.97, gap=0.0, mean=None)
+    assert (vd.verdict(below).label, vd.verdict(below).case) == ("camera-reliant", "quality-only")
+    at = lambda q, r: vd.verdict(rc.Axes(quality=q, removal=r, gap=q - r, mean=None), flat=0.80)  # noqa: E731
+    assert (at(0.81, 0.79).label, at(0.81, 0.79).case) == ("quality-insensitive", "removal-only")
+    assert (at(0.79, 0.81).label, at(0.79, 0.81).case) == ("camera-reliant", "quality-only")
+    assert (at(0.79, 0.79).case, at(0.80, 0.80).case) == ("both-below", "both-flat")
+    assert "flat line 0.80" in at(0.81, 0.79).text
 
 
 def test_family_groups_from_the_registry_match_the_spec() -> None:
@@ -291,24 +292,24 @@ def test_family_groups_from_the_registry_match_the_spec() -> None:
 
 def test_null_control_identical_and_wandering() -> None:
     plans = np.random.default_rng(0).normal(size=(4, 6, 2))
-    assert vd.null_control(plans, plans.copy()) == {"passed": True, "max_abs_diff": 0.0, "max_l2_change": 0.0,
-                                                    "frames_changed": 0, "frames_compared": 4}
+    assert vd.null_control(plans, plans.copy()) == rc.NullControl(passed=True, max_abs_diff=0.0, max_l2_change=0.0,
+                                                                  frames_changed=0, frames_compared=4)
     moved = plans.copy()
     moved[2, 5] += [0.3, 0.4]
     nc = vd.null_control(plans, moved)
-    assert nc["passed"] is False and nc["frames_changed"] == 1
-    assert nc["max_abs_diff"] == pytest.approx(0.4) and nc["max_l2_change"] == pytest.approx(0.5)
+    assert nc.passed is False and nc.frames_changed == 1
+    assert nc.max_abs_diff == pytest.approx(0.4) and nc.max_l2_change == pytest.approx(0.5)
 
 
 def test_cells_within_the_null_wander_are_not_separable() -> None:
     recs, _ = synthetic_run(8, null_wander=0.5)
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=50)
     sep = {s.cell: s.separable_from_null for s in res.summaries}
-    assert res.null_control["passed"] is False
+    assert res.null_control.passed is False
     assert sep["clean"] is None and sep["null"] is None
     assert sep["blind"] is True and sep["gaussian_blur-s1"] is False
-    clean_run = vd.analyse_run(synthetic_run(8)[0], groups=GROUPS, n_resamples=50)
-    assert clean_run.null_control["passed"] is True
+    clean_run = analyse_run(synthetic_run(8)[0], groups=GROUPS, n_resamples=50)
+    assert clean_run.null_control.passed is True
     assert all(s.separable_from_null for s in clean_run.summaries if s.cell not in ("clean", "null"))
 
 
@@ -316,22 +317,23 @@ def test_floor_comparison() -> None:
     summaries = [rc.CellSummary("blackout-s5", "blackout", 5, 3, 1.2, 0.5, 0.4, 0.6),
                  rc.CellSummary("blind", "blind", 0, 3, 2.5, 0.3, 0.2, 0.4)]
     floor = vd.floor_comparison(2.0, summaries)
-    assert floor == {"l2_avg": 2.0, "blackout_s5_l2_avg": 1.2, "blackout_s5_below_floor": True,
-                     "blind_l2_avg": 2.5, "blind_below_floor": False}
-    assert vd.floor_comparison(None, summaries)["blind_below_floor"] is None
+    assert floor.to_builtins() == {"l2_avg": 2.0, "blackout_s5_l2_avg": 1.2, "blackout_s5_below_floor": True,
+                                   "blind_l2_avg": 2.5, "blind_below_floor": False}  # no ego_removal: not run
+    assert vd.floor_comparison(2.0, summaries, ego_removal=0.7).to_builtins()["ego_removal"] == 0.7
+    assert vd.floor_comparison(None, summaries).blind_below_floor is None
 
 
 def test_analyse_run_is_order_independent_and_complete() -> None:
     recs, _ = synthetic_run(12)
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0)
     shuffled = recs[:]
     random.Random(3).shuffle(shuffled)
-    again = vd.analyse_run([r.to_builtins() for r in shuffled], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    again = analyse_run([r.to_builtins() for r in shuffled], groups=GROUPS, n_resamples=100, floor_l2=5.0)
     assert json.dumps(again.to_builtins()) == json.dumps(res.to_builtins())
     assert [s.cell for s in res.summaries][:4] == ["clean", "null", "blind", "gaussian_blur-s1"]
     assert res.summaries[0].retention == 1.0 and len(res.summaries) == 3 + 16 * 5
-    assert res.verdict["label"] == "camera-reliant" and res.floor["blind_below_floor"] is True
-    assert res.thresholds["blackout"]["s10"] is not None and set(res.thresholds) == set(ORDER)
+    assert res.verdict.label == "camera-reliant" and res.floor.blind_below_floor is True
+    assert res.thresholds["blackout"].levels["s10"].value is not None and set(res.thresholds) == set(ORDER)
 
 
 def test_failed_frames_drop_out_of_that_cells_comparison_only() -> None:
@@ -342,13 +344,13 @@ def test_failed_frames_drop_out_of_that_cells_comparison_only() -> None:
     keep = [0, 1, 3, 4, 5]
     expected = clean.l2_avg_per_frame()[keep].mean() / cell.l2_avg_per_frame()[keep].mean()
     assert s.frames == 5 and s.retention == pytest.approx(expected)
-    assert len(vd.analyse_run(recs + [recs[5]], groups=GROUPS, n_resamples=20).summaries) == len(recs)
+    assert len(analyse_run(recs + [recs[5]], groups=GROUPS, n_resamples=20).summaries) == len(recs)
 
 
 def test_analyse_run_needs_clean() -> None:
     recs, _ = synthetic_run(3)
     with pytest.raises(InvalidInput, match="no clean cell"):
-        vd.analyse_run(recs[1:], groups=GROUPS)
+        analyse_run(recs[1:], groups=GROUPS)
 
 
 # --- baseline gate -------------------------------------------------------------------------------------------
@@ -397,22 +399,23 @@ def test_failed_frames_make_the_verdict_undetermined_with_the_reason() -> None:
     """Trust case 9: a cell with failed frames (planner or data) makes the verdict `undetermined`, the reason
     naming the cells and their counts; the axes are still computed (the label they give kept, flagged)."""
     recs, _ = synthetic_run(8)
-    whole = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
-    assert whole.verdict["label"] == "camera-reliant" and whole.verdict["reason"] is None
+    whole = analyse_run(recs, groups=GROUPS, n_resamples=50)
+    assert whole.verdict.label == "camera-reliant" and whole.verdict.reason is None
     by = {r.cell: r for r in recs}
     fail_frames(by["jpeg-s5"], [1, 2])
     fail_frames(by["fog-s2"], [3], data=True)
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=50)
     v = res.verdict
-    assert v["label"] == "undetermined" and v["case"] == "failed-frames" and v["ego_label"] == "undetermined"
-    assert v["computed_label"] == "camera-reliant" and v["borderline"] is False
-    assert v["reason"] == ("2 cells with failed frames: jpeg-s5 (2 of 8 frames: 2 planner contract failures), "
-                           "fog-s2 (1 of 8 frames: 1 data error)")
-    assert v["failed_cells"] == {"jpeg-s5": {"frames": 8, "conformance_errors": 2, "data_errors": 0},
-                                 "fog-s2": {"frames": 8, "conformance_errors": 0, "data_errors": 1}}
-    assert v["reason"] in v["text"]
-    assert res.axes["quality"] is not None and res.axes["partial"] == ["jpeg-s5", "fog-s2"]
-    assert res.thresholds["jpeg"]["partial"] is True and res.thresholds["snow"]["partial"] is False
+    assert v.label == "undetermined" and v.case == "failed-frames" and v.ego_label == "undetermined"
+    assert v.computed_label == "camera-reliant" and v.borderline is False
+    assert v.reason == ("2 cells with failed frames: jpeg-s5 (2 of 8 frames: 2 planner contract failures), "
+                        "fog-s2 (1 of 8 frames: 1 data error)")
+    assert v.failed_cells == {"jpeg-s5": rc.FailedCell(frames=8, conformance_errors=2, data_errors=0),
+                              "fog-s2": rc.FailedCell(frames=8, conformance_errors=0, data_errors=1)}
+    assert v.to_builtins()["failed_cells"]["fog-s2"] == {"frames": 8, "conformance_errors": 0, "data_errors": 1}
+    assert v.reason in v.text
+    assert res.axes.quality is not None and res.axes.partial == ("jpeg-s5", "fog-s2")
+    assert res.thresholds["jpeg"].partial is True and res.thresholds["snow"].partial is False
     summary = {s.cell: s for s in res.summaries}
     assert (summary["jpeg-s5"].conformance_errors, summary["jpeg-s5"].data_errors) == (2, 0)
     assert (summary["fog-s2"].conformance_errors, summary["fog-s2"].data_errors, summary["fog-s2"].frames) == (0, 1, 7)
@@ -425,13 +428,13 @@ def test_a_cell_with_no_scored_frame_has_no_retention_and_the_null_control_is_no
     by = {r.cell: r for r in recs}
     fail_frames(by["clean"], list(range(5)))
     fail_frames(by["null"], list(range(5)))
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=20)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=20)
     clean = res.summaries[0]
     assert clean.cell == "clean" and clean.frames == 0 and math.isnan(clean.retention)
     assert math.isnan(clean.retention_ci_low) and math.isnan(clean.retention_ci_high)
-    assert res.null_control == {"passed": None, "max_abs_diff": None, "max_l2_change": None, "frames_changed": 0,
-                                "frames_compared": 0}
-    assert res.verdict["label"] == "undetermined" and "clean (5 of 5 frames" in res.verdict["reason"]
+    assert res.null_control == rc.NullControl(passed=None, max_abs_diff=None, max_l2_change=None,
+                                              frames_changed=0, frames_compared=0)
+    assert res.verdict.label == "undetermined" and "clean (5 of 5 frames" in res.verdict.reason
     assert all(math.isnan(s.retention) for s in res.summaries)
 
 

@@ -13,14 +13,14 @@ from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.cli import main
 from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import records as rc
-from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
 
 
 @pytest.fixture(scope="module")
 def run() -> rc.RunAnalysis:
-    return vd.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    return analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=100, floor_l2=5.0)
 
 
 @pytest.fixture()
@@ -241,7 +241,7 @@ def test_verify_requires_undetermined_when_a_cell_has_failed_frames(tmp_path: Pa
     recs, _ = synthetic_run(12)
     fail_frames(next(r for r in recs if r.cell == "snow-s5"), [4], data=True)
     path = cf.write_certificate(tmp_path / "certificate.json",
-                                cf.build_certificate(vd.analyse_run(recs, groups=GROUPS, n_resamples=50), PROV))
+                                cf.build_certificate(analyse_run(recs, groups=GROUPS, n_resamples=50), PROV))
     cert = cf.verify(path)
     assert cert["verdict"]["label"] == "undetermined" and "snow-s5 (1 of 12 frames: 1 data error)" in \
         cert["verdict"]["reason"]

@@ -13,7 +13,7 @@ from test_analysis import GROUPS, synthetic_run
 from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.certificate.compare import CompareError, write_compare
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 PROV = cf.Provenance("a", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
 
@@ -23,7 +23,7 @@ def certify(tmp_path: Path, name: str, damage, *, offset: float = 0.0, **prov) -
     recs, _ = synthetic_run(16, damage=damage)
     for r in recs:
         r.l2 = r.l2 + offset
-    analysis = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
+    analysis = analyse_run(recs, groups=GROUPS, n_resamples=50)
     path = tmp_path / f"{name}.json"
     cf.write_certificate(path, cf.build_certificate(analysis, dataclasses.replace(PROV, planner_name=name, **prov)))
     return path

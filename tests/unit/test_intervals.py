@@ -17,7 +17,7 @@ from pytest_drivedegrade.certificate.seal import canonicalize
 from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import intervals as iv
 from pytest_drivedegrade.scoring import retention as rt
-from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 GOLDEN = Path(__file__).parents[1] / "data" / "golden" / "analysis_seeds1.json"
 
@@ -56,9 +56,9 @@ def test_vectorised_thresholds_equal_tolerance_threshold_row_by_row():
 
 
 def test_percentile_interval_treats_never_as_plus_infinity_and_writes_null():
-    assert iv.percentile_interval(np.array([1.0, 2.0, 3.0, 4.0, 5.0])) == pytest.approx([1.1, 4.9])
-    assert iv.percentile_interval(np.array([1.0] * 90 + [math.inf] * 10)) == [1.0, None]
-    assert iv.percentile_interval(np.array([math.inf] * 100)) == [None, None]
+    assert iv.percentile_interval(np.array([1.0, 2.0, 3.0, 4.0, 5.0])) == pytest.approx((1.1, 4.9))
+    assert iv.percentile_interval(np.array([1.0] * 90 + [math.inf] * 10)) == (1.0, None)
+    assert iv.percentile_interval(np.array([math.inf] * 100)) == (None, None)
     assert iv.percentile_interval(np.array([math.nan] * 3)) is None
 
 
@@ -76,11 +76,11 @@ def test_constant_per_frame_errors_give_a_point_interval():
     n = 25
     recs = [err_record("clean", np.ones(n))]
     recs += [err_record(f"fog-s{s}", np.full(n, 1 / r)) for s, r in zip(range(1, 6), (1.0, 0.95, 0.8, 0.7, 0.6))]
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=200)
-    t = res.thresholds["fog"]
-    assert t["s10_ci"] == pytest.approx([t["s10"], t["s10"]]) and t["s10_never"] == 0.0
-    assert t["s10"] == pytest.approx(2 + 0.05 / 0.15)
-    assert t["s25_ci"] == pytest.approx([t["s25"], t["s25"]]) and t["s25"] == pytest.approx(3.5)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=200)
+    s10, s25 = res.thresholds["fog"].levels["s10"], res.thresholds["fog"].levels["s25"]
+    assert s10.ci == pytest.approx((s10.value, s10.value)) and s10.never == 0.0
+    assert s10.value == pytest.approx(2 + 0.05 / 0.15)
+    assert s25.ci == pytest.approx((s25.value, s25.value)) and s25.value == pytest.approx(3.5)
 
 
 def test_threshold_distribution_is_the_binomial_one():
@@ -91,12 +91,12 @@ def test_threshold_distribution_is_the_binomial_one():
     e3 = np.array([1.0, 1.6] * (n // 2))
     recs = [err_record("clean", np.ones(n))]
     recs += [err_record(f"fog-s{s}", e3 if s == 3 else np.ones(n)) for s in range(1, 6)]
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=r)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=r)
     p_never = binom_cdf(10, n)  # k <= 10 of 18, since 10/18 = 0.556 <= 5/9 = 0.5556
-    assert res.thresholds["fog"]["s25_never"] == pytest.approx(p_never, abs=4 * math.sqrt(p_never / r))
-    assert res.thresholds["fog"]["s25"] is None  # the point curve: r3 = 1 / 1.3 = 0.77, not below 0.75
+    assert res.thresholds["fog"].levels["s25"].never == pytest.approx(p_never, abs=4 * math.sqrt(p_never / r))
+    assert res.thresholds["fog"].levels["s25"].value is None  # the point curve: r3 = 1 / 1.3 = 0.77, not below 0.75
     # s*10: r3 < 0.9 iff k/F > 1/5.4, almost always; crossing s = 2 + 0.1 / (1 - r3) = 2 + (1 + 0.6k/F) / (6k/F)
-    low, high = res.thresholds["fog"]["s10_ci"]
+    low, high = res.thresholds["fog"].levels["s10"].ci
     k_hi, k_lo = 9 + 2 * 2.12, 9 - 2 * 2.12  # 97.5 % and 2.5 % of Binomial(18, 1/2), with normal slack
 
     def s10(k):
@@ -104,7 +104,7 @@ def test_threshold_distribution_is_the_binomial_one():
 
     assert s10(k_hi + 1) <= low <= high <= s10(k_lo - 1)
     p10 = binom_cdf(3, n)  # r3 >= 0.9 iff k / F <= 1 / 5.4, i.e. k <= 3
-    assert res.thresholds["fog"]["s10_never"] == pytest.approx(p10, abs=4 * math.sqrt(p10 / r))
+    assert res.thresholds["fog"].levels["s10"].never == pytest.approx(p10, abs=4 * math.sqrt(p10 / r))
 
 
 def flat_line_run(n: int, removal: float) -> list[CellRecord]:
@@ -119,33 +119,33 @@ def flat_line_run(n: int, removal: float) -> list[CellRecord]:
 
 
 def test_a_verdict_on_the_flat_line_has_confidence_near_one_half():
-    res = vd.analyse_run(flat_line_run(40, removal=0.5), groups=GROUPS, n_resamples=2000)
-    assert res.axes["quality"] == pytest.approx(0.95, abs=1e-9)
-    assert res.verdict["label"] == "quality-insensitive"  # at the flat line is not below it
-    assert 0.44 <= res.verdict["confidence"] <= 0.56
-    assert res.verdict["borderline"] and "Borderline" in res.verdict["text"]
-    low, high = res.axes["quality_ci"]
+    res = analyse_run(flat_line_run(40, removal=0.5), groups=GROUPS, n_resamples=2000)
+    assert res.axes.quality == pytest.approx(0.95, abs=1e-9)
+    assert res.verdict.label == "quality-insensitive"  # at the flat line is not below it
+    assert 0.44 <= res.verdict.confidence <= 0.56
+    assert res.verdict.borderline and "Borderline" in res.verdict.text
+    low, high = res.axes.interval("quality")
     assert low < 0.95 < high
-    assert res.axes["removal_ci"] == pytest.approx([0.5, 0.5])
+    assert res.axes.interval("removal") == pytest.approx((0.5, 0.5))
 
 
 def test_a_clear_verdict_is_not_borderline():
     recs, _ = synthetic_run(40)
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=300)
-    assert res.verdict["label"] == "camera-reliant" and res.verdict["confidence"] == 1.0
-    assert not res.verdict["borderline"] and "Borderline" not in res.verdict["text"]
+    res = analyse_run(recs, groups=GROUPS, n_resamples=300)
+    assert res.verdict.label == "camera-reliant" and res.verdict.confidence == 1.0
+    assert not res.verdict.borderline and "Borderline" not in res.verdict.text
     for key in ("quality", "removal", "gap", "mean"):
-        low, high = res.axes[f"{key}_ci"]
-        assert low <= res.axes[key] <= high
+        low, high = res.axes.interval(key)
+        assert low <= res.axes.value(key) <= high
 
 
 def test_intervals_shrink_as_frames_grow():
     """Sixteen times the frames should narrow every interval about four-fold (1 / sqrt(F)): at least halve it."""
     widths = []
     for n in (20, 320):
-        res = vd.analyse_run(synthetic_run(n, seed=1)[0], groups=GROUPS, n_resamples=400)
-        w = {k: res.axes[f"{k}_ci"][1] - res.axes[f"{k}_ci"][0] for k in ("quality", "removal", "gap", "mean")}
-        w["s10"] = res.thresholds["fog"]["s10_ci"][1] - res.thresholds["fog"]["s10_ci"][0]
+        res = analyse_run(synthetic_run(n, seed=1)[0], groups=GROUPS, n_resamples=400)
+        w = {k: res.axes.interval(k)[1] - res.axes.interval(k)[0] for k in ("quality", "removal", "gap", "mean")}
+        w["s10"] = res.thresholds["fog"].levels["s10"].ci[1] - res.thresholds["fog"].levels["s10"].ci[0]
         widths.append(w)
     for key, small in widths[0].items():
         assert 0 < widths[1][key] < small / 2, key
@@ -171,8 +171,8 @@ def test_seed_retention_is_the_mean_over_seeds_and_seeds_widen_the_interval():
     one = err_record("snow-s5", np.full(n, 1 / 0.9))
     three = err_record("snow-s5", np.full(n, 1 / 0.9), runs=[np.full(n, 1 / 0.7), np.full(n, 1 / 0.8)])
     assert rt.record_retention(clean, three) == pytest.approx(0.8)
-    single = vd.analyse_run([clean, one], groups=GROUPS, n_resamples=500)
-    multi = vd.analyse_run([clean, three], groups=GROUPS, n_resamples=500, seeds=3)
+    single = analyse_run([clean, one], groups=GROUPS, n_resamples=500)
+    multi = analyse_run([clean, three], groups=GROUPS, n_resamples=500, seeds=3)
     s1 = next(s for s in single.summaries if s.cell == "snow-s5")
     s3 = next(s for s in multi.summaries if s.cell == "snow-s5")
     assert s1.retention_ci_low == pytest.approx(s1.retention_ci_high)  # frames alone: no spread
@@ -196,7 +196,7 @@ def test_seed_metrics_are_means_over_the_runs():
 
 def test_one_seed_analysis_equals_the_pre_interval_golden_but_for_new_fields():
     recs, _ = synthetic_run(40)
-    got = canonicalize(vd.analyse_run(recs, groups=GROUPS, floor_l2=5.0).to_builtins())
+    got = canonicalize(analyse_run(recs, groups=GROUPS, floor_l2=5.0).to_builtins())
     golden = json.loads(GOLDEN.read_text())
     # the golden predates the PDMS columns and the ego axis (issue 12): compare what it has, field for field
     assert len(got["summaries"]) == len(golden["summaries"])
@@ -218,9 +218,9 @@ def test_one_seed_analysis_equals_the_pre_interval_golden_but_for_new_fields():
 
 def test_intervals_can_be_left_out():
     recs, _ = synthetic_run(12)
-    res = vd.analyse_run(recs, groups=GROUPS, n_resamples=100, intervals=False)
-    assert res.axes["quality_ci"] is None and res.verdict["confidence"] is None
-    assert res.thresholds["fog"]["s10_ci"] is None and not res.settings["intervals"]["computed"]
+    res = analyse_run(recs, groups=GROUPS, n_resamples=100, intervals=False)
+    assert res.axes.interval("quality") is None and res.verdict.confidence is None
+    assert res.thresholds["fog"].levels["s10"].ci is None and not res.settings["intervals"]["computed"]
 
 
 # --- the baseline gate compares like with like ----------------------------------------------------------------
@@ -248,7 +248,7 @@ def test_report_terminal_and_junit_show_the_intervals():
     from pytest_drivedegrade.report.junit import suite_properties
     from pytest_drivedegrade.report.terminal import summary_lines
 
-    res = vd.analyse_run(flat_line_run(40, removal=0.5), groups=GROUPS, n_resamples=300)
+    res = analyse_run(flat_line_run(40, removal=0.5), groups=GROUPS, n_resamples=300)
     lines = summary_lines(res, [])
     assert any(line.startswith("axes 95% intervals: quality [0.9") for line in lines)
     assert any(line.startswith("verdict confidence: 0.") and "BORDERLINE" in line for line in lines)

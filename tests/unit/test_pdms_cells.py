@@ -16,6 +16,7 @@ from pytest_drivedegrade.corruptions import ego as E  # noqa: N812
 from pytest_drivedegrade.data.frame import EgoStatus
 from pytest_drivedegrade.report.columns import CSV, PDMS
 from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 from pytest_drivedegrade.scoring.retention import pdms_metrics
 
 
@@ -59,14 +60,14 @@ def test_axes_pdms_and_the_verdict_on_pdms():
     recs, _ = synthetic_run(20)
     for r in recs:
         with_pdms(r, np.full(20, 0.9))
-    on_l2 = vd.analyse_run(recs, groups=GROUPS, n_resamples=50)
-    on_pdms = vd.analyse_run(recs, groups=GROUPS, n_resamples=50, metric="pdms")
-    assert on_l2.verdict["label"] == "camera-reliant" and on_l2.verdict["metric"] == "l2"
-    assert on_pdms.axes_pdms["quality"] == pytest.approx(1.0) and on_pdms.axes_pdms["removal"] == pytest.approx(1.0)
-    assert on_pdms.verdict["label"] == "not-shown-to-use-cameras" and on_pdms.verdict["metric"] == "pdms"
+    on_l2 = analyse_run(recs, groups=GROUPS, n_resamples=50)
+    on_pdms = analyse_run(recs, groups=GROUPS, n_resamples=50, metric="pdms")
+    assert on_l2.verdict.label == "camera-reliant" and on_l2.verdict.metric == "l2"
+    assert on_pdms.axes_pdms.quality == pytest.approx(1.0) and on_pdms.axes_pdms.removal == pytest.approx(1.0)
+    assert on_pdms.verdict.label == "not-shown-to-use-cameras" and on_pdms.verdict.metric == "pdms"
     assert on_pdms.axes == on_l2.axes and on_pdms.settings["verdict_metric"] == "pdms"
     with pytest.raises(Exception, match="metric"):
-        vd.analyse_run(recs, groups=GROUPS, metric="mse")
+        analyse_run(recs, groups=GROUPS, metric="mse")
 
 
 # -- the ego ladder -----------------------------------------------------------------------------------------
@@ -123,10 +124,10 @@ def test_ego_axis_and_label():
                        clean.collision_vru, clean.jerk, clean.bit1)
     blind = CellRecord("ego_blind", "ego_blind", 0, clean.frames, clean.plans, clean.l2 * 3.0, clean.collision,
                        clean.collision_vru, clean.jerk, clean.bit1)
-    out = vd.analyse_run([*recs, noisy, blind], groups=GROUPS, n_resamples=50)
-    assert out.axes["ego"] == pytest.approx(1 / 1.02) and out.axes["ego_removal"] == pytest.approx(1 / 3)
-    assert out.verdict["ego_label"] == "ego-reliant"
-    assert "ego_noise" not in out.s5() and out.axes["quality"] == vd.analyse_run(recs, groups=GROUPS,
-                                                                                 n_resamples=50).axes["quality"]
+    out = analyse_run([*recs, noisy, blind], groups=GROUPS, n_resamples=50)
+    assert out.axes.ego == pytest.approx(1 / 1.02) and out.axes.ego_removal == pytest.approx(1 / 3)
+    assert out.verdict.ego_label == "ego-reliant"
+    assert "ego_noise" not in out.s5()
+    assert out.axes.quality == analyse_run(recs, groups=GROUPS, n_resamples=50).axes.quality
     assert vd.ego_label(0.97) == "ego-insensitive" and vd.ego_label(None) == "undetermined"
-    assert vd.analyse_run(recs, groups=GROUPS, n_resamples=50).verdict["ego_label"] == "undetermined"
+    assert analyse_run(recs, groups=GROUPS, n_resamples=50).verdict.ego_label == "undetermined"

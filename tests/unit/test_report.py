@@ -18,6 +18,7 @@ from pytest_drivedegrade.report import cells_csv as cells
 from pytest_drivedegrade.report import junit
 from pytest_drivedegrade.scoring import records as rc
 from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 EVIL = '<script>alert(1)</script>'
 PROV = Provenance(EVIL, "sha256:p", "sha256:d", "val", "1.0.0", seed=3, frames=12, command="pytest --drivedegrade x")
@@ -26,7 +27,7 @@ PROV = Provenance(EVIL, "sha256:p", "sha256:d", "val", "1.0.0", seed=3, frames=1
 @pytest.fixture(scope="module")
 def run_and_records():
     recs, gt = synthetic_run(12)
-    return vd.analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0), recs, gt
+    return analyse_run(recs, groups=GROUPS, n_resamples=100, floor_l2=5.0), recs, gt
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +73,7 @@ def test_csv_is_deterministic(run_and_records) -> None:
     res, recs, _ = run_and_records
     shuffled = [cl.CellRecord.from_builtins(json.loads(json.dumps(r.to_builtins()))) for r in recs]
     random.Random(5).shuffle(shuffled)
-    again = vd.analyse_run(shuffled, groups=GROUPS, n_resamples=100, floor_l2=5.0)
+    again = analyse_run(shuffled, groups=GROUPS, n_resamples=100, floor_l2=5.0)
     text = cells.cells_csv_text(res, PROV)
     assert cells.cells_csv_text(again, PROV) == text
     lines = text.splitlines()
@@ -86,9 +87,9 @@ def test_csv_is_deterministic(run_and_records) -> None:
 
 def test_html_shows_verdict_and_axes(run_and_records, page: str) -> None:
     res, _, _ = run_and_records
-    assert html.escape(res.verdict["text"], quote=True) in page
-    assert res.verdict["label"] in page
-    assert f"{res.axes['quality']:.3f}" in page and f"{res.axes['removal']:.3f}" in page
+    assert html.escape(res.verdict.text, quote=True) in page
+    assert res.verdict.label in page
+    assert f"{res.axes.quality:.3f}" in page and f"{res.axes.removal:.3f}" in page
     assert page.count('src="data:image/png;base64,') == 5  # axes, curves, heatmap, trajectories, montage
 
 
@@ -106,8 +107,8 @@ def test_html_without_optional_parts(run_and_records) -> None:
     from pytest_drivedegrade.report.html import render_report
 
     res, _, _ = run_and_records
-    partial = rc.RunAnalysis(res.summaries[:3], {}, vd.compute_axes({}, GROUPS), vd.verdict({}), None,
-                             res.floor, res.settings)
+    axes = vd.compute_axes({}, GROUPS)
+    partial = rc.RunAnalysis(res.summaries[:3], {}, axes, vd.verdict(axes), None, res.floor, res.settings, axes)
     page = render_report(partial, PROV)
     assert "undetermined" in page and "Null control:" in page and "not run" in page
 
@@ -131,8 +132,8 @@ def test_junit_properties_are_plain_builtins(run_and_records) -> None:
     assert dict(props)["retention"] == pytest.approx(res.summaries[5].retention, abs=1e-6)
     suite = junit.suite_properties(res)
     names = dict(suite)
-    assert names["drivedegrade_verdict"] == res.verdict["label"]
-    assert names["drivedegrade_axis_quality"] == pytest.approx(res.axes["quality"], abs=1e-6)
+    assert names["drivedegrade_verdict"] == res.verdict.label
+    assert names["drivedegrade_axis_quality"] == pytest.approx(res.axes.quality, abs=1e-6)
     assert "drivedegrade_threshold_fog_s10" in names
     for _, value in props + suite:
         assert type(value) in (str, float, int)
@@ -165,7 +166,7 @@ def test_user_text_with_dollar_signs_does_not_break_charts(monkeypatch) -> None:
         data = np.frombuffer(base64.b64decode(uri.split(",", 1)[1]), np.uint8)
         return cv2.imdecode(data, cv2.IMREAD_COLOR)
 
-    chart = png(plots.axes_chart({"quality": 0.9, "removal": 0.8}, 0.95, planner="costs $5 and $\\frac{", blind=0.4))
+    chart = png(plots.axes_chart(rc.Axes(0.9, 0.8, 0.1, None), 0.95, planner="costs $5 and $\\frac{", blind=0.4))
     legend = [t.get_text() for t in figures[0].axes[0].get_legend().get_texts()]
     assert legend == ["ego-only floor", "blind (all cameras off)", r"costs \$5 and \$\frac{"]
     assert 400 < chart.shape[1] < 700 and 350 < chart.shape[0] < 650  # 5.2 x 4.6 in at 110 dpi, trimmed

@@ -16,7 +16,7 @@ from pytest_drivedegrade.cells import CellRecord, plans_digest
 from pytest_drivedegrade.certificate import reproduce as rp
 from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
 
@@ -102,7 +102,7 @@ def recs() -> dict[str, CellRecord]:
 
 @pytest.fixture()
 def cert_file(tmp_path: Path, recs: dict[str, CellRecord]) -> Path:
-    run = vd.analyse_run(recs.values(), groups=GROUPS, n_resamples=20)
+    run = analyse_run(recs.values(), groups=GROUPS, n_resamples=20)
     return cf.write_certificate(tmp_path / "certificate.json", cf.build_certificate(run, PROV, records=recs))
 
 

@@ -152,7 +152,7 @@ def test_report_shows_the_cost_panel():
 
     from pytest_drivedegrade.certificate.seal import Provenance
     from pytest_drivedegrade.report.html import render_report
-    from pytest_drivedegrade.scoring.verdict import analyse_run
+    from pytest_drivedegrade.scoring.analyse import analyse_run
 
     recs, _ = synthetic_run(8)
     cost = {"predictions": 1234, "reused": 16, "planner_frames_per_second": 50.0,

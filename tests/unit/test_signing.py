@@ -14,14 +14,14 @@ from pytest_drivedegrade.certificate import seal as cf
 from pytest_drivedegrade.certificate import signing as sg
 from pytest_drivedegrade.cli import main
 from pytest_drivedegrade.errors import DriveDegradeError
-from pytest_drivedegrade.scoring import verdict as vd
+from pytest_drivedegrade.scoring.analyse import analyse_run
 
 PROV = cf.Provenance("demo", "sha256:planner", "sha256:data", "val", "1.0.0", seed=0, frames=12)
 
 
 @pytest.fixture(scope="module")
 def cert() -> dict:
-    run = vd.analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=50, floor_l2=5.0)
+    run = analyse_run(synthetic_run(12)[0], groups=GROUPS, n_resamples=50, floor_l2=5.0)
     return cf.build_certificate(run, PROV, created="2025-01-01T00:00:00+00:00")
 
 

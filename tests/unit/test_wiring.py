@@ -120,7 +120,7 @@ def test_identity_at_the_edge_of_equality(edit, identical):
     other = clean.copy()
     edit(other)
     assert identical_plans(clean, other) is identical
-    assert null_control(clean, other)["passed"] is identical  # the certificate's control agrees, always
+    assert null_control(clean, other).passed is identical  # the certificate's control agrees, always
     assert len(differing_frames(clean, other)) == (0 if identical else 1)
 
 
@@ -128,9 +128,9 @@ def test_identity_of_nans_is_by_bit_pattern():
     a, b = _plans(), _plans()
     a[1] = np.nan
     b[1] = np.nan
-    assert identical_plans(a, b) and null_control(a, b)["passed"]  # failed frames are the same canonical NaN
+    assert identical_plans(a, b) and null_control(a, b).passed  # failed frames are the same canonical NaN
     b[1, 0, 0] = NAN_A
-    assert not identical_plans(a, b) and not null_control(a, b)["passed"]
+    assert not identical_plans(a, b) and not null_control(a, b).passed
     assert differing_frames(a, b).tolist() == [1]
 
 
@@ -144,7 +144,7 @@ def test_the_cell_check_and_the_certificate_agree_on_signed_zero(tmp_path):
     _, failures = checks.certify(context, FakePlanner(), "null", 0, store=ResultStore(tmp_path), baseline=None,
                                  tolerance=0.02)
     assert failures and "not bit-identical" in failures[0]
-    assert null_control(clean.plans, null.plans)["passed"] is False
+    assert null_control(clean.plans, null.plans).passed is False
 
 
 # --- payload and store -----------------------------------------------------------------------------------------

@@ -1,0 +1,182 @@
+"""`analyse_run`: every figure of a run from its cell records, in named steps (the records checked, the joint
+bootstrap, the cell summaries, the null control, the thresholds, the axes, the verdict, the floor, the settings).
+
+Pure functions over plain data (SPEC section 5); nothing here reads files, imports pytest or touches a planner.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import replace
+from typing import Any
+
+from ..cells import DIAGNOSTIC, CellRecord, is_camera_ladder, report_order
+from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..errors import InvalidInput
+from . import intervals as iv
+from .records import Axes, CellSummary, FamilyThresholds, NullControl, RunAnalysis, Threshold, Verdict
+from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
+from .verdict import (
+    VERDICT_METRICS,
+    FamilyGroups,
+    ego_label,
+    failed_cells,
+    floor_comparison,
+    null_control,
+    run_axes,
+    separable_from_null,
+    undetermined_by_failures,
+    verdict,
+)
+
+
+def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
+                convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
+                n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
+                intervals: bool = True, metric: str = "l2", floor_ego_removal: float | None = None) -> RunAnalysis:
+    """Every figure of a run from its cell records (in any order; the result does not depend on it).
+
+    Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
+    in a cell drops out of that cell's comparison only). A cell run under several seeds has the mean of its
+    per-seed retentions and the two-level bootstrap's CI.
+
+    A cell with failed frames (planner contract or data) makes the verdict ``undetermined`` with the reason
+    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``.
+
+    Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
+    floor's clean l2_avg when it was run (`floor_ego_removal` its ego_blind retention); `seeds` the run's
+    ``--drivedegrade-seeds`` (recorded in the settings). With `intervals` (the default) the thresholds, axes and
+    verdict get their intervals from one joint bootstrap of every ladder cell (``scoring.intervals``); without,
+    those fields are None. The axes are computed on L2 retention (``axes``, with the ego axis) and on PDMS
+    retention (``axes_pdms``); `metric` ("l2" or "pdms") says which one the verdict is put on.
+    """
+    if metric not in VERDICT_METRICS:
+        raise InvalidInput(f"metric must be one of {', '.join(VERDICT_METRICS)}, got {metric!r}")
+    by_cell = cells_by_id(records)
+    groups = groups or FamilyGroups.from_registry()
+    clean = by_cell["clean"]
+    res = resample(by_cell, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed) \
+        if intervals and n_resamples > 0 else None
+    summaries = summarise(by_cell, res, groups, convention=convention, kind=kind, n_resamples=n_resamples,
+                          seed=seed)
+    nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
+    separate_from_null(summaries, nc)
+    failed = failed_cells(by_cell.values(), groups.order)
+    partial = tuple(failed)  # the figures are still computed, and flagged as resting on partial cells
+    partial_families = {by_cell[c].family for c in partial}
+    per = axis_resamples(summaries, res, groups)
+    ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
+    ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
+    v = run_verdict(ax_pdms if metric == "pdms" else ax, per, metric=metric, flat=flat)
+    return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax,
+                       undetermined_by_failures(v, failed), nc,
+                       floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
+                       analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
+                                         n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms)
+
+
+def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:
+    """The records by cell id (builtins read back; a resumed duplicate counts once); clean is required."""
+    recs = [r if isinstance(r, CellRecord) else CellRecord.from_builtins(r) for r in records]
+    by_cell = {r.cell: r for r in recs}
+    if "clean" not in by_cell:
+        raise InvalidInput("no clean cell among the results: retention needs it (was it deselected with -k?)")
+    return by_cell
+
+
+def resample(by_cell: Mapping[str, CellRecord], *, convention: str, kind: str, n_resamples: int,
+             seed: int) -> iv.Resamples | None:
+    """The joint bootstrap of every ladder cell against clean (None when there is no ladder cell)."""
+    clean = by_cell["clean"]
+    ladder = [r for r in by_cell.values() if r.family not in DIAGNOSTIC]
+    if not ladder:
+        return None
+    return iv.resample_cells(clean.l2_avg_per_frame(convention),
+                             {r.cell: [run.l2_avg_per_frame(convention) for run in r.runs()] for r in ladder},
+                             kind=kind, n_resamples=n_resamples, seed=seed)
+
+
+def summarise(by_cell: Mapping[str, CellRecord], res: iv.Resamples | None, groups: FamilyGroups, *,
+              convention: str, kind: str, n_resamples: int, seed: int) -> list[CellSummary]:
+    """Every cell's summary against clean, in report order."""
+    clean = by_cell["clean"]
+    summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed,
+                                ci=_seed_ci(res, r)) for r in by_cell.values()]
+    summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
+    return summaries
+
+
+def separate_from_null(summaries: Sequence[CellSummary], nc: NullControl | None) -> None:
+    """Mark each cell but clean and null separable (or not) from the null control's wander."""
+    wander = (nc.max_l2_change if nc is not None else None) or 0.0
+    for s in summaries:
+        if s.cell not in ("clean", "null"):
+            s.separable_from_null = separable_from_null(s.metrics["endpoint_shift"], wander)
+
+
+def _curves(summaries: Sequence[CellSummary]) -> dict[str, dict[int, str]]:
+    """family -> severity -> cell id, for every camera ladder family."""
+    curves: dict[str, dict[int, str]] = {}
+    for s in summaries:
+        if is_camera_ladder(s.family):
+            curves.setdefault(s.family, {})[s.severity] = s.cell
+    return curves
+
+
+def run_thresholds(summaries: Sequence[CellSummary], res: iv.Resamples | None,
+                   partial_families: set[str]) -> dict[str, FamilyThresholds]:
+    """Each camera ladder family's s*10 / s*25 with their intervals (None without resamples) and whether the
+    family has a cell with failed frames."""
+    found = iv.threshold_intervals(res, _curves(summaries)) if res is not None else {}
+    out = {}
+    for fam, values in thresholds(summaries).items():
+        spread = found.get(fam, {})
+        levels = {key: Threshold(values[key], *spread.get(key, (None, None))) for key in THRESHOLD_LEVELS}
+        out[fam] = FamilyThresholds(levels, partial=fam in partial_families)
+    return out
+
+
+def axis_resamples(summaries: Sequence[CellSummary], res: iv.Resamples | None,
+                   groups: FamilyGroups) -> iv.AxisResamples:
+    """The axes in every resample (all None without resamples)."""
+    if res is None:
+        return iv.AxisResamples()
+    s5 = {fam: cells[5] for fam, cells in _curves(summaries).items() if 5 in cells}
+    return iv.axes_per_resample(res, s5, groups.quality, groups.removal, groups.core)
+
+
+def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float) -> Verdict:
+    """The label from the axes the verdict is put on (`on`), with the ego label and, on L2, its confidence
+    (the resamples are of L2 retention) and a borderline flag."""
+    v = verdict(on, flat)
+    text = ("On PDMS retention: " + v.text) if metric == "pdms" else v.text
+    confidence = iv.verdict_confidence(v.label, per.quality, per.removal, flat) \
+        if per.quality is not None and metric == "l2" else None
+    borderline = confidence is not None and confidence < iv.BORDERLINE
+    if borderline and confidence is not None:
+        text += iv.borderline_text(confidence)
+    return replace(v, text=text, metric=metric, ego_label=ego_label(on.ego_removal, flat), confidence=confidence,
+                   borderline=borderline)
+
+
+def analysis_settings(*, convention: str, kind: str, flat: float, seed: int, seeds: int, n_resamples: int,
+                      metric: str, res: iv.Resamples | None) -> dict[str, Any]:
+    """The settings the figures were computed under, as the certificate records them."""
+    return {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
+            "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
+            "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric, "seeds": int(seeds),
+            "seed_values": [int(seed) + k for k in range(int(seeds))],
+            "intervals": {"computed": res is not None,
+                          "scheme": "seeds then frames" if res is not None and res.n_seeds > 1 else "paired frames",
+                          "percentile": "linear", "never": "+inf (null bound)"}}
+
+
+def _seed_ci(res: iv.Resamples | None, record: CellRecord) -> tuple[float, float] | None:
+    """A multi-seed cell's CI from the two-level bootstrap (None for a one-run cell: it keeps its own)."""
+    if not record.seed_runs or res is None or record.cell not in res.retention:
+        return None
+    got = iv.percentile_interval(res.retention[record.cell])
+    if got is None:
+        return math.nan, math.nan
+    return (math.nan if got[0] is None else got[0]), (math.inf if got[1] is None else got[1])
