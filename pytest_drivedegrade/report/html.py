@@ -43,7 +43,7 @@ class TrajectoryExample:
     gt: np.ndarray
     plans: dict[str, np.ndarray]
 
-    def as_mapping(self) -> dict[str, Any]:
+    def as_mapping(self) -> dict[str, object]:
         return {"frame": self.frame, "gt": self.gt, "plans": self.plans}
 
 
@@ -104,7 +104,7 @@ def _family_info(families: Mapping[str, Any] | None) -> dict[str, dict[str, str]
 
 
 def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, str | None],
-             families: Mapping[str, Any] | None, extra: Mapping[str, Any]) -> dict[str, Any]:
+             families: Mapping[str, Any] | None, extra: Mapping[str, object]) -> dict[str, object]:
     info = _family_info(families)
     s5 = {s.family: s for s in analysis.summaries if s.severity == 5}
     thresholds = [{"family": fam, **info.get(fam, {}), **_threshold_cells(t),
@@ -145,10 +145,10 @@ def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, 
                                              blind=blind, floor_ego=analysis.floor.ego_removal)}
 
 
-def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, Any]:
+def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, object]:
     """The template's PDMS and ego figures: both axes sets side by side, the ego axis and label, whether a map
     was scored, and the PDMS sub-scores of the `n` most damaging cells (on L2 retention)."""
-    def sub(s: CellSummary) -> dict[str, Any]:
+    def sub(s: CellSummary) -> dict[str, str]:
         m = s.metrics
         return {"cell": s.cell, "retention": _fmt(s.retention), "pdms_retention": _fmt(m.get("pdms_retention")),
                 **{k: _fmt(m.get(k)) for k in ("pdms", "nc", "dac", "ttc", "ep", "comfort")}}
@@ -178,7 +178,7 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     from . import plots
 
     blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
-    traj = [t.as_mapping() if isinstance(t, TrajectoryExample) else t for t in trajectories]
+    traj: list[Mapping[str, Any]] = [t.as_mapping() if isinstance(t, TrajectoryExample) else t for t in trajectories]
     charts = {
         "curves": plots.tolerance_curves(analysis.summaries, analysis.thresholds),
         "heatmap": plots.retention_heatmap(analysis.summaries),
@@ -196,7 +196,7 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
 
 
-def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, Any] | None:
+def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, object] | None:
     """The cost panel: predictions, and seconds per part with its share of the cells' time."""
     if not cost:
         return None

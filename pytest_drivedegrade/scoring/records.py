@@ -10,20 +10,21 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..cells import CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
 from ..metrics.trajectory import CONVENTIONS, at_horizons
 
 
-def finite_mean(values: Any) -> float:
+def finite_mean(values: ArrayLike) -> float:
     """Mean over finite entries (NaN frames left out); NaN when none is finite."""
     arr = np.asarray(values, dtype=float)
     ok = np.isfinite(arr)
     return float(arr[ok].mean()) if ok.any() else math.nan
 
 
-def format_value(value: Any, digits: int = 3, missing: str = "n/a") -> str:
+def format_value(value: object, digits: int = 3, missing: str = "n/a") -> str:
     """A number for people: `digits` decimals, `missing` for None / NaN / inf; other values as str."""
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return missing
@@ -74,6 +75,8 @@ def horizon_metrics(record: CellRecord) -> dict[str, float]:
     return out
 
 
+#: Plain JSON data (what a certificate section is made of).
+Builtins = dict[str, object]
 #: An interval [low, high]; a None bound is open (+inf: a threshold some resamples never reach).
 Interval = tuple[float | None, float | None]
 #: The axes over the camera families (SPEC section 5), each with an interval on L2 retention. The names are the
@@ -134,9 +137,9 @@ class Axes:
     def interval(self, axis: str) -> Interval | None:
         return None if self.intervals is None else self.intervals.of(axis)
 
-    def to_builtins(self) -> dict[str, Any]:
+    def to_builtins(self) -> Builtins:
         """The certificate's ``axes`` / ``axes_pdms`` section: the intervals as ``<axis>_ci`` keys (L2 only)."""
-        out: dict[str, Any] = {name: getattr(self, name) for name in (*AXES, *BESIDE_AXES)}
+        out: Builtins = {name: getattr(self, name) for name in (*AXES, *BESIDE_AXES)}
         out["missing"] = list(self.missing)
         out.update((name, getattr(self, name)) for name in EGO_AXES)
         if self.intervals is not None:
@@ -147,12 +150,16 @@ class Axes:
     @classmethod
     def from_builtins(cls, data: object) -> Axes:
         """A certificate's axes section read back (absent or non-numeric values as None)."""
-        got: Mapping[str, Any] = data if isinstance(data, Mapping) else {}
+        got: Mapping[str, object] = data if isinstance(data, Mapping) else {}
         values = {name: _number(got.get(name)) for name in (*AXES, *BESIDE_AXES, *EGO_AXES)}
         intervals = AxisIntervals(**{name: _read_interval(got.get(f"{name}_ci")) for name in AXES}) \
             if any(f"{name}_ci" in got for name in AXES) else None
-        return cls(**values, missing=tuple(map(str, got.get("missing") or ())), intervals=intervals,
-                   partial=tuple(map(str, got.get("partial") or ())))
+        return cls(**values, missing=_names(got.get("missing")), intervals=intervals,
+                   partial=_names(got.get("partial")))
+
+
+def _names(value: object) -> tuple[str, ...]:
+    return tuple(map(str, value)) if isinstance(value, (list, tuple)) else ()
 
 
 def _read_interval(value: object) -> Interval | None:
@@ -179,8 +186,8 @@ class FamilyThresholds:
     levels: Mapping[str, Threshold]
     partial: bool = False
 
-    def to_builtins(self) -> dict[str, Any]:
-        out: dict[str, Any] = {key: t.value for key, t in self.levels.items()}
+    def to_builtins(self) -> Builtins:
+        out: Builtins = {key: t.value for key, t in self.levels.items()}
         for key, t in self.levels.items():
             out[f"{key}_ci"] = _interval(t.ci)
             out[f"{key}_never"] = t.never
@@ -190,7 +197,7 @@ class FamilyThresholds:
     @classmethod
     def from_builtins(cls, data: object) -> FamilyThresholds:
         """A certificate's thresholds entry read back (levels s10, s25; absent values as None)."""
-        got: Mapping[str, Any] = data if isinstance(data, Mapping) else {}
+        got: Mapping[str, object] = data if isinstance(data, Mapping) else {}
         return cls({key: Threshold(_number(got.get(key)), _read_interval(got.get(f"{key}_ci")),
                                    _number(got.get(f"{key}_never"))) for key in ("s10", "s25")},
                    bool(got.get("partial", False)))
@@ -207,7 +214,7 @@ class NullControl:
     frames_changed: int
     frames_compared: int
 
-    def to_builtins(self) -> dict[str, Any]:
+    def to_builtins(self) -> Builtins:
         return {name: getattr(self, name) for name in NULL_CONTROL_FIELDS}
 
 
@@ -215,7 +222,7 @@ NULL_CONTROL_FIELDS: tuple[str, ...] = ("passed", "max_abs_diff", "max_l2_change
                                         "frames_compared")
 
 
-def null_control_section(nc: NullControl | None) -> dict[str, Any]:
+def null_control_section(nc: NullControl | None) -> Builtins:
     """The certificate's ``null_control``: the control with ``ran``; three nulls when no null cell ran."""
     got = nc.to_builtins() if nc is not None else {"passed": None, "max_abs_diff": None, "max_l2_change": None}
     return {**got, "ran": got["passed"] is not None}
@@ -233,8 +240,8 @@ class Floor:
     blind_below_floor: bool | None
     ego_removal: float | None = None
 
-    def to_builtins(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"l2_avg": self.l2_avg, "blackout_s5_l2_avg": self.blackout_s5_l2_avg,
+    def to_builtins(self) -> Builtins:
+        out: Builtins = {"l2_avg": self.l2_avg, "blackout_s5_l2_avg": self.blackout_s5_l2_avg,
                                "blackout_s5_below_floor": self.blackout_s5_below_floor,
                                "blind_l2_avg": self.blind_l2_avg, "blind_below_floor": self.blind_below_floor}
         if self.ego_removal is not None:
@@ -276,8 +283,8 @@ class Verdict:
     failed_cells: Mapping[str, FailedCell] = field(default_factory=dict)
     computed_label: str | None = None
 
-    def to_builtins(self) -> dict[str, Any]:
-        out: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self)}
+    def to_builtins(self) -> Builtins:
+        out: Builtins = {f.name: getattr(self, f.name) for f in fields(self)}
         out["failed_cells"] = {cell: c.to_builtins() for cell, c in self.failed_cells.items()}
         return out
 
@@ -300,7 +307,7 @@ class RunAnalysis:
     settings: dict[str, Any]
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
 
-    def to_builtins(self) -> dict[str, Any]:
+    def to_builtins(self) -> Builtins:
         return {"summaries": [s.flat() for s in self.summaries],
                 "thresholds": {fam: t.to_builtins() for fam, t in self.thresholds.items()},
                 "axes": self.axes.to_builtins(), "verdict": self.verdict.to_builtins(),

@@ -7,6 +7,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..cells import PDMS_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
@@ -17,7 +18,7 @@ THRESHOLD_LEVELS: dict[str, float] = {"s10": 0.90, "s25": 0.75}
 DEFAULT_RESAMPLES = 1000
 
 
-def retention(m_clean: Any, m_cell: Any, kind: str = "error") -> Any:
+def retention(m_clean: ArrayLike, m_cell: ArrayLike, kind: str = "error") -> Any:
     """r = M(clean) / M(s) for an error metric, M(s) / M(clean) for a reward metric; vectorised.
 
     Higher is better and 1.0 means no measurable damage. Both zero -> 1.0 (nothing to lose); a zero
@@ -32,8 +33,8 @@ def retention(m_clean: Any, m_cell: Any, kind: str = "error") -> Any:
     return float(r) if r.ndim == 0 else r
 
 
-def bootstrap_retention_ci(clean: Any, cell: Any, *, kind: str = "error", n_resamples: int = DEFAULT_RESAMPLES,
-                           seed: int = 0, confidence: float = 0.95,
+def bootstrap_retention_ci(clean: ArrayLike, cell: ArrayLike, *, kind: str = "error",
+                           n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, confidence: float = 0.95,
                            chunk_elems: int = 2_000_000) -> tuple[float, float]:
     """Paired frame-level percentile bootstrap CI of retention.
 

@@ -6,6 +6,7 @@ import it from here.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import random
@@ -448,3 +449,51 @@ def test_record_keeps_data_errors_apart_through_builtins() -> None:
     from pytest_drivedegrade.cells import RECORD_VERSION
 
     assert RECORD_VERSION == 3
+
+
+# --- the typed analysis emits the certificate's sections as before ------------------------------------------------
+
+
+def test_typed_sections_emit_the_certificate_keys_in_their_order() -> None:
+    """Each section's keys, in the order the dict-based analysis wrote them (the certificate's JSON)."""
+    recs, _ = synthetic_run(8)
+    out = analyse_run(recs, groups=GROUPS, n_resamples=30, floor_l2=5.0).to_builtins()
+    camera = ["quality", "removal", "gap", "mean", "dropout", "occlusion", "missing", "ego", "ego_removal"]
+    assert list(out) == ["summaries", "thresholds", "axes", "verdict", "null_control", "floor", "settings",
+                         "axes_pdms"]
+    assert list(out["axes"]) == [*camera, "quality_ci", "removal_ci", "gap_ci", "mean_ci", "partial"]
+    assert list(out["axes_pdms"]) == [*camera, "partial"]  # the resamples are of L2: no intervals on PDMS
+    assert list(out["verdict"]) == ["label", "case", "flat", "text", "negative_gap", "metric", "ego_label",
+                                    "confidence", "borderline", "reason", "failed_cells", "computed_label"]
+    assert list(out["thresholds"]["fog"]) == ["s10", "s25", "s10_ci", "s10_never", "s25_ci", "s25_never", "partial"]
+    assert list(out["null_control"]) == ["passed", "max_abs_diff", "max_l2_change", "frames_changed",
+                                         "frames_compared"]
+    assert list(out["floor"]) == ["l2_avg", "blackout_s5_l2_avg", "blackout_s5_below_floor", "blind_l2_avg",
+                                  "blind_below_floor"]
+    ci = out["axes"]["quality_ci"]
+    assert isinstance(ci, list) and len(ci) == 2 and out["axes"]["missing"] == [] and out["axes"]["partial"] == []
+    sections = {k: v for k, v in out.items() if k != "summaries"}  # summaries hold NaN (PDMS not scored)
+    assert json.loads(json.dumps(sections)) == sections  # plain builtins only
+
+
+def test_the_declared_names_are_the_dataclass_fields() -> None:
+    """AXES / BESIDE_AXES / EGO_AXES name fields of Axes and AxisIntervals; the levels are THRESHOLD_LEVELS."""
+    names = {f.name for f in dataclasses.fields(rc.Axes)}
+    assert set(rc.AXES) | set(rc.BESIDE_AXES) | set(rc.EGO_AXES) <= names
+    assert tuple(f.name for f in dataclasses.fields(rc.AxisIntervals)) == rc.AXES
+    recs, _ = synthetic_run(6)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=20)
+    assert all(tuple(t.levels) == tuple(rt.THRESHOLD_LEVELS) for t in res.thresholds.values())
+
+
+def test_axes_read_back_from_a_certificate_equal_the_analysis() -> None:
+    recs, _ = synthetic_run(8)
+    res = analyse_run(recs, groups=GROUPS, n_resamples=30)
+    for axes in (res.axes, res.axes_pdms):
+        assert rc.Axes.from_builtins(axes.to_builtins()) == axes
+    assert rc.Axes.from_builtins({"quality": "0.9", "removal": True}) == rc.Axes(None, None, None, None)
+    fog = res.thresholds["fog"]
+    assert rc.FamilyThresholds.from_builtins(fog.to_builtins()) == fog
+    assert rc.null_control_section(None) == {"passed": None, "max_abs_diff": None, "max_l2_change": None,
+                                             "ran": False}
+    assert rc.null_control_section(res.null_control)["ran"] is True
