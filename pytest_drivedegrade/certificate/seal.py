@@ -26,9 +26,9 @@ import numpy as np
 from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..errors import DriveDegradeError
-from ..report.columns import CERTIFICATE_CELL
 from ..scoring.records import RunAnalysis
 from ..scoring.verdict import VERDICT_LABELS
+from .fields import CERTIFICATE_CELL
 
 SCHEMA = "drivedegrade-certificate/1"
 DIGITS = 6
@@ -86,6 +86,27 @@ def runtime_versions() -> dict[str, str | None]:
         torch = None
     return {"python": platform.python_version(), "numpy": np.__version__, "opencv": str(cv2.__version__),
             "torch": torch}
+
+
+def run_provenance(settings: Mapping[str, Any], *, planner_name: str, key: Mapping[str, Any], frames: int,
+                   frames_unscored: int | None, command: str, planner_file: str = "",
+                   recorded: Mapping[str, Any] | None = None) -> Provenance:
+    """The one way a run's `Provenance` is built: from its settings (as builtins: ``data_source``, ``split``,
+    ``seed``, ``frames_requested``, ``timeout``), its run key (the planner's and the data's fingerprints) and
+    the frames it scored. The ladder's, the tool's and the libraries' versions are this process's, or, with
+    `recorded` (a shard manifest), those the cells were computed with."""
+    if recorded is None:
+        from .. import __version__
+        from ..corruptions.ladder import SPEC_VERSION
+
+        recorded = {"spec_version": SPEC_VERSION, "tool_version": __version__, "versions": runtime_versions()}
+    return Provenance(planner_name=planner_name, planner_fingerprint=str(key["planner_fingerprint"]),
+                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=str(settings["split"]),
+                      spec_version=str(recorded["spec_version"]), seed=int(settings["seed"]), frames=frames,
+                      frames_unscored=frames_unscored, data_source=str(settings.get("data_source", "")),
+                      command=command, tool_version=str(recorded.get("tool_version", "")),
+                      frames_requested=settings.get("frames_requested"), timeout=settings.get("timeout"),
+                      versions=recorded.get("versions") or {}, planner_file=planner_file)
 
 
 def canonicalize(obj: Any, digits: int = DIGITS) -> Any:

@@ -24,7 +24,8 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("cells",),  # which cells exist, what one yields, bit-identity
     ("loader", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray actors); the floor
     ("scoring",),  # statistics over finished cells
-    ("report", "certificate"),  # the certificate (seal, verify, merge, reproduce, compare, estimate) and rendering
+    ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
+    ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal
     ("plugin", "cli"),
 )
 
