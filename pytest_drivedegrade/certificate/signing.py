@@ -52,7 +52,7 @@ def _crypto() -> ModuleType:
     return ed25519
 
 
-def signed_body(cert: Mapping[str, Any]) -> bytes:
+def signed_body(cert: Mapping[str, object]) -> bytes:
     """The exact bytes a signature is taken over: the canonical body of `cert`."""
     return canonical_json(canonicalize({k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}))
 
@@ -138,7 +138,7 @@ def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
     return key
 
 
-def sign(cert: Mapping[str, Any], private_key: Ed25519PrivateKey) -> dict[str, Any]:
+def sign(cert: Mapping[str, object], private_key: Ed25519PrivateKey) -> dict[str, Any]:
     """`cert` with its ``signature`` section (seal it afterwards: the digest then covers the signature)."""
     body = {k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}
     sig = private_key.sign(signed_body(body))
@@ -146,7 +146,7 @@ def sign(cert: Mapping[str, Any], private_key: Ed25519PrivateKey) -> dict[str, A
         private_key.public_key()), "signature": base64.b64encode(sig).decode("ascii")}}
 
 
-def verify_signature(cert: Mapping[str, Any], public_key: Ed25519PublicKey, where: str = "certificate") -> str:
+def verify_signature(cert: Mapping[str, object], public_key: Ed25519PublicKey, where: str = "certificate") -> str:
     """Check `cert`'s signature with `public_key`; its fingerprint when it verifies, ``SignatureFailure`` naming
     why otherwise (unsigned, another key, an unknown algorithm, a bad signature)."""
     from cryptography.exceptions import InvalidSignature

@@ -143,7 +143,7 @@ def provenance(config: pytest.Config, options: RunOptions, context: RunContext, 
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
-               baseline: Mapping[str, Any] | None, store: ResultStore | None = None, planner_file: str = "",
+               baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
                signing_key: Ed25519PrivateKey | None = None) -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
     the run never opened its data. `planner_file` goes into the certificate (see `planner_file`), which is
@@ -239,7 +239,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     return out
 
 
-def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float, *, partial: bool = False,
+def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, tolerance: float, *, partial: bool = False,
          any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
     own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another

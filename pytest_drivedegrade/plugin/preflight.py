@@ -60,7 +60,7 @@ def refuse_own_output(options: RunOptions) -> None:
             f"{real} baseline.json) and pass the copy, or pass another --drivedegrade-report")
 
 
-def check_baseline(baseline: Mapping[str, Any] | None, options: RunOptions, context: RunContext,
+def check_baseline(baseline: Mapping[str, object] | None, options: RunOptions, context: RunContext,
                    cells: Sequence[tuple[str, int]]) -> None:
     """A baseline from another ladder, data set or settings, or one that does not cover this run's cells
     (unless --drivedegrade-baseline-partial), is a usage error now, not a failure after the whole run."""
@@ -144,7 +144,7 @@ def folder_owner_problem(options: RunOptions, name: str, mine: str) -> str:
 
 # --- the planner, the device, the key ----------------------------------------------------------------------------
 
-def name_problem(planner: object, options: RunOptions, baseline: Mapping[str, Any] | None, mine: str) -> str:
+def name_problem(planner: object, options: RunOptions, baseline: Mapping[str, object] | None, mine: str) -> str:
     """Why this planner cannot be certified under its name ("" when it can): a malformed name, another planner
     than the baseline's (unless --drivedegrade-baseline-any-planner), a report folder another planner file
     holds. `mine`: this run's planner file as the certificate records it."""

@@ -12,7 +12,7 @@ import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -39,7 +39,7 @@ def _is_worker(config: pytest.Config) -> bool:
     return hasattr(config, "workerinput")
 
 
-def _certify_cell(planner: Any, request: pytest.FixtureRequest) -> None:
+def _certify_cell(planner: object, request: pytest.FixtureRequest) -> None:
     """One certification cell (the item's name says which); the function every cell item runs."""
     session = request.config.stash[SESSION_KEY]
     item = request.node
@@ -62,7 +62,7 @@ class DriveDegradeSession:
     NAME = "drivedegrade-session"
 
     def __init__(self, config: pytest.Config, options: RunOptions, collect_path: Path,
-                 planner_module: ModuleType | None, baseline: Mapping[str, Any] | None) -> None:
+                 planner_module: ModuleType | None, baseline: Mapping[str, object] | None) -> None:
         self.config, self.options, self.collect_path = config, options, collect_path
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
@@ -142,7 +142,7 @@ class DriveDegradeSession:
             except DriveDegradeError as exc:
                 raise pytest.UsageError(f"--drivedegrade-ray: {exc}") from None
 
-    def run_item(self, item: CellItem, planner: Any) -> None:
+    def run_item(self, item: CellItem, planner: object) -> None:
         from .checks import certify, prefetch
 
         family, severity = item.drivedegrade_cell
@@ -170,7 +170,7 @@ class DriveDegradeSession:
         at = next((i for i, it in enumerate(items) if it is item), len(items))
         return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)), None)
 
-    def _check_name(self, item: CellItem, planner: Any) -> None:
+    def _check_name(self, item: CellItem, planner: object) -> None:
         """The planner's name, checked once when the planner first exists (the first cell): a bad one, or one
         that is not the baseline's planner (unless --drivedegrade-baseline-any-planner), fails that cell with
         the reason and stops the session, rather than failing every cell the same way."""
@@ -221,7 +221,7 @@ class DriveDegradeSession:
             return []
         return remote.pool.summary() + remote.pool.close()
 
-    def pytest_terminal_summary(self, terminalreporter: Any) -> None:
+    def pytest_terminal_summary(self, terminalreporter: pytest.TerminalReporter) -> None:
         if self.outcome is not None:
             terminalreporter.section("drivedegrade")
             for line in self.outcome.lines:

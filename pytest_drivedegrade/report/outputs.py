@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..certificate.seal import Provenance
 from ..scoring.records import RunAnalysis
@@ -25,7 +24,7 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
     `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
     before it is sealed, so its digest covers the signature."""
-    from ..certificate.seal import build_certificate, certificate_text, seal
+    from ..certificate.seal import build_certificate, seal, write_certificate
     from .cells_csv import write_cells_csv
     from .html import trajectory_examples, write_report
 
@@ -39,7 +38,7 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
 
         cert = sign(cert, signing_key)
     cert = seal(cert)
-    atomic_write_text(folder / "certificate.json", certificate_text(cert))
+    write_certificate(folder / "certificate.json", cert)
     write_cells_csv(folder / "cells.csv", analysis, prov)
     write_report(folder / "report.html", analysis, prov, montage=montage,
                  trajectories=trajectory_examples(records, gt, analysis.summaries),
