@@ -10,8 +10,12 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import DriveDegradeError
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 
 def _spec(args: argparse.Namespace) -> int:
@@ -103,7 +107,7 @@ def _keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-def _merge_signing_key(args: argparse.Namespace) -> object:
+def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
     """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text), else None."""
     import os
 
@@ -117,13 +121,14 @@ def _merge_signing_key(args: argparse.Namespace) -> object:
 
 def _merge(args: argparse.Namespace) -> int:
     """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
-    from .certificate.merge import merge_shards, write_merged
+    from .certificate.merge import merge_shards
+    from .report.publish import publish
 
     command = "drivedegrade merge " + " ".join(args.shards) + f" --out {args.out}"
     key = _merge_signing_key(args)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""))
-    for line in write_merged(merged, Path(args.out), signing_key=key):
+    for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
     return 0
 

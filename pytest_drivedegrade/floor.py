@@ -14,7 +14,7 @@ import json
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Protocol, TypedDict
 
 import numpy as np
 import torch
@@ -26,8 +26,18 @@ from .data.frame import Command, EgoStatus, Frame
 
 #: Bump when features, network or training change: it is part of the cache key and the fingerprint.
 FLOOR_VERSION = "ego_mlp-1"
-#: Training settings; part of the cache key.
-SETTINGS: dict[str, Any] = {"hidden": 128, "steps": 3000, "batch": 128, "lr": 2e-3, "weight_decay": 1e-5}
+class FloorSettings(TypedDict):
+    """How the floor trains: hidden width, optimiser steps, batch size, learning rate, weight decay."""
+
+    hidden: int
+    steps: int
+    batch: int
+    lr: float
+    weight_decay: float
+
+
+#: Training settings; part of the cache key (as the JSON of this dict).
+SETTINGS: FloorSettings = {"hidden": 128, "steps": 3000, "batch": 128, "lr": 2e-3, "weight_decay": 1e-5}
 FEATURE_SIZE = EgoStatus.vector_size() + len(Command)
 OUTPUT_SIZE = HORIZON_STEPS * 2
 
@@ -120,7 +130,7 @@ def _set_stats(model: EgoMLP, x: np.ndarray, y: np.ndarray) -> None:
 
 
 def fit_arrays(
-    x: np.ndarray, y: np.ndarray, *, seed: int = 0, settings: Mapping[str, Any] | None = None
+    x: np.ndarray, y: np.ndarray, *, seed: int = 0, settings: FloorSettings | None = None
 ) -> EgoMLP:
     """Train an ``EgoMLP`` on features `x` and targets `y` deterministically; loss is the mean waypoint L2 (m)."""
     settings = SETTINGS if settings is None else settings
@@ -150,7 +160,7 @@ def fit_arrays(
 
 
 def train_floor(
-    frames_train: Sequence[Frame], *, seed: int = 0, settings: Mapping[str, Any] | None = None
+    frames_train: Sequence[Frame], *, seed: int = 0, settings: FloorSettings | None = None
 ) -> EgoMLP:
     """Train the floor on the scorable frames of a train split; same frames and seed give bit-identical weights."""
     x, y = frames_to_arrays(list(frames_train))
@@ -179,7 +189,15 @@ def train_split_for(split: str) -> str:
     return "mini_train" if split.startswith("mini") else "train"
 
 
-def load_or_train_floor(reader_train: Any, cache_dir: Path, *, seed: int = 0) -> EgoMLP:
+class TrainSplit(Protocol):
+    """What the floor reads of a train split (a ``NuScenesReader``): its fingerprint and its scorable frames."""
+
+    def fingerprint(self) -> str: ...
+
+    def scorable_frames(self) -> Sequence[Frame]: ...
+
+
+def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int = 0) -> EgoMLP:
     """The floor for a train split: loaded from `cache_dir` when trained before on the same data, else trained.
 
     `reader_train` is a ``NuScenesReader`` on the train split (``fingerprint()`` and ``scorable_frames()``).

@@ -7,9 +7,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-#: nuScenes val keyframes, and the cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise
-#: S1..S5 and ego_blind).
-NUSCENES_VAL_FRAMES = 6019
+#: The cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise S1..S5 and ego_blind).
 DEFAULT_CELLS = 89
 
 

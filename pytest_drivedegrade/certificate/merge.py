@@ -4,8 +4,8 @@ Each shard run (`--drivedegrade-shard I/N`) leaves `<report>/<planner>/shard-I-o
 shard scored, its run key, the floor's per-frame L2, the ground truth for the trajectory panels) and `cells/`.
 The merge reads every shard's per-frame results, checks that the shards belong to one run and that none is
 missing, joins each cell's records in shard order (scene order, the order of an unsharded run; `CellRecord.concat`,
-as the Ray pool joins its scene groups) and
-computes and writes exactly what an unsharded run writes. A missing shard is an error naming it, unless
+as the Ray pool joins its scene groups) and returns the `FinishedRun` an unsharded run builds, which
+`report.publish` writes exactly as it writes that run's. A missing shard is an error naming it, unless
 `allow_incomplete`, when the certificate says `completeness: false`.
 """
 
@@ -21,9 +21,8 @@ import numpy as np
 
 from ..cells import CellPayload, CellRecord
 from ..errors import DriveDegradeError
-from ..scoring.records import finite_mean
-from ..scoring.retention import retention
-from .seal import Provenance
+from .finished import FinishedRun, FloorFigures
+from .seal import Provenance, run_provenance
 
 SHARD_SCHEMA = "drivedegrade-shard/1"
 MANIFEST = "shard.json"
@@ -85,70 +84,29 @@ def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, C
     return records
 
 
-@dataclass(frozen=True)
-class Merged:
-    records: dict[str, CellRecord]
-    provenance: Provenance
-    key: dict[str, Any]
-    floor_l2: float | None
-    gt: dict[str, np.ndarray]
-    flat: float
-    missing_cells: list[str]
-    missing_shards: list[int]
-    data_root: str
-    front: tuple[str, str] | None  #: (token, CAM_FRONT image path) of the first shard's first frame
-    floor_extra: dict[str, float]  #: the floor's ego_removal, when the shards ran the ego cells
-    metric: str = "l2"
-    batch: int = 1
-    reuse: bool = True
-    device: str = "cpu"
-
-
-def write_merged(merged: Merged, out: Path, signing_key: Any = None) -> list[str]:
-    """Analyse the merged records and write cells.csv, certificate.json and report.html into `out/<planner>/`
-    (the certificate signed with `signing_key` when given); the lines to print."""
-    from ..report.outputs import montage_of, write_outputs
-    from ..scoring.analyse import analyse_run
-
-    analysis = analyse_run(merged.records.values(), flat=merged.flat, seed=merged.provenance.seed,
-                           floor_l2=merged.floor_l2, metric=merged.metric,
-                           floor_ego_removal=merged.floor_extra.get("ego_removal"))
-    analysis.settings.update(batch=merged.batch, reuse=merged.reuse, device=merged.device)
-    montage = None
-    if merged.front is not None and Path(merged.front[1]).is_file():
-        from ..data.images import decode_rgb
-
-        try:
-            montage = montage_of(decode_rgb(merged.front[1], merged.front[0]), merged.front[0],
-                                 merged.provenance.seed)
-        except DriveDegradeError:
-            montage = None
-    extra: dict[str, Any] = {"complete": False, "missing_shards": merged.missing_shards} \
-        if merged.missing_shards else {}
-    from ..scoring.records import cost_ledger
-
-    _, written = write_outputs(out, merged.provenance, merged.records, analysis, merged.missing_cells, gt=merged.gt,
-                               montage=montage, completeness=extra, cost=cost_ledger(merged.records.values()),
-                               signing_key=signing_key)
-    from ..report.terminal import summary_lines
-
-    lines = summary_lines(analysis, merged.missing_cells)
-    if merged.missing_shards:
-        lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, merged.missing_shards))} missing; the certificate "
-                     "says completeness: false")
-    return [*lines, written]
-
-
-def _joined_mean(parts: Sequence[Any]) -> float | None:
-    """The mean over the shards' per-frame values joined in order (None when a shard has none)."""
+def _joined(parts: Sequence[Any]) -> np.ndarray | None:
+    """The shards' per-frame values joined in order (None when a shard has none)."""
     if not parts or any(p is None for p in parts):
         return None
-    return finite_mean(np.concatenate([np.asarray(p, dtype=float) for p in parts]))
+    return np.concatenate([np.asarray(p, dtype=float) for p in parts])
 
 
-def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> Merged:
-    """Join shard folders into one run's records; DriveDegradeError when they are not one run or a shard is
-    missing (unless `allow_incomplete`)."""
+def _front_image(front: Sequence[str] | None) -> tuple[str, np.ndarray] | None:
+    """(token, image) of the first shard's first front-camera frame, the report's figure; None when the image
+    is not on this machine or cannot be read."""
+    if not front or not Path(front[1]).is_file():
+        return None
+    from ..data.images import decode_rgb
+
+    try:
+        return front[0], decode_rgb(front[1], front[0])
+    except DriveDegradeError:
+        return None
+
+
+def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> FinishedRun:
+    """Join shard folders into one finished run (`report.publish.publish` writes its outputs); DriveDegradeError
+    when they are not one run or a shard is missing (unless `allow_incomplete`)."""
     if not folders:
         raise DriveDegradeError("no shard folders given")
     shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
@@ -174,26 +132,15 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     if "clean" not in records:
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
                                 "shard (finished cells are reused)")
-    floor = _joined_mean([s.manifest.get("floor_l2") for s in shards])
-    floor_blind = _joined_mean([s.manifest.get("floor_ego_blind_l2") for s in shards])
-    floor_extra = {} if floor is None or floor_blind is None else \
-        {"ego_removal": float(retention(floor, floor_blind))}
-    frames = len(records["clean"].frames)
-    prov = Provenance(planner_name=first["planner"], planner_fingerprint=first["planner_fingerprint"],
-                      dataset_fingerprint=first["dataset_fingerprint"], split=first["split"],
-                      spec_version=first["spec_version"], seed=int(first["seed"]), frames=frames,
-                      frames_unscored=first.get("frames_unscored"), data_source=first.get("data_source", ""),
-                      command=command, tool_version=first.get("tool_version", ""),
-                      frames_requested=first.get("frames_requested"), timeout=first.get("timeout"),
-                      versions=first.get("versions") or {},
-                      planner_file=str(first.get("planner_file", "")))
+    floor = FloorFigures.of(_joined([s.manifest.get("floor_l2") for s in shards]),
+                            _joined([s.manifest.get("floor_ego_blind_l2") for s in shards]))
+    prov = run_provenance(first, planner_name=first["planner"], key=first["key"],
+                          frames=len(records["clean"].frames), frames_unscored=first.get("frames_unscored"),
+                          command=command, planner_file=str(first.get("planner_file", "")), recorded=first)
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
-    key = {k: v for k, v in first["key"].items() if k != "frames_key"}
-    front = shards[0].manifest.get("front")
-    return Merged(records, prov, key, floor, gt, float(first["flat"]), [c for c in cells if c not in records],
-                  missing_shards, str(first.get("data_root", "")), (front[0], front[1]) if front else None,
-                  floor_extra, str(first.get("metric", "l2")), int(first.get("batch", 1)),
-                  bool(first.get("reuse", True)), str(first.get("device", "cpu")))
+    return FinishedRun(records, prov, first, floor, gt, _front_image(shards[0].manifest.get("front")),
+                       missing_cells=tuple(c for c in cells if c not in records),
+                       missing_shards=tuple(missing_shards))
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,

@@ -15,7 +15,7 @@ import math
 import os
 import re
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -26,9 +26,9 @@ import numpy as np
 from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..errors import DriveDegradeError
-from ..report.columns import CERTIFICATE_CELL
 from ..scoring.records import RunAnalysis, null_control_section
 from ..scoring.verdict import VERDICT_LABELS
+from .fields import CERTIFICATE_CELL
 
 SCHEMA = "drivedegrade-certificate/1"
 DIGITS = 6
@@ -88,7 +88,28 @@ def runtime_versions() -> dict[str, str | None]:
             "torch": torch}
 
 
-def canonicalize(obj: Any, digits: int = DIGITS) -> Any:
+def run_provenance(settings: Mapping[str, Any], *, planner_name: str, key: Mapping[str, object], frames: int,
+                   frames_unscored: int | None, command: str, planner_file: str = "",
+                   recorded: Mapping[str, Any] | None = None) -> Provenance:
+    """The one way a run's `Provenance` is built: from its settings (as builtins: ``data_source``, ``split``,
+    ``seed``, ``frames_requested``, ``timeout``), its run key (the planner's and the data's fingerprints) and
+    the frames it scored. The ladder's, the tool's and the libraries' versions are this process's, or, with
+    `recorded` (a shard manifest), those the cells were computed with."""
+    if recorded is None:
+        from .. import __version__
+        from ..corruptions.ladder import SPEC_VERSION
+
+        recorded = {"spec_version": SPEC_VERSION, "tool_version": __version__, "versions": runtime_versions()}
+    return Provenance(planner_name=planner_name, planner_fingerprint=str(key["planner_fingerprint"]),
+                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=str(settings["split"]),
+                      spec_version=str(recorded["spec_version"]), seed=int(settings["seed"]), frames=frames,
+                      frames_unscored=frames_unscored, data_source=str(settings.get("data_source", "")),
+                      command=command, tool_version=str(recorded.get("tool_version", "")),
+                      frames_requested=settings.get("frames_requested"), timeout=settings.get("timeout"),
+                      versions=recorded.get("versions") or {}, planner_file=planner_file)
+
+
+def canonicalize(obj: object, digits: int = DIGITS) -> Any:
     """Plain JSON builtins with floats rounded to `digits` decimals and NaN / inf as None (numpy accepted)."""
     if isinstance(obj, Mapping):
         return {str(k): canonicalize(v, digits) for k, v in obj.items()}
@@ -106,16 +127,16 @@ def canonicalize(obj: Any, digits: int = DIGITS) -> Any:
     raise TypeError(f"cannot put a {type(obj).__name__} into a certificate")
 
 
-def canonical_json(obj: Any) -> bytes:
+def canonical_json(obj: object) -> bytes:
     """The exact bytes the digest is taken over."""
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=True, allow_nan=False).encode()
 
 
-def _sha256(obj: Any) -> str:
+def _sha256(obj: object) -> str:
     return hashlib.sha256(canonical_json(obj)).hexdigest()
 
 
-def compute_digest(cert: Mapping[str, Any]) -> str:
+def compute_digest(cert: Mapping[str, object]) -> str:
     """SHA-256 hex over the canonical JSON of every key but ``digest``."""
     return _sha256({k: v for k, v in cert.items() if k != "digest"})
 
@@ -151,7 +172,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
     }
 
 
-def seal(cert: Mapping[str, Any]) -> dict[str, Any]:
+def seal(cert: Mapping[str, object]) -> dict[str, Any]:
     """Canonicalise, add per-section digests and the overall digest. Idempotent on a sealed certificate."""
     body = canonicalize({k: v for k, v in cert.items() if k not in ("digest", "section_digests")})
     body["section_digests"] = {k: _sha256(v) for k, v in body.items()}
@@ -159,12 +180,12 @@ def seal(cert: Mapping[str, Any]) -> dict[str, Any]:
     return body
 
 
-def certificate_text(cert: Mapping[str, Any]) -> str:
+def certificate_text(cert: Mapping[str, object]) -> str:
     """The file's text: indented for people; the digest does not depend on the layout."""
     return json.dumps(cert, indent=2, sort_keys=True, ensure_ascii=True, allow_nan=False) + "\n"
 
 
-def write_certificate(path: str | os.PathLike[str], cert: Mapping[str, Any]) -> Path:
+def write_certificate(path: str | os.PathLike[str], cert: Mapping[str, object]) -> Path:
     """Seal (if needed) and write atomically."""
     return atomic_write_text(path, certificate_text(seal(cert)))
 
@@ -188,7 +209,7 @@ class _Object(dict):
     duplicates: tuple[str, ...] = ()
 
 
-def _pairs(pairs: list[tuple[str, Any]]) -> _Object:
+def _pairs(pairs: list[tuple[str, object]]) -> _Object:
     obj = _Object(pairs)
     if len(obj) != len(pairs):
         counts = Counter(k for k, _ in pairs)
@@ -215,14 +236,14 @@ def _too_deep(text: str) -> str | None:
     return None
 
 
-def _strict_problem(obj: Any, where: str = "") -> str | None:
+def _strict_problem(obj: object, where: str = "") -> str | None:
     """The first NaN / Infinity literal or duplicate key in the parsed tree, as 'what at path', or None."""
     if isinstance(obj, _Constant):
         return f"a {obj.literal} literal at {where or 'the top level'} (JSON has no such number)"
     if isinstance(obj, dict):
         if isinstance(obj, _Object) and obj.duplicates:
             return f"duplicate key {obj.duplicates[0]!r} in {where or 'the top-level object'}"
-        items: Any = obj.items()
+        items: Iterable[tuple[object, object]] = obj.items()
     elif isinstance(obj, list):
         items = enumerate(obj)
     else:
@@ -258,7 +279,7 @@ def parse_certificate_text(text: str, where: str) -> dict[str, Any]:
     return _plain(data)
 
 
-def _plain(obj: Any) -> Any:
+def _plain(obj: object) -> Any:
     """The parsed tree with plain dicts (the duplicate-key bookkeeping class dropped)."""
     if isinstance(obj, dict):
         return {k: _plain(v) for k, v in obj.items()}
@@ -279,7 +300,7 @@ def load_certificate(path: str | os.PathLike[str]) -> dict[str, Any]:
     return parse_certificate_text(text, os.fspath(path))
 
 
-def _num(v: Any) -> bool:
+def _num(v: object) -> bool:
     return v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
 
 
@@ -287,7 +308,7 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
     """Every malformed field as 'where: what', e.g. ``cells[3].retention: expected a number, found str``."""
     problems = [f"{k}: missing" for k in REQUIRED_KEYS if k not in cert]
 
-    def expect(where: str, value: Any, ok: bool, what: str) -> None:
+    def expect(where: str, value: object, ok: bool, what: str) -> None:
         if not ok:
             problems.append(f"{where}: expected {what}, found {type(value).__name__} {value!r:.40}")
 
@@ -332,7 +353,7 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
     return problems
 
 
-def verify_data(cert: Mapping[str, Any], where: str = "certificate") -> dict[str, Any]:
+def verify_data(cert: Mapping[str, object], where: str = "certificate") -> dict[str, Any]:
     """Return `cert` when its digest verifies; raise ``CertificateMismatch`` (edited) or ``CertificateError``."""
     recorded = cert.get("digest")
     if not isinstance(recorded, str):

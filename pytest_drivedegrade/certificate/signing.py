@@ -20,10 +20,14 @@ import hashlib
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from ..errors import DriveDegradeError
 from .seal import CertificateError, canonical_json, canonicalize
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 ALGORITHM = "ed25519"
 #: The environment variable that signs every certificate of a run: a key file's path, or the PEM text itself
@@ -39,7 +43,7 @@ class SignatureFailure(CertificateError):
     (CLI exit 1)."""
 
 
-def _crypto() -> Any:
+def _crypto() -> ModuleType:
     try:
         from cryptography.hazmat.primitives.asymmetric import ed25519
     except ImportError:  # pragma: no cover - a declared dependency
@@ -48,12 +52,12 @@ def _crypto() -> Any:
     return ed25519
 
 
-def signed_body(cert: Mapping[str, Any]) -> bytes:
+def signed_body(cert: Mapping[str, object]) -> bytes:
     """The exact bytes a signature is taken over: the canonical body of `cert`."""
     return canonical_json(canonicalize({k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}))
 
 
-def fingerprint(public_key: Any) -> str:
+def fingerprint(public_key: Ed25519PublicKey) -> str:
     """sha256 hex of the raw 32-byte Ed25519 public key."""
     from cryptography.hazmat.primitives import serialization
 
@@ -100,7 +104,7 @@ def read_key_source(source: str, where: str) -> bytes:
         raise DriveDegradeError(f"{where}: cannot read the key file {text!r}: {exc.strerror or exc}") from None
 
 
-def load_private_key(pem: bytes, where: str) -> Any:
+def load_private_key(pem: bytes, where: str) -> Ed25519PrivateKey:
     """An Ed25519 private key from PEM bytes; a clear error naming `where` otherwise."""
     from cryptography.hazmat.primitives import serialization
 
@@ -116,7 +120,7 @@ def load_private_key(pem: bytes, where: str) -> Any:
     return key
 
 
-def load_public_key(path: str | os.PathLike[str]) -> Any:
+def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
     """An Ed25519 public key from a PEM file (``NAME.pub``); ``CertificateError`` (exit 2) when unusable."""
     from cryptography.hazmat.primitives import serialization
 
@@ -134,7 +138,7 @@ def load_public_key(path: str | os.PathLike[str]) -> Any:
     return key
 
 
-def sign(cert: Mapping[str, Any], private_key: Any) -> dict[str, Any]:
+def sign(cert: Mapping[str, object], private_key: Ed25519PrivateKey) -> dict[str, Any]:
     """`cert` with its ``signature`` section (seal it afterwards: the digest then covers the signature)."""
     body = {k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}
     sig = private_key.sign(signed_body(body))
@@ -142,7 +146,7 @@ def sign(cert: Mapping[str, Any], private_key: Any) -> dict[str, Any]:
         private_key.public_key()), "signature": base64.b64encode(sig).decode("ascii")}}
 
 
-def verify_signature(cert: Mapping[str, Any], public_key: Any, where: str = "certificate") -> str:
+def verify_signature(cert: Mapping[str, object], public_key: Ed25519PublicKey, where: str = "certificate") -> str:
     """Check `cert`'s signature with `public_key`; its fingerprint when it verifies, ``SignatureFailure`` naming
     why otherwise (unsigned, another key, an unknown algorithm, a bad signature)."""
     from cryptography.exceptions import InvalidSignature

@@ -12,14 +12,18 @@ Conventions (SPEC section 5):
   annotation artefact, or a collision the expert itself "had", is not the planner's fault).
 - Horizons 1 / 2 / 3 s are steps 1 / 3 / 5. ``stp3`` averages the steps up to and including the horizon step;
   ``uniad`` takes the value at the horizon step.
+- Jerk is the mean norm of the plan's third finite difference; the bit-1 density of the delivered images is
+  the energy proxy.
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
-from typing import Any
+from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
+import numpy.typing as npt
 
 from ..constants import EGO_LENGTH, EGO_WIDTH, HORIZON_STEPS, REPORT_HORIZONS_S, STEP_SECONDS, VRU_CATEGORIES
 from ..data.frame import AgentBoxes, Frame
@@ -33,23 +37,26 @@ MIN_STEP_M: float = 1e-3
 #: Slack (metres) on the separating-axis test, so that boxes which touch exactly still count after rounding.
 TOUCH_EPS_M: float = 1e-9
 
+#: The ego box (length, width) and its half diagonal, the radius of the bounding-circle pre-test.
+_EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
+_EGO_RADIUS = float(np.hypot(EGO_LENGTH, EGO_WIDTH) / 2)
 # Number of 1 bits in every byte value, for the energy proxy.
 _POPCOUNT_U8 = np.unpackbits(np.arange(256, dtype=np.uint8)[:, None], axis=1).sum(axis=1).astype(np.uint8)
 
 
-def _as_plan(traj: Any, name: str) -> np.ndarray:
+def _as_plan(traj: npt.ArrayLike, name: str) -> np.ndarray:
     arr = np.asarray(traj, dtype=np.float64)
     if arr.shape != (HORIZON_STEPS, 2):
         raise ValueError(f"{name} must have shape ({HORIZON_STEPS}, 2), got {arr.shape}")
     return arr
 
 
-def l2_per_step(pred: Any, gt: Any) -> np.ndarray:
+def l2_per_step(pred: npt.ArrayLike, gt: npt.ArrayLike) -> np.ndarray:
     """Euclidean distance (m) between planned and ground-truth waypoints, one per step: shape (6,)."""
     return np.linalg.norm(_as_plan(pred, "pred") - _as_plan(gt, "gt"), axis=1)
 
 
-def step_headings(traj: Any) -> np.ndarray:
+def step_headings(traj: npt.ArrayLike) -> np.ndarray:
     """Heading (rad) of each waypoint from its step direction p_i - p_{i-1}, with p_{-1} the origin.
 
     A step shorter than ``MIN_STEP_M`` (a stopped ego) keeps the previous heading; 0 (straight ahead) when no
@@ -66,9 +73,15 @@ def step_headings(traj: Any) -> np.ndarray:
     return headings
 
 
-def _overlap_pairs(c0: np.ndarray, size0: np.ndarray, yaw0: np.ndarray, c1: np.ndarray, size1: np.ndarray,
-                   yaw1: np.ndarray) -> np.ndarray:
-    """Exact separating-axis test for N pairs of oriented boxes (all arrays with a leading N), shape (N,)."""
+def overlap_pairs(c0: np.ndarray, size0: np.ndarray, yaw0: np.ndarray, c1: np.ndarray, size1: np.ndarray,
+                  yaw1: np.ndarray) -> np.ndarray:
+    """Whether box i of the first set overlaps box i of the second, for N pairs at once: shape (N,) bool.
+
+    Centres (N, 2), sizes (N, 2) as (length along heading, width) and yaws (N,) rad, in one frame. The exact
+    separating-axis test: two rectangles are disjoint iff their projections on one of the four edge normals
+    are, with ``TOUCH_EPS_M`` of slack so that touching boxes overlap. Shared by the collision metric here and
+    the PDMS contacts (`metrics.pdms`).
+    """
     u0 = np.stack([np.cos(yaw0), np.sin(yaw0)], axis=1)
     v0 = np.stack([-u0[:, 1], u0[:, 0]], axis=1)
     u1 = np.stack([np.cos(yaw1), np.sin(yaw1)], axis=1)
@@ -88,7 +101,8 @@ def _overlap_pairs(c0: np.ndarray, size0: np.ndarray, yaw0: np.ndarray, c1: np.n
 
 
 def boxes_overlap(
-    center: Any, size: Any, yaw: float, centers: np.ndarray, sizes: np.ndarray, yaws: np.ndarray
+    center: npt.ArrayLike, size: npt.ArrayLike, yaw: float, centers: npt.ArrayLike, sizes: npt.ArrayLike,
+    yaws: npt.ArrayLike
 ) -> np.ndarray:
     """Whether one oriented box overlaps each of N oriented boxes: exact separating-axis test, shape (N,) bool.
 
@@ -99,65 +113,64 @@ def boxes_overlap(
     n = len(centers)
     if n == 0:
         return np.zeros(0, dtype=bool)
-    return _overlap_pairs(np.broadcast_to(np.asarray(center, np.float64), (n, 2)),
-                          np.broadcast_to(np.asarray(size, np.float64), (n, 2)), np.full(n, float(yaw)),
-                          centers, np.asarray(sizes, np.float64).reshape(-1, 2),
-                          np.asarray(yaws, np.float64).reshape(-1))
+    return overlap_pairs(np.broadcast_to(np.asarray(center, np.float64), (n, 2)),
+                         np.broadcast_to(np.asarray(size, np.float64), (n, 2)), np.full(n, float(yaw)),
+                         centers, np.asarray(sizes, np.float64).reshape(-1, 2),
+                         np.asarray(yaws, np.float64).reshape(-1))
 
 
-_EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
-_EGO_RADIUS = float(np.hypot(EGO_LENGTH, EGO_WIDTH) / 2)
+@dataclass(frozen=True)
+class FlatAgents:
+    """The agent boxes of the six future steps as flat arrays, in (step, box) order: one test for all of them."""
 
+    step: np.ndarray  # (M,) waypoint index 0..5 of each box
+    centers: np.ndarray  # (M, 2)
+    sizes: np.ndarray  # (M, 2)
+    yaws: np.ndarray  # (M,)
+    categories: np.ndarray  # (M,) object: the coarse class of each box
 
-def _flatten(agents: Sequence[AgentBoxes]) -> tuple[np.ndarray, ...] | None:
-    """All agents of the six steps as flat arrays (step, center, size, yaw, category) or None when empty."""
-    steps = list(agents[:HORIZON_STEPS])
-    counts = [len(b) for b in steps]
-    if not sum(counts):
-        return None
+    @classmethod
+    def of(cls, agents: Sequence[AgentBoxes]) -> FlatAgents:
+        """All agents of the first six steps (none: empty arrays)."""
+        steps = list(agents[:HORIZON_STEPS])
+        counts = [len(b) for b in steps]
+        if not sum(counts):
+            return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, object))
+        return cls(np.repeat(np.arange(len(steps)), counts),
+                   np.concatenate([np.asarray(b.center, np.float64).reshape(-1, 2) for b in steps]),
+                   np.concatenate([np.asarray(b.size, np.float64).reshape(-1, 2) for b in steps]),
+                   np.concatenate([np.asarray(b.yaw, np.float64).reshape(-1) for b in steps]),
+                   np.array([c for b in steps for c in b.category], dtype=object))
 
-    def cat(b: Any) -> np.ndarray:
-        return np.asarray(b, np.float64)
+    def hits(self, traj: np.ndarray) -> np.ndarray:
+        """Per box (M,) bool: the ego box at that box's step waypoint of `traj` overlaps it. A bounding-circle
+        test first leaves the exact separating-axis test to the few boxes near the ego."""
+        ego = traj[self.step]
+        reach = _EGO_RADIUS + np.hypot(self.sizes[:, 0], self.sizes[:, 1]) / 2 + 1e-6
+        near = np.linalg.norm(self.centers - ego, axis=1) <= reach
+        hits = np.zeros(len(self.step), dtype=bool)
+        if near.any():
+            k = np.flatnonzero(near)
+            hits[k] = overlap_pairs(ego[k], np.broadcast_to(_EGO_SIZE, (len(k), 2)),
+                                    step_headings(traj)[self.step[k]], self.centers[k], self.sizes[k], self.yaws[k])
+        return hits
 
-    return (np.repeat(np.arange(len(steps)), counts),
-            np.concatenate([cat(b.center).reshape(-1, 2) for b in steps]),
-            np.concatenate([cat(b.size).reshape(-1, 2) for b in steps]),
-            np.concatenate([cat(b.yaw).reshape(-1) for b in steps]),
-            np.array([c for b in steps for c in b.category], dtype=object))
+    def of_categories(self, categories: Collection[str] | None) -> np.ndarray | None:
+        """Per box (M,) bool: its class is one of `categories` (None: every box, no mask)."""
+        return None if categories is None else np.isin(self.categories, list(categories))
 
+    def per_step(self, hits: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+        """Per step (6,) bool: some box of that step is hit (and kept by the mask `keep`)."""
+        out = np.zeros(HORIZON_STEPS, dtype=bool)
+        if hits.any():
+            chosen = hits if keep is None else hits & keep
+            out[np.unique(self.step[chosen])] = True
+        return out
 
-def _agent_hits(traj: np.ndarray, flat: tuple[np.ndarray, ...] | None) -> np.ndarray:
-    """Per flattened agent: does the ego box at that agent's step waypoint overlap it. A bounding-circle test
-    first leaves the exact separating-axis test to the few agents near the ego."""
-    if flat is None:
-        return np.zeros(0, dtype=bool)
-    step, centers, sizes, yaws, _ = flat
-    ego = traj[step]
-    near = np.linalg.norm(centers - ego, axis=1) <= _EGO_RADIUS + np.hypot(sizes[:, 0], sizes[:, 1]) / 2 + 1e-6
-    hits = np.zeros(len(step), dtype=bool)
-    if near.any():
-        k = np.flatnonzero(near)
-        hits[k] = _overlap_pairs(ego[k], np.broadcast_to(_EGO_SIZE, (len(k), 2)), step_headings(traj)[step[k]],
-                                 centers[k], sizes[k], yaws[k])
-    return hits
-
-
-def _per_step(hits: np.ndarray, flat: tuple[np.ndarray, ...] | None, keep: np.ndarray | None = None) -> np.ndarray:
-    out = np.zeros(HORIZON_STEPS, dtype=bool)
-    if flat is not None and hits.any():
-        chosen = hits if keep is None else hits & keep
-        out[np.unique(flat[0][chosen])] = True
-    return out
-
-
-def _select(flat: tuple[np.ndarray, ...] | None, categories: Collection[str] | None) -> np.ndarray | None:
-    if flat is None or categories is None:
-        return None
-    return np.isin(flat[4], list(categories))
 
 
 def collision_per_step(
-    pred: Any, gt: Any, agents: Sequence[AgentBoxes], *, categories: Collection[str] | None = None
+    pred: npt.ArrayLike, gt: npt.ArrayLike, agents: Sequence[AgentBoxes], *, categories: Collection[str] | None = None
 ) -> np.ndarray:
     """Per step (6,) bool: the planned ego box hits an agent box of `categories` while the GT ego box does not.
 
@@ -166,12 +179,12 @@ def collision_per_step(
     count as a collision (within ``TOUCH_EPS_M``). Missing steps (fewer than six ``AgentBoxes``) never collide.
     """
     pred_arr, gt_arr = _as_plan(pred, "pred"), _as_plan(gt, "gt")
-    flat = _flatten(agents)
-    keep = _select(flat, categories)
-    return _per_step(_agent_hits(pred_arr, flat), flat, keep) & ~_per_step(_agent_hits(gt_arr, flat), flat, keep)
+    flat = FlatAgents.of(agents)
+    keep = flat.of_categories(categories)
+    return flat.per_step(flat.hits(pred_arr), keep) & ~flat.per_step(flat.hits(gt_arr), keep)
 
 
-def at_horizons(per_step: Any, convention: str) -> np.ndarray:
+def at_horizons(per_step: npt.ArrayLike, convention: str) -> np.ndarray:
     """Aggregate per-step values (..., 6) to the 1 / 2 / 3 s horizons (..., 3).
 
     ``stp3``: mean of the steps up to and including the horizon step; ``uniad``: the value at the horizon step.
@@ -186,13 +199,13 @@ def at_horizons(per_step: Any, convention: str) -> np.ndarray:
     raise ValueError(f"unknown convention {convention!r}; valid conventions are {', '.join(CONVENTIONS)}")
 
 
-def l2_avg(per_step: Any, convention: str = "stp3") -> float | np.ndarray:
+def l2_avg(per_step: npt.ArrayLike, convention: str = "stp3") -> float | np.ndarray:
     """Mean over the three horizons of ``at_horizons``: a float for one frame (6,), an array for (..., 6)."""
     value = at_horizons(per_step, convention).mean(axis=-1)
     return float(value) if np.ndim(value) == 0 else value
 
 
-def jerk(plan: Any) -> float:
+def jerk(plan: npt.ArrayLike) -> float:
     """Mean absolute jerk (m/s^3) of a plan: the mean norm of its third finite difference.
 
     The origin (0, 0) is prepended as the t = 0 position, giving seven positions 0.5 s apart; velocity,
@@ -204,7 +217,7 @@ def jerk(plan: Any) -> float:
     return float(np.linalg.norm(third, axis=1).mean())
 
 
-def endpoint_shift(plan: Any, reference_plan: Any) -> float:
+def endpoint_shift(plan: npt.ArrayLike, reference_plan: npt.ArrayLike) -> float:
     """Distance (m) between the 3 s waypoints of a plan and a reference plan (the clean one)."""
     return float(np.linalg.norm(_as_plan(plan, "plan")[-1] - _as_plan(reference_plan, "reference_plan")[-1]))
 
@@ -231,18 +244,24 @@ def bit1_density(images: Mapping[str, np.ndarray]) -> float:
     return ones / total if total else 0.0
 
 
-def frame_metrics(pred: Any, frame: Frame) -> dict[str, Any]:
-    """Every per-frame metric of one plan, as plain builtins (safe to cross the xdist boundary).
+class FrameMetrics(TypedDict):
+    """`frame_metrics`' result: plain builtins, safe to cross the xdist boundary."""
 
-    Returns ``{"l2": [6 floats], "collision": [6 ints], "collision_vru": [6 ints], "jerk": float}``.
-    """
+    l2: list[float]  # per step (6), metres
+    collision: list[int]  # per step (6), 0 / 1
+    collision_vru: list[int]  # per step (6), 0 / 1, pedestrians and cyclists only
+    jerk: float  # m/s^3
+
+
+def frame_metrics(pred: npt.ArrayLike, frame: Frame) -> FrameMetrics:
+    """Every per-frame metric of one plan: L2 and collisions (all agents, VRUs) per step, and the jerk."""
     pred_arr = _as_plan(pred, "pred")
     gt = _as_plan(frame.gt_future, "gt_future")
-    flat = _flatten(tuple(frame.agents))
-    vru = _select(flat, VRU_CATEGORIES)
-    pred_hits, gt_hits = _agent_hits(pred_arr, flat), _agent_hits(gt, flat)
-    collision = _per_step(pred_hits, flat) & ~_per_step(gt_hits, flat)
-    collision_vru = _per_step(pred_hits, flat, vru) & ~_per_step(gt_hits, flat, vru)
+    flat = FlatAgents.of(tuple(frame.agents))
+    vru = flat.of_categories(VRU_CATEGORIES)
+    pred_hits, gt_hits = flat.hits(pred_arr), flat.hits(gt)
+    collision = flat.per_step(pred_hits) & ~flat.per_step(gt_hits)
+    collision_vru = flat.per_step(pred_hits, vru) & ~flat.per_step(gt_hits, vru)
     return {
         "l2": [float(v) for v in l2_per_step(pred_arr, gt)],
         "collision": [int(v) for v in collision],

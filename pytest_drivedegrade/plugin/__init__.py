@@ -5,9 +5,10 @@ plugin installed stays fast. With `--drivedegrade` it registers the run's `Drive
 ``config.stash[SESSION_KEY]``) and the fixtures planner files may request (`plugin.context`).
 
 The package is the wiring of the pipeline to pytest and computes nothing itself: `options` (the flags),
-`session` (the hooks), `items` (the planner file and the cell items), `checks` (what one cell asserts; runs in
-every worker), `controller` (the end of the run; the controller process only), `context` (the run's data and
-the fixtures a planner may use), `compat` (the few pytest internals, with fallbacks).
+`session` (the hooks), `preflight` (the start-up policies), `items` (the planner file and the cell items),
+`checks` (what one cell asserts; runs in every worker), `controller` (the end of the run; the controller process
+only), `context` (the run's data and the fixtures a planner may use), `compat` (the few pytest internals, with
+fallbacks).
 """
 
 from __future__ import annotations

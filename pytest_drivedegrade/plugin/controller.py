@@ -1,6 +1,6 @@
-"""The controller's end of a run (the controller process only, never an xdist worker): gather the cells, compute
-the analysis and the floor, write the outputs, apply the baseline gate, and return the terminal summary's lines.
-Never raises for a user mistake."""
+"""The controller's end of a run (the controller process only, never an xdist worker): gather the cells, run the
+floor, build the `FinishedRun` that `report.publish` writes (a shard writes its manifest instead), apply the
+baseline gate, and return the terminal summary's lines. Never raises for a user mistake."""
 
 from __future__ import annotations
 
@@ -8,19 +8,22 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
 
-from ..cells import CellPayload, CellRecord, cell_id
-from ..certificate.seal import Provenance
+from ..cells import CellPayload, cell_id
+from ..certificate.finished import FinishedRun, FloorFigures
+from ..certificate.seal import Provenance, run_provenance
 from ..errors import DriveDegradeError
 from ..run import RunContext
-from ..scoring.records import cost_ledger, finite_mean
 from ..store import ResultStore
 from .context import cache_root
 from .options import RunOptions
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 
 @dataclass
@@ -79,11 +82,24 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
     return lines
 
 
-def floor_per_frame(config: pytest.Config, context: RunContext, split: str, lines: list[str],
-                    ego: dict[str, Any] | None = None) -> np.ndarray | None:
-    """The ego-only floor's clean l2_avg per scored frame (trained on the train split once, cached); None with a
-    line saying why when there is no floor. With `ego`, also its ego_blind retention there
-    (``ego["ego_removal"]``, for the reliance chart)."""
+@dataclass(frozen=True)
+class FloorFrames:
+    """The ego-only floor's clean l2_avg per scored frame and, when the ego cells run, its ego_blind one."""
+
+    clean: np.ndarray
+    ego_blind: np.ndarray | None = None
+
+    def figures(self) -> FloorFigures:
+        return FloorFigures.of(self.clean, self.ego_blind)
+
+    def blind_list(self) -> list[float] | None:
+        return None if self.ego_blind is None else [float(v) for v in self.ego_blind]
+
+
+def floor_frames(config: pytest.Config, context: RunContext, split: str, lines: list[str],
+                 ego: bool = False) -> FloorFrames | None:
+    """The ego-only floor on the scored frames (trained on the train split once, cached), with its ego_blind
+    cell when `ego`; None with a line saying why when there is no floor."""
     from ..floor import load_or_train_floor, train_split_for
 
     try:
@@ -96,13 +112,8 @@ def floor_per_frame(config: pytest.Config, context: RunContext, split: str, line
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
     clean = context.run_cell(model, "clean", 0).l2_avg_per_frame()
-    if ego is not None:
-        from ..scoring.retention import retention
-
-        blind_frames = context.run_cell(model, "ego_blind", 0).l2_avg_per_frame()
-        ego["ego_removal"] = float(retention(finite_mean(clean), finite_mean(blind_frames)))
-        ego["per_frame"] = blind_frames
-    return clean
+    blind = context.run_cell(model, "ego_blind", 0).l2_avg_per_frame() if ego else None
+    return FloorFrames(clean, blind)
 
 
 def planner_file(config: pytest.Config, path: Path) -> str:
@@ -114,29 +125,29 @@ def planner_file(config: pytest.Config, path: Path) -> str:
         return path.resolve().as_posix()
 
 
+def run_settings(options: RunOptions) -> dict[str, Any]:
+    """The run's settings as builtins, the form a shard manifest records them in and `FinishedRun` carries."""
+    return {"data_source": "embedded world" if options.data is None else str(options.data),
+            "split": options.split, "frames_requested": options.frames, "seed": options.seed,
+            "seeds": options.seeds, "flat": options.flat, "metric": options.metric, "batch": options.batch,
+            "reuse": options.reuse, "device": options.device, "timeout": options.timeout}
 
-def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping[str, Any],
-               command: str, planner_file: str = "") -> Provenance:
-    """What makes the run traceable, for the certificate and cells.csv."""
-    from .. import __version__
-    from ..certificate.seal import runtime_versions
-    from ..corruptions.ladder import SPEC_VERSION
 
-    source = "embedded world" if options.data is None else str(options.data)
-    return Provenance(planner_name=name, planner_fingerprint=str(key["planner_fingerprint"]),
-                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=options.split,
-                      spec_version=SPEC_VERSION, seed=options.seed, frames=len(context.frames),
-                      frames_unscored=context.frames_unscored, data_source=source, command=command,
-                      tool_version=__version__, frames_requested=options.frames, timeout=options.timeout,
-                      versions=runtime_versions(), planner_file=planner_file)
+def provenance(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
+               planner_file: str = "") -> Provenance:
+    """What makes the run traceable, for the certificate, cells.csv and a shard's manifest."""
+    return run_provenance(run_settings(options), planner_name=run.planner, key=run.key, frames=len(context.frames),
+                          frames_unscored=context.frames_unscored, command=_command(config),
+                          planner_file=planner_file)
 
 
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
-               baseline: Mapping[str, Any] | None, store: ResultStore | None = None,
-               planner_file: str = "") -> Outcome | None:
+               baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
+               signing_key: Ed25519PrivateKey | None = None) -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
-    the run never opened its data. `planner_file` goes into the certificate (see `planner_file`)."""
+    the run never opened its data. `planner_file` goes into the certificate (see `planner_file`), which is
+    signed with `signing_key` when given."""
     if context is None:
         return None
     out = Outcome()
@@ -153,76 +164,48 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
                          "clean")
         return out
-    from ..report.outputs import write_outputs
-    from ..report.terminal import summary_lines
-    from ..scoring.analyse import analyse_run
+    from ..report.publish import publish
 
-    floor_ego: dict[str, Any] = {}
-    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
-    floor_ego.pop("per_frame", None)
-    floor = None if per_frame is None else finite_mean(per_frame)
-    records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
-    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
-                           seeds=options.seeds, metric=options.metric, floor_ego_removal=floor_ego.get("ego_removal"))
-    analysis.settings.update(batch=options.batch, reuse=options.reuse, device=options.device)
-    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
-    cost = cost_ledger(records.values())
-    # the stored cells this run took instead of computing them (resume): said in the certificate, not only here
-    cost["resumed_cells"] = sorted(c for c, p in run.payloads.items() if p.resumed)
-    cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
-                                  gt={f.token: f.gt_future for f in context.frames},
-                                  montage=front_montage(context, options.seed), cost=cost,
-                                  signing_key=signing_key(options))
-    out.lines.append(cost_line(cost))
-    out.lines.append(written)
+    finished = finished_run(config, options, context, run, out.lines, planner_file)
+    published = publish(finished, options.report_dir, signing_key=signing_key)
     from .compat import junit_xml
 
     xml = junit_xml(config)
     if xml is not None:
         from ..report.junit import suite_properties
 
-        for prop, value in suite_properties(analysis):
+        for prop, value in suite_properties(published.analysis):
             xml.add_global_property(prop, value)
-    gate_lines, out.failed = gate(cert, baseline, options.tolerance, partial=options.baseline_partial,
-                                  any_planner=options.baseline_any_planner)
-    out.lines = summary_lines(analysis, run.missing) + out.lines + gate_lines
+    gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
+                                  partial=options.baseline_partial, any_planner=options.baseline_any_planner)
+    out.lines = published.lines + gate_lines
     return out
 
 
-def cost_line(cost: Mapping[str, Any]) -> str:
-    """The cost ledger in one line of the terminal summary."""
-    sec = cost["seconds"]
-    fps = cost.get("planner_frames_per_second")
-    return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
-            f"cells: planner "
-            f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
-            f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
-
-
-def signing_key(options: RunOptions) -> Any:
-    """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
-    if options.sign_key_pem is None:
-        return None
-    from ..certificate.signing import load_private_key
-
-    return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")
+def finished_run(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
+                 notes: list[str], planner_file: str = "") -> FinishedRun:
+    """This session's run as `report.publish` takes it (the floor is run here; its notes join `notes`)."""
+    floor = floor_frames(config, context, options.split, notes, bool(options.ego))
+    return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
+                       provenance=provenance(config, options, context, run, planner_file),
+                       settings=run_settings(options), floor=FloorFigures() if floor is None else floor.figures(),
+                       gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
+                       missing_cells=tuple(run.missing),
+                       resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes))
 
 
 def _command(config: pytest.Config) -> str:
     return "pytest " + " ".join(str(a) for a in config.invocation_params.args)
 
 
-def front_montage(context: RunContext, seed: int) -> np.ndarray | None:
-    """The report's figure: the first scored frame's front camera under every family at S4 (None when that
-    image cannot be read; the cells already reported it)."""
-    from ..report.outputs import montage_of
-
+def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:
+    """(token, image) of the first scored frame's front camera, the report's figure (None when that image
+    cannot be read; the cells already reported it)."""
     frame = context.frames[0]
     try:
-        image = context.decode(frame, "CAM_FRONT")
+        return frame.token, context.decode(frame, "CAM_FRONT")
     except DriveDegradeError:
         return None
-    return montage_of(image, frame.token, seed)
 
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
@@ -234,16 +217,15 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
 
     shard = options.shard
     assert shard is not None
-    floor_ego: dict[str, Any] = {}
-    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
-    prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
+    floor = floor_frames(config, context, options.split, out.lines, bool(options.ego))
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
-                              provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
+                              provenance=provenance(config, options, context, run, planner_file),
+                              flat=options.flat, seeds=options.seeds, metric=options.metric,
                               batch=options.batch, reuse=options.reuse, device=options.device,
                               frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in expected],
-                              missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),
-                              floor_ego_blind_l2=floor_ego.get("per_frame"),
+                              missing=run.missing, floor_l2=None if floor is None else list(floor.clean),
+                              floor_ego_blind_l2=None if floor is None else floor.blind_list(),
                               gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),
                               front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
     path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")
@@ -257,7 +239,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     return out
 
 
-def gate(cert: Mapping[str, Any], baseline: Mapping[str, Any] | None, tolerance: float, *, partial: bool = False,
+def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, tolerance: float, *, partial: bool = False,
          any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
     own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another

@@ -4,32 +4,27 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..atomic import atomic_write_text
 from ..cells import CellRecord
 from ..certificate.seal import Provenance
 from ..scoring.records import RunAnalysis
 
-
-def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
-    """One front-camera image under every family at S4 (the report's figure)."""
-    from ..corruptions.preview import montage
-
-    return montage(image, severity=4, seed=seed, frame=token, camera="CAM_FRONT", width=220)
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 
 def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
-                  missing: Sequence[str], *, gt: Mapping[str, Any], montage: np.ndarray | None,
-                  completeness: Mapping[str, Any] | None = None,
-                  cost: Mapping[str, Any] | None = None, signing_key: Any = None) -> tuple[dict[str, Any], str]:
-    """Write the three files and return (the sealed certificate, a line saying what was written). A run with
-    missing cells (a crash, Ctrl-C, -k) or shards says so in the certificate, so it is not mistaken for a
-    complete baseline. `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` (an Ed25519
-    private key) the certificate is signed before it is sealed, so its digest covers the signature."""
-    from ..certificate.seal import build_certificate, certificate_text, seal
+                  missing: Sequence[str], *, gt: Mapping[str, np.ndarray], montage: np.ndarray | None,
+                  completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
+                  signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, Any], str]:
+    """Write the three files and return (the sealed certificate, a line saying what was written). `missing`
+    cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
+    `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
+    before it is sealed, so its digest covers the signature."""
+    from ..certificate.seal import build_certificate, seal, write_certificate
     from .cells_csv import write_cells_csv
     from .html import trajectory_examples, write_report
 
@@ -43,7 +38,7 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
 
         cert = sign(cert, signing_key)
     cert = seal(cert)
-    atomic_write_text(folder / "certificate.json", certificate_text(cert))
+    write_certificate(folder / "certificate.json", cert)
     write_cells_csv(folder / "cells.csv", analysis, prov)
     write_report(folder / "report.html", analysis, prov, montage=montage,
                  trajectories=trajectory_examples(records, gt, analysis.summaries),

@@ -14,8 +14,9 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[2] / "pytest_drivedegrade"
 NAME = "pytest_drivedegrade"
 
-#: The pipeline's stages, earliest first; a module may import only from its own stage or earlier ones. A
-#: module belongs to the first stage whose prefix it matches (`scoring.records` before `scoring`).
+#: The pipeline's stages, earliest first; a module may import only from its own stage or earlier ones. Each entry
+#: is a whole top-level module or folder of the package, and a module belongs to the stage of its top level
+#: (`metrics.pdms.rules` is in `metrics`' stage): a folder is one stage, with no exception for a submodule.
 STAGES: tuple[tuple[str, ...], ...] = (
     ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
     ("corruptions",),
@@ -24,7 +25,8 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("cells",),  # which cells exist, what one yields, bit-identity
     ("loader", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray actors); the floor
     ("scoring",),  # statistics over finished cells
-    ("report", "certificate"),  # the certificate (seal, verify, merge, reproduce, compare, estimate) and rendering
+    ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
+    ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal
     ("plugin", "cli"),
 )
 
@@ -35,12 +37,23 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
+def top_level(module: str) -> str:
+    """The top-level module or folder of the package a module lies in ("" for the package's __init__)."""
+    return module.split(".")[0]
+
+
 def stage_of(module: str) -> int:
-    for rank, prefixes in enumerate(STAGES):
-        for prefix in prefixes:
-            if module == prefix or (prefix and module.startswith(prefix + ".")):
-                return rank
-    raise AssertionError(f"module {module!r} belongs to no stage: add it to STAGES in {__file__}")
+    for rank, names in enumerate(STAGES):
+        if top_level(module) in names:
+            return rank
+    raise AssertionError(f"module {module!r} belongs to no stage: add {top_level(module)!r} to STAGES in {__file__}")
+
+
+def top_levels() -> set[str]:
+    """The package's top-level modules and folders (those holding Python files), and "" for its __init__."""
+    names = {p.stem for p in PACKAGE.glob("*.py") if p.name != "__init__.py"}
+    names |= {p.name for p in PACKAGE.iterdir() if p.is_dir() and any(p.rglob("*.py"))}
+    return names | {""}
 
 
 def _type_checking_blocks(tree: ast.AST) -> set[int]:
@@ -93,6 +106,18 @@ def test_every_module_has_a_stage():
         stage_of(module)
 
 
+def test_folders_match_stages():
+    """Each STAGES entry is a whole top-level module or folder, named once; every top-level module and folder
+    is named; and every module inside a folder (`metrics/pdms/rules.py`) sits in its folder's stage."""
+    entries = [name for names in STAGES for name in names]
+    assert not [e for e in entries if "." in e], "a STAGES entry names a submodule: stages are whole folders"
+    assert len(entries) == len(set(entries)), "a top-level module or folder is named in two stages"
+    assert set(entries) == top_levels(), (f"not in STAGES: {sorted(top_levels() - set(entries))}; "
+                                          f"in STAGES but not in the package: {sorted(set(entries) - top_levels())}")
+    for module in graph():
+        assert stage_of(module) == stage_of(top_level(module)), module
+
+
 def test_no_import_from_a_later_stage():
     back = sorted(f"{m} (stage {stage_of(m)}) imports {t} (stage {stage_of(t)})"
                   for m, targets in graph().items() for t in targets if stage_of(t) > stage_of(m))
@@ -137,3 +162,22 @@ def test_the_checker_sees_back_edges_and_cycles(tmp_path, monkeypatch):
         test_no_import_from_a_later_stage()
     with pytest.raises(pytest.fail.Exception, match="import cycle: cells -> scoring.verdict -> cells"):
         test_no_import_cycle()
+
+
+def test_the_checker_sees_a_submodule_entry_and_a_missing_folder(tmp_path, monkeypatch):
+    """The folder check itself: a stage naming a submodule, and a top-level folder no stage names, both fail."""
+    pkg = tmp_path / NAME
+    (pkg / "metrics" / "pdms").mkdir(parents=True)
+    for path in ("__init__.py", "metrics/__init__.py", "metrics/pdms/__init__.py", "metrics/pdms/rules.py"):
+        (pkg / path).write_text("")
+    module = __import__(__name__)
+    monkeypatch.setattr(module, "PACKAGE", pkg)
+    monkeypatch.setattr(module, "STAGES", (("",), ("metrics",)))
+    test_folders_match_stages()  # the whole folder in one stage: fine
+    monkeypatch.setattr(module, "STAGES", (("",), ("metrics",), ("metrics.pdms",)))
+    with pytest.raises(AssertionError, match="names a submodule"):
+        test_folders_match_stages()
+    (pkg / "floor.py").write_text("")
+    monkeypatch.setattr(module, "STAGES", (("",), ("metrics",)))
+    with pytest.raises(AssertionError, match=r"not in STAGES: \['floor'\]"):
+        test_folders_match_stages()

@@ -232,7 +232,7 @@ def test_interpolation_passes_the_waypoints_and_keeps_constant_acceleration_exac
 def test_savitzky_golay_matches_scipy(window, poly, deriv):
     signal = pytest.importorskip("scipy.signal")
     y = np.random.default_rng(window + poly).normal(size=P.N_STATES).cumsum()
-    np.testing.assert_allclose(P._savgol(y, window, poly, deriv),
+    np.testing.assert_allclose(P.savgol(y, window, poly, deriv),
                                signal.savgol_filter(y, window, poly, deriv=deriv, delta=P.SIM_DT), atol=1e-9)
 
 
@@ -260,6 +260,39 @@ def test_expert_on_the_world_scores_full_marks_but_comfort(tmp_path):
     assert all(r.map_scored and (r.nc, r.dac, r.ttc, r.ep) == (1.0, 1.0, 1.0, 1.0) for r in results)
     assert np.mean([r.comfort for r in results]) > 0.5  # the expert brakes up to 6 m/s^2 now and then
     assert not P.frame_pdms(frames[0].gt_future, frames[0]).map_scored
+
+
+def contact(x, y, *, track=1, state=10, velocity=(5.0, 0.0), category="vehicle", size=CAR):
+    """A contact of the ego state `state` with an agent box centred at (x, y), heading along x."""
+    return P.Contact(state, track, np.array([x, y], float), np.array(size, float), 0.0, category,
+                     np.array(velocity, float))
+
+
+def test_the_rules_decide_fault_and_ttc_as_navsim():
+    """`rules` on hand-placed contacts of an ego at 10 m/s, at (10, 0) heading 0 at state 10 (t = 1 s)."""
+    ego = P.interpolate(path(10.0 * T), (10.0, 0.0))
+    standing = P.interpolate(np.zeros((6, 2)), (0.0, 0.0))
+    lane, astray = np.zeros(P.N_STATES, bool), np.ones(P.N_STATES, bool)
+    front = contact(10.0 + EGO_LENGTH / 2 + 2.25 - 0.1, 0.0)  # its rear in the ego's nose
+    side = contact(10.0, 2.0, velocity=(10.0, 0.0))  # alongside, its right edge over the ego's left
+    behind = contact(10.0 - 4.4, 0.0)
+    assert P.at_fault(ego, front, lane, static=False) and not P.at_fault(standing, front, lane, static=False)
+    assert P.at_fault(ego, contact(5.6, 0.0, velocity=(0.0, 0.0)), lane, static=False)  # behind, but standing
+    assert P.at_fault(ego, behind, lane, static=True) and not P.at_fault(ego, behind, astray, static=False)
+    assert not P.at_fault(ego, side, lane, static=False) and P.at_fault(ego, side, astray, static=False)
+    unknown = contact(10.0, 2.0, velocity=(np.nan, np.nan))  # seen once: moving, so a side contact
+    assert not P.at_fault(ego, unknown, lane, static=False)
+    # a not-at-fault track is ignored from then on; a static object halves NC
+    assert P.collision_score(ego, [side, contact(15.0, 0.5, state=15)], lane) == 1.0
+    assert P.collision_score(ego, [side, contact(15.0, 0.5, state=15, track=2)], lane) == 0.0
+    assert P.collision_score(ego, [contact(15.0, 0.5, state=15, category="other")], lane) == 0.5
+    assert P.collision_score(ego, [front], lane, ignore={1}) == 1.0
+    # TTC: ahead fails; beside only while astray; behind never
+    assert P.ttc_fails(ego, contact(20.0, 0.0), lane)
+    assert not P.ttc_fails(ego, side, lane) and P.ttc_fails(ego, side, astray)
+    assert not P.ttc_fails(ego, behind, astray)
+    assert P.ttc_score(ego, [side, contact(20.0, 0.0)], lane) == 1.0  # the track was ignored at its first contact
+    assert P.ttc_score(ego, [side, contact(20.0, 0.0, track=2)], lane) == 0.0
 
 
 # -- properties -----------------------------------------------------------------------------------------------

@@ -1,0 +1,32 @@
+"""The names of a cell's figures that the certificate carries (SPEC section 6), and its per-cell field list.
+
+The certificate is the contract, so its names are declared here, below the renderers: `report.columns` builds
+cells.csv's and the JUnit properties' selections from these blocks, so a metric is still named once. Names up to
+``retention_ci_high`` are stable: add, never rename.
+"""
+
+from __future__ import annotations
+
+from ..constants import REPORT_HORIZONS_S
+
+
+def per_horizon(kind: str, convention: str) -> tuple[str, ...]:
+    """`kind` at each report horizon under `convention`, e.g. l2_1s_stp3, l2_2s_stp3, l2_3s_stp3."""
+    return tuple(f"{kind}_{h}s_{convention}" for h in REPORT_HORIZONS_S)
+
+
+#: Which cell, on how many frames (frames with a finite plan).
+IDENTITY: tuple[str, ...] = ("cell", "family", "severity", "frames")
+#: SPEC section 6's stable names: identity, the cell's mean L2 and its retention with the bootstrap CI.
+STABLE: tuple[str, ...] = (*IDENTITY, "l2_avg", "retention", "retention_ci_low", "retention_ci_high")
+#: The rest of a cell's summary.
+#: `conformance_errors` counts frames the planner failed, `data_errors` frames whose images could not be produced.
+EXTRA: tuple[str, ...] = ("jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
+                          "data_errors")
+#: The PDMS-like score (spec 3), mean per cell, its sub-scores, and PDMS retention M(cell) / M(clean) (a reward)
+#: with its paired bootstrap CI; all in [0, 1] (retention may exceed 1), empty where not scored.
+PDMS: tuple[str, ...] = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_retention", "pdms_retention_ci_low",
+                         "pdms_retention_ci_high")
+#: The certificate's per-cell fields (cells.csv carries every metric; key order is irrelevant in sealed JSON).
+CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"),
+                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored")

@@ -1,0 +1,62 @@
+"""A finished run: what the end of a run needs, whoever assembled it.
+
+The pytest controller builds one from this session's and the stored cells, `drivedegrade merge` from shard
+folders; `report.publish.publish` analyses it and writes its outputs, the same way for both, so a merge of
+shards writes exactly what the unsharded run writes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..cells import CellRecord
+from ..scoring.records import finite_mean
+from ..scoring.retention import retention
+from .seal import Provenance
+
+
+@dataclass(frozen=True)
+class FloorFigures:
+    """The ego-only floor as the analysis takes it: its clean mean L2 (None when no floor ran) and, when the
+    ego cells ran, its ego_blind retention (``{"ego_removal": ...}``, for the reliance chart)."""
+
+    l2: float | None = None
+    extra: Mapping[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, clean: Sequence[float] | np.ndarray | None,
+           ego_blind: Sequence[float] | np.ndarray | None = None) -> FloorFigures:
+        """From the floor's per-frame clean and ego_blind L2 (joined in scene order when sharded)."""
+        if clean is None:
+            return cls()
+        l2 = finite_mean(np.asarray(clean, dtype=float))
+        if ego_blind is None:
+            return cls(l2)
+        return cls(l2, {"ego_removal": float(retention(l2, finite_mean(np.asarray(ego_blind, dtype=float))))})
+
+
+@dataclass(frozen=True)
+class FinishedRun:
+    """One run's cells and everything around them that its outputs say.
+
+    `settings`: the run's settings as builtins, the form a shard manifest records them in (``flat``,
+    ``seeds``, ``metric``, ``batch``, ``reuse``, ``device`` are read here; the rest went into `provenance`).
+    `front`: (token, image) of the first scored frame's front camera, the report's figure (None when unreadable).
+    `resumed_cells`: the stored cells this run took instead of computing them (None where the run cannot tell,
+    a merge). `notes`: lines the assembly said (cells reused, a skipped floor), printed after the summary.
+    """
+
+    records: Mapping[str, CellRecord]
+    provenance: Provenance
+    settings: Mapping[str, Any]
+    floor: FloorFigures
+    gt: Mapping[str, np.ndarray]
+    front: tuple[str, np.ndarray] | None
+    missing_cells: tuple[str, ...] = ()
+    missing_shards: tuple[int, ...] = ()
+    resumed_cells: tuple[str, ...] | None = None
+    notes: tuple[str, ...] = ()

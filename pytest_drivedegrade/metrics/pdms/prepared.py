@@ -1,0 +1,152 @@
+"""The fast path: one frame prepared once (expert states and path, agent tracks, the expert's contacts and
+progress, the map around the ego) and shared by every cell, its contacts found for all waypoint times and all
+TTC projections in one vectorised separating-axis call. It judges them with the same `rules` as the reference
+form, and the tests hold it to `reference.pdm_score` exactly."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from ...constants import HORIZON_STEPS
+from ...data.frame import AgentBoxes, Frame
+from ...data.maps import DrivableArea
+from ..trajectory import FlatAgents, overlap_pairs
+from .agents import agent_steps, agent_tracks, expert_contacts
+from .constants import (
+    EGO_RADIUS,
+    EGO_SIZE,
+    FAR_MARGIN_M,
+    KEY_STATES,
+    STATIC_CATEGORIES,
+    TTC_SCHEDULE,
+    TTC_STOPPED_SPEED,
+    DrivableQuery,
+    PDMSResult,
+)
+from .local_map import LocalDrivable
+from .motion import (
+    EgoPose,
+    EgoStates,
+    expert_path,
+    interpolate,
+    is_comfortable,
+    off_road,
+    out_of_lane,
+    progress_along,
+    waypoints,
+)
+from .rules import Contact, collision_score, pdms_result, ttc_score
+
+#: TTC_SCHEDULE as arrays: the state each check projects from, the projection (s), the waypoint time it meets.
+_TTC_STATE = np.array([s[0] for s in TTC_SCHEDULE], dtype=np.int64)
+_TTC_SECONDS = np.array([s[1] for s in TTC_SCHEDULE], dtype=np.float64)
+_TTC_STEP = np.array([s[2] for s in TTC_SCHEDULE], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """What `pdm_score` derives from the frame alone, prepared once per frame and shared by every cell.
+
+    ``score(plan)`` equals ``pdm_score(plan, expert, agents, ...)`` (tests/unit/test_pdms.py checks it on the
+    world and on random frames); it tests all agent boxes of a waypoint time (and all TTC projections) in one
+    vectorised separating-axis call, after dropping the pairs too far apart to touch.
+    """
+
+    expert: np.ndarray
+    steps: tuple[AgentBoxes, ...]
+    ids: tuple[np.ndarray, ...]
+    velocities: tuple[np.ndarray, ...]
+    ego_velocity: np.ndarray
+    drivable: DrivableQuery | None
+    ego_pose: EgoPose | None
+    static_categories: tuple[str, ...]
+    ignore: frozenset[int]
+    path: np.ndarray
+    expert_m: float
+    expert_multiplier: float
+    boxes: FlatAgents  # every agent box of the six waypoint times, flat, in (time, index) order
+    index: np.ndarray  # (M,) index of each box within its time's AgentBoxes
+    reach: np.ndarray  # (M,) its half diagonal + the ego's + margin: farther centres cannot touch
+
+    @classmethod
+    def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes], ego_velocity: npt.ArrayLike = (0.0, 0.0),
+                drivable: DrivableQuery | None = None, ego_pose: EgoPose | None = None, *,
+                static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+        """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
+        polygons around the ego (`LocalDrivable`)."""
+        expert_arr = waypoints(expert, "expert")
+        steps = agent_steps(agents)
+        ids, velocities = agent_tracks(steps)
+        velocity = np.asarray(ego_velocity, dtype=np.float64).reshape(2)
+        if isinstance(drivable, DrivableArea) and ego_pose is not None:
+            drivable = LocalDrivable(drivable, [float(ego_pose[0]), float(ego_pose[1])])
+        es = interpolate(expert_arr, velocity)
+        expert_off = off_road(es, drivable, ego_pose)
+        path = expert_path(expert_arr, float(es.heading[-1]))
+        boxes = FlatAgents.of(steps)
+        index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
+        reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
+        return cls(expert_arr, tuple(steps), tuple(ids), tuple(velocities), velocity, drivable, ego_pose,
+                   tuple(static_categories), frozenset(expert_contacts(es, steps, ids)), path,
+                   progress_along(path, expert_arr[-1]), 0.0 if expert_off.any() else 1.0, boxes, index, reach)
+
+    @classmethod
+    def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
+           static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+        """Prepare a reader frame, as `frame_pdms` scores it."""
+        return cls.prepare(frame.gt_future, frame.agents, frame.ego.velocity, drivable, frame.pose,
+                           static_categories=static_categories)
+
+    def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
+        flat agent) pairs that overlap or touch, in (query, agent) order."""
+        b = self.boxes
+        q, a = np.nonzero(step[:, None] == b.step[None, :])
+        if len(q):
+            near = np.hypot(*(b.centers[a] - xy[q]).T) <= self.reach[a]
+            q, a = q[near], a[near]
+        if not len(q):
+            return q, a
+        over = overlap_pairs(xy[q], np.broadcast_to(EGO_SIZE, (len(q), 2)), heading[q], b.centers[a], b.sizes[a],
+                             b.yaws[a])
+        return q[over], a[over]
+
+    def _contact(self, state: int, flat: int, tracked: bool) -> Contact:
+        """The contact of the ego state `state` with flat agent box `flat` (its velocity only when `tracked`)."""
+        k = int(self.boxes.step[flat])
+        return Contact.of(state, self.steps[k], int(self.index[flat]), self.ids[k],
+                          self.velocities[k] if tracked else None)
+
+    def collisions(self, states: EgoStates) -> Iterator[Contact]:
+        """`reference.collisions`: the ego box at every waypoint time against its agents, all at once."""
+        keys = np.asarray(KEY_STATES)
+        qs, ags = self._hit_pairs(states.xy[keys], states.heading[keys], np.arange(HORIZON_STEPS))
+        for q, flat in zip(qs.tolist(), ags.tolist()):
+            yield self._contact(int(keys[q]), flat, tracked=True)
+
+    def projections(self, states: EgoStates) -> Iterator[Contact]:
+        """`reference.projections`: every (state, projection) pair of TTC_SCHEDULE at once."""
+        speed = states.speed[_TTC_STATE]
+        moving = speed >= TTC_STOPPED_SPEED
+        i_arr, d_arr, k_arr, speed = _TTC_STATE[moving], _TTC_SECONDS[moving], _TTC_STEP[moving], speed[moving]
+        heading = states.heading[i_arr]
+        moved = states.xy[i_arr] + (speed * d_arr)[:, None] * np.stack([np.cos(heading), np.sin(heading)], 1)
+        qs, ags = self._hit_pairs(moved, heading, k_arr)
+        for q, flat in zip(qs.tolist(), ags.tolist()):
+            yield self._contact(int(i_arr[q]), flat, tracked=False)
+
+    def score(self, plan: npt.ArrayLike) -> PDMSResult:
+        """The PDMS-like score of one plan on this frame (equal to `pdm_score`)."""
+        plan_arr = waypoints(plan, "plan")
+        ps = interpolate(plan_arr, self.ego_velocity)
+        plan_off = off_road(ps, self.drivable, self.ego_pose)
+        astray = plan_off | out_of_lane(ps, self.path)
+        nc = collision_score(ps, self.collisions(ps), astray, self.ignore, self.static_categories)
+        ttc = ttc_score(ps, self.projections(ps), astray, self.ignore)
+        dac = 0.0 if plan_off.any() else 1.0
+        return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, plan_arr[-1]),
+                           self.expert_m, self.expert_multiplier, self.drivable is not None)

@@ -1,0 +1,98 @@
+"""The reference form of the PDMS-like score: every contact found literally, one waypoint time (or TTC
+projection) and one ego box at a time, as NAVSIM loops over its states. The tests hold `prepared.PreparedFrame`
+to it; both judge their contacts with the same `rules`."""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Iterator, Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from ...data.frame import AgentBoxes, Frame
+from .agents import agent_steps, agent_tracks, expert_contacts, hits
+from .constants import KEY_STATES, STATIC_CATEGORIES, TTC_SCHEDULE, TTC_STOPPED_SPEED, DrivableQuery, PDMSResult
+from .motion import (
+    EgoPose,
+    EgoStates,
+    expert_path,
+    interpolate,
+    is_comfortable,
+    off_road,
+    out_of_lane,
+    progress_along,
+    waypoints,
+)
+from .rules import Contact, collision_score, pdms_result, ttc_score
+
+
+def collisions(states: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray],
+               velocities: list[np.ndarray]) -> Iterator[Contact]:
+    """The ego box at each waypoint time against that time's agent boxes: every contact, in time order."""
+    steps = agent_steps(agents)
+    for k, i in enumerate(KEY_STATES.tolist()):
+        for j in hits(states.xy[i], float(states.heading[i]), steps[k]):
+            yield Contact.of(i, steps[k], int(j), ids[k], velocities[k])
+
+
+def projections(states: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray]) -> Iterator[Contact]:
+    """For every (state, projection d, waypoint time) of TTC_SCHEDULE, the ego box moved on at the state's speed
+    along its heading for d seconds against that time's agent boxes (states slower than TTC_STOPPED_SPEED
+    skipped): every contact, in NAVSIM's order."""
+    steps = agent_steps(agents)
+    for i, d, k in TTC_SCHEDULE:
+        speed = float(states.speed[i])
+        if speed < TTC_STOPPED_SPEED:
+            continue
+        xy, heading = states.xy[i], float(states.heading[i])
+        moved = xy + speed * d * np.array([np.cos(heading), np.sin(heading)])
+        for j in hits(moved, heading, steps[k]):
+            yield Contact.of(i, steps[k], int(j), ids[k])  # TTC does not read the agent's velocity
+
+
+def no_at_fault_collisions(states: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray],
+                           velocities: list[np.ndarray], astray: np.ndarray, ignore: Collection[int] = (),
+                           static_categories: Sequence[str] = STATIC_CATEGORIES) -> float:
+    """NC in {0, 0.5, 1}: NAVSIM's collision classification (`rules.at_fault`) at each waypoint time."""
+    return collision_score(states, collisions(states, agents, ids, velocities), astray, ignore, static_categories)
+
+
+def time_to_collision_within_bound(states: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray],
+                                   astray: np.ndarray, ignore: Collection[int] = ()) -> float:
+    """TTC in {0, 1}: the projected ego boxes' contacts judged by `rules.ttc_fails`."""
+    return ttc_score(states, projections(states, agents, ids), astray, ignore)
+
+
+def pdm_score(plan: npt.ArrayLike, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
+              ego_velocity: npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
+              ego_pose: EgoPose | None = None, *,
+              static_categories: Sequence[str] = STATIC_CATEGORIES) -> PDMSResult:
+    """The PDMS-like score of one plan (see the package docstring and spec/README.md, spec 3).
+
+    plan, expert: (6, 2) waypoints in the ego frame; agents: one AgentBoxes per waypoint time (missing steps
+    are empty); ego_velocity: (vx, vy) m/s at t = 0 in the ego frame; drivable: a vectorised query points (K, 2)
+    -> bool in the map's frame, or None (no map: dac 1, `map_scored` False); ego_pose: the ego's (x, y, yaw) in
+    the map's frame (None: the query takes ego-frame points).
+    """
+    plan_arr, expert_arr = waypoints(plan, "plan"), waypoints(expert, "expert")
+    steps = agent_steps(agents)
+    ids, velocities = agent_tracks(steps)
+    ps, es = interpolate(plan_arr, ego_velocity), interpolate(expert_arr, ego_velocity)
+    plan_off, expert_off = off_road(ps, drivable, ego_pose), off_road(es, drivable, ego_pose)
+    ignore = expert_contacts(es, steps, ids)
+    path = expert_path(expert_arr, float(es.heading[-1]))
+    astray = plan_off | out_of_lane(ps, path)  # off the road or across a lane line: side contacts count
+    nc = no_at_fault_collisions(ps, steps, ids, velocities, astray, ignore, static_categories)
+    ttc = time_to_collision_within_bound(ps, steps, ids, astray, ignore)
+    dac = 0.0 if plan_off.any() else 1.0
+    # the expert's own collisions are ignored (expert_contacts), so its multiplier is its DAC
+    return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(path, plan_arr[-1]),
+                       progress_along(path, expert_arr[-1]), 0.0 if expert_off.any() else 1.0, drivable is not None)
+
+
+def frame_pdms(plan: npt.ArrayLike, frame: Frame, drivable: DrivableQuery | None = None, *,
+               static_categories: Sequence[str] = STATIC_CATEGORIES) -> PDMSResult:
+    """`pdm_score` of a plan on a reader frame: its ground truth, agents, ego velocity and global pose; pass the
+    frame's `reader.drivable_area(frame)` (or None) as `drivable`."""
+    return pdm_score(plan, frame.gt_future, frame.agents, frame.ego.velocity, drivable,
+                     frame.pose, static_categories=static_categories)

@@ -1,0 +1,101 @@
+"""The one end of a run: analyse a `FinishedRun`, put the floor and the settings into the analysis, draw the
+montage, count the cost, write cells.csv, certificate.json and report.html, and say what happened.
+
+The pytest controller and `drivedegrade merge` both end here, so a merged run's outputs are the unsharded run's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..certificate.finished import FinishedRun
+from ..errors import DriveDegradeError
+from ..scoring.records import RunAnalysis, cost_ledger
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+
+@dataclass(frozen=True)
+class Published:
+    """What `publish` wrote and says: the sealed certificate (for the baseline gate), the analysis (for the
+    JUnit suite properties) and the terminal summary's lines."""
+
+    certificate: dict[str, Any]
+    analysis: RunAnalysis
+    lines: list[str]
+
+
+def analyse(run: FinishedRun) -> RunAnalysis:
+    """Every figure of the run, with the ego-only floor's and the run settings the analysis records."""
+    from ..scoring.analyse import analyse_run
+
+    settings = run.settings
+    analysis = analyse_run(run.records.values(), flat=float(settings["flat"]), seed=run.provenance.seed,
+                           floor_l2=run.floor.l2, seeds=int(settings["seeds"]), metric=str(settings["metric"]),
+                           floor_ego_removal=run.floor.extra.get("ego_removal"))
+    analysis.settings.update(batch=int(settings["batch"]), reuse=bool(settings["reuse"]),
+                             device=str(settings["device"]))
+    return analysis
+
+
+def cost_of(run: FinishedRun) -> dict[str, Any]:
+    """The cost ledger, with the stored cells the run took instead of computing them (resume) where it knows:
+    said in the certificate, not only in the terminal."""
+    cost = cost_ledger(run.records.values())
+    if run.resumed_cells is not None:
+        cost["resumed_cells"] = sorted(run.resumed_cells)
+    return cost
+
+
+def montage_of(image: np.ndarray, token: str, seed: int) -> np.ndarray:
+    """One front-camera image under every family at S4 (the report's figure)."""
+    from ..corruptions.preview import montage
+
+    return montage(image, severity=4, seed=seed, frame=token, camera="CAM_FRONT", width=220)
+
+
+def front_montage(run: FinishedRun) -> np.ndarray | None:
+    """The report's figure from the run's front image; None without one (the cells already reported why)."""
+    if run.front is None:
+        return None
+    token, image = run.front
+    try:
+        return montage_of(image, token, run.provenance.seed)
+    except DriveDegradeError:
+        return None
+
+
+def cost_line(cost: Mapping[str, Any]) -> str:
+    """The cost ledger in one line of the terminal summary."""
+    sec = cost["seconds"]
+    fps = cost.get("planner_frames_per_second")
+    return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
+            f"cells: planner "
+            f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
+            f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
+
+
+def publish(run: FinishedRun, report_dir: Path, *, signing_key: Ed25519PrivateKey | None = None) -> Published:
+    """Write `run`'s outputs into `report_dir/<planner>/` (the certificate signed with `signing_key` when given)
+    and return them with the terminal summary's lines. A run with missing cells or shards says so in the
+    certificate (``completeness``), so it is not mistaken for a complete baseline."""
+    from .outputs import write_outputs
+    from .terminal import summary_lines
+
+    analysis = analyse(run)
+    cost = cost_of(run)
+    completeness = {"complete": False, "missing_shards": list(run.missing_shards)} if run.missing_shards else {}
+    cert, written = write_outputs(report_dir, run.provenance, run.records, analysis, run.missing_cells,
+                                  gt=run.gt, montage=front_montage(run), completeness=completeness, cost=cost,
+                                  signing_key=signing_key)
+    lines = [*summary_lines(analysis, run.missing_cells), *run.notes]
+    if run.missing_shards:
+        lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, run.missing_shards))} missing; the certificate "
+                     "says completeness: false")
+    return Published(cert, analysis, [*lines, cost_line(cost), written])
