@@ -31,7 +31,8 @@ from .loader import CellSample, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import bit1_density, frame_metrics
 from .planning import CallStyle, call_style, planner_cameras, planner_fingerprint, to_numpy, validate_output
-from .shards import Shard, shard_frames
+from .settings import Builtin, RunSettings
+from .shards import shard_frames
 
 
 class DataFault(str):
@@ -133,17 +134,11 @@ class RunContext:
 
     reader: NuScenesReader
     frames: list[Frame]
-    seed: int
-    timeout: float
+    settings: RunSettings
     dataset_fingerprint: str
     planner_path: Path | None
     frames_unscored: int = 0  #: keyframes of the split read but not scored (fewer than six future keyframes)
-    shard: Shard | None = None  #: the shard of the scenes this process scores (None: all of them)
     frames_total: int = 0  #: scored frames of the whole run (all shards)
-    seeds: int = 1  #: --drivedegrade-seeds: random families run under seed, seed + 1, ..., seed + seeds - 1
-    batch: int = 1  #: --drivedegrade-batch: frames per predict_batch() call (stateless planners only)
-    reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
-    device: str = "cpu"  #: --drivedegrade-device: where a planner that supports it runs (`planner_device`)
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
@@ -152,26 +147,36 @@ class RunContext:
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
 
     @classmethod
-    def open(cls, *, data_root: Path, split: str, frames: int | None, seed: int, timeout: float,
-             planner_path: Path | None, shard: Shard | None = None, seeds: int = 1,
-             batch: int = 1, digest_cache: Path | None = None, reuse: bool = True,
-             device: str = "cpu") -> RunContext:
-        """Index the data and pick the scored frames (of one shard, with `shard`); a data problem raises
-        DataError naming the file or token. The dataset fingerprint covers the content of the files every
-        scored frame of the run (all shards) is read from (`data.content`), with file digests cached in
-        `digest_cache` (a folder) when given."""
-        reader = NuScenesReader(data_root, split=split)
-        chosen = reader.scorable_frames(limit=frames)
+    def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
+             digest_cache: Path | None = None) -> RunContext:
+        """Index the data at `root` (default ``settings.data``) and pick the scored frames (of one shard, with
+        ``settings.shard``); a data problem raises DataError naming the file or token. The dataset fingerprint
+        covers the content of the files every scored frame of the run (all shards) is read from (`data.content`),
+        with file digests cached in `digest_cache` (a folder) when given."""
+        root = root if root is not None else settings.data
+        if root is None:
+            raise DriveDegradeError("no data root: the settings name none and none was given")
+        reader = NuScenesReader(root, split=settings.split)
+        chosen = reader.scorable_frames(limit=settings.frames)
         if not chosen:
-            raise DriveDegradeError(f"{data_root}: split {split!r} has no scorable frames (frames need six future "
-                                    f"keyframes); skipped: {dict(reader.skipped)}")
+            raise DriveDegradeError(f"{root}: split {settings.split!r} has no scorable frames (frames need six "
+                                    f"future keyframes); skipped: {dict(reader.skipped)}")
         total = len(chosen)
         fingerprint = content_fingerprint(reader, chosen, digest_cache)
-        if shard is not None:
-            chosen = shard_frames(chosen, shard)
-        return cls(reader, chosen, seed, timeout, fingerprint, planner_path,
-                   frames_unscored=reader.skipped[UNSCORED], shard=shard, frames_total=total,
-                   seeds=seeds, batch=batch, reuse=reuse, device=device)
+        if settings.shard is not None:
+            chosen = shard_frames(chosen, settings.shard)
+        return cls(reader, chosen, settings, fingerprint, planner_path, frames_unscored=reader.skipped[UNSCORED],
+                   frames_total=total)
+
+    @property
+    def seed(self) -> int:
+        """The run's corruption seed (``settings.seed``)."""
+        return self.settings.seed
+
+    @property
+    def device(self) -> str:
+        """--drivedegrade-device: where the planner should run (``settings.device``; planner fixtures read it)."""
+        return self.settings.device
 
     @property
     def frames_key(self) -> str:
@@ -186,30 +191,25 @@ class RunContext:
             self._planner[key] = PlannerInfo(planner_cameras(planner), planner_fingerprint(planner, self.planner_path))
         return self._planner[key]
 
-    def run_key(self, planner: Any) -> dict[str, Any]:
-        """What a stored cell result must match to be reused by a rerun (the seed count only when above one, so
-        a one-seed run keeps the key, and the stored cells, of runs before seeds existed). The tool version is
-        part of it: a new release may compute a cell differently, so it never reuses an older release's cells."""
+    def run_key(self, planner: Any) -> dict[str, Builtin]:
+        """What a stored cell result must match to be reused by a rerun: the tool's and the data's identity and
+        the settings the run key holds (`RunSettings.run_key_fields`: the seed, and the seed count, batch, reuse
+        and device only where they change a plan, so a run at the defaults keeps the key of runs before they
+        existed). The tool version is part of it: a new release may compute a cell differently, so it never
+        reuses an older release's cells."""
         from . import __version__
 
-        key = {"spec_version": SPEC_VERSION, "tool_version": __version__, "record_version": RECORD_VERSION,
-               "planner_fingerprint": self.planner_info(planner).fingerprint,
-               "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key, "seed": self.seed}
-        if self.seeds > 1:
-            key["seeds"] = self.seeds
-        if self.batch > 1:  # batched plans equal per-frame ones within 1e-5 m, not bit for bit
-            key["batch"] = self.batch
-            if not self.reuse:  # reused frames skip the batch, so reuse changes which frames share one
-                key["reuse"] = False
-        if self.device != "cpu":  # another device's kernels round differently
-            key["device"] = self.device
-        return key
+        key: dict[str, Builtin] = {
+            "spec_version": SPEC_VERSION, "tool_version": __version__, "record_version": RECORD_VERSION,
+            "planner_fingerprint": self.planner_info(planner).fingerprint,
+            "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key}
+        return {**key, **self.settings.run_key_fields()}
 
     def seeds_for(self, family: str) -> list[int]:
         """The corruption seeds a cell of `family` runs under: seed .. seed + seeds - 1 for a random family,
         the run's seed alone for a deterministic one (it would repeat itself) and for the diagnostic cells."""
-        if self.seeds > 1 and family in FAMILIES and FAMILIES[family].random:
-            return [self.seed + k for k in range(self.seeds)]
+        if self.settings.seeds > 1 and family in FAMILIES and FAMILIES[family].random:
+            return [self.seed + k for k in range(self.settings.seeds)]
         return [self.seed]
 
     def run_seeded_cell(self, planner: Any, family: str, severity: int, *,
@@ -254,7 +254,7 @@ class RunContext:
         sent). The one decision: `stream` asks it once per cell."""
         if isinstance(planner, PlannerElsewhere) or (family, severity) == ("blackout", REAR_BLACKOUT_SEVERITY):
             return False
-        return self.reuse and call_style(planner).reuses and \
+        return self.settings.reuse and call_style(planner).reuses and \
             may_equal_clean(family, severity, planner_cameras(planner))
 
     def clean_record(self, planner: Any, stored: Callable[[], CellRecord | None] = lambda: None) -> CellRecord:
@@ -300,7 +300,7 @@ class RunContext:
         seed = self.seed if seed is None else seed
         reuse = self._reuser(clean, unread) if clean is not None and self.reuses_clean(planner, family, severity) \
             else _predict_every_frame
-        if self.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
+        if self.settings.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
             yield from self._stream_batched(planner, samples(frames, family, severity, seed=seed,
                                                              decode=self.decode, unread=unread), reuse)
             return
@@ -349,7 +349,7 @@ class RunContext:
             reused = reuse(sample)
             pending.append((sample, reused))
             todo += reused is None
-            if todo == self.batch:
+            if todo == self.settings.batch:
                 yield from self._flush(planner, pending)
                 pending, todo = [], 0
         if pending:
@@ -366,7 +366,7 @@ class RunContext:
         inputs = [self._inputs(planner, s, CallStyle(True, False)) for s in batch]
         egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
         try:
-            with time_limit(self.timeout * len(batch)):
+            with time_limit(self.settings.timeout * len(batch)):
                 raw = planner.predict_batch([s.view for s in batch], egos, [s.frame.command for s in batch],
                                             contexts)
             raw = to_numpy(raw)
@@ -412,7 +412,7 @@ class RunContext:
         frame = sample.frame
         ego, context = self._inputs(planner, sample, style)
         try:
-            with time_limit(self.timeout):
+            with time_limit(self.settings.timeout):
                 if style.takes_context:
                     raw = planner.predict(sample.view, ego, frame.command, context=context)
                 else:

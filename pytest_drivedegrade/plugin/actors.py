@@ -113,18 +113,17 @@ def _line(exc: BaseException, path: Path) -> str:
 def start_planner_actors(config: pytest.Config, options: RunOptions, context: RunContext,
                          collect_path: Path) -> RayPlanner:
     """Start the pool of `options.ray` on the run's data and options; DriveDegradeError saying what went wrong."""
-    from ..raypool import RayPlanner, RayPool
+    from ..raypool import ActorRun, RayPlanner, RayPool
 
     assert options.ray is not None
     module = None
     if options.planner_path is None:  # conftest mode: the conftest's module name, as pytest imported it
         module = next((getattr(p, "__name__", None) for p in config.pluginmanager.get_plugins()
                        if Path(getattr(p, "__file__", "") or ".") == collect_path), None) or "conftest"
-    open_kwargs = {"data_root": context.reader.root, "split": options.split, "frames": options.frames,
-                   "seed": options.seed, "timeout": options.timeout, "planner_path": options.planner_path,
-                   "shard": options.shard, "seeds": options.seeds, "batch": options.batch, "device": options.device,
-                   "digest_cache": cache_root(config) / "digests"}
+    run = ActorRun(options.settings.to_builtins(), str(context.reader.root),
+                   None if options.planner_path is None else str(options.planner_path),
+                   str(cache_root(config) / "digests"))
     default = options.planner_path.stem if options.planner_path else "planner"
-    pool = RayPool.start(options.ray, open_kwargs=open_kwargs, build=PlannerFile(collect_path, module),
+    pool = RayPool.start(options.ray, run=run, build=PlannerFile(collect_path, module),
                          default_name=default, context=context)
     return RayPlanner(pool)

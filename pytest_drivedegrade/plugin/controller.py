@@ -122,12 +122,12 @@ def provenance(options: RunOptions, context: RunContext, name: str, key: Mapping
     from ..certificate.seal import runtime_versions
     from ..corruptions.ladder import SPEC_VERSION
 
-    source = "embedded world" if options.data is None else str(options.data)
+    settings = options.settings
     return Provenance(planner_name=name, planner_fingerprint=str(key["planner_fingerprint"]),
-                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=options.split,
-                      spec_version=SPEC_VERSION, seed=options.seed, frames=len(context.frames),
-                      frames_unscored=context.frames_unscored, data_source=source, command=command,
-                      tool_version=__version__, frames_requested=options.frames, timeout=options.timeout,
+                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=settings.split,
+                      spec_version=SPEC_VERSION, seed=settings.seed, frames=len(context.frames),
+                      frames_unscored=context.frames_unscored, data_source=settings.data_source, command=command,
+                      tool_version=__version__, frames_requested=settings.frames, timeout=settings.timeout,
                       versions=runtime_versions(), planner_file=planner_file)
 
 
@@ -146,7 +146,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         out.lines.append("no cell finished: nothing to analyse")
         return out
     out.lines += reuse_lines(received, run, store)
-    if options.shard is not None:
+    if options.settings.shard is not None:
         return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
@@ -157,22 +157,23 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     from ..report.terminal import summary_lines
     from ..scoring.verdict import analyse_run
 
+    settings = options.settings
     floor_ego: dict[str, Any] = {}
-    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
+    per_frame = floor_per_frame(config, context, settings.split, out.lines, floor_ego if options.ego else None)
     floor_ego.pop("per_frame", None)
     floor = None if per_frame is None else finite_mean(per_frame)
     records: dict[str, CellRecord] = {c: p.record for c, p in run.payloads.items()}
-    analysis = analyse_run(records.values(), flat=options.flat, seed=options.seed, floor_l2=floor,
-                           seeds=options.seeds, metric=options.metric)
+    analysis = analyse_run(records.values(), flat=settings.flat, seed=settings.seed, floor_l2=floor,
+                           seeds=settings.seeds, metric=settings.metric)
     analysis.floor.update(floor_ego)
-    analysis.settings.update(batch=options.batch, reuse=options.reuse, device=options.device)
+    analysis.settings.update(settings.certificate_settings())
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     cost = cost_ledger(records.values())
     # the stored cells this run took instead of computing them (resume): said in the certificate, not only here
     cost["resumed_cells"] = sorted(c for c, p in run.payloads.items() if p.resumed)
     cert, written = write_outputs(options.report_dir, prov, records, analysis, run.missing,
                                   gt={f.token: f.gt_future for f in context.frames},
-                                  montage=front_montage(context, options.seed), cost=cost,
+                                  montage=front_montage(context, settings.seed), cost=cost,
                                   signing_key=signing_key(options))
     out.lines.append(cost_line(cost))
     out.lines.append(written)
@@ -233,15 +234,14 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     from ..atomic import atomic_write_text
     from ..certificate.merge import MANIFEST, shard_manifest
 
-    shard = options.shard
+    shard = options.settings.shard
     assert shard is not None
     floor_ego: dict[str, Any] = {}
-    per_frame = floor_per_frame(config, context, options.split, out.lines, floor_ego if options.ego else None)
+    per_frame = floor_per_frame(config, context, options.settings.split, out.lines,
+                                floor_ego if options.ego else None)
     prov = provenance(options, context, run.planner, run.key, _command(config), planner_file)
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
-                              provenance=prov, flat=options.flat, seeds=options.seeds, metric=options.metric,
-                              batch=options.batch, reuse=options.reuse, device=options.device,
-                              frames_total=context.frames_total,
+                              provenance=prov, settings=options.settings, frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in expected],
                               missing=run.missing, floor_l2=None if per_frame is None else list(per_frame),
                               floor_ego_blind_l2=floor_ego.get("per_frame"),

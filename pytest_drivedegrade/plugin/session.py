@@ -106,7 +106,8 @@ class DriveDegradeSession:
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
         self.cells = run_order(options.families, options.severities, ego=options.ego)
-        self.store = ResultStore(options.report_dir, options.shard.label if options.shard else None)
+        shard = options.settings.shard
+        self.store = ResultStore(options.report_dir, shard.label if shard else None)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
@@ -149,8 +150,8 @@ class DriveDegradeSession:
         from ..planning import DEVICE_ENV, deterministic_cuda
 
         self._device_env = os.environ.get(DEVICE_ENV)
-        os.environ[DEVICE_ENV] = self.options.device
-        if self.options.device != "cpu":
+        os.environ[DEVICE_ENV] = self.options.settings.device
+        if self.options.settings.device != "cpu":
             deterministic_cuda()
 
     def pytest_unconfigure(self, config: pytest.Config) -> None:
@@ -236,12 +237,10 @@ class DriveDegradeSession:
 
         opts = self.options
         where = f"--drivedegrade-baseline: {opts.baseline_path}"
-        settings = {"scored frames": context.frames_total, "corruption seed": opts.seed, "batch": opts.batch,
-                    "verdict metric": opts.metric}
         try:
             check_baseline_compatible(self.baseline, spec_version=SPEC_VERSION,
-                                      dataset_fingerprint=context.dataset_fingerprint, seeds=opts.seeds,
-                                      settings=settings)
+                                      dataset_fingerprint=context.dataset_fingerprint,
+                                      frames_scored=context.frames_total, settings=opts.settings)
         except BaselineError as exc:
             raise pytest.UsageError(f"{where}: {exc}") from None
         gaps = not_compared(self.baseline, [cell_id(f, s) for f, s in self.cells])

@@ -17,12 +17,12 @@ NAME = "pytest_drivedegrade"
 #: The pipeline's stages, earliest first; a module may import only from its own stage or earlier ones. A
 #: module belongs to the first stage whose prefix it matches (`scoring.records` before `scoring`).
 STAGES: tuple[tuple[str, ...], ...] = (
-    ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
+    ("constants", "errors", "atomic", "settings", ""),  # "" is the package's own __init__ (the lazy public API)
     ("corruptions",),
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray actors); the floor
+    ("loader", "stream", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray); the floor
     ("scoring",),  # statistics over finished cells
     ("report", "certificate"),  # the certificate (seal, verify, merge, reproduce, compare, estimate) and rendering
     ("plugin", "cli"),
