@@ -22,12 +22,13 @@ from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from .cells import CellRecord
 from .data.frame import Frame
 from .errors import DriveDegradeError, InvalidInput
-from .planning import DEVICE_ENV, CallStyle, call_style, planner_name
+from .planning import DEVICE_ENV, CallStyle, Planner, call_style, planner_name
 from .run import PlannerElsewhere, PlannerInfo, RunContext, Span
 from .settings import DEFAULTS, Builtin, RunSettings
 from .shards import partition, scene_runs
@@ -50,7 +51,7 @@ LOCAL_OBJECT_STORE = 128 * 2**20
 #: What builds the planner in an actor: called with the actor's RunContext, returns the planner and a function
 #: that tears its fixtures down (returning a line per teardown problem); raises DriveDegradeError saying why the
 #: planner cannot be built there.
-Builder = Callable[[RunContext], tuple[Any, Callable[[], list[str]]]]
+Builder = Callable[[RunContext], tuple[Planner, Callable[[], list[str]]]]
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,7 @@ class ActorRun:
                                digest_cache=None if self.digest_cache is None else Path(self.digest_cache))
 
 
-def import_ray() -> Any:
+def import_ray() -> ModuleType:
     """The `ray` module, or DriveDegradeError saying how to install it."""
     try:
         return importlib.import_module("ray")
@@ -104,7 +105,7 @@ class PlannerActor:
     def __init__(self, run: ActorRun, build: Builder, default_name: str) -> None:
         self.run_spec, self.build, self.default_name = run, build, default_name
         self.context: RunContext | None = None
-        self.planner: Any = None
+        self.planner: Planner | None = None
         self.close: Callable[[], list[str]] | None = None
 
     def start(self) -> dict[str, Any]:
@@ -133,7 +134,7 @@ class PlannerActor:
 
     def run(self, family: str, severity: int, unread: list[str], seed: int, start: int, stop: int) -> dict[str, Any]:
         """The cell on frames ``[start, stop)`` of the run, as `CellRecord.to_builtins`."""
-        if self.context is None:
+        if self.context is None or self.planner is None:
             raise DriveDegradeError("the planner actor was not started")
         record = self.context.run_cell(self.planner, family, severity, unread=tuple(unread), seed=seed,
                                        span=(start, stop))

@@ -142,7 +142,7 @@ def compare_plans(expected: str, got: CellRecord, original: CellRecord | None) -
     return "DIFFERENT (another number of seed runs than certified)"
 
 
-def _same(a: Any, b: Any) -> bool:
+def _same(a: object, b: object) -> bool:
     if isinstance(a, float) and isinstance(b, float):
         return a == b or (math.isnan(a) and math.isnan(b))
     return bool(a == b)

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from ..errors import DriveDegradeError
-from ..planning import FIXTURE_NAME
+from ..planning import FIXTURE_NAME, Planner
 from ..run import RunContext
 from .compat import fixture_function, is_fixture
 from .context import cache_root
@@ -41,7 +41,7 @@ class PlannerFile:
     path: Path
     module: str | None = None
 
-    def __call__(self, context: RunContext) -> tuple[Any, Callable[[], list[str]]]:
+    def __call__(self, context: RunContext) -> tuple[Planner, Callable[[], list[str]]]:
         from .items import import_planner_file
 
         if self.module is not None:  # a conftest.py imports its siblings, as pytest's prepend import mode allows
@@ -80,7 +80,7 @@ class PlannerFile:
             built[name] = result
             return result
 
-        planner = value(FIXTURE_NAME, ())
+        planner: Planner = value(FIXTURE_NAME, ())
 
         def close() -> list[str]:
             problems = []
@@ -98,7 +98,7 @@ class PlannerFile:
         return planner, close
 
 
-def _arguments(function: Any) -> list[str]:
+def _arguments(function: Callable[..., object]) -> list[str]:
     """The fixtures a fixture function requests: its parameters without a default, as pytest reads them."""
     kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     return [p.name for p in inspect.signature(function).parameters.values()

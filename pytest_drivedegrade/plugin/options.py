@@ -258,30 +258,14 @@ def _device(config: pytest.Config) -> str:
     return device
 
 
-def parse(config: pytest.Config) -> RunOptions:
-    """Read and check every option; raise pytest.UsageError naming the first bad one."""
-    from ..corruptions.ladder import FAMILIES, SEVERITIES
+def _settings(config: pytest.Config, here: Path) -> RunSettings:
+    """The run's settings (`RunSettings`), each checked."""
     from ..data.nuscenes import SPLITS
 
-    here = Path(config.invocation_params.dir)
-    path = value(config, ENABLE)
-    planner_path = (here / path).resolve() if path else None
     data = value(config, "drivedegrade_data")
     split = str(value(config, "drivedegrade_split") or DEFAULTS.split)
     if split not in SPLITS:
         raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
-    listed = _list(config, "drivedegrade_families")
-    families = listed or [*FAMILIES, *EGO_FAMILIES]
-    unknown = [f for f in families if f not in FAMILIES and f not in EGO_FAMILIES]
-    if unknown:
-        raise _fail("drivedegrade_families", f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
-                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join([*FAMILIES, *EGO_FAMILIES])}")
-    severities = []
-    for s in _list(config, "drivedegrade_severities") or [str(s) for s in SEVERITIES]:
-        if not s.isdigit() or int(s) not in SEVERITIES:
-            raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
-        severities.append(int(s))
-    baseline = value(config, "drivedegrade_baseline")
     shard_text = value(config, "drivedegrade_shard")
     try:
         shard = Shard.parse(str(shard_text)) if shard_text is not None else None
@@ -290,7 +274,7 @@ def parse(config: pytest.Config) -> RunOptions:
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
     if metric not in ("l2", "pdms"):
         raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
-    settings = RunSettings(
+    return RunSettings(
         data=(here / data).resolve() if data else None,
         split=split,
         frames=_number(config, "drivedegrade_frames", int, DEFAULTS.frames, 1, None),
@@ -304,9 +288,30 @@ def parse(config: pytest.Config) -> RunOptions:
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
     )
+
+
+def parse(config: pytest.Config) -> RunOptions:
+    """Read and check every option; raise pytest.UsageError naming the first bad one."""
+    from ..corruptions.ladder import FAMILIES, SEVERITIES
+
+    here = Path(config.invocation_params.dir)
+    path = value(config, ENABLE)
+    planner_path = (here / path).resolve() if path else None
+    listed = _list(config, "drivedegrade_families")
+    families = listed or [*FAMILIES, *EGO_FAMILIES]
+    unknown = [f for f in families if f not in FAMILIES and f not in EGO_FAMILIES]
+    if unknown:
+        raise _fail("drivedegrade_families", f"unknown famil{'y' if len(unknown) == 1 else 'ies'} "
+                    f"{', '.join(map(repr, unknown))}; valid families: {', '.join([*FAMILIES, *EGO_FAMILIES])}")
+    severities = []
+    for s in _list(config, "drivedegrade_severities") or [str(s) for s in SEVERITIES]:
+        if not s.isdigit() or int(s) not in SEVERITIES:
+            raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
+        severities.append(int(s))
+    baseline = value(config, "drivedegrade_baseline")
     return RunOptions(
         planner_path=planner_path,
-        settings=settings,
+        settings=_settings(config, here),
         families=tuple(f for f in FAMILIES if f in families),
         severities=tuple(sorted(set(severities))),
         report_dir=(here / str(value(config, "drivedegrade_report") or "reports")).resolve(),
