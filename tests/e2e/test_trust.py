@@ -19,6 +19,7 @@ from plugin_support import by_cell, load_json, no_traceback, read_csv, verify_cl
 from pytest_drivedegrade.data.frame import Frame  # noqa: E402
 from pytest_drivedegrade.loader import CellSample, samples  # noqa: E402
 from pytest_drivedegrade.run import RunContext  # noqa: E402
+from pytest_drivedegrade.settings import RunSettings  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -102,8 +103,7 @@ def test_cheating_planner_learns_nothing_from_the_images_mapping(small_world: Pa
     else: no attribute, vars(), view object, pickle or attribute walk reaches the frame (ground truth, agent
     boxes), the family or the severity; its repr names neither. A cheater that plans the ground truth when it
     finds it scores the same constant plan in every cell."""
-    context = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None,
-                              batch=batch)
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0, batch=batch))
     cheater = Cheater()
     records = [context.run_cell(cheater, family, severity) for family, severity in
                (("clean", 0), ("jpeg", 5), ("blackout", 5))]
@@ -123,7 +123,7 @@ def test_cheating_planner_learns_nothing_from_the_images_mapping(small_world: Pa
 
 def test_a_camera_is_decoded_only_when_read(small_world: Path):
     """Trust case 7: the planner's mapping stays lazy: keys, `in` and len decode nothing; one read, one decode."""
-    context = RunContext.open(data_root=small_world, split="val", frames=1, seed=0, timeout=0.0, planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, frames=1, timeout=0.0))
     decoded: list[str] = []
 
     def decode(frame: Frame, camera: str) -> np.ndarray:
@@ -162,8 +162,8 @@ class InputWriter:
 def test_ego_and_context_arrays_are_read_only_and_private_to_the_call(small_world: Path):
     """Trust case 7: every array of the ego status and the context is read-only and a copy private to the call:
     a planner that flips the flag and writes changes nothing the next call, cell or process sees."""
-    context = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
-    fresh = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
+    fresh = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
     vandal, honest, reference = InputWriter(True), InputWriter(False), InputWriter(False)
     for planner, ctx in ((vandal, context), (honest, context), (reference, fresh)):
         for family, severity in (("clean", 0), ("ego_noise", 3)):

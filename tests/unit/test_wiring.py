@@ -50,8 +50,9 @@ def test_options_defaults(tmp_path):
     opts = parse(FakeConfig(tmp_path, {"drivedegrade": "planners/p.py"}))  # type: ignore[arg-type]
     assert opts.planner_path == tmp_path / "planners" / "p.py"
     assert opts.families == tuple(FAMILIES) and opts.severities == (1, 2, 3, 4, 5)
-    assert (opts.seed, opts.tolerance, opts.flat, opts.timeout, opts.split) == (0, 0.02, 0.95, 60.0, "val")
-    assert opts.report_dir == tmp_path / "reports" and opts.data is None and opts.baseline_path is None
+    got = opts.settings
+    assert (got.seed, opts.tolerance, got.flat, got.timeout, got.split) == (0, 0.02, 0.95, 60.0, "val")
+    assert opts.report_dir == tmp_path / "reports" and got.data is None and opts.baseline_path is None
 
 
 def test_options_from_ini_and_in_ladder_order(tmp_path):
@@ -59,12 +60,12 @@ def test_options_from_ini_and_in_ladder_order(tmp_path):
                             {"drivedegrade_families": "jpeg, fog,blackout", "drivedegrade_severities": "5,1,5",
                              "drivedegrade_seed": "7"}))
     assert opts.planner_path is None
-    assert opts.families == ("jpeg", "fog", "blackout") and opts.severities == (1, 5) and opts.seed == 7
+    assert opts.families == ("jpeg", "fog", "blackout") and opts.severities == (1, 5) and opts.settings.seed == 7
 
 
 def test_timeout_zero_and_a_millisecond_are_accepted(tmp_path):
     for raw, want in (("0", 0.0), ("0.001", 0.001)):
-        assert parse(FakeConfig(tmp_path, {"drivedegrade": "", "drivedegrade_timeout": raw})).timeout == want  # type: ignore[arg-type]
+        assert parse(FakeConfig(tmp_path, {"drivedegrade": "", "drivedegrade_timeout": raw})).settings.timeout == want  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(("dest", "raw", "message"), [
