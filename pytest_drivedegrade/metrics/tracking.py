@@ -16,6 +16,7 @@ carry a heading per pose, the suite's do not, so a waypoint's heading is the dir
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -137,12 +138,18 @@ def waypoint_headings(points: np.ndarray) -> np.ndarray:
     return out
 
 
-def interpolate_plan(plans: np.ndarray) -> np.ndarray:
-    """NAVSIM's reference: the poses (origin at t = 0, then the waypoints with `waypoint_headings`) interpolated
-    linearly at 0.1 s (headings unwrapped, as nuPlan's InterpolatedTrajectory does). (B, N, 3) x, y, heading."""
+def interpolate_plan(plans: np.ndarray, headings: np.ndarray | None = None) -> np.ndarray:
+    """NAVSIM's reference: the poses (origin at t = 0, then the waypoints with their `headings`, (6,) or (B, 6),
+    by default `waypoint_headings`) interpolated linearly at 0.1 s (headings unwrapped, as nuPlan's
+    InterpolatedTrajectory does). (B, N, 3) x, y, heading."""
     pts = _plans(plans)
     knots = np.concatenate([np.zeros((len(pts), 1, 2)), pts], axis=1)
-    poses = np.concatenate([knots, waypoint_headings(pts)[..., None]], axis=-1)  # (B, 7, 3)
+    if headings is None:
+        yaw = waypoint_headings(pts)
+    else:
+        given = np.broadcast_to(np.asarray(headings, dtype=np.float64), (len(pts), HORIZON_STEPS))
+        yaw = np.unwrap(np.concatenate([np.zeros((len(pts), 1)), given], axis=1), axis=1)
+    poses = np.concatenate([knots, yaw[..., None]], axis=-1)  # (B, 7, 3)
     t = np.arange(N_STATES) * SIM_DT
     seg = np.minimum((t / STEP_SECONDS + 1e-9).astype(int), HORIZON_STEPS - 1)
     u = (t - seg * STEP_SECONDS) / STEP_SECONDS
@@ -258,27 +265,39 @@ def _propagate(s: TrackedStates, i: int, accel_cmd: np.ndarray, rate_cmd: np.nda
     s.yaw_acceleration[:, i + 1] = (s.yaw_rate[:, i + 1] - s.yaw_rate[:, i]) / dt
 
 
-def track(poses: np.ndarray, initial: InitialState = InitialState(), params: LQRParams = NAVSIM_LQR) -> TrackedStates:
+_INITIAL_FIELDS = ("velocity_x", "velocity_y", "acceleration_x", "acceleration_y", "yaw_rate", "steering_angle")
+
+
+def track(poses: np.ndarray, initial: InitialState | Sequence[InitialState] = InitialState(),
+          params: LQRParams = NAVSIM_LQR) -> TrackedStates:
     """Simulate the bicycle model tracking reference poses (B, N, 3) from `interpolate_plan`, as PDMSimulator
-    does: state 0 is the initial state at the origin, each later state one controller and model step on."""
+    does: state 0 is the initial state at the origin (one for all plans, or one per plan), each later state one
+    controller and model step on."""
     ref = np.asarray(poses, dtype=np.float64)
     b, n = ref.shape[:2]
+    starts = [initial] if isinstance(initial, InitialState) else list(initial)
+    if len(starts) not in (1, b):
+        raise ValueError(f"{len(starts)} initial states for {b} plans")
     velocity, curvature = fit_profiles(ref, params)
     s = TrackedStates(*(np.zeros((b, n)) for _ in range(11)))
-    for name, value in (("velocity_x", initial.velocity_x), ("velocity_y", initial.velocity_y),
-                        ("acceleration_x", initial.acceleration_x), ("acceleration_y", initial.acceleration_y),
-                        ("yaw_rate", initial.yaw_rate), ("steering_angle", initial.steering_angle)):
-        getattr(s, name)[:, 0] = value
+    for name in _INITIAL_FIELDS:
+        getattr(s, name)[:, 0] = [getattr(start, name) for start in starts]
     for i in range(n - 1):
         accel, rate = _commands(s, i, ref, velocity, curvature, params)
         _propagate(s, i, accel, rate)
     return s
 
 
-def track_plans(plans: np.ndarray, ego: EgoStatus | InitialState | None = None) -> TrackedStates:
-    """Plans (6, 2) or (B, 6, 2) interpolated and tracked from the ego's state (NAVSIM's pipeline, one call)."""
-    start = ego if isinstance(ego, InitialState) else InitialState.of(ego) if ego is not None else InitialState()
-    return track(interpolate_plan(plans), start)
+def _initial(ego: EgoStatus | InitialState | None) -> InitialState:
+    return ego if isinstance(ego, InitialState) else InitialState.of(ego) if ego is not None else InitialState()
+
+
+def track_plans(plans: np.ndarray, ego: EgoStatus | InitialState | Sequence[EgoStatus | InitialState] | None = None,
+                headings: np.ndarray | None = None) -> TrackedStates:
+    """Plans (6, 2) or (B, 6, 2) interpolated and tracked from the ego's state, or one state per plan
+    (NAVSIM's pipeline in one call)."""
+    starts = _initial(ego) if ego is None or isinstance(ego, (EgoStatus, InitialState)) else [_initial(e) for e in ego]
+    return track(interpolate_plan(plans, headings), starts)
 
 
 # -- comfort on tracked states ---------------------------------------------------------------------------------
