@@ -111,6 +111,10 @@ class TrackedStates:
 
 # -- the reference ---------------------------------------------------------------------------------------------
 
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
 def _plans(plans: np.ndarray) -> np.ndarray:
     arr = np.asarray(plans, dtype=np.float64)
     if arr.ndim == 2:
@@ -124,16 +128,21 @@ def _plans(plans: np.ndarray) -> np.ndarray:
 
 def waypoint_headings(points: np.ndarray) -> np.ndarray:
     """Headings (B, 7) of the origin (0: the ego's) and the six waypoints: the direction of the chord between a
-    waypoint's neighbours (the last waypoint: its incoming segment); held where the plan stands (chord below
+    waypoint's neighbours; at the last waypoint its incoming segment's direction turned on by half the turn
+    between the last two segments (both exact on a line or a circle); held where the plan stands (chord below
     STANDING_CHORD_M); a chord more than 90 degrees off the previous heading is driving backwards."""
     pts = np.concatenate([np.zeros((len(points), 1, 2)), points], axis=1)
-    chord = np.concatenate([pts[:, 2:] - pts[:, :-2], pts[:, -1:] - pts[:, -2:-1]], axis=1)  # waypoints 1..6
+    last = pts[:, -1] - pts[:, -2]
+    chord = np.concatenate([pts[:, 2:] - pts[:, :-2], last[:, None]], axis=1)  # waypoints 1..6
     angle = np.arctan2(chord[..., 1], chord[..., 0])
     moving = np.hypot(chord[..., 0], chord[..., 1]) >= STANDING_CHORD_M
+    before = pts[:, -2] - pts[:, -3]
+    turn_on = 0.5 * _wrap(angle[:, -1] - np.arctan2(before[:, 1], before[:, 0]))
+    angle[:, -1] += np.where(np.hypot(before[:, 0], before[:, 1]) >= STANDING_CHORD_M, turn_on, 0.0)
     out = np.zeros((len(points), HORIZON_STEPS + 1))
     for k in range(HORIZON_STEPS):
         turn = (angle[:, k] - out[:, k] + np.pi) % (2 * np.pi) - np.pi
-        turn = np.where(np.abs(turn) > np.pi / 2, (turn + np.pi) % (2 * np.pi) - np.pi, turn)
+        turn = np.where(np.abs(turn) > np.pi / 2, _wrap(turn - np.pi), turn)  # backwards: heading opposite
         out[:, k + 1] = np.where(moving[:, k], out[:, k] + turn, out[:, k])
     return out
 
@@ -193,10 +202,6 @@ def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.
 
 
 # -- the LQR tracker (batch_lqr) -------------------------------------------------------------------------------
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
-
 
 def _lateral_command(error: np.ndarray, velocity: np.ndarray, curvature: np.ndarray,
                      params: LQRParams) -> np.ndarray:
