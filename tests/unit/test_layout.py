@@ -17,7 +17,7 @@ NAME = "pytest_drivedegrade"
 #: The pipeline's stages, earliest first; a module may import only from its own stage or earlier ones. A
 #: module belongs to the first stage whose prefix it matches (`scoring.records` before `scoring`).
 STAGES: tuple[tuple[str, ...], ...] = (
-    ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
+    ("constants", "errors", "atomic", "progress", ""),  # "" is the package's own __init__ (the lazy public API)
     ("corruptions",),
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
