@@ -7,7 +7,6 @@ under test, as `planners/ego_mlp.py` does.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -29,9 +28,9 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
     root = options.settings.data
     if root is None:
         from ..data.world import ensure_default_world
+        from ..progress import Sink
 
-        root = ensure_default_world(cache_root(config),
-                                    progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
+        root = ensure_default_world(cache_root(config), progress=Sink.for_pytest(config))
     return RunContext.open(options.settings, root=root, planner_path=options.planner_path,
                            digest_cache=cache_root(config) / "digests")
 

@@ -18,7 +18,7 @@ NAME = "pytest_drivedegrade"
 #: is a whole top-level module or folder of the package, and a module belongs to the stage of its top level
 #: (`metrics.pdms.rules` is in `metrics`' stage): a folder is one stage, with no exception for a submodule.
 STAGES: tuple[tuple[str, ...], ...] = (
-    ("constants", "errors", "atomic", "settings", ""),  # "" is the package's own __init__ (the lazy public API)
+    ("constants", "errors", "atomic", "settings", "progress", ""),  # "" is the package's own __init__ (lazy API)
     ("corruptions",),
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
