@@ -38,6 +38,7 @@ class FakeConfig:
     def __init__(self, tmp: Path, cli: dict[str, Any] | None = None, ini: dict[str, Any] | None = None) -> None:
         self.cli, self.ini = cli or {}, ini or {}
         self.invocation_params = SimpleNamespace(dir=tmp)
+        self.stash = pytest.Stash()  # where the signing key taken from the environment is kept
 
     def getoption(self, dest: str, default: Any = None) -> Any:
         return self.cli.get(dest, default)
