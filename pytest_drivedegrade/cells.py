@@ -156,6 +156,19 @@ def identical_plans(a: Any, b: Any) -> bool:
     return _plans_bytes(a) == _plans_bytes(b)
 
 
+def planned_in_both(a: Any, b: Any) -> np.ndarray:
+    """The frames (first axis) with a plan in both `a` and `b`: finite in each (a failed frame is NaN). The null
+    control compares these only: a frame that failed in one cell is that cell's conformance failure, not a
+    difference of plans (and not a camera's doing)."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if x.shape != y.shape:
+        raise InvalidInput(f"plans have shapes {x.shape} and {y.shape}")
+    if not x.size:
+        return np.zeros(len(x), dtype=bool)
+    return np.asarray(np.isfinite(x).reshape(len(x), -1).all(axis=1) & np.isfinite(y).reshape(len(y), -1).all(axis=1))
+
+
 def differing_frames(a: Any, b: Any) -> np.ndarray:
     """Indices of the frames (first axis) whose plans are not bit-identical (see `identical_plans`)."""
     x = np.ascontiguousarray(a, dtype=np.float64)

@@ -187,7 +187,10 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
 
 
 def _command(config: pytest.Config) -> str:
-    return "pytest " + " ".join(str(a) for a in config.invocation_params.args)
+    """The command line as recorded: a signing key option's value redacted (`keys.recorded_args`)."""
+    from .keys import recorded_args
+
+    return "pytest " + " ".join(recorded_args(config.invocation_params.args, Path(config.invocation_params.dir)))
 
 
 def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:

@@ -16,6 +16,7 @@ import pytest
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
+from .keys import signing_key_pem
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
@@ -91,8 +92,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
-               "private key (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY environment "
-               "variable, a path or the PEM text)", {"metavar": "PATH"}),
+               "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
+               "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
 )
 _BY_DEST = {spec.dest: spec for spec in OPTIONS}
 
@@ -179,31 +180,6 @@ class RunOptions:
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
-
-
-def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
-    """--drivedegrade-sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text): the PEM bytes of
-    an Ed25519 private key, checked now so that a bad key is a usage error before any cell runs."""
-    import os
-
-    raw = value(config, "drivedegrade_sign_key")
-    where = "--drivedegrade-sign-key"
-    if raw is None:
-        raw = os.environ.get("DRIVEDEGRADE_SIGNING_KEY") or None
-        where = "DRIVEDEGRADE_SIGNING_KEY"
-        if raw is None:
-            return None
-    text = str(raw)
-    if not text.strip().startswith("-----BEGIN"):
-        text = str(here / text.strip())
-    from ..certificate.signing import load_private_key, read_key_source
-
-    try:
-        pem = read_key_source(text, where)
-        load_private_key(pem, where)
-    except DriveDegradeError as exc:
-        raise pytest.UsageError(str(exc)) from None
-    return pem
 
 
 def _ray(config: pytest.Config) -> RayOptions | None:
@@ -318,7 +294,7 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_path=(here / baseline).resolve() if baseline else None,
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         ego=tuple(f for f in EGO_FAMILIES if f in families),
-        sign_key_pem=_sign_key(config, here),
+        sign_key_pem=signing_key_pem(config, here),
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
