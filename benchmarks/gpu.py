@@ -36,13 +36,14 @@ def load_frames(world: str, frames: int | None) -> tuple[list[dict[str, np.ndarr
     from pytest_drivedegrade.data.world import ensure_default_world, write_world
     from pytest_drivedegrade.loader import samples
     from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
 
     start = time.perf_counter()
     if world == "default":
         root = ensure_default_world(ROOT / ".pytest_cache" / "d" / "drivedegrade")
     else:
         root = write_world(Path(tempfile.mkdtemp(prefix="dd-gpu-")), scenes=11, seed=4)
-    ctx = RunContext.open(data_root=root, split="val", frames=frames, seed=0, timeout=0.0, planner_path=None)
+    ctx = RunContext.open(RunSettings(data=root, frames=frames, timeout=0.0))
     unread = ("CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
     images = [dict(s.items()) for s in samples(ctx.frames, "clean", 0, seed=0, decode=ctx.decode, unread=unread)]
     print(f"world {world}: {len(images)} val frames ready in {time.perf_counter() - start:.1f} s", flush=True)

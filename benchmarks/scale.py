@@ -80,10 +80,11 @@ def batches(frames: int | None) -> None:
 
     from pytest_drivedegrade.data.world import ensure_default_world
     from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
 
     torch.set_num_threads(1)
     root = ensure_default_world(ROOT / ".pytest_cache" / "d" / "drivedegrade")
-    ctx = RunContext.open(data_root=root, split="val", frames=frames, seed=0, timeout=0.0, planner_path=None)
+    ctx = RunContext.open(RunSettings(data=root, frames=frames, timeout=0.0))
     planner = camera_cnn.CameraCNNPlanner()
     from pytest_drivedegrade.loader import samples
 

@@ -32,6 +32,41 @@ EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
 RECORD_VERSION = 3
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
+
+
+@dataclass(frozen=True)
+class FrameArray:
+    """One per-frame array of a cell's record: its name, dtype and each frame's shape (the array is (F, *shape)),
+    whether builtins carry it as 0/1 flags (ints, -1 for a failed frame's NaN), and the record version it
+    appeared in (a record stored before it loads it as NaN)."""
+
+    name: str
+    shape: tuple[int, ...]
+    dtype: str = "float64"
+    flags: bool = False
+    since: int = 1
+
+    def empty(self, frames: int) -> np.ndarray:
+        """Every frame NaN: the row of a frame not (yet) scored."""
+        return np.full((frames, *self.shape), np.nan, dtype=self.dtype)
+
+    def to_builtins(self, array: np.ndarray) -> list[Any]:
+        if self.flags:
+            return [[int(v) if v == v else -1 for v in row] for row in array]
+        return list(array.tolist())
+
+    def from_builtins(self, data: object) -> np.ndarray:
+        arr = np.asarray(data, dtype=self.dtype)
+        return np.where(arr < 0, np.nan, arr) if self.flags else arr
+
+
+#: Every per-frame array of a `CellRecord`, in the order its builtins list them: a new per-frame figure is one
+#: entry here (and a `CellRecord` field), and construction, builtins, concat and the builder follow.
+FRAME_ARRAYS: tuple[FrameArray, ...] = (
+    FrameArray("plans", (HORIZON_STEPS, 2)), FrameArray("l2", (HORIZON_STEPS,)), FrameArray("jerk", ()),
+    FrameArray("bit1", ()), *(FrameArray(k, (), since=2) for k in PDMS_FIELDS), FrameArray("map_scored", (), since=2),
+    FrameArray("collision", (HORIZON_STEPS,), flags=True), FrameArray("collision_vru", (HORIZON_STEPS,), flags=True),
+)
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
 #: that cell is the null control and is asserted bit-identical to clean too.
 REAR_BLACKOUT_SEVERITY = 3
@@ -121,6 +156,19 @@ def identical_plans(a: Any, b: Any) -> bool:
     return _plans_bytes(a) == _plans_bytes(b)
 
 
+def planned_in_both(a: Any, b: Any) -> np.ndarray:
+    """The frames (first axis) with a plan in both `a` and `b`: finite in each (a failed frame is NaN). The null
+    control compares these only: a frame that failed in one cell is that cell's conformance failure, not a
+    difference of plans (and not a camera's doing)."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    if x.shape != y.shape:
+        raise InvalidInput(f"plans have shapes {x.shape} and {y.shape}")
+    if not x.size:
+        return np.zeros(len(x), dtype=bool)
+    return np.asarray(np.isfinite(x).reshape(len(x), -1).all(axis=1) & np.isfinite(y).reshape(len(y), -1).all(axis=1))
+
+
 def differing_frames(a: Any, b: Any) -> np.ndarray:
     """Indices of the frames (first axis) whose plans are not bit-identical (see `identical_plans`)."""
     x = np.ascontiguousarray(a, dtype=np.float64)
@@ -129,6 +177,11 @@ def differing_frames(a: Any, b: Any) -> np.ndarray:
         raise InvalidInput(f"plans have shapes {x.shape} and {y.shape}")
     xb, yb = x.reshape(len(x), -1).view(np.uint64), y.reshape(len(y), -1).view(np.uint64)
     return np.flatnonzero((xb != yb).any(axis=1))
+
+
+def _absent() -> np.ndarray:
+    """The value of a per-frame array a record was made without (NaN for every frame, `CellRecord`)."""
+    return np.empty(0)
 
 
 @dataclass
@@ -157,31 +210,30 @@ class CellRecord:
     errors: list[str] = field(default_factory=list)
     seed_runs: list[CellRecord] = field(default_factory=list)
     seeds: list[int] = field(default_factory=list)
-    nc: Any = None
-    dac: Any = None
-    ttc: Any = None
-    ep: Any = None
-    comfort: Any = None
-    pdms: Any = None
-    map_scored: Any = None
+    nc: np.ndarray = field(default_factory=_absent)  #: absent (a record from before the PDMS arrays): NaN
+    dac: np.ndarray = field(default_factory=_absent)
+    ttc: np.ndarray = field(default_factory=_absent)
+    ep: np.ndarray = field(default_factory=_absent)
+    comfort: np.ndarray = field(default_factory=_absent)
+    pdms: np.ndarray = field(default_factory=_absent)
+    map_scored: np.ndarray = field(default_factory=_absent)
     data_errors: list[str] = field(default_factory=list)
     reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
 
     def __post_init__(self) -> None:
         n = len(self.frames)
-        for name in (*PDMS_FIELDS, "map_scored"):
-            if getattr(self, name) is None:  # a record from before the PDMS arrays: unscored
-                setattr(self, name, np.full(n, np.nan))
         self.frames = [str(f) for f in self.frames]
         self.severity = int(self.severity)
-        for name, shape in (("plans", (n, HORIZON_STEPS, 2)), ("l2", (n, HORIZON_STEPS)), ("jerk", (n,)),
-                            ("collision", (n, HORIZON_STEPS)), ("collision_vru", (n, HORIZON_STEPS)), ("bit1", (n,)),
-                            *((k, (n,)) for k in (*PDMS_FIELDS, "map_scored"))):
-            arr = np.asarray(getattr(self, name), dtype=float)
+        for a in FRAME_ARRAYS:
+            got = getattr(self, a.name)
+            if got is None or (a.since > 1 and n and np.size(got) == 0):  # from before the array existed: unscored
+                got = a.empty(n)
+            arr = np.asarray(got, dtype=a.dtype)
+            shape = (n, *a.shape)
             arr = arr.reshape(shape) if arr.size == 0 else arr
             if arr.shape != shape:
-                raise InvalidInput(f"cell {self.cell!r}: {name} has shape {arr.shape}, expected {shape}")
-            setattr(self, name, arr)
+                raise InvalidInput(f"cell {self.cell!r}: {a.name} has shape {arr.shape}, expected {shape}")
+            setattr(self, a.name, arr)
         self.seeds = [int(s) for s in self.seeds]
         self.errors, self.data_errors = [str(e) for e in self.errors], [str(e) for e in self.data_errors]
         self.reused = int(self.reused)
@@ -207,11 +259,8 @@ class CellRecord:
 
     def to_builtins(self) -> dict[str, Any]:
         """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""
-        out = {k: getattr(self, k) for k in ("cell", "family", "severity", "frames")}
-        out.update({k: getattr(self, k).tolist() for k in ("plans", "l2", "jerk", "bit1", *PDMS_FIELDS,
-                                                           "map_scored")})
-        out.update({k: [[int(v) if v == v else -1 for v in row] for row in getattr(self, k)]
-                    for k in ("collision", "collision_vru")})
+        out: dict[str, Any] = {k: getattr(self, k) for k in ("cell", "family", "severity", "frames")}
+        out.update({a.name: a.to_builtins(self.array(a.name)) for a in FRAME_ARRAYS})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
         out["data_errors"] = [str(e) for e in self.data_errors]
@@ -229,13 +278,11 @@ class CellRecord:
         if not isinstance(data, Mapping):
             raise InvalidInput(f"a cell record is a JSON object, found {type(data).__name__}")
         try:
-            kw = {k: data[k] for k in ("cell", "family", "severity", "frames", "plans", "l2", "jerk", "bit1")}
-            for k in ("collision", "collision_vru"):
-                arr = np.asarray(data[k], dtype=float)
-                kw[k] = np.where(arr < 0, np.nan, arr)
+            kw = {k: data[k] for k in ("cell", "family", "severity", "frames")}
+            kw.update({a.name: a.from_builtins(data[a.name]) for a in FRAME_ARRAYS
+                       if a.since == 1 or data.get(a.name) is not None})
         except KeyError as exc:
             raise InvalidInput(f"cell record lacks the field {exc.args[0]!r}") from None
-        kw.update({k: data[k] for k in (*PDMS_FIELDS, "map_scored") if data.get(k) is not None})
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
                    seed_runs=runs, seeds=list(data.get("seeds", [])), data_errors=list(data.get("data_errors", [])),
@@ -252,15 +299,26 @@ class CellRecord:
         if any((p.cell, p.family, p.severity) != (first.cell, first.family, first.severity) or p.seed_runs
                for p in parts):
             raise InvalidInput(f"cell {first.cell!r}: only single-seed records of one cell are concatenated")
-        arrays: dict[str, Any] = {k: np.concatenate([getattr(p, k) for p in parts])
-                  for k in ("plans", "l2", "collision", "collision_vru", "jerk", "bit1", *PDMS_FIELDS, "map_scored")}
+        arrays = {a.name: np.concatenate([p.array(a.name) for p in parts]) for a in FRAME_ARRAYS}
         seconds: dict[str, float] = {}
         for p in parts:
             for k, v in p.seconds.items():
                 seconds[k] = seconds.get(k, 0.0) + float(v)
-        return cls(first.cell, first.family, first.severity, [f for p in parts for f in p.frames], **arrays,
-                   seconds=seconds, errors=[e for p in parts for e in p.errors],
-                   data_errors=[e for p in parts for e in p.data_errors], reused=sum(p.reused for p in parts))
+        return cls.of_arrays(first.cell, first.family, first.severity, [f for p in parts for f in p.frames], arrays,
+                             seconds=seconds, errors=[e for p in parts for e in p.errors],
+                             data_errors=[e for p in parts for e in p.data_errors], reused=sum(p.reused for p in parts))
+
+    @classmethod
+    def of_arrays(cls, cell: str, family: str, severity: int, frames: list[str], arrays: Mapping[str, np.ndarray],
+                  **rest: Any) -> CellRecord:
+        """A record from its per-frame arrays by name (`FRAME_ARRAYS`) and the other fields by keyword."""
+        return cls(cell, family, severity, frames, **arrays, **rest)  # type: ignore[arg-type]
+
+    def array(self, name: str) -> np.ndarray:
+        """The per-frame array `name` (one of `FRAME_ARRAYS`), (F, *shape)."""
+        got = getattr(self, name)
+        assert isinstance(got, np.ndarray), name
+        return got
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
@@ -269,6 +327,38 @@ class CellRecord:
     def l2_avg_per_frame(self, convention: str = "stp3") -> np.ndarray:
         """Per-frame mean of the 1/2/3 s L2 under `convention`: the M of retention, one value per frame."""
         return np.asarray(l2_avg(self.l2, convention))
+
+
+class RecordBuilder:
+    """A cell's record assembled frame by frame, outside the loop that calls the planner: every row NaN until the
+    frame is scored (`put`), copied from another record (`copy_row`: a reused clean plan) or failed (`fail`)."""
+
+    def __init__(self, cell: str, family: str, severity: int, frames: Sequence[str]) -> None:
+        self.cell, self.family, self.severity, self.frames = cell, family, severity, list(frames)
+        self.arrays = {a.name: a.empty(len(self.frames)) for a in FRAME_ARRAYS}
+        self.errors: list[str] = []
+        self.data_errors: list[str] = []
+        self.reused = 0
+
+    def put(self, i: int, **values: float | np.ndarray | Sequence[float]) -> None:
+        """Frame `i`'s values of some arrays, by name."""
+        for name, value in values.items():
+            self.arrays[name][i] = value
+
+    def copy_row(self, i: int, source: CellRecord, j: int) -> None:
+        """Frame `i` takes `source`'s row `j` in every array (the same plan on the same frame): a reused frame."""
+        for name, arr in self.arrays.items():
+            arr[i] = source.array(name)[j]
+        self.reused += 1
+
+    def fail(self, message: str, *, data: bool = False) -> None:
+        """A failed frame (its row stays NaN): the planner's contract failure, or with `data` the data's fault."""
+        (self.data_errors if data else self.errors).append(message)
+
+    def build(self, seconds: Mapping[str, float]) -> CellRecord:
+        return CellRecord.of_arrays(self.cell, self.family, self.severity, self.frames, self.arrays,
+                                    seconds=dict(seconds), errors=self.errors, data_errors=self.data_errors,
+                                    reused=self.reused)
 
 
 def record_digest(record: Mapping[str, Any]) -> str:

@@ -108,15 +108,21 @@ def _keygen(args: argparse.Namespace) -> int:
 
 
 def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
-    """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text), else None."""
+    """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key text only there), else None;
+    a key file readable by its group or others is warned about."""
     import os
 
-    from .certificate.signing import ENV_VAR, load_private_key, read_key_source
+    from .certificate.signing import ENV_VAR, key_file_path, load_private_key, loose_permissions, read_key_source
 
     source, where = (args.sign_key, "--sign-key") if args.sign_key else (os.environ.get(ENV_VAR), ENV_VAR)
     if not source:
         return None
-    return load_private_key(read_key_source(source, where), where)
+    key = load_private_key(read_key_source(source, where, pem_allowed=where == ENV_VAR), where)
+    path = key_file_path(source)
+    loose = loose_permissions(path) if path is not None else None
+    if loose:
+        print(f"drivedegrade: warning: {where}: {loose}", file=sys.stderr)
+    return key
 
 
 def _merge(args: argparse.Namespace) -> int:
@@ -170,10 +176,8 @@ def _estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_input_commands(sub: argparse._SubParsersAction) -> None:
+    """spec, preview and world: what the suite injects, and the data it can render."""
     p = sub.add_parser("spec", help="emit the corruption ladder from the injector's own tables")
     p.add_argument("--format", choices=("yaml", "table", "json"), default="yaml")
     p.add_argument("--out", help="write to this file (atomically) instead of standard output")
@@ -196,6 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-images", action="store_true", help="also render the train split's images")
     p.set_defaults(func=_world)
 
+
+def _add_run_commands(sub: argparse._SubParsersAction) -> None:
+    """merge and estimate: a run split into shards, and what a run costs."""
     p = sub.add_parser("merge", help="join the shard folders of one run (--drivedegrade-shard I/N) into its outputs")
     p.add_argument("shards", nargs="+", metavar="SHARD_DIR", help="reports/<planner>/shard-I-of-N folders")
     p.add_argument("--out", required=True, help="output folder: writes <out>/<planner>/cells.csv, "
@@ -214,6 +221,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--certificate", help="a certificate whose cost ledger gives the suite's per-frame overhead")
     p.set_defaults(func=_estimate)
 
+
+def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
+    """verify, reproduce, keygen and compare: checking, signing and comparing certificates."""
     p = sub.add_parser("verify", help="check a certificate's digest, signature and arithmetic: exit 0 intact, 1 "
                                       "edited, badly signed or inconsistent, 2 unreadable, 3 incomplete")
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")
@@ -245,6 +255,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder for compare.csv and compare.html")
     p.add_argument("--force", action="store_true", help="compare certificates of different spec versions or data sets")
     p.set_defaults(func=_compare)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `drivedegrade` parser: one subparser per subcommand, added in the order `--help` lists them."""
+    parser = argparse.ArgumentParser(prog="drivedegrade", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_input_commands(sub)
+    _add_run_commands(sub)
+    _add_certificate_commands(sub)
     return parser
 
 

@@ -21,13 +21,16 @@ import os
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from .cells import CellRecord
 from .data.frame import Frame
 from .errors import DriveDegradeError, InvalidInput
-from .planning import DEVICE_ENV, CallStyle, call_style, planner_name
+from .planning import DEVICE_ENV, CallStyle, Planner, call_style, planner_name
 from .run import PlannerElsewhere, PlannerInfo, RunContext, Span
+from .settings import DEFAULTS, Builtin, RunSettings
 from .shards import partition, scene_runs
 
 #: How to install Ray: the package's `ray` extra.
@@ -48,10 +51,31 @@ LOCAL_OBJECT_STORE = 128 * 2**20
 #: What builds the planner in an actor: called with the actor's RunContext, returns the planner and a function
 #: that tears its fixtures down (returning a line per teardown problem); raises DriveDegradeError saying why the
 #: planner cannot be built there.
-Builder = Callable[[RunContext], tuple[Any, Callable[[], list[str]]]]
+Builder = Callable[[RunContext], tuple[Planner, Callable[[], list[str]]]]
 
 
-def import_ray() -> Any:
+@dataclass(frozen=True)
+class ActorRun:
+    """What each actor opens, as builtins: the run's settings (`RunSettings.to_builtins`), the data root the
+    controller resolved (the embedded world's folder too), the planner file and the digest cache folder."""
+
+    settings: dict[str, Builtin]
+    root: str
+    planner_path: str | None = None
+    digest_cache: str | None = None
+
+    @property
+    def device(self) -> str:
+        return str(self.settings.get("device", DEFAULTS.device))
+
+    def open(self) -> RunContext:
+        """The actor's own RunContext over the run's data and settings."""
+        return RunContext.open(RunSettings.from_builtins(self.settings), root=Path(self.root),
+                               planner_path=None if self.planner_path is None else Path(self.planner_path),
+                               digest_cache=None if self.digest_cache is None else Path(self.digest_cache))
+
+
+def import_ray() -> ModuleType:
     """The `ray` module, or DriveDegradeError saying how to install it."""
     try:
         return importlib.import_module("ray")
@@ -78,18 +102,18 @@ class PlannerActor:
     """One actor's state (the class `ray.remote` wraps): its own RunContext over the run's data and options, the
     planner built once, and cells run on spans of frames."""
 
-    def __init__(self, open_kwargs: Mapping[str, Any], build: Builder, default_name: str) -> None:
-        self.open_kwargs, self.build, self.default_name = dict(open_kwargs), build, default_name
+    def __init__(self, run: ActorRun, build: Builder, default_name: str) -> None:
+        self.run_spec, self.build, self.default_name = run, build, default_name
         self.context: RunContext | None = None
-        self.planner: Any = None
+        self.planner: Planner | None = None
         self.close: Callable[[], list[str]] | None = None
 
     def start(self) -> dict[str, Any]:
         """Open the data and build the planner; what the controller needs to know of them, or ``{"error": why}``.
         A bad ``cameras`` or ``name`` is reported as such and fails the cells, as in a local run."""
-        os.environ[DEVICE_ENV] = str(self.open_kwargs.get("device", "cpu"))  # the run's device, on any cluster
+        os.environ[DEVICE_ENV] = self.run_spec.device  # the run's device, on any cluster
         try:
-            self.context = context = RunContext.open(**self.open_kwargs)
+            self.context = context = self.run_spec.open()
             self.planner, self.close = self.build(context)
             style = call_style(self.planner)
         except DriveDegradeError as exc:
@@ -110,7 +134,7 @@ class PlannerActor:
 
     def run(self, family: str, severity: int, unread: list[str], seed: int, start: int, stop: int) -> dict[str, Any]:
         """The cell on frames ``[start, stop)`` of the run, as `CellRecord.to_builtins`."""
-        if self.context is None:
+        if self.context is None or self.planner is None:
             raise DriveDegradeError("the planner actor was not started")
         record = self.context.run_cell(self.planner, family, severity, unread=tuple(unread), seed=seed,
                                        span=(start, stop))
@@ -175,10 +199,10 @@ class Loss:
 class RayPool:
     """The actors and the queue of groups. Built by `start`; `close` tears the fixtures down and disconnects."""
 
-    def __init__(self, ray: Any, options: RayOptions, remote: Any, open_kwargs: Mapping[str, Any], build: Builder,
+    def __init__(self, ray: Any, options: RayOptions, remote: Any, run: ActorRun, build: Builder,
                  default_name: str, frames: list[Frame]) -> None:
         self.ray, self.options, self.remote = ray, options, remote
-        self.open_kwargs, self.build, self.default_name = open_kwargs, build, default_name
+        self.run, self.build, self.default_name = run, build, default_name
         self.frames = frames
         self.slots: list[_Slot] = []
         self.queue: deque[_Task] = deque()
@@ -193,7 +217,7 @@ class RayPool:
     # --- start and end -------------------------------------------------------------------------------------------
 
     @classmethod
-    def start(cls, options: RayOptions, *, open_kwargs: Mapping[str, Any], build: Builder, default_name: str,
+    def start(cls, options: RayOptions, *, run: ActorRun, build: Builder, default_name: str,
               context: RunContext) -> RayPool:
         """Connect (or start a local cluster), start the actors and build the planner in each; DriveDegradeError
         saying what went wrong (Ray disconnected again) when the cluster cannot hold them or the planner cannot
@@ -211,7 +235,7 @@ class RayPool:
             raise DriveDegradeError(f"cannot start or join a Ray cluster at {options.address!r}: "
                                     f"{type(exc).__name__}: {exc}") from None
         remote = ray.remote(PlannerActor)
-        pool = cls(ray, options, remote, open_kwargs, build, default_name, context.frames)
+        pool = cls(ray, options, remote, run, build, default_name, context.frames)
         try:
             pool._start_actors(actors, context)
         except BaseException:
@@ -238,7 +262,7 @@ class RayPool:
 
     def _new_actor(self) -> Any:
         return self.remote.options(num_cpus=1, num_gpus=self.options.gpus, max_restarts=0,
-                                   max_task_retries=0).remote(self.open_kwargs, self.build, self.default_name)
+                                   max_task_retries=0).remote(self.run, self.build, self.default_name)
 
     def _get(self, refs: list[Any], doing: str) -> list[Any]:
         try:
@@ -253,7 +277,7 @@ class RayPool:
             raise DriveDegradeError(f"building the planner in a Ray actor failed: {info['error']}")
         if info["frames_key"] != context.frames_key or info["dataset_fingerprint"] != context.dataset_fingerprint:
             raise DriveDegradeError(f"Ray actor {slot.number} (pid {info['pid']}) reads other frames than the "
-                                    f"controller from {self.open_kwargs.get('data_root')}: every node must see the "
+                                    f"controller from {self.run.root}: every node must see the "
                                     "same data at the same path")
         if self.described and info.get("fingerprint") != self.described.get("fingerprint"):
             raise DriveDegradeError(f"Ray actor {slot.number} built a planner with another fingerprint than actor 1: "

@@ -7,40 +7,11 @@ merged frames are in exactly the order of an unsharded run.
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
-
 from .data.frame import Frame
 from .errors import DriveDegradeError
+from .settings import Shard
 
-_SPEC = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
-
-
-@dataclass(frozen=True)
-class Shard:
-    """Shard `index` (1-based) of `count`."""
-
-    index: int
-    count: int
-
-    def __str__(self) -> str:
-        return f"{self.index}/{self.count}"
-
-    @property
-    def label(self) -> str:
-        """A folder-safe name, e.g. ``shard-2-of-8``."""
-        return f"shard-{self.index}-of-{self.count}"
-
-    @classmethod
-    def parse(cls, text: str) -> Shard:
-        """``I/N`` with 1 <= I <= N; DriveDegradeError saying what is wrong otherwise."""
-        found = _SPEC.match(str(text))
-        if not found:
-            raise DriveDegradeError(f"expected I/N (e.g. 2/8), got {text!r}")
-        index, count = int(found.group(1)), int(found.group(2))
-        if count < 1 or not 1 <= index <= count:
-            raise DriveDegradeError(f"shard {index}/{count}: I must be between 1 and N (1-based)")
-        return cls(index, count)
+__all__ = ["Shard", "partition", "scene_runs", "shard_frames"]  # Shard lives with the settings
 
 
 def scene_runs(frames: list[Frame]) -> list[list[Frame]]:

@@ -17,3 +17,24 @@ def nuscenes_frames():
     frames = {camera_of(p): (p, read_rgb(p)) for p in sorted(DATA.glob("*.jpg"))}
     assert len(frames) == 6, f"expected six camera frames in {DATA}"
     return frames
+
+
+@pytest.fixture(scope="session")
+def key_material():
+    """key file -> what of it must never be written anywhere: the PEM text, each line of its base64 body, and the
+    raw 32-byte private key as hex and base64 (the signing key tests grep every output for these)."""
+    import base64
+
+    from cryptography.hazmat.primitives import serialization
+
+    from pytest_drivedegrade.certificate.signing import load_private_key
+
+    def material(key: Path) -> list[str]:
+        pem = key.read_text()
+        raw = load_private_key(pem.encode(), "k").private_bytes(serialization.Encoding.Raw,
+                                                                serialization.PrivateFormat.Raw,
+                                                                serialization.NoEncryption())
+        body = [line for line in pem.splitlines() if line and not line.startswith("-----")]
+        return [pem.strip(), *body, raw.hex(), base64.b64encode(raw).decode()]
+
+    return material

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from ..cells import CellRecord
 from ..scoring.records import finite_mean
 from ..scoring.retention import retention
+from ..settings import RunSettings
 from .seal import Provenance
 
 
@@ -43,8 +43,7 @@ class FloorFigures:
 class FinishedRun:
     """One run's cells and everything around them that its outputs say.
 
-    `settings`: the run's settings as builtins, the form a shard manifest records them in (``flat``,
-    ``seeds``, ``metric``, ``batch``, ``reuse``, ``device`` are read here; the rest went into `provenance`).
+    `settings`: the run's settings (a merge's: the first shard's, its shard left out).
     `front`: (token, image) of the first scored frame's front camera, the report's figure (None when unreadable).
     `resumed_cells`: the stored cells this run took instead of computing them (None where the run cannot tell,
     a merge). `notes`: lines the assembly said (cells reused, a skipped floor), printed after the summary.
@@ -52,7 +51,7 @@ class FinishedRun:
 
     records: Mapping[str, CellRecord]
     provenance: Provenance
-    settings: Mapping[str, Any]
+    settings: RunSettings
     floor: FloorFigures
     gt: Mapping[str, np.ndarray]
     front: tuple[str, np.ndarray] | None

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -21,20 +21,22 @@ import numpy as np
 
 from ..cells import CellPayload, CellRecord
 from ..errors import DriveDegradeError
+from ..settings import RunSettings
 from .finished import FinishedRun, FloorFigures
 from .seal import Provenance, run_provenance
 
-SHARD_SCHEMA = "drivedegrade-shard/1"
+#: 2: the run's settings in one ``settings`` object (`RunSettings.to_builtins`) rather than spread over the manifest.
+SHARD_SCHEMA = "drivedegrade-shard/2"
 MANIFEST = "shard.json"
-#: Manifest fields every shard of one run shares.
-SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version", "seed", "seeds",
-            "count", "flat", "metric", "batch", "reuse", "device", "frames_total", "cells")
+#: Manifest fields besides the settings (`RunSettings.same_run`) that every shard of one run shares.
+SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "spec_version", "count", "frames_total", "cells")
 
 
 @dataclass(frozen=True)
 class ShardResult:
     folder: Path
     manifest: dict[str, Any]
+    settings: RunSettings
     payloads: dict[str, CellPayload]
 
 
@@ -60,7 +62,15 @@ def load_shard(folder: Path) -> ShardResult:
     except (OSError, ValueError) as exc:
         raise DriveDegradeError(f"{path}: unreadable shard manifest ({exc})") from None
     if not isinstance(manifest, dict) or manifest.get("schema") != SHARD_SCHEMA:
-        raise DriveDegradeError(f"{path}: not a drivedegrade shard manifest (schema {SHARD_SCHEMA})")
+        older = isinstance(manifest, dict) and str(manifest.get("schema", "")).startswith("drivedegrade-shard/")
+        raise DriveDegradeError(f"{path}: " + (f"a shard manifest of another version ({manifest['schema']}, this "
+                                               f"version reads {SHARD_SCHEMA}): rerun the shard with this version "
+                                               "(its finished cells are reused)" if older else
+                                               f"not a drivedegrade shard manifest (schema {SHARD_SCHEMA})"))
+    try:
+        settings = RunSettings.from_builtins(manifest["settings"])
+    except (KeyError, TypeError, DriveDegradeError) as exc:
+        raise DriveDegradeError(f"{path}: the shard manifest's settings are unreadable ({exc})") from None
     payloads: dict[str, CellPayload] = {}
     for cell in manifest["cells"]:
         file = path.parent / "cells" / f"{cell}.json"
@@ -70,7 +80,7 @@ def load_shard(folder: Path) -> ShardResult:
             continue  # a missing or broken cell file: reported as a missing cell of this shard
         if dict(payload.key) == manifest["key"] and payload.cell == cell:
             payloads[cell] = payload
-    return ShardResult(path.parent, manifest, payloads)
+    return ShardResult(path.parent, manifest, settings, payloads)
 
 
 def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, CellRecord]:
@@ -110,9 +120,10 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     if not folders:
         raise DriveDegradeError("no shard folders given")
     shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
-    first = shards[0].manifest
+    first, settings = shards[0].manifest, replace(shards[0].settings, shard=None)
     for s in shards[1:]:
-        diff = [k for k in SAME_RUN if s.manifest.get(k) != first.get(k)]
+        diff = [k for k in SAME_RUN if s.manifest.get(k) != first.get(k)] + \
+            [d.name for d in shards[0].settings.same_run(s.settings)]
         if diff:
             raise DriveDegradeError(f"{s.folder} is not from the same run as {shards[0].folder}: they differ in "
                                     f"{', '.join(diff)}")
@@ -124,7 +135,7 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         names = ", ".join(f"{i}/{first['count']}" for i in missing_shards)
         raise DriveDegradeError(f"missing shard(s) {names}: run them (--drivedegrade-shard I/N) and merge again, or "
                                 "pass --allow-incomplete to write a certificate that says completeness: false")
-    if int(first.get("seeds", 1)) > 1:
+    if settings.seeds > 1:
         raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
@@ -134,32 +145,28 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
                                 "shard (finished cells are reused)")
     floor = FloorFigures.of(_joined([s.manifest.get("floor_l2") for s in shards]),
                             _joined([s.manifest.get("floor_ego_blind_l2") for s in shards]))
-    prov = run_provenance(first, planner_name=first["planner"], key=first["key"],
+    prov = run_provenance(settings, planner_name=first["planner"], key=first["key"],
                           frames=len(records["clean"].frames), frames_unscored=first.get("frames_unscored"),
                           command=command, planner_file=str(first.get("planner_file", "")), recorded=first)
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
-    return FinishedRun(records, prov, first, floor, gt, _front_image(shards[0].manifest.get("front")),
+    return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
                        missing_shards=tuple(missing_shards))
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
-                   flat: float, seeds: int, metric: str, batch: int, frames_total: int, cells: Sequence[str],
-                   reuse: bool = True, device: str = "cpu",
-                   missing: Sequence[str],
+                   settings: RunSettings, frames_total: int, cells: Sequence[str], missing: Sequence[str],
                    floor_l2: Sequence[float] | None, floor_ego_blind_l2: Sequence[float] | None,
                    gt: Mapping[str, Any], data_root: str,
                    front: tuple[str, str] | None = None) -> dict[str, Any]:
-    """What a shard run writes beside its cells for the merge."""
+    """What a shard run writes beside its cells for the merge (the settings as `RunSettings.to_builtins`; the
+    provenance's split, seed, data source, frames asked for and timeout are settings, read back from there)."""
     return {"schema": SHARD_SCHEMA, "index": index, "count": count, "planner": planner, "key": dict(key),
             "planner_fingerprint": provenance.planner_fingerprint,
-            "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
-            "spec_version": provenance.spec_version, "seed": provenance.seed, "seeds": seeds, "flat": flat,
-            "metric": metric, "batch": batch, "reuse": reuse, "device": device,
+            "dataset_fingerprint": provenance.dataset_fingerprint, "spec_version": provenance.spec_version,
+            "settings": settings.to_builtins(),
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
-            "data_source": provenance.data_source, "tool_version": provenance.tool_version,
-            "frames_requested": provenance.frames_requested, "timeout": provenance.timeout,
-            "versions": dict(provenance.versions),
+            "tool_version": provenance.tool_version, "versions": dict(provenance.versions),
             "planner_file": provenance.planner_file, "cells": list(cells), "missing_cells": list(missing),
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
             "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],

@@ -4,7 +4,7 @@ The suite is deterministic (same command, same bits on any worker layout), so th
 make is to rerun cells and compare plans. The certificate is verified first; then clean, the null control and N
 other cells, sampled from the certificate's digest (the same certificate always samples the same cells), are
 rerun by the real pipeline: a ``python -m pytest --drivedegrade PLANNER -k CELLS`` subprocess into a fresh report
-folder, with the settings the certificate records (data set, split, frames, seed(s), batch, timeout) and no
+folder, with the settings the certificate records (`RunSettings.from_certificate`, `RunSettings.rerun_argv`) and no
 pytest cache (``-p no:cacheprovider``: no stored cell and no last-failed state can leak in). Each cell's
 ``plans_digest`` is compared as it finishes, then every certified figure of the sampled cells.
 """
@@ -29,6 +29,7 @@ import numpy as np
 
 from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
 from ..errors import DriveDegradeError, InvalidInput
+from ..settings import RunSettings
 
 #: Cells every reproduction reruns (when the certificate has them), before the sampled ones.
 ALWAYS: tuple[str, ...] = ("clean", "null")
@@ -102,23 +103,11 @@ def data_root(cert: Mapping[str, Any], data: str | None, cwd: Path) -> Path | No
 
 def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], report_dir: Path,
                data: Path | None) -> list[str]:
-    """The pytest command that reruns `cells` with the certificate's settings into `report_dir`."""
-    settings, dataset = cert["settings"], cert["dataset"]
+    """The pytest command that reruns `cells` with the certificate's settings (`RunSettings.rerun_argv`) into
+    `report_dir`, on the data at `data`."""
     by_id = {c["cell"]: c for c in cert["cells"]}
     argv = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "--drivedegrade", str(planner),
-            "--drivedegrade-report", str(report_dir), "--drivedegrade-split", str(dataset["split"]),
-            "--drivedegrade-seed", str(int(settings.get("seed", 0)))]
-    # --drivedegrade-frames: the value asked for; a certificate from before it was recorded scored this many
-    frames = dataset["frames_requested"] if "frames_requested" in dataset else dataset.get("frames")
-    for flag, value, default in (("--drivedegrade-frames", frames, None), ("--drivedegrade-seeds",
-                                 settings.get("seeds"), 1), ("--drivedegrade-batch", settings.get("batch"), 1),
-                                 ("--drivedegrade-timeout", settings.get("timeout"), None)):
-        if value is not None and value != default:
-            argv += [flag, f"{value:g}" if isinstance(value, float) else str(value)]
-    if settings.get("device", "cpu") != "cpu":  # the device enters the run key: the cells are that device's
-        argv += ["--drivedegrade-device", str(settings["device"])]
-    if settings.get("reuse") is False:  # with batches, reuse changes which frames share one
-        argv += ["--drivedegrade-no-reuse"]
+            "--drivedegrade-report", str(report_dir), *RunSettings.from_certificate(cert).rerun_argv()]
     if data is not None:
         argv += ["--drivedegrade-data", str(data)]
     # collect only the sampled cells' families and severities, then select the cells themselves with -k
@@ -153,7 +142,7 @@ def compare_plans(expected: str, got: CellRecord, original: CellRecord | None) -
     return "DIFFERENT (another number of seed runs than certified)"
 
 
-def _same(a: Any, b: Any) -> bool:
+def _same(a: object, b: object) -> bool:
     if isinstance(a, float) and isinstance(b, float):
         return a == b or (math.isnan(a) and math.isnan(b))
     return bool(a == b)
@@ -274,7 +263,10 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     if rc in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
                                 f"{tail(report_dir / 'pytest.log')}")
-    figures = _rerun_cells(report_dir)
+    rerun = _rerun_certificate(report_dir)
+    figures = {c["cell"]: c for c in rerun["cells"]} if rerun is not None else {}
+    for line in settings_notes(cert, rerun):
+        note(f"reproduce: NOTE: {line}")
     different = judge.finish(figures)
     checked = "" if figures else " (the rerun wrote no certificate: figures not compared)"
     if different:
@@ -335,13 +327,25 @@ class Judge:
         return [c for c in self.cells if self.results.get(c) != "identical"]
 
 
-def _rerun_cells(report_dir: Path) -> dict[str, dict[str, Any]]:
-    """The rerun's certificate cells by id (empty when it wrote none)."""
+def _rerun_certificate(report_dir: Path) -> dict[str, Any] | None:
+    """The rerun's certificate (None when it wrote none, or one without a list of cells)."""
     found = sorted(report_dir.glob("*/certificate.json"))
     if not found:
-        return {}
+        return None
     try:
-        return {c["cell"]: c for c in json.loads(found[0].read_text())["cells"]}
+        cert = json.loads(found[0].read_text())
+        return cert if isinstance(cert, dict) and all(isinstance(c, dict) and "cell" in c for c in cert["cells"]) \
+            else None
     except (OSError, ValueError, KeyError, TypeError):
-        return {}
+        return None
+
+
+def settings_notes(cert: Mapping[str, Any], rerun: Mapping[str, Any] | None) -> list[str]:
+    """The settings the rerun's certificate records differently from the certificate's (the rerun's command line
+    should repeat them all: `RunSettings.rerun_argv`), as lines; where the data lies may differ."""
+    if rerun is None:
+        return []
+    differ = RunSettings.from_certificate(cert).same_run(RunSettings.from_certificate(rerun))
+    return [f"the rerun ran with {d.setting.label} {d.theirs!r} where the certificate has {d.mine!r} "
+            f"({d.setting.flag}): its figures are of another run" for d in differ]
 

@@ -28,6 +28,7 @@ from ..cells import CellRecord
 from ..errors import DriveDegradeError
 from ..scoring.records import RunAnalysis, null_control_section
 from ..scoring.verdict import VERDICT_LABELS
+from ..settings import RunSettings
 from .fields import CERTIFICATE_CELL
 
 SCHEMA = "drivedegrade-certificate/1"
@@ -88,11 +89,11 @@ def runtime_versions() -> dict[str, str | None]:
             "torch": torch}
 
 
-def run_provenance(settings: Mapping[str, Any], *, planner_name: str, key: Mapping[str, object], frames: int,
+def run_provenance(settings: RunSettings, *, planner_name: str, key: Mapping[str, object], frames: int,
                    frames_unscored: int | None, command: str, planner_file: str = "",
                    recorded: Mapping[str, Any] | None = None) -> Provenance:
-    """The one way a run's `Provenance` is built: from its settings (as builtins: ``data_source``, ``split``,
-    ``seed``, ``frames_requested``, ``timeout``), its run key (the planner's and the data's fingerprints) and
+    """The one way a run's `Provenance` is built: from its settings (split, seed, data source, frames asked
+    for, timeout), its run key (the planner's and the data's fingerprints) and
     the frames it scored. The ladder's, the tool's and the libraries' versions are this process's, or, with
     `recorded` (a shard manifest), those the cells were computed with."""
     if recorded is None:
@@ -101,11 +102,11 @@ def run_provenance(settings: Mapping[str, Any], *, planner_name: str, key: Mappi
 
         recorded = {"spec_version": SPEC_VERSION, "tool_version": __version__, "versions": runtime_versions()}
     return Provenance(planner_name=planner_name, planner_fingerprint=str(key["planner_fingerprint"]),
-                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=str(settings["split"]),
-                      spec_version=str(recorded["spec_version"]), seed=int(settings["seed"]), frames=frames,
-                      frames_unscored=frames_unscored, data_source=str(settings.get("data_source", "")),
+                      dataset_fingerprint=str(key["dataset_fingerprint"]), split=settings.split,
+                      spec_version=str(recorded["spec_version"]), seed=settings.seed, frames=frames,
+                      frames_unscored=frames_unscored, data_source=settings.data_source,
                       command=command, tool_version=str(recorded.get("tool_version", "")),
-                      frames_requested=settings.get("frames_requested"), timeout=settings.get("timeout"),
+                      frames_requested=settings.frames, timeout=settings.timeout,
                       versions=recorded.get("versions") or {}, planner_file=planner_file)
 
 

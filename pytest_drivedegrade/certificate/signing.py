@@ -31,7 +31,8 @@ if TYPE_CHECKING:
 
 ALGORITHM = "ed25519"
 #: The environment variable that signs every certificate of a run: a key file's path, or the PEM text itself
-#: (a CI secret). ``--drivedegrade-sign-key`` wins over it.
+#: (a CI secret; the only place a key's text is accepted). ``--drivedegrade-sign-key PATH`` wins over it. A run
+#: reads it at start-up and removes it from its environment, so no planner, worker or actor can read it.
 ENV_VAR = "DRIVEDEGRADE_SIGNING_KEY"
 #: The keys the signature does not cover (the seal's own, and the signature itself).
 UNSIGNED_KEYS = ("digest", "section_digests", "signature")
@@ -91,33 +92,83 @@ def keygen(name: str | os.PathLike[str]) -> tuple[Path, Path]:
     return key_path, pub_path
 
 
-def read_key_source(source: str, where: str) -> bytes:
-    """The PEM bytes of a signing key given as PEM text (``-----BEGIN``...) or as a path to a key file."""
+def is_key_text(value: str) -> bool:
+    """Whether `value` looks like key material rather than a path: PEM armour, a key's name, or more than one
+    line. Such a value is never echoed nor recorded."""
+    return "-----" in value or "PRIVATE KEY" in value.upper() or "\n" in value.strip()
+
+
+def read_key_source(source: str, where: str, *, pem_allowed: bool = False, base: Path | None = None) -> bytes:
+    """The PEM bytes of a signing key: from a key file's path (relative to `base` when given), or, where
+    `pem_allowed` (the ``DRIVEDEGRADE_SIGNING_KEY`` variable only), the PEM text itself. A key's value never
+    appears in an error: PEM text where a path belongs is refused without echoing it, and a path that names no
+    file is not echoed either (it may be key text without its armour)."""
     text = source.strip()
-    if text.startswith("-----BEGIN"):
-        return text.encode() + b"\n"
+    if is_key_text(text):
+        if pem_allowed and text.startswith("-----BEGIN"):
+            return text.encode() + b"\n"
+        raise DriveDegradeError(f"{where}: expected the path of a key file, got what looks like key text (not "
+                                f"shown); a key's text goes in the {ENV_VAR} environment variable, never on the "
+                                "command line or in an ini file, where it would be recorded")
+    path = Path(text).expanduser()
+    path = base / path if base is not None else path
     try:
-        return Path(text).expanduser().read_bytes()
+        return path.read_bytes()
     except FileNotFoundError:
-        raise DriveDegradeError(f"{where}: no such key file {text!r}") from None
+        raise DriveDegradeError(f"{where}: no such key file (the value given is not shown, in case it was key "
+                                "material); give the path of a key made by `drivedegrade keygen NAME`") from None
     except OSError as exc:
-        raise DriveDegradeError(f"{where}: cannot read the key file {text!r}: {exc.strerror or exc}") from None
+        raise DriveDegradeError(f"{where}: cannot read the key file {path}: {exc.strerror or exc}") from None
+
+
+def key_file_path(source: str, base: Path | None = None) -> Path | None:
+    """The key file `source` names (relative to `base`), or None when it is key text or names no file."""
+    text = source.strip()
+    if not text or is_key_text(text):
+        return None
+    path = Path(text).expanduser()
+    path = base / path if base is not None else path
+    return path if path.is_file() else None
+
+
+def loose_permissions(path: Path) -> str | None:
+    """A warning when the private key file `path` is readable (or writable) by its group or by others, else
+    None: a signing key should be its owner's alone (``drivedegrade keygen`` writes mode 0600)."""
+    try:
+        mode = path.stat().st_mode & 0o777
+    except OSError:
+        return None
+    if not mode & 0o077:
+        return None
+    return (f"the signing key file {path} is accessible to its group or others (mode {mode:04o}): anyone who can "
+            f"read it can sign certificates in your name; restrict it with `chmod 600 {path}`")
 
 
 def load_private_key(pem: bytes, where: str) -> Ed25519PrivateKey:
-    """An Ed25519 private key from PEM bytes; a clear error naming `where` otherwise."""
+    """An Ed25519 private key from PEM bytes; a clear error naming `where` otherwise, which never quotes the
+    key (the parser's own message is kept only when no line of the input appears in it)."""
     from cryptography.hazmat.primitives import serialization
 
     ed25519 = _crypto()
     try:
         key = serialization.load_pem_private_key(pem, password=None)
     except (ValueError, TypeError) as exc:
-        raise DriveDegradeError(f"{where}: not an unencrypted PEM private key ({exc}); make one with "
-                                "`drivedegrade keygen NAME`") from None
+        raise DriveDegradeError(f"{where}: not an unencrypted PEM private key{_quiet_reason(exc, pem)}; make one "
+                                "with `drivedegrade keygen NAME`") from None
     if not isinstance(key, ed25519.Ed25519PrivateKey):
         raise DriveDegradeError(f"{where}: a {type(key).__name__}, not an Ed25519 key; make one with "
                                 "`drivedegrade keygen NAME`")
     return key
+
+
+def _quiet_reason(exc: BaseException, pem: bytes) -> str:
+    """`exc`'s message in parentheses, or nothing when it could carry any part of `pem` (a line of 8 or more
+    characters of it, or anything longer than a sentence)."""
+    reason = str(exc)
+    lines = [line.strip() for line in pem.decode("utf-8", "replace").splitlines() if len(line.strip()) >= 8]
+    if not reason or len(reason) > 300 or any(line in reason for line in lines) or is_key_text(reason):
+        return ""
+    return f" ({reason})"
 
 
 def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:

@@ -26,6 +26,9 @@ if TYPE_CHECKING:
 #: which pytest loads once per process, so every module that reaches the session shares the one key (pytester's
 #: in-process runs drop and re-import the plugin's other modules).
 SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
+#: $DRIVEDEGRADE_SIGNING_KEY as it was at start-up, once `keys.take_from_environment` has deleted it from the
+#: environment (here for the same reason as SESSION_KEY).
+SIGNING_KEY_ENV: pytest.StashKey[str | None] = pytest.StashKey["str | None"]()
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -33,6 +36,22 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     for spec in opt.OPTIONS:
         group.addoption(spec.flag, dest=spec.dest, default=None, help=spec.help, **spec.argparse)
         parser.addini(spec.dest, help=spec.help, default=None)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_load_initial_conftests(early_config: pytest.Config, parser: pytest.Parser, args: list[str]) -> None:
+    """Before any conftest.py is imported: a run given `--drivedegrade` takes the signing key out of the
+    environment (`keys.take_from_environment`), so no planner code can read it."""
+    enabled = getattr(early_config.known_args_namespace, opt.ENABLE, None) is not None
+    if not enabled:
+        try:
+            enabled = bool(early_config.getini(opt.ENABLE))  # as `options.value` reads it
+        except (ValueError, KeyError):  # pragma: no cover - the ini value is not known yet
+            enabled = False
+    if enabled:
+        from .keys import take_from_environment
+
+        take_from_environment(early_config)
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from ..errors import DriveDegradeError
-from ..planning import FIXTURE_NAME
+from ..planning import FIXTURE_NAME, Planner
 from ..run import RunContext
 from .compat import fixture_function, is_fixture
 from .context import cache_root
@@ -41,7 +41,7 @@ class PlannerFile:
     path: Path
     module: str | None = None
 
-    def __call__(self, context: RunContext) -> tuple[Any, Callable[[], list[str]]]:
+    def __call__(self, context: RunContext) -> tuple[Planner, Callable[[], list[str]]]:
         from .items import import_planner_file
 
         if self.module is not None:  # a conftest.py imports its siblings, as pytest's prepend import mode allows
@@ -80,7 +80,7 @@ class PlannerFile:
             built[name] = result
             return result
 
-        planner = value(FIXTURE_NAME, ())
+        planner: Planner = value(FIXTURE_NAME, ())
 
         def close() -> list[str]:
             problems = []
@@ -98,7 +98,7 @@ class PlannerFile:
         return planner, close
 
 
-def _arguments(function: Any) -> list[str]:
+def _arguments(function: Callable[..., object]) -> list[str]:
     """The fixtures a fixture function requests: its parameters without a default, as pytest reads them."""
     kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
     return [p.name for p in inspect.signature(function).parameters.values()
@@ -113,18 +113,17 @@ def _line(exc: BaseException, path: Path) -> str:
 def start_planner_actors(config: pytest.Config, options: RunOptions, context: RunContext,
                          collect_path: Path) -> RayPlanner:
     """Start the pool of `options.ray` on the run's data and options; DriveDegradeError saying what went wrong."""
-    from ..raypool import RayPlanner, RayPool
+    from ..raypool import ActorRun, RayPlanner, RayPool
 
     assert options.ray is not None
     module = None
     if options.planner_path is None:  # conftest mode: the conftest's module name, as pytest imported it
         module = next((getattr(p, "__name__", None) for p in config.pluginmanager.get_plugins()
                        if Path(getattr(p, "__file__", "") or ".") == collect_path), None) or "conftest"
-    open_kwargs = {"data_root": context.reader.root, "split": options.split, "frames": options.frames,
-                   "seed": options.seed, "timeout": options.timeout, "planner_path": options.planner_path,
-                   "shard": options.shard, "seeds": options.seeds, "batch": options.batch, "device": options.device,
-                   "digest_cache": cache_root(config) / "digests"}
+    run = ActorRun(options.settings.to_builtins(), str(context.reader.root),
+                   None if options.planner_path is None else str(options.planner_path),
+                   str(cache_root(config) / "digests"))
     default = options.planner_path.stem if options.planner_path else "planner"
-    pool = RayPool.start(options.ray, open_kwargs=open_kwargs, build=PlannerFile(collect_path, module),
+    pool = RayPool.start(options.ray, run=run, build=PlannerFile(collect_path, module),
                          default_name=default, context=context)
     return RayPlanner(pool)

@@ -12,11 +12,20 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import CellPayload, CellRecord, Property, cell_id, differing_frames, identical_plans, rear_cameras
+from ..cells import (
+    CellPayload,
+    CellRecord,
+    Property,
+    cell_id,
+    differing_frames,
+    identical_plans,
+    planned_in_both,
+    rear_cameras,
+)
 from ..planning import planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain
-from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, style_of, unread_cameras
+from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
 from ..scoring.baseline import cell_regression
 from ..scoring.records import finite_mean, horizon_metrics
 from ..scoring.retention import record_retention
@@ -49,46 +58,88 @@ def _conformance(record: CellRecord, seed: int | None = None) -> list[str]:
     return out
 
 
-def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, ...], clean: np.ndarray) -> list[str]:
-    """Which declared-unread cameras, blacked out alone, change the plan of frame `index`.
+#: What the null control says when a replay does not reproduce a recorded plan: the planner's plans depend on
+#: what it was called with before, so no camera can be proved to move the plan.
+HISTORY = "plans depend on call history: give the planner a reset(), or declare deterministic = False"
 
-    A planner with ``reset`` keeps state, so its scene is replayed from the scene's first scored frame up to
-    this one (reset first), and the state is what it was when the plan moved; a stateless planner is asked
-    about this frame alone. The replay is a cell on that span (`RunContext.run_cell`), so a planner that runs in
-    Ray actors replays there; a failed frame (a NaN plan: a valid plan is finite) counts as moved.
-    """
-    frame = context.frames[index]
+
+def _replay_span(context: RunContext, planner: Any, index: int) -> Span:
+    """The frames a replay of frame `index` runs so that the planner is where it was when it planned it: for a
+    planner with ``reset``, its scene from the first scored frame (reset first); for a batched one, the batch it
+    shared (a batch of one may round differently); else the frame alone."""
     first = index
-    if style_of(planner).resets:
+    style = style_of(planner)
+    if style.resets:
+        frame = context.frames[index]
         while first > 0 and context.frames[first - 1].scene_token == frame.scene_token:
             first -= 1
+        return first, index + 1
+    if context.settings.batch > 1 and not isinstance(planner, PlannerElsewhere) and \
+            callable(getattr(planner, "predict_batch", None)):
+        first = index - index % context.settings.batch
+        return first, min(first + context.settings.batch, len(context.frames))
+    return first, index + 1
+
+
+def _culprits(context: RunContext, planner: Any, index: int, unread: tuple[str, ...], record: CellRecord,
+              clean: CellRecord) -> tuple[list[str], str]:
+    """Which declared-unread cameras, blacked out alone, change the plan of frame `index`, proved by replays:
+    (cameras, "") or ([], why no camera can be blamed).
+
+    A replay is a cell on `_replay_span` (`RunContext.run_cell`, so planner actors replay there). The frame is
+    first replayed as it was in clean and in the record's cell: only when both reproduce their recorded plans bit
+    for bit does a replay speak for the planner rather than for its call history, and each camera's replay is
+    followed by clean's again, which must reproduce too. A camera is blamed when its replay moves the plan off
+    clean's (a failed frame, a NaN plan, counts as moved); a replay that does not reproduce names no camera.
+    """
+    span = _replay_span(context, planner, index)
+    own = context.planner_info(planner).unread
+    at = index - span[0]
+
+    def reproduces(family: str, severity: int, want: np.ndarray) -> bool:
+        got = context.run_cell(planner, family, severity, unread=own, span=span).plans[at]
+        return identical_plans(got, want)
+
+    def history(where: str) -> tuple[list[str], str]:
+        return [], f"  {HISTORY} (frame {record.frames[index]!r} replayed as in {where} did not reproduce its plan)"
+
+    want = clean.plans[index]
+    if not reproduces("clean", 0, want):
+        return history("clean")
+    if not reproduces(record.family, record.severity, record.plans[index]):
+        return history(record.cell)
     found = []
     for cam in unread:
-        plan = context.run_cell(planner, "null", 0, unread=(cam,), span=(first, index + 1)).plans[-1]
-        if np.isnan(plan).any() or not identical_plans(plan, clean):
+        plan = context.run_cell(planner, "null", 0, unread=(cam,), span=span).plans[at]
+        if not reproduces("clean", 0, want):
+            return history("clean, after another replay,")
+        if np.isnan(plan).any() or not identical_plans(plan, want):
             found.append(cam)
-    return found
+    return found, ""
 
 
 def _identity(context: RunContext, planner: Any, record: CellRecord, clean: CellRecord,
               unread: tuple[str, ...]) -> list[str]:
-    """The null control: plans bit-identical to clean (`cells.identical_plans`), else how far they wandered and
-    who moved them."""
-    if identical_plans(record.plans, clean.plans):
+    """The null control: plans bit-identical to clean (`cells.identical_plans`) on every frame with a plan in
+    both (`cells.planned_in_both`: a frame that failed in either is that cell's conformance failure), else how
+    far they wandered and who moved them, as far as a replay proves it (`_culprits`)."""
+    both = planned_in_both(record.plans, clean.plans)
+    if identical_plans(record.plans[both], clean.plans[both]):
         return []
-    diff = np.abs(record.plans - clean.plans)
-    l2 = np.linalg.norm(record.plans - clean.plans, axis=-1)
-    first = int(differing_frames(record.plans, clean.plans)[0])
+    a, b = record.plans[both], clean.plans[both]
+    diff = np.abs(a - b)
+    l2 = np.linalg.norm(a - b, axis=-1)
+    first = int(np.flatnonzero(both)[differing_frames(a, b)[0]])
     head = (f"null control failed in cell {record.cell}: plans are not bit-identical to clean "
             f"(max abs difference {np.nanmax(diff):.6g} m, max L2 change {np.nanmax(l2):.6g} m; first at frame "
             f"{record.frames[first]!r})")
     if not unread:
         return [head, "  the planner reads all six cameras, so this was an untouched rerun: predict() is not "
                       "deterministic (seed it, or disable nondeterministic kernels)"]
-    culprits = _culprits(context, planner, first, unread, clean.plans[first])
-    why = (f"  declared-unread camera(s) that change the plan: {', '.join(culprits)}; add them to planner.cameras"
-           if culprits else "  no single unread camera changes it: predict() may not be deterministic")
-    return [head, why]
+    culprits, why = _culprits(context, planner, first, unread, record, clean)
+    if culprits:
+        why = f"  declared-unread camera(s) that change the plan: {', '.join(culprits)}; add them to planner.cameras"
+    return [head, why or "  no single unread camera changes it: predict() may not be deterministic"]
 
 
 def _reusable(stored: CellPayload | None) -> CellRecord | None:

@@ -7,7 +7,6 @@ under test, as `planners/ego_mlp.py` does.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -26,16 +25,14 @@ def cache_root(config: pytest.Config) -> Path:
 
 def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
     """The data (the embedded world unless --drivedegrade-data) indexed, and the frames to score chosen."""
-    root = options.data
+    root = options.settings.data
     if root is None:
         from ..data.world import ensure_default_world
+        from ..progress import Sink
 
-        root = ensure_default_world(cache_root(config),
-                                    progress=lambda s: print(f"drivedegrade: {s}", file=sys.stderr, flush=True))
-    return RunContext.open(data_root=root, split=options.split, frames=options.frames, seed=options.seed,
-                           timeout=options.timeout, planner_path=options.planner_path, shard=options.shard,
-                           seeds=options.seeds, batch=options.batch, digest_cache=cache_root(config) / "digests",
-                           reuse=options.reuse, device=options.device)
+        root = ensure_default_world(cache_root(config), progress=Sink.for_pytest(config))
+    return RunContext.open(options.settings, root=root, planner_path=options.planner_path,
+                           digest_cache=cache_root(config) / "digests")
 
 
 @pytest.fixture(scope="session")

@@ -125,18 +125,10 @@ def planner_file(config: pytest.Config, path: Path) -> str:
         return path.resolve().as_posix()
 
 
-def run_settings(options: RunOptions) -> dict[str, Any]:
-    """The run's settings as builtins, the form a shard manifest records them in and `FinishedRun` carries."""
-    return {"data_source": "embedded world" if options.data is None else str(options.data),
-            "split": options.split, "frames_requested": options.frames, "seed": options.seed,
-            "seeds": options.seeds, "flat": options.flat, "metric": options.metric, "batch": options.batch,
-            "reuse": options.reuse, "device": options.device, "timeout": options.timeout}
-
-
 def provenance(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
                planner_file: str = "") -> Provenance:
     """What makes the run traceable, for the certificate, cells.csv and a shard's manifest."""
-    return run_provenance(run_settings(options), planner_name=run.planner, key=run.key, frames=len(context.frames),
+    return run_provenance(options.settings, planner_name=run.planner, key=run.key, frames=len(context.frames),
                           frames_unscored=context.frames_unscored, command=_command(config),
                           planner_file=planner_file)
 
@@ -157,7 +149,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         out.lines.append("no cell finished: nothing to analyse")
         return out
     out.lines += reuse_lines(received, run, store)
-    if options.shard is not None:
+    if options.settings.shard is not None:
         return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
@@ -185,17 +177,20 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 def finished_run(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
                  notes: list[str], planner_file: str = "") -> FinishedRun:
     """This session's run as `report.publish` takes it (the floor is run here; its notes join `notes`)."""
-    floor = floor_frames(config, context, options.split, notes, bool(options.ego))
+    floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego))
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
-                       settings=run_settings(options), floor=FloorFigures() if floor is None else floor.figures(),
+                       settings=options.settings, floor=FloorFigures() if floor is None else floor.figures(),
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
                        missing_cells=tuple(run.missing),
                        resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes))
 
 
 def _command(config: pytest.Config) -> str:
-    return "pytest " + " ".join(str(a) for a in config.invocation_params.args)
+    """The command line as recorded: a signing key option's value redacted (`keys.recorded_args`)."""
+    from .keys import recorded_args
+
+    return "pytest " + " ".join(recorded_args(config.invocation_params.args, Path(config.invocation_params.dir)))
 
 
 def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:
@@ -215,14 +210,12 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     from ..atomic import atomic_write_text
     from ..certificate.merge import MANIFEST, shard_manifest
 
-    shard = options.shard
+    shard = options.settings.shard
     assert shard is not None
-    floor = floor_frames(config, context, options.split, out.lines, bool(options.ego))
+    floor = floor_frames(config, context, options.settings.split, out.lines, bool(options.ego))
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=provenance(config, options, context, run, planner_file),
-                              flat=options.flat, seeds=options.seeds, metric=options.metric,
-                              batch=options.batch, reuse=options.reuse, device=options.device,
-                              frames_total=context.frames_total,
+                              settings=options.settings, frames_total=context.frames_total,
                               cells=[cell_id(f, s) for f, s in expected],
                               missing=run.missing, floor_l2=None if floor is None else list(floor.clean),
                               floor_ego_blind_l2=None if floor is None else floor.blind_list(),

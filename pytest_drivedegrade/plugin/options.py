@@ -15,7 +15,8 @@ import pytest
 
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
-from ..shards import Shard
+from ..settings import DEFAULTS, RunSettings, Shard
+from .keys import signing_key_pem
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
@@ -91,8 +92,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
-               "private key (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY environment "
-               "variable, a path or the PEM text)", {"metavar": "PATH"}),
+               "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
+               "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
 )
 _BY_DEST = {spec.dest: spec for spec in OPTIONS}
 
@@ -133,7 +134,7 @@ MIN_TIMEOUT = 1e-3
 
 
 def _timeout(config: pytest.Config) -> float:
-    got = float(_number(config, "drivedegrade_timeout", float, 60.0, 0.0, None))
+    got = float(_number(config, "drivedegrade_timeout", float, DEFAULTS.timeout, 0.0, None))
     if 0 < got < MIN_TIMEOUT:
         raise _fail("drivedegrade_timeout", f"must be 0 (no limit) or at least {MIN_TIMEOUT:g} s, got {got:g}: "
                     "every predict() call would time out")
@@ -163,57 +164,22 @@ def _list(config: pytest.Config, dest: str) -> list[str] | None:
 
 @dataclass(frozen=True)
 class RunOptions:
-    """Everything a run depends on, checked. `planner_path` is None for a conftest planner fixture."""
+    """Everything a run depends on, checked: its `settings` and how this session runs and reports it.
+    `planner_path` is None for a conftest planner fixture."""
 
     planner_path: Path | None
-    data: Path | None
-    split: str
-    frames: int | None
+    settings: RunSettings  #: what the run's numbers depend on (data, split, frames, seed(s), batch, ...), checked
     families: tuple[str, ...]
     severities: tuple[int, ...]
-    seed: int
     report_dir: Path
     baseline_path: Path | None
     tolerance: float
-    flat: float
-    timeout: float
-    shard: Shard | None = None
-    seeds: int = 1
-    batch: int = 1
-    metric: str = "l2"
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
-    reuse: bool = True  #: frames whose inputs equal clean's reuse the clean plan (off: --drivedegrade-no-reuse)
-    device: str = "cpu"  #: --drivedegrade-device, checked
     sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
-
-
-def _sign_key(config: pytest.Config, here: Path) -> bytes | None:
-    """--drivedegrade-sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text): the PEM bytes of
-    an Ed25519 private key, checked now so that a bad key is a usage error before any cell runs."""
-    import os
-
-    raw = value(config, "drivedegrade_sign_key")
-    where = "--drivedegrade-sign-key"
-    if raw is None:
-        raw = os.environ.get("DRIVEDEGRADE_SIGNING_KEY") or None
-        where = "DRIVEDEGRADE_SIGNING_KEY"
-        if raw is None:
-            return None
-    text = str(raw)
-    if not text.strip().startswith("-----BEGIN"):
-        text = str(here / text.strip())
-    from ..certificate.signing import load_private_key, read_key_source
-
-    try:
-        pem = read_key_source(text, where)
-        load_private_key(pem, where)
-    except DriveDegradeError as exc:
-        raise pytest.UsageError(str(exc)) from None
-    return pem
 
 
 def _ray(config: pytest.Config) -> RayOptions | None:
@@ -246,7 +212,7 @@ def _ray(config: pytest.Config) -> RayOptions | None:
 def _device(config: pytest.Config) -> str:
     """cpu, cuda or cuda:N; CUDA only where torch sees that device, so a GPU run never silently runs on CPU."""
     raw = value(config, "drivedegrade_device")
-    device = str(raw or "cpu").strip().lower()
+    device = str(raw or DEFAULTS.device).strip().lower()
     if device == "cpu":
         return device
     head, _, index = device.partition(":")
@@ -268,18 +234,45 @@ def _device(config: pytest.Config) -> str:
     return device
 
 
+def _settings(config: pytest.Config, here: Path) -> RunSettings:
+    """The run's settings (`RunSettings`), each checked."""
+    from ..data.nuscenes import SPLITS
+
+    data = value(config, "drivedegrade_data")
+    split = str(value(config, "drivedegrade_split") or DEFAULTS.split)
+    if split not in SPLITS:
+        raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
+    shard_text = value(config, "drivedegrade_shard")
+    try:
+        shard = Shard.parse(str(shard_text)) if shard_text is not None else None
+    except DriveDegradeError as exc:
+        raise _fail("drivedegrade_shard", str(exc)) from None
+    metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
+    if metric not in ("l2", "pdms"):
+        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
+    return RunSettings(
+        data=(here / data).resolve() if data else None,
+        split=split,
+        frames=_number(config, "drivedegrade_frames", int, DEFAULTS.frames, 1, None),
+        seed=_number(config, "drivedegrade_seed", int, DEFAULTS.seed, 0, None),
+        seeds=_number(config, "drivedegrade_seeds", int, DEFAULTS.seeds, 1, None),
+        batch=_number(config, "drivedegrade_batch", int, DEFAULTS.batch, 1, 4096),
+        reuse=not _flag(config, "drivedegrade_no_reuse"),
+        device=_device(config),
+        timeout=_timeout(config),
+        metric=metric,
+        flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
+        shard=shard,
+    )
+
+
 def parse(config: pytest.Config) -> RunOptions:
     """Read and check every option; raise pytest.UsageError naming the first bad one."""
     from ..corruptions.ladder import FAMILIES, SEVERITIES
-    from ..data.nuscenes import SPLITS
 
     here = Path(config.invocation_params.dir)
     path = value(config, ENABLE)
     planner_path = (here / path).resolve() if path else None
-    data = value(config, "drivedegrade_data")
-    split = str(value(config, "drivedegrade_split") or "val")
-    if split not in SPLITS:
-        raise _fail("drivedegrade_split", f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
     listed = _list(config, "drivedegrade_families")
     families = listed or [*FAMILIES, *EGO_FAMILIES]
     unknown = [f for f in families if f not in FAMILIES and f not in EGO_FAMILIES]
@@ -292,37 +285,18 @@ def parse(config: pytest.Config) -> RunOptions:
             raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
         severities.append(int(s))
     baseline = value(config, "drivedegrade_baseline")
-    shard_text = value(config, "drivedegrade_shard")
-    try:
-        shard = Shard.parse(str(shard_text)) if shard_text is not None else None
-    except DriveDegradeError as exc:
-        raise _fail("drivedegrade_shard", str(exc)) from None
-    metric = str(value(config, "drivedegrade_metric") or "l2").strip().lower()
-    if metric not in ("l2", "pdms"):
-        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
     return RunOptions(
         planner_path=planner_path,
-        data=(here / data).resolve() if data else None,
-        split=split,
-        frames=_number(config, "drivedegrade_frames", int, None, 1, None),
+        settings=_settings(config, here),
         families=tuple(f for f in FAMILIES if f in families),
         severities=tuple(sorted(set(severities))),
-        seed=_number(config, "drivedegrade_seed", int, 0, 0, None),
         report_dir=(here / str(value(config, "drivedegrade_report") or "reports")).resolve(),
         baseline_path=(here / baseline).resolve() if baseline else None,
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
-        flat=_number(config, "drivedegrade_flat", float, DEFAULT_FLAT, 0.0, 1.0),
-        timeout=_timeout(config),
-        shard=shard,
-        seeds=_number(config, "drivedegrade_seeds", int, 1, 1, None),
-        batch=_number(config, "drivedegrade_batch", int, 1, 1, 4096),
-        metric=metric,
         ego=tuple(f for f in EGO_FAMILIES if f in families),
-        sign_key_pem=_sign_key(config, here),
+        sign_key_pem=signing_key_pem(config, here),
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
         ray=_ray(config),
-        reuse=not _flag(config, "drivedegrade_no_reuse"),
-        device=_device(config),
     )

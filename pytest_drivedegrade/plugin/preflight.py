@@ -70,12 +70,10 @@ def check_baseline(baseline: Mapping[str, object] | None, options: RunOptions, c
     from ..scoring.baseline import BaselineError, check_baseline_compatible, not_compared
 
     where = f"--drivedegrade-baseline: {options.baseline_path}"
-    settings = {"scored frames": context.frames_total, "corruption seed": options.seed, "batch": options.batch,
-                "verdict metric": options.metric}
     try:
         check_baseline_compatible(baseline, spec_version=SPEC_VERSION,
-                                  dataset_fingerprint=context.dataset_fingerprint, seeds=options.seeds,
-                                  settings=settings)
+                                  dataset_fingerprint=context.dataset_fingerprint,
+                                  frames_scored=context.frames_total, settings=options.settings)
     except BaselineError as exc:
         raise pytest.UsageError(f"{where}: {exc}") from None
     gaps = not_compared(baseline, [cell_id(f, s) for f, s in cells])

@@ -67,7 +67,8 @@ class DriveDegradeSession:
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
         self.cells = run_order(options.families, options.severities, ego=options.ego)
-        self.store = ResultStore(options.report_dir, options.shard.label if options.shard else None)
+        shard = options.settings.shard
+        self.store = ResultStore(options.report_dir, shard.label if shard else None)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
@@ -88,7 +89,7 @@ class DriveDegradeSession:
         baseline = preflight.load_baseline(options)
         config.args = [str(collect_path)]  # collect the cells, not the rest of the test tree
         session = cls(config, options, collect_path, module, baseline)
-        session._device_env = preflight.use_device(options.device)
+        session._device_env = preflight.use_device(options.settings.device)
         return session
 
     def pytest_unconfigure(self, config: pytest.Config) -> None:

@@ -36,11 +36,10 @@ def analyse(run: FinishedRun) -> RunAnalysis:
     from ..scoring.analyse import analyse_run
 
     settings = run.settings
-    analysis = analyse_run(run.records.values(), flat=float(settings["flat"]), seed=run.provenance.seed,
-                           floor_l2=run.floor.l2, seeds=int(settings["seeds"]), metric=str(settings["metric"]),
+    analysis = analyse_run(run.records.values(), flat=settings.flat, seed=run.provenance.seed,
+                           floor_l2=run.floor.l2, seeds=settings.seeds, metric=settings.metric,
                            floor_ego_removal=run.floor.extra.get("ego_removal"))
-    analysis.settings.update(batch=int(settings["batch"]), reuse=bool(settings["reuse"]),
-                             device=str(settings["device"]))
+    analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     return analysis
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from ..constants import DEFAULT_TOLERANCE
 from ..errors import DriveDegradeError
+from ..settings import RunSettings
 from .records import AXES, Axes
 
 
@@ -33,65 +34,59 @@ class Regression:
         return f"{self.name}: retention {self.current:.3f} vs baseline {self.baseline:.3f} (drop {self.drop:.3f})"
 
 
-def baseline_seeds(cert: Mapping[str, Any]) -> int:
-    """How many corruption seeds a certificate's random cells ran under (1 for certificates before seeds)."""
-    settings = cert.get("settings")
-    got = settings.get("seeds", 1) if isinstance(settings, Mapping) else 1
-    return int(got) if isinstance(got, int) and not isinstance(got, bool) else 1
-
-
-#: The settings that change a certificate's numbers, besides the spec version, data and seed count: (name, where
-#: in a certificate, the value certificates from before the setting had, the option that sets it).
-SETTINGS: tuple[tuple[str, tuple[str, str], Any, str], ...] = (
-    ("scored frames", ("dataset", "frames"), None, "--drivedegrade-frames"),
-    ("corruption seed", ("settings", "seed"), None, "--drivedegrade-seed"),
-    ("batch", ("settings", "batch"), 1, "--drivedegrade-batch"),
-    ("verdict metric", ("settings", "verdict_metric"), "l2", "--drivedegrade-metric"),
-    ("metric convention", ("settings", "convention"), "stp3", "the tool's default"),
-)
+#: The metric convention of certificates written before it was recorded, and the tool's (not an option).
+CONVENTION = "stp3"
 #: The axes the gate compares (of `records.AXES`; the gap is their difference).
 GATED_AXES = tuple(a for a in AXES if a != "gap")
 
 
-def certificate_settings(cert: Mapping[str, Any]) -> dict[str, Any]:
-    """The `SETTINGS` of a certificate, by name (None where it does not say and has no default)."""
-    out = {}
-    for name, (section, key), default, _flag in SETTINGS:
-        part = cert.get(section)
-        out[name] = part.get(key, default) if isinstance(part, Mapping) else default
-    return out
+def _section(cert: Mapping[str, object], name: str) -> Mapping[str, object]:
+    part = cert.get(name)
+    return part if isinstance(part, Mapping) else {}
 
 
-def settings_mismatches(baseline: Mapping[str, Any], current: Mapping[str, Any]) -> list[str]:
-    """Each setting of `current` (by `SETTINGS` name) the baseline certificate has another value of, as
-    'name: baseline X, this run Y (option)'; a setting either side does not know is not compared."""
-    theirs = certificate_settings(baseline)
+def baseline_seeds(cert: Mapping[str, Any]) -> int:
+    """How many corruption seeds a certificate's random cells ran under (1 for certificates before seeds)."""
+    got = _section(cert, "settings").get("seeds", 1)
+    return int(got) if isinstance(got, int) and not isinstance(got, bool) else 1
+
+
+def settings_mismatches(baseline: Mapping[str, Any], settings: RunSettings, *, frames_scored: int | None = None,
+                        convention: str = CONVENTION) -> list[str]:
+    """What of this run (its `settings`, the frames it scores and its metric convention) the baseline certificate
+    has another value of, as 'name: baseline X, this run Y (option)': the settings `RunSettings.baseline_differences`
+    names (the table in `settings` says which and why), the seed count apart (`check_baseline_compatible`)."""
     out = []
-    for name, _where, _default, flag in SETTINGS:
-        mine, other = current.get(name), theirs[name]
-        if mine is not None and other is not None and mine != other:
-            out.append(f"{name}: baseline {other!r}, this run {mine!r} ({flag})")
+    theirs_frames = _section(baseline, "dataset").get("frames")
+    if frames_scored is not None and theirs_frames is not None and theirs_frames != frames_scored:
+        out.append(f"scored frames: baseline {theirs_frames!r}, this run {frames_scored!r} (--drivedegrade-frames)")
+    out += [d.against_baseline() for d in settings.baseline_differences(RunSettings.from_certificate(baseline))
+            if d.name != "seeds"]
+    theirs_convention = _section(baseline, "settings").get("convention", CONVENTION)
+    if theirs_convention != convention:
+        out.append(f"metric convention: baseline {theirs_convention!r}, this run {convention!r} (the tool's default)")
     return out
 
 
 def check_baseline_compatible(baseline: Mapping[str, Any], *, spec_version: str | None,
-                              dataset_fingerprint: str | None, seeds: int | None = None,
-                              settings: Mapping[str, Any] | None = None) -> None:
-    """Raise ``BaselineError`` when the baseline was certified under another spec version, under other settings
-    that change the numbers (`settings`, by `SETTINGS` name: frames, seed, batch, metric, convention), or (when
-    `seeds` is given) another number of corruption seeds, or on another data set: a retention averaged over
-    three seeds is not the same quantity as one seed's, so comparing them would gate on noise."""
-    theirs = (baseline.get("spec_version"), (baseline.get("dataset") or {}).get("fingerprint"))
+                              dataset_fingerprint: str | None, settings: RunSettings | None = None,
+                              frames_scored: int | None = None, convention: str = CONVENTION) -> None:
+    """Raise ``BaselineError`` when the baseline was certified under another spec version, another number of
+    corruption seeds, other settings that change the numbers (`settings_mismatches`), or on another data set: a
+    retention averaged over three seeds is not the same quantity as one seed's, so comparing them would gate on
+    noise. Without `settings`, only the spec version and the data set are compared."""
+    theirs = (baseline.get("spec_version"), _section(baseline, "dataset").get("fingerprint"))
     if spec_version != theirs[0]:
         raise BaselineError(f"the baseline certificate has spec version {theirs[0]!r} but this run has "
                             f"{spec_version!r}; retentions are comparable only under the same ladder and data")
     theirs_seeds = baseline_seeds(baseline)
-    if seeds is not None and seeds != theirs_seeds:
+    if settings is not None and settings.seeds != theirs_seeds:
         raise BaselineError(f"the baseline certificate was made with {theirs_seeds} corruption seed(s) per random "
-                            f"cell (--drivedegrade-seeds {theirs_seeds}) but this run uses {seeds}; retentions are "
-                            f"compared only like with like: rerun with --drivedegrade-seeds {theirs_seeds}, or "
-                            "certify a new baseline with this seed count")
-    differ = settings_mismatches(baseline, settings or {})
+                            f"cell (--drivedegrade-seeds {theirs_seeds}) but this run uses {settings.seeds}; "
+                            f"retentions are compared only like with like: rerun with --drivedegrade-seeds "
+                            f"{theirs_seeds}, or certify a new baseline with this seed count")
+    differ = [] if settings is None else settings_mismatches(baseline, settings, frames_scored=frames_scored,
+                                                             convention=convention)
     if differ:
         raise BaselineError(f"the baseline certificate was made under other settings that change the numbers: "
                             f"{'; '.join(differ)}; rerun with the baseline's settings, or certify a new baseline "
@@ -157,9 +152,12 @@ def compare_to_baseline(current: Mapping[str, Any], baseline: Mapping[str, Any],
     `current` and `baseline` are certificate-shaped mappings. Returns {"cells": [...], "axes": [...]}; an axis
     regression fails the session. Raises ``BaselineError`` on an incompatible baseline.
     """
+    frames = _section(current, "dataset").get("frames")
     check_baseline_compatible(baseline, spec_version=current.get("spec_version"),
                               dataset_fingerprint=(current.get("dataset") or {}).get("fingerprint"),
-                              seeds=baseline_seeds(current), settings=certificate_settings(current))
+                              settings=RunSettings.from_certificate(current),
+                              frames_scored=frames if isinstance(frames, int) else None,
+                              convention=str(_section(current, "settings").get("convention", CONVENTION)))
     cells = [reg for c in current.get("cells", [])
              if (reg := cell_regression(c["cell"], c.get("retention"), baseline, tolerance))]
     axes = []

@@ -13,7 +13,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, report_order
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, planned_in_both, report_order
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value
@@ -149,7 +149,8 @@ def ego_label(ego_removal: float | None, flat: float = DEFAULT_FLAT) -> str:
 
 def null_control(clean_plans: np.ndarray, null_plans: np.ndarray) -> NullControl:
     """Compare the null-control plans with clean: passed iff bit-identical (`cells.identical_plans`); otherwise
-    how far they wandered.
+    how far they wandered. Only the frames with a plan in both are compared (`cells.planned_in_both`), as in the
+    null-control item: a frame that failed in either cell is that cell's failure, not a wander.
 
     ``max_l2_change`` is the largest waypoint displacement (m) over frames and steps; it is the wander that
     ``separable_from_null`` compares cells against. ``frames_compared`` counts the frames with a plan in both;
@@ -158,10 +159,11 @@ def null_control(clean_plans: np.ndarray, null_plans: np.ndarray) -> NullControl
     a, b = np.asarray(clean_plans, dtype=np.float64), np.asarray(null_plans, dtype=np.float64)
     if a.shape != b.shape:
         raise InvalidInput(f"null-control plans have shape {b.shape}, clean plans {a.shape}")
-    compared = int((np.isfinite(a).reshape(len(a), -1).all(axis=1) & np.isfinite(b).reshape(len(b), -1).all(axis=1))
-                   .sum()) if a.size else 0
+    both = planned_in_both(a, b)
+    compared = int(both.sum())
     if compared == 0:
         return NullControl(passed=None, max_abs_diff=None, max_l2_change=None, frames_changed=0, frames_compared=0)
+    a, b = a[both], b[both]
     passed = identical_plans(a, b)
     diff = np.abs(a - b)
     disp = np.linalg.norm(a - b, axis=-1) if a.size else np.zeros(0)

@@ -16,6 +16,7 @@ from plugin_support import by_cell, read_csv  # noqa: E402
 from pytest_drivedegrade.data import geometry as geo  # noqa: E402
 from pytest_drivedegrade.data.context import CAN_BUS_SIZE, FrameContext  # noqa: E402
 from pytest_drivedegrade.run import RunContext  # noqa: E402
+from pytest_drivedegrade.settings import RunSettings  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -109,12 +110,11 @@ class Recorder:
 
 @pytest.fixture
 def run_context(small_world: Path) -> RunContext:
-    return RunContext.open(data_root=small_world, split="val", frames=None, seed=0, timeout=0.0, planner_path=None)
+    return RunContext.open(RunSettings(data=small_world, timeout=0.0))
 
 
 def test_stream_is_scene_ordered_with_a_reset_before_each_scene_of_each_cell(small_world):
-    context = RunContext.open(data_root=small_world, split="all", frames=None, seed=0, timeout=0.0,
-                              planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, split="all", timeout=0.0))
     planner = Recorder()
     planner.cameras = ()  # train scenes have tables only: read no image
     context.run_cell(planner, "clean", 0)
@@ -193,8 +193,8 @@ class Writer:
 
 @pytest.mark.parametrize("how", ["setflags", "torch", "raw"])
 def test_writes_into_inputs_fail_the_frame_naming_camera_and_frame_and_reach_nothing_else(small_world, how):
-    context = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
-    fresh = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
+    fresh = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
     target = context.frames[1].token
     honest = Writer("none", "")
     for family, severity in (("clean", 0), ("jpeg", 3), ("frame_dropout", 5)):

@@ -19,6 +19,7 @@ from plugin_support import by_cell, load_json, no_traceback, read_csv, verify_cl
 from pytest_drivedegrade.data.frame import Frame  # noqa: E402
 from pytest_drivedegrade.loader import CellSample, samples  # noqa: E402
 from pytest_drivedegrade.run import RunContext  # noqa: E402
+from pytest_drivedegrade.settings import RunSettings  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -102,8 +103,7 @@ def test_cheating_planner_learns_nothing_from_the_images_mapping(small_world: Pa
     else: no attribute, vars(), view object, pickle or attribute walk reaches the frame (ground truth, agent
     boxes), the family or the severity; its repr names neither. A cheater that plans the ground truth when it
     finds it scores the same constant plan in every cell."""
-    context = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None,
-                              batch=batch)
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0, batch=batch))
     cheater = Cheater()
     records = [context.run_cell(cheater, family, severity) for family, severity in
                (("clean", 0), ("jpeg", 5), ("blackout", 5))]
@@ -123,7 +123,7 @@ def test_cheating_planner_learns_nothing_from_the_images_mapping(small_world: Pa
 
 def test_a_camera_is_decoded_only_when_read(small_world: Path):
     """Trust case 7: the planner's mapping stays lazy: keys, `in` and len decode nothing; one read, one decode."""
-    context = RunContext.open(data_root=small_world, split="val", frames=1, seed=0, timeout=0.0, planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, frames=1, timeout=0.0))
     decoded: list[str] = []
 
     def decode(frame: Frame, camera: str) -> np.ndarray:
@@ -162,8 +162,8 @@ class InputWriter:
 def test_ego_and_context_arrays_are_read_only_and_private_to_the_call(small_world: Path):
     """Trust case 7: every array of the ego status and the context is read-only and a copy private to the call:
     a planner that flips the flag and writes changes nothing the next call, cell or process sees."""
-    context = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
-    fresh = RunContext.open(data_root=small_world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None)
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
+    fresh = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
     vandal, honest, reference = InputWriter(True), InputWriter(False), InputWriter(False)
     for planner, ctx in ((vandal, context), (honest, context), (reference, fresh)):
         for family, severity in (("clean", 0), ("ego_noise", 3)):
@@ -247,3 +247,90 @@ def test_an_empty_jpeg_is_a_data_error_not_the_planners(dd, small_world, scored_
     cert = load_json(dd.folder() / "certificate.json")
     assert next(c for c in cert["cells"] if c["cell"] == "clean")["data_errors"] == 1
     assert cert["verdict"]["label"] == "undetermined" and "1 data error" in cert["verdict"]["reason"]
+
+
+#: The issue's false accusation: a planner that reads only CAM_FRONT and plans from the change of the front image
+#: since its previous call (state across calls, as a BEV planner fuses its previous frame), with no reset().
+FRONT_CHANGE = '''
+import numpy as np
+import pytest
+
+
+class FrontChange:
+    cameras = ("CAM_FRONT",)
+    name = "frontchange"
+
+    def __init__(self):
+        self.previous = None
+
+    def predict(self, images, ego, cmd):
+        front = images["CAM_FRONT"][::4, ::4].astype(np.float32)
+        change = 0.0 if self.previous is None else float(np.abs(front - self.previous).mean()) / 255.0
+        self.previous = front
+        plan = np.zeros((6, 2))
+        plan[:, 0] = 2.0 * np.arange(1, 7)
+        plan[:, 1] = change
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return FrontChange()
+'''
+
+HISTORY_LINE = "*plans depend on call history: give the planner a reset(), or declare deterministic = False*"
+
+
+def no_camera_named(text: str) -> None:
+    """No line blames a camera: the culprit sentence never appears."""
+    assert "declared-unread camera(s) that change the plan" not in text, text
+    assert "add them to planner.cameras" not in text, text
+
+
+@pytest.mark.parametrize("layout", [("-n", "0"), ("-n", "2")])
+def test_false_accusation_a_stateful_planner_without_reset_is_never_blamed_for_a_camera(dd, layout):
+    """Issue 20, "False accusation": the front-only planner with state and no reset() was told "declared-unread
+    camera(s) that change the plan: CAM_BACK". Its null cell (and blackout S3, the rear cameras' null control)
+    may fail, since its plans depend on what ran before, but the failure says so and names no camera, under
+    -n 0 and -n 2."""
+    dd.pytester.makepyfile(frontchange=FRONT_CHANGE)
+    result = dd.run(*layout, planner="frontchange.py", families="jpeg,blackout", severities="3")
+    no_traceback(result)
+    text = result.stdout.str()
+    no_camera_named(text)
+    if layout == ("-n", "0"):  # one process: null follows blind, so its first frame's history differs from clean's
+        result.assert_outcomes(passed=3, failed=2)
+        for cell in ("null", "blackout-s3"):
+            result.stdout.fnmatch_lines([f"null control failed in cell {cell}:*", HISTORY_LINE], consecutive=True)
+    else:  # any failed null control says why, and the why is the history
+        lines = text.splitlines()
+        failed = [i for i, line in enumerate(lines) if line.startswith("null control failed in cell")]
+        assert all(lines[i + 1].startswith("  plans depend on call history: give the planner a reset()")
+                   for i in failed), text
+    assert (dd.folder("frontchange") / "certificate.json").exists()
+
+
+def test_false_accusation_a_planner_that_reads_an_undeclared_camera_is_still_named(dd):
+    """The other side of the fix: the planner that reads CAM_BACK undeclared is proved by replays that reproduce
+    its plans, and named with CAM_BACK alone."""
+    dd.write_planner(read_back=True)
+    result = dd.run("-n", "0", families="blackout", severities="3")
+    result.stdout.fnmatch_lines(["*null control failed in cell null*",
+                                 "*declared-unread camera(s) that change the plan: CAM_BACK; add them to "
+                                 "planner.cameras"], consecutive=False)
+    assert "plans depend on call history" not in result.stdout.str()
+
+
+def test_clean_failed_on_a_frame_blames_no_camera_end_to_end(dd, scored_tokens):
+    """M11: the planner raises on one frame of clean only. Today the null control named every unread camera; now
+    the frames with a plan in both are compared (identical), so the null cell passes and the certificate's null
+    control passed over 3 frames, while clean fails its own conformance and the verdict is undetermined."""
+    dd.write_planner(faults={"clean": ("raise", scored_tokens[1])})
+    result = dd.run("-n", "0", families="jpeg", severities="5")
+    no_traceback(result)
+    no_camera_named(result.stdout.str())
+    result.stdout.fnmatch_lines(["*cell clean: 1 of 4 frames failed the planner contract*"], consecutive=False)
+    assert "null control failed" not in result.stdout.str()
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["null_control"]["passed"] is True and cert["null_control"]["frames_compared"] == 3
+    assert cert["verdict"]["label"] == "undetermined"

@@ -11,6 +11,7 @@ import pytest
 
 from pytest_drivedegrade.data import content
 from pytest_drivedegrade.run import RunContext
+from pytest_drivedegrade.settings import RunSettings
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +27,7 @@ def world(world_master: Path, tmp_path: Path) -> Path:
 
 
 def _open(root: Path, cache: Path | None, frames: int | None = 4) -> RunContext:
-    return RunContext.open(data_root=root, split="val", frames=frames, seed=0, timeout=0.0, planner_path=None,
-                           digest_cache=cache)
+    return RunContext.open(RunSettings(data=root, frames=frames, timeout=0.0), digest_cache=cache)
 
 
 def test_a_swapped_image_changes_the_fingerprint_the_manifest_does_not(world: Path, tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ from pytest_drivedegrade.scoring import baseline as bl
 from pytest_drivedegrade.scoring import intervals as iv
 from pytest_drivedegrade.scoring import retention as rt
 from pytest_drivedegrade.scoring.analyse import analyse_run
+from pytest_drivedegrade.settings import RunSettings
 
 GOLDEN = Path(__file__).parents[1] / "data" / "golden" / "analysis_seeds1.json"
 
@@ -234,9 +235,9 @@ def test_baseline_with_another_seed_count_is_refused_with_a_clear_message():
     with pytest.raises(bl.BaselineError, match=r"1 corruption seed.*uses 3.*--drivedegrade-seeds 1"):
         bl.compare_to_baseline(cert, old)
     assert bl.compare_to_baseline(cert, cert) == {"cells": [], "axes": []}
-    bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", seeds=1)
+    bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", settings=RunSettings(seeds=1))
     with pytest.raises(bl.BaselineError, match="seed"):
-        bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", seeds=2)
+        bl.check_baseline_compatible(old, spec_version="2.0.0", dataset_fingerprint="d", settings=RunSettings(seeds=2))
 
 
 # --- the report and the terminal show them ----------------------------------------------------------------------

@@ -18,12 +18,12 @@ NAME = "pytest_drivedegrade"
 #: is a whole top-level module or folder of the package, and a module belongs to the stage of its top level
 #: (`metrics.pdms.rules` is in `metrics`' stage): a folder is one stage, with no exception for a submodule.
 STAGES: tuple[tuple[str, ...], ...] = (
-    ("constants", "errors", "atomic", ""),  # "" is the package's own __init__ (the lazy public API)
+    ("constants", "errors", "atomic", "settings", "progress", ""),  # "" is the package's own __init__ (lazy API)
     ("corruptions",),
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray actors); the floor
+    ("loader", "stream", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray); the floor
     ("scoring",),  # statistics over finished cells
     ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
     ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal

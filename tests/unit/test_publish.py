@@ -13,9 +13,9 @@ from test_analysis import ORDER, synthetic_run
 from pytest_drivedegrade.certificate import seal
 from pytest_drivedegrade.certificate.finished import FinishedRun, FloorFigures
 from pytest_drivedegrade.report.publish import publish
+from pytest_drivedegrade.settings import RunSettings
 
-SETTINGS = {"data_source": "embedded world", "split": "val", "frames_requested": 8, "seed": 3, "seeds": 1,
-            "flat": 0.95, "metric": "l2", "batch": 4, "reuse": False, "device": "cpu", "timeout": 60.0}
+SETTINGS = RunSettings(frames=8, seed=3, flat=0.95, batch=4, reuse=False)
 KEY = {"planner_fingerprint": "sha256:p", "dataset_fingerprint": "sha256:d"}
 
 

@@ -12,6 +12,7 @@ import pytest
 from pytest_drivedegrade.certificate.estimate import estimate, overhead_per_prediction
 from pytest_drivedegrade.run import RunContext
 from pytest_drivedegrade.scoring.records import cost_ledger
+from pytest_drivedegrade.settings import RunSettings
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,8 +33,7 @@ def camera_cnn():
 
 
 def context(world: Path, batch: int) -> RunContext:
-    return RunContext.open(data_root=world, split="val", frames=None, seed=0, timeout=0.0, planner_path=None,
-                           batch=batch)
+    return RunContext.open(RunSettings(data=world, timeout=0.0, batch=batch))
 
 
 @pytest.mark.parametrize("batch", [4, 16])
@@ -236,8 +236,7 @@ def test_no_reuse_for_nondeterministic_or_stateful_planners_or_when_turned_off(w
         assert not ctx.reuses_clean(planner, "blackout", 1)
         record = ctx.run_cell(planner, "blackout", 1, clean=clean)
         assert record.reused == 0 and planner.calls == n
-    off = RunContext.open(data_root=world, split="val", frames=None, seed=0, timeout=0.0, planner_path=None,
-                          reuse=False)
+    off = RunContext.open(RunSettings(data=world, timeout=0.0, reuse=False))
     planner = Counting(camera_cnn)
     assert not off.reuses_clean(planner, "blackout", 1)
     assert off.run_cell(planner, "blackout", 1, clean=clean).reused == 0 and planner.calls == n
@@ -264,7 +263,7 @@ def test_reused_frames_skip_the_batch(world, camera_cnn):
 
 def test_the_device_and_batched_no_reuse_enter_the_run_key(world, camera_cnn):
     def key(**kw):
-        ctx = RunContext.open(data_root=world, split="val", frames=4, seed=0, timeout=0.0, planner_path=None, **kw)
+        ctx = RunContext.open(RunSettings(data=world, frames=4, timeout=0.0, **kw))
         return ctx.run_key(camera_cnn)
 
     plain = key()

@@ -91,10 +91,81 @@ def test_wrong_key_and_unsigned_fail_with_a_public_key(cert, keys, tmp_path: Pat
 
 def test_key_sources_and_bad_keys(keys, tmp_path: Path, capsys) -> None:
     key, pub = keys
-    assert sg.read_key_source(key.read_text(), "env") == sg.read_key_source(str(key), "env")  # PEM text or path
+    assert sg.read_key_source(key.read_text(), "env", pem_allowed=True) == sg.read_key_source(str(key), "env")
     with pytest.raises(DriveDegradeError, match="no such key file"):
         sg.read_key_source(str(tmp_path / "absent.key"), "--drivedegrade-sign-key")
     with pytest.raises(DriveDegradeError, match="not an unencrypted PEM private key"):
         sg.load_private_key(pub.read_bytes(), "--drivedegrade-sign-key")
     assert main(["verify", str(tmp_path / "x.json"), "--public-key", str(key)]) == 2
     assert "not a PEM public key" in capsys.readouterr().err
+
+
+def test_the_signing_key_published_pem_text_is_taken_from_the_environment_only(keys, key_material) -> None:
+    """Issue 20 item 1: PEM text where a path belongs (the option, the ini value, merge --sign-key) is refused, and
+    the refusal does not echo it; the environment variable may hold it."""
+    key, _ = keys
+    pem = key.read_text()
+    with pytest.raises(DriveDegradeError) as exc:
+        sg.read_key_source(pem, "--drivedegrade-sign-key")
+    assert "DRIVEDEGRADE_SIGNING_KEY" in str(exc.value)
+    assert not any(m in str(exc.value) for m in key_material(key))
+    assert sg.read_key_source(pem, "DRIVEDEGRADE_SIGNING_KEY", pem_allowed=True) == pem.strip().encode() + b"\n"
+    assert sg.read_key_source(key.name, "k", base=key.parent) == key.read_bytes()  # a path, relative to base
+
+
+def test_the_signing_key_published_no_error_echoes_a_key(keys, key_material, tmp_path: Path) -> None:
+    """Issue 20 M8: a key that does not parse (truncated, a line missing, the base64 body without its armour given
+    as a "path") is an error that quotes none of it."""
+    key, _ = keys
+    pem = key.read_text()
+    lines = pem.splitlines()
+    body = lines[1]
+    broken = [
+        ("DRIVEDEGRADE_SIGNING_KEY", pem[: len(pem) // 2]),  # truncated: no END line
+        ("DRIVEDEGRADE_SIGNING_KEY", "\n".join([lines[0], body[:-4] + "!!!!", lines[-1]])),  # a bad body
+        ("--drivedegrade-sign-key", body),  # the body alone: not key text by its looks, and no such file
+        ("DRIVEDEGRADE_SIGNING_KEY", body),
+    ]
+    for where, value in broken:
+        with pytest.raises(DriveDegradeError) as exc:
+            sg.load_private_key(sg.read_key_source(value, where, pem_allowed=where.isupper()), where)
+        text = str(exc.value)
+        assert where in text and body[:16] not in text and body[-16:] not in text, text
+        assert not any(m in text for m in key_material(key)), text
+    with pytest.raises(DriveDegradeError, match="no such key file") as missing:
+        sg.read_key_source(str(tmp_path / "absent.key"), "--drivedegrade-sign-key")
+    assert "absent.key" not in str(missing.value)  # a path that names no file may be key text: not echoed
+
+
+def test_the_signing_key_published_a_key_file_readable_by_others_is_warned_about(keys, capsys) -> None:
+    """Issue 20 L4: a key file with group or other bits set gets a warning naming the file and the fix; keygen's
+    0600 gets none; `drivedegrade merge --sign-key` warns too."""
+    key, _ = keys
+    assert sg.loose_permissions(key) is None
+    key.chmod(0o644)
+    warning = sg.loose_permissions(key)
+    assert warning is not None and "mode 0644" in warning and f"chmod 600 {key}" in warning
+    key.chmod(0o640)
+    assert "mode 0640" in (sg.loose_permissions(key) or "")
+    assert main(["merge", str(key.parent / "no-such-shard"), "--out", str(key.parent / "m"),
+                 "--sign-key", str(key)]) == 2
+    assert "accessible to its group or others (mode 0640)" in capsys.readouterr().err
+
+
+def test_the_signing_key_published_the_recorded_command_never_holds_key_text(keys) -> None:
+    """Issue 20 item 1: the command line the certificate and report record keeps a key file's path and replaces
+    any other value of the option (however given) and any argument that looks like key text."""
+    from pytest_drivedegrade.plugin.keys import REDACTED, recorded_args
+
+    key, _ = keys
+    here, pem = key.parent, key.read_text()
+    body = pem.splitlines()[1]
+    args = ["--drivedegrade", "p.py", "--drivedegrade-sign-key", key.name, "--drivedegrade-sign-key", body,
+            f"--drivedegrade-sign-key={body}", "-o", f"drivedegrade_sign_key={body}",
+            f"-odrivedegrade_sign_key={body}", f"--override-ini=drivedegrade_sign_key={body}",
+            "--override-ini", f"drivedegrade_sign_key={key.name}", "-k", pem, "-o", "cache_dir=x"]
+    assert recorded_args(args, here) == [
+        "--drivedegrade", "p.py", "--drivedegrade-sign-key", key.name, "--drivedegrade-sign-key", REDACTED,
+        f"--drivedegrade-sign-key={REDACTED}", "-o", f"drivedegrade_sign_key={REDACTED}",
+        f"-odrivedegrade_sign_key={REDACTED}", f"--override-ini=drivedegrade_sign_key={REDACTED}",
+        "--override-ini", f"drivedegrade_sign_key={key.name}", "-k", REDACTED, "-o", "cache_dir=x"]

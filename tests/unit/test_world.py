@@ -14,15 +14,24 @@ from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.data import geometry as geo
 from pytest_drivedegrade.data.frame import command_from_future
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
-from pytest_drivedegrade.data.world import WORLD_VERSION, agents, build, ensure_default_world, expert, write_world
+from pytest_drivedegrade.data.world import (
+    WORLD_VERSION,
+    agents,
+    build,
+    ensure_default_world,
+    expert,
+    export,
+    tasks,
+    write_world,
+)
 from pytest_drivedegrade.data.world.roads import Path as LanePath
 from pytest_drivedegrade.data.world.scene import KEYFRAMES, make_scene
 
 
 @pytest.fixture(scope="session")
 def world(tmp_path_factory) -> Path:
-    """Two scenes: one train (tables only), one val (rendered)."""
-    return write_world(tmp_path_factory.mktemp("world") / "w", scenes=2, seed=3)
+    """Two scenes: one train (tables only), one val (rendered), on two worker processes."""
+    return write_world(tmp_path_factory.mktemp("world") / "w", scenes=2, seed=3, workers=2)
 
 
 def _tree_hash(root: Path) -> str:
@@ -94,14 +103,33 @@ def test_images_look_like_a_road_scene(world):
     assert front[:40].mean() > front[400:].mean()  # sky above is brighter than the road below
 
 
-def test_generation_is_deterministic(world, tmp_path):
-    a = write_world(tmp_path / "a", scenes=3, seed=11, val_images=False)
-    b = write_world(tmp_path / "b", scenes=3, seed=11, val_images=False)
+def test_generation_is_deterministic_and_the_same_on_any_number_of_workers(world, tmp_path):
+    a = write_world(tmp_path / "a", scenes=3, seed=11, val_images=False, workers=1)
+    b = write_world(tmp_path / "b", scenes=3, seed=11, val_images=False, workers=3)
     assert _tree_hash(a) == _tree_hash(b)
-    c = write_world(tmp_path / "c", scenes=3, seed=12, val_images=False)
+    c = write_world(tmp_path / "c", scenes=3, seed=12, val_images=False, workers=1)
     assert _tree_hash(a) != _tree_hash(c)
-    again = write_world(tmp_path / "again", scenes=2, seed=3)
-    assert _tree_hash(again) == _tree_hash(world)
+    again = write_world(tmp_path / "again", scenes=2, seed=3, workers=1)  # serial, in this process
+    assert _tree_hash(again) == _tree_hash(world)  # images included: rendered on two workers there
+
+
+def test_tables_joined_from_fragments_are_the_dumped_list(tmp_path):
+    records = [{"b": 1, "a": [1.5, "x"]}, {"token": "t"}, {}]
+    whole = export.dump(tmp_path / "whole.json", records)
+    parts = [export.items_json(records[:1]), export.items_json([]), export.items_json(records[1:])]
+    assert export.dump_items(tmp_path / "parts.json", parts) == whole
+    assert export.dump_items(tmp_path / "empty.json", [export.items_json([])]) == export.dump(tmp_path / "e", [])
+
+
+def test_tasks_come_back_in_task_order_and_rendering_ones_cost_more(monkeypatch):
+    slow = tasks.SceneTask("/x", 0, 0, "a", False, render=True)
+    fast = tasks.SceneTask("/x", 0, 1, "b", False)
+    assert slow.cost > fast.cost
+    assert tasks.default_workers(1) == 1 and 1 <= tasks.default_workers(100) <= tasks.MAX_WORKERS
+    seen: list[str] = []
+    monkeypatch.setattr(tasks, "run_task", lambda t: t.name)  # type: ignore[arg-type]
+    assert tasks.run_tasks([fast, slow], workers=1, done=lambda t: seen.append(t.name)) == ["b", "a"]
+    assert seen == ["b", "a"]
 
 
 def test_event_fraction_over_many_scenes():
@@ -200,4 +228,5 @@ def test_cli_world_writes_a_world(tmp_path, capsys, monkeypatch):
     assert not list(out.rglob("*.jpg"))  # val_images=False: tables only, no frames written
     err = capsys.readouterr().err
     assert f"wrote {out} (2 scenes, fingerprint {manifest['fingerprint']})" in err
-    assert err.count("drivedegrade world: scene ") == 2  # one progress line per scene
+    assert "drivedegrade world: 2 scenes in " in err  # one closing progress line, not a line per scene
+    assert "scene-0001" not in err and err.count("\n") <= 3  # not a terminal: milestones only

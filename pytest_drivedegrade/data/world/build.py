@@ -8,18 +8,18 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 from typing import Any
 
 from ...errors import DataError
-from ..maps import expansion_path
+from ...progress import Progress, Sink
 from ..nuscenes import WORLD_MANIFEST, official_scene_names
-from . import export
+from . import export, tasks
 from .rig import Rig
-from .scene import KEYFRAMES, make_scene
+from .scene import KEYFRAMES
+from .tasks import SceneTask
 
 GENERATOR_VERSION = "3.0.0"
 #: The version folder: the name the converters of planner code bases accept (mmdet3d, UniAD, VAD).
@@ -30,9 +30,6 @@ MAX_VAL_SCENES = 6  # val is what a certification scores (83 cells x its frames)
 SCORABLE_PER_SCENE = KEYFRAMES - 6
 #: Scene numbers nuscenes-devkit's `NuScenesCanBus.get_messages` refuses (its `can_blacklist`).
 CAN_BLACKLIST = frozenset((*range(161, 169), *range(170, 177), *range(309, 315)))
-
-Progress = Callable[[str], None] | None
-
 
 def split_names(n: int) -> tuple[list[str], list[str]]:
     """Scene names of the train and val splits: the last tenth (at least one, at most MAX_VAL_SCENES) is val.
@@ -52,11 +49,13 @@ def split_names(n: int) -> tuple[list[str], list[str]]:
 
 
 def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size: bool = False,
-                train_images: bool = False, progress: Progress = None, val_images: bool = True) -> Path:
+                train_images: bool = False, progress: Sink | None = None, val_images: bool = True,
+                workers: int | None = None) -> Path:
     """Generate a world of `scenes` scenes into `out_dir` (the nuScenes data root) and return it.
 
     Val images are rendered (unless `val_images` is False, for table-only checks); train images only with
-    `train_images` (the tables are complete either way).
+    `train_images` (the tables are complete either way). Scenes are generated on `workers` processes (None:
+    `tasks.default_workers`, from the cores available); the files are the same for any number.
     The manifest is written last, so a world without one is incomplete.
     """
     n = DEFAULT_SCENES if scenes is None else int(scenes)
@@ -64,37 +63,24 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
         raise DataError(f"a world needs at least 2 scenes (one train, one val); got {n}")
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
-    say = progress or (lambda s: None)
-    rig = Rig.nuscenes_like(full_size)
     train, val = split_names(n)
-    tables = export.static_tables(seed, rig)
-    for name in ("log", "scene", "sample", "ego_pose", "sample_data", "sample_annotation", "instance"):
-        tables[name] = []
-    tables["map"] = [{"token": export.token(seed, "map"), "log_tokens": [], "category": "semantic_prior",
-                      "filename": ""}]
+    todo = [SceneTask(str(root), seed, i, name, full_size, render=(name in val and val_images)
+                      or (name not in val and train_images), fingerprint_images=name in val)
+            for i, name in enumerate(train + val)]
+    with Progress("drivedegrade world", n, unit="scenes", sink=progress or Sink.silent()) as bar:
+        outputs = tasks.run_tasks(todo, workers, lambda t: bar.advance(note=f"{t.name}{' rendered' * t.render}"))
     digest = hashlib.blake2b(f"{GENERATOR_VERSION}|{seed}|{n}|{full_size}".encode(), digest_size=16)
-    events: dict[str, list[str]] = {"train": [], "val": []}
-    start = time.perf_counter()
-    for i, name in enumerate(train + val):
-        scene = make_scene(seed, i, name)
-        split = "val" if name in val else "train"
-        events[split] += scene.events[:SCORABLE_PER_SCENE]
-        for path, data in export.scene_tables(scene, seed, tables, rig).items():
-            (root / path).parent.mkdir(parents=True, exist_ok=True)
-            (root / path).write_bytes(data)
-            digest.update(hashlib.blake2b(data, digest_size=16).digest())
-        export.dump(root / "can_bus" / f"{name}_pose.json", export.can_bus(scene))
-        digest.update(export.dump(expansion_path(root, export.location(scene, seed)),
-                                  export.map_expansion(scene, seed)))
-        render = (split == "val" and val_images) or (split == "train" and train_images)
-        if render:
-            for d in export.render_scene(scene, rig, root):
-                if split == "val":
-                    digest.update(d)
-        say(f"drivedegrade world: scene {i + 1}/{n} ({split}{', rendered' if render else ''})"
-            f" {time.perf_counter() - start:.1f} s")
-    for name, records in sorted(tables.items()):
-        digest.update(export.dump(root / WORLD_VERSION / f"{name}.json", records))
+    for out in outputs:
+        digest.update(out.fingerprint)
+    static = export.static_tables(seed, Rig.nuscenes_like(full_size))
+    static["map"] = [{"token": export.token(seed, "map"), "log_tokens": [out.log_token for out in outputs],
+                      "category": "semantic_prior", "filename": ""}]
+    tables = {name: [export.items_json(records)] for name, records in static.items()}
+    tables.update({name: [out.tables[name] for out in outputs] for name in tasks.SCENE_TABLES})
+    for name, items in sorted(tables.items()):
+        digest.update(export.dump_items(root / WORLD_VERSION / f"{name}.json", items))
+    events = {split: [e for out, t in zip(outputs, todo) if (t.name in val) == (split == "val")
+                      for e in out.events[:SCORABLE_PER_SCENE]] for split in ("train", "val")}
     manifest = {"generator": "pytest-drivedegrade world", "generator_version": GENERATOR_VERSION,
                 "version": WORLD_VERSION, "seed": seed, "scenes": n, "full_size": full_size,
                 "train_images": bool(train_images), "splits": {"train": train, "val": val},
@@ -115,15 +101,15 @@ def _event_stats(kinds: list[str]) -> dict:
     return out
 
 
-def add_train_images(root: Path, progress: Progress = None) -> None:
+def add_train_images(root: Path, progress: Sink | None = None, workers: int | None = None) -> None:
     """Render the train split's images into an existing world (same seed and options as its manifest)."""
     manifest = json.loads((root / MANIFEST).read_text())
-    rig = Rig.nuscenes_like(manifest["full_size"])
-    say = progress or (lambda s: None)
     names = manifest["splits"]["train"]
-    for i, name in enumerate(names):
-        export.render_scene(make_scene(manifest["seed"], i, name), rig, root)
-        say(f"drivedegrade world: train images {i + 1}/{len(names)}")
+    todo = [SceneTask(str(root), manifest["seed"], i, name, manifest["full_size"], tables=False, render=True)
+            for i, name in enumerate(names)]
+    with Progress("drivedegrade world: train images", len(todo), unit="scenes",
+                  sink=progress or Sink.silent()) as bar:
+        tasks.run_tasks(todo, workers, lambda t: bar.advance(note=t.name))
     manifest["train_images"] = True
     tmp = root / (MANIFEST + ".tmp")
     export.dump(tmp, manifest)
@@ -164,12 +150,13 @@ def default_world_dir(cache_root) -> Path:
     return Path(cache_root) / f"world-{GENERATOR_VERSION}-seed0"
 
 
-def ensure_default_world(cache_root, *, train_images: bool = False, progress: Progress = None) -> Path:
-    """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed)."""
+def ensure_default_world(cache_root, *, train_images: bool = False, progress: Sink | None = None) -> Path:
+    """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed), its
+    progress on `progress` (None: one line on stderr)."""
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
     target = default_world_dir(cache_root)
-    say = progress or (lambda s: print(s, file=sys.stderr, flush=True))
+    say = progress if progress is not None else Sink()
 
     def ready() -> bool:
         if not (target / MANIFEST).is_file():
@@ -196,7 +183,7 @@ def cli_world(args) -> int:
     """`drivedegrade world --out DIR [--scenes N] [--seed S] [--full-size] [--train-images]`."""
     start = time.perf_counter()
     root = write_world(args.out, scenes=args.scenes, seed=args.seed, full_size=args.full_size,
-                       train_images=args.train_images, progress=lambda s: print(s, file=sys.stderr, flush=True))
+                       train_images=args.train_images, progress=Sink())
     manifest = json.loads((root / MANIFEST).read_text())
     ev = manifest["events"]["val"]
     print(f"wrote {root} ({manifest['scenes']} scenes, fingerprint {manifest['fingerprint']}) in "

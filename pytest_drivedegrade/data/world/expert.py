@@ -54,12 +54,29 @@ def allowed_speed(lane: Path, v_cruise: float) -> np.ndarray:
     return v
 
 
-def corridor_obstacles(lane: Path, agents: list[Agent]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per agent and step: arc length on the ego lane, speed along it, and whether it blocks the corridor."""
+#: Agents' projections on one lane (`Path.project` of their track), by id; the agent is kept in the value so that its
+#: id is not reused while the cache lives. A scene drives the expert up to 2 x MAX_TRIES times past the same
+#: background traffic: each agent is projected once.
+Projections = dict[int, tuple[Agent, np.ndarray, np.ndarray]]
+
+
+def _projected(lane: Path, agent: Agent, cache: Projections | None) -> tuple[np.ndarray, np.ndarray]:
+    if cache is None:
+        return lane.project(agent.xy)
+    hit = cache.get(id(agent))
+    if hit is None or hit[0] is not agent:
+        hit = cache[id(agent)] = (agent, *lane.project(agent.xy))
+    return hit[1], hit[2]
+
+
+def corridor_obstacles(lane: Path, agents: list[Agent], projections: Projections | None = None,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per agent and step: arc length on the ego lane, speed along it, and whether it blocks the corridor
+    (`projections`: a cache for this `lane`, shared by calls on the same agents)."""
     n = len(agents)
     s_all, v_all, block = np.zeros((n, SIM_STEPS)), np.zeros((n, SIM_STEPS)), np.zeros((n, SIM_STEPS), bool)
     for i, a in enumerate(agents):
-        s, d = lane.project(a.xy)
+        s, d = _projected(lane, a, projections)
         inside = (np.abs(d) < EGO_WIDTH / 2 + a.size[1] / 2 + 0.4) & (s > 0) & (s < lane.length)
         if a.kind in ("pedestrian", "cyclist"):  # about to step into the lane: a short look ahead only
             soon = inside.copy()
@@ -97,10 +114,11 @@ def perceived(s_obs: np.ndarray, v_obs: np.ndarray, vehicle: np.ndarray, t: int)
     return s, np.maximum(v, 0.0)
 
 
-def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float) -> EgoLog:
-    """Simulate the ego along `lane` on the sim clock; returns its log."""
+def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float,
+          projections: Projections | None = None) -> EgoLog:
+    """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`)."""
     v_allow = allowed_speed(lane, v_cruise)
-    s_obs, v_obs, block = corridor_obstacles(lane, agents)
+    s_obs, v_obs, block = corridor_obstacles(lane, agents, projections)
     vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
     half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2
     engaged = np.zeros(len(agents), bool)

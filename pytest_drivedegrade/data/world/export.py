@@ -207,6 +207,19 @@ def dump(path: Path, records) -> bytes:
     return data
 
 
+def items_json(records: list) -> str:
+    """The items of `records` as `dump` writes them inside its list: joined by "," they are that list's text."""
+    return json.dumps(records, sort_keys=True, separators=(",", ":"))[1:-1]
+
+
+def dump_items(path: Path, fragments: list[str]) -> bytes:
+    """Write a list given as `items_json` fragments (of its parts, in order); the same bytes `dump` writes."""
+    data = ("[" + ",".join(f for f in fragments if f) + "]").encode()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(data)
+    return data
+
+
 def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
     """Render and write the six JPEGs of every keyframe (or of `keys`); returns their bytes' digests."""
     rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])

@@ -8,7 +8,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from .agents import DT, Agent, Prop, background_traffic, crossing_walker, depart, lead_vehicle, scenery
-from .expert import KEY_EVERY, REACT_VEHICLE, EgoLog, allowed_speed, drive, follower, keyframe_events, start_state
+from .expert import (
+    KEY_EVERY,
+    REACT_VEHICLE,
+    EgoLog,
+    Projections,
+    allowed_speed,
+    drive,
+    follower,
+    keyframe_events,
+    start_state,
+)
 from .roads import LANE_WIDTH, Path, RoadNet, build_roads
 
 KEYFRAMES = 40  # 20 s at 2 Hz, as a nuScenes scene
@@ -88,14 +98,15 @@ def make_scene(seed: int, index: int, name: str) -> Scene:
     background = background_traffic(rng, net, k)
     s0, v0 = start_state(rng, v_cruise)
     v0 = min(v0, float(np.interp(s0, lane.s, allowed_speed(lane, v_cruise))))  # not already too fast for a bend
+    seen: Projections = {}  # the background's projections on the lane, computed once for every try
     for _ in range(MAX_TRIES):  # redraw a scenario the expert cannot drive safely (too late to stop)
         scenario, crosswalks = _scenario(rng, net, lane, lane_d, v_cruise)
-        agents, ego = _drive_and_release(rng, lane, scenario + background, v_cruise, v0, s0)
+        agents, ego = _drive_and_release(rng, lane, scenario + background, v_cruise, v0, s0, seen)
         if ego.min_gap >= MIN_GAP:
             break
     else:
         crosswalks = []
-        agents, ego = _drive_and_release(rng, lane, background, v_cruise, v0, s0)
+        agents, ego = _drive_and_release(rng, lane, background, v_cruise, v0, s0, seen)
     if rng.random() < 0.5:
         agents.append(follower(rng, lane, ego))
     events = keyframe_events(lane, ego, KEYFRAMES)
@@ -118,9 +129,10 @@ def _scenario(rng, net: RoadNet, lane: Path, lane_d: float, v_cruise: float) -> 
     return agents, crosswalks
 
 
-def _drive_and_release(rng, lane: Path, agents: list[Agent], v_cruise: float, v0: float, s0: float):
+def _drive_and_release(rng, lane: Path, agents: list[Agent], v_cruise: float, v0: float, s0: float,
+                       seen: Projections):
     """Drive the expert; a standing vehicle it has stopped behind pulls away a few seconds later (drive again)."""
-    ego = drive(lane, agents, v_cruise, v0, s0)
+    ego = drive(lane, agents, v_cruise, v0, s0, seen)
     stopped = [i for i, a in enumerate(agents) if a.role == "stopped"]
     if not stopped:
         return agents, ego
@@ -129,4 +141,4 @@ def _drive_and_release(rng, lane: Path, agents: list[Agent], v_cruise: float, v0
     t_go = (halted[0] * DT if len(halted) else float(rng.uniform(4.0, 14.0))) + float(rng.uniform(1.0, 6.0))
     for i in stopped:
         agents[i] = depart(agents[i], lane, t_go)
-    return agents, drive(lane, agents, v_cruise, v0, s0)
+    return agents, drive(lane, agents, v_cruise, v0, s0, seen)

@@ -16,6 +16,8 @@ as the rest of a scene's tables. Ego frame throughout (x forward, y left, z up, 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ...constants import CAMERAS
@@ -47,6 +49,11 @@ _DIR_SENSOR = np.stack([np.cos(_EL)[:, None] * np.cos(_AZ)[None], np.cos(_EL)[:,
 _DIR_EGO = _DIR_SENSOR @ _R_LIDAR.T
 #: The sensor's azimuth 0 looks along ego -y (the real mounting is yawed by -90 degrees): column offset of ego 0.
 _COL_OFFSET = int(round(np.degrees(-np.arctan2(_DIR_EGO[RINGS // 2, 0, 1], _DIR_EGO[RINGS // 2, 0, 0])) / AZIMUTH_STEP))
+# The same for every scan (computed once, not per keyframe): each ray's distance to the ground, and which ground
+# returns are kept (within range, on one of the GROUND_EVERY spokes).
+with np.errstate(divide="ignore"):
+    _GROUND = np.where(_DIR_EGO[..., 2].ravel() < 0, -_T_LIDAR[2] / _DIR_EGO[..., 2].ravel(), np.inf)
+_GROUND_KEPT = (_GROUND <= LIDAR_RANGE) & ((np.tile(np.arange(_N_AZ), RINGS) - _COL_OFFSET) % GROUND_EVERY == 0)
 
 
 def boxes_at(agents: list[Agent], step: int, pose) -> np.ndarray:
@@ -88,9 +95,7 @@ def lidar_scan(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n_rays = RINGS * _N_AZ
     best = np.full(n_rays, np.inf)
     owner = np.full(n_rays, -1)
-    dz = _DIR_EGO[..., 2].ravel()
-    with np.errstate(divide="ignore"):
-        ground = np.where(dz < 0, -_T_LIDAR[2] / dz, np.inf)
+    ground = _GROUND
     if len(boxes):
         rel = boxes[:, :2] - _T_LIDAR[:2]
         dist = np.hypot(rel[:, 0], rel[:, 1])
@@ -113,8 +118,7 @@ def lidar_scan(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         best[rays[first]], owner[rays[first]] = t[first], box_of[first]
     on_box = owner >= 0
     on_box &= best < ground
-    cols = np.tile(np.arange(_N_AZ), RINGS)
-    on_ground = ~on_box & (ground <= LIDAR_RANGE) & ((cols - _COL_OFFSET) % GROUND_EVERY == 0)
+    on_ground = ~on_box & _GROUND_KEPT
     keep = np.flatnonzero(on_box | on_ground)
     t = np.where(on_box, best, ground)[keep]
     points = _DIR_SENSOR.reshape(-1, 3)[keep] * t[:, None]  # the sensor frame: origin at the sensor
@@ -140,6 +144,12 @@ def _unit_faces() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 _FACE_PTS, _FACE_NORMALS, _FACE_AREA = _unit_faces()
+
+
+@functools.lru_cache(maxsize=32)
+def _rotation(quaternion: tuple[float, ...]) -> np.ndarray:
+    """A camera's rotation matrix, computed once per camera, not per keyframe (never written to)."""
+    return quat_to_matrix(quaternion)
 
 
 def visible_fractions(boxes: np.ndarray, targets, rig: Rig) -> np.ndarray:
@@ -169,7 +179,7 @@ def visible_fractions(boxes: np.ndarray, targets, rig: Rig) -> np.ndarray:
     sample_of, centres = [], []
     for name in CAMERAS:
         cam = rig.cameras[name]
-        rot, centre = quat_to_matrix(cam.rotation), np.asarray(cam.translation)
+        rot, centre = _rotation(tuple(cam.rotation)), np.asarray(cam.translation)
         pc = (pts - centre) @ rot  # camera frame
         z = pc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -1,0 +1,299 @@
+"""The one description of a run: `RunSettings`, and `TABLE`, which says per setting what it means outside the run.
+
+A setting enters the run key (`RunSettings.run_key_fields`, the stored cells a rerun may reuse), the certificate
+(`certificate_settings`, `from_certificate`), a shard manifest and a Ray actor's payload (`to_builtins`,
+`from_builtins`), the command line a rerun needs (`rerun_argv`), and the comparisons of shards (`same_run`) and of
+a run with its baseline (`baseline_differences`), all read off one row of `TABLE`. Adding a setting is a field of
+`RunSettings` (its default there) and a row of `TABLE`; a test checks that every field has its row.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from enum import Enum
+from pathlib import Path
+
+from .constants import DEFAULT_FLAT
+from .errors import DriveDegradeError, InvalidInput
+
+#: What `dataset.source` of a certificate says for the suite's own rendered world (`RunSettings.data` None).
+EMBEDDED_WORLD = "embedded world"
+_SHARD = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
+
+#: A setting's value as builtins: what JSON, xdist and Ray carry.
+Builtin = str | int | float | bool | None
+
+
+@dataclass(frozen=True)
+class Shard:
+    """Shard `index` (1-based) of `count` (`--drivedegrade-shard I/N`; `shards.partition` says which frames)."""
+
+    index: int
+    count: int
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"
+
+    @property
+    def label(self) -> str:
+        """A folder-safe name, e.g. ``shard-2-of-8``."""
+        return f"shard-{self.index}-of-{self.count}"
+
+    @classmethod
+    def parse(cls, text: str) -> Shard:
+        """``I/N`` with 1 <= I <= N; DriveDegradeError saying what is wrong otherwise."""
+        found = _SHARD.match(str(text))
+        if not found:
+            raise DriveDegradeError(f"expected I/N (e.g. 2/8), got {text!r}")
+        index, count = int(found.group(1)), int(found.group(2))
+        if count < 1 or not 1 <= index <= count:
+            raise DriveDegradeError(f"shard {index}/{count}: I must be between 1 and N (1-based)")
+        return cls(index, count)
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Everything a run's numbers depend on besides the planner, the data's content and the tool: the options a
+    rerun must repeat. Defaults are the options' defaults (`DEFAULTS`)."""
+
+    data: Path | None = None  #: --drivedegrade-data; None: the embedded world
+    split: str = "val"
+    frames: int | None = None  #: --drivedegrade-frames as asked for (None: every scorable frame)
+    seed: int = 0
+    seeds: int = 1  #: random families run under seed .. seed + seeds - 1
+    batch: int = 1  #: frames per predict_batch() call (stateless planners only)
+    reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
+    device: str = "cpu"  #: where a planner that supports it runs (`planning.planner_device`)
+    timeout: float = 60.0  #: seconds one predict() may take (0: no limit)
+    metric: str = "l2"  #: the retention the verdict is put on (l2 or pdms)
+    flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
+    shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
+
+    @property
+    def data_source(self) -> str:
+        """The data set as the certificate's ``dataset.source`` names it."""
+        return EMBEDDED_WORLD if self.data is None else str(self.data)
+
+    def value(self, name: str) -> object:
+        return getattr(self, name)
+
+    # --- builtins ----------------------------------------------------------------------------------------------
+
+    def to_builtins(self) -> dict[str, Builtin]:
+        """Every setting as JSON builtins, by field name (a shard manifest's ``settings``, a Ray actor's payload)."""
+        return {row.name: _encode(self.value(row.name)) for row in TABLE}
+
+    @classmethod
+    def from_builtins(cls, data: Mapping[str, object]) -> RunSettings:
+        """Inverse of `to_builtins`; a setting the mapping lacks takes its default."""
+        return _settings({row.name: _decode(row.name, data[row.name]) for row in TABLE if row.name in data})
+
+    def certificate_settings(self) -> dict[str, Builtin]:
+        """The settings the certificate's ``settings`` section records, by their key there."""
+        return {row.where[0][1]: _encode(self.value(row.name)) for row in TABLE
+                if row.where and row.where[0][0] == "settings"}
+
+    @classmethod
+    def from_certificate(cls, cert: Mapping[str, object]) -> RunSettings:
+        """The settings a certificate records (its first location that has it; a certificate written before a
+        setting existed has that setting's default). The shard is never recorded: a certificate is a whole run."""
+        found: dict[str, object] = {}
+        for row in TABLE:
+            for section, key in row.where:
+                part = cert.get(section)
+                if isinstance(part, Mapping) and key in part:
+                    found[row.name] = _decode(row.name, part[key])
+                    break
+        return _settings(found)
+
+    # --- what the run key, a rerun and the comparisons see -----------------------------------------------------
+
+    def run_key_fields(self) -> dict[str, Builtin]:
+        """The settings a stored cell's run key holds, in table order (each only where it changes a plan, so a
+        run at the defaults keeps the key, and the stored cells, of runs before the setting existed)."""
+        return {row.name: _encode(self.value(row.name)) for row in TABLE if row.keyed is not None and row.keyed(self)}
+
+    def rerun_argv(self) -> list[str]:
+        """The ``--drivedegrade-*`` options that repeat these settings (`Setting.rerun` says which are given)."""
+        out: list[str] = []
+        for row in TABLE:
+            got = self.value(row.name)
+            if row.rerun == "never" or got is None or (row.rerun == "changed" and got == row.default):
+                continue
+            out += [row.flag] if isinstance(row.default, bool) else [row.flag, _text(got)]
+        return out
+
+    def differences(self, other: RunSettings) -> list[Difference]:
+        """Every setting in which `other` differs from this run's, in table order."""
+        return [Difference(row, self.value(row.name), other.value(row.name)) for row in TABLE
+                if self.value(row.name) != other.value(row.name)]
+
+    def same_run(self, other: RunSettings) -> list[Difference]:
+        """The differences that make `other` another run's (shards of one run differ only where `Setting.per_shard`)."""
+        return [d for d in self.differences(other) if not d.setting.per_shard]
+
+    def baseline_differences(self, baseline: RunSettings) -> list[Difference]:
+        """The differences that make `baseline` another quantity than this run (`Setting.gate`), as the gate
+        refuses them: a KEYED setting only where either run key holds it."""
+        out = []
+        for d in self.differences(baseline):
+            gate = d.setting.gate
+            if gate is Gate.SAME or (gate is Gate.KEYED and self.keyed(d.setting) != baseline.keyed(d.setting)):
+                out.append(d)
+        return out
+
+    def keyed(self, row: Setting) -> Builtin:
+        """The setting's value as the run key holds it (None where the key leaves it out)."""
+        return _encode(self.value(row.name)) if row.keyed is not None and row.keyed(self) else None
+
+
+#: The options' defaults.
+DEFAULTS = RunSettings()
+
+
+class Gate(Enum):
+    """What the baseline gate asks of a setting (`Setting.gate`; its reason in `Setting.reason`)."""
+
+    SAME = "must equal the baseline's"
+    KEYED = "must equal the baseline's where either run key holds it"
+    FREE = "may differ from the baseline's"
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One row of `TABLE`: a field of `RunSettings` and what it means outside the run.
+
+    `where`: its places in a certificate, (section, key), the first found wins (); none: not recorded.
+    `keyed`: when the run key holds it (None: never; the frames key and the dataset fingerprint hold what it
+    changes). `gate` and `reason`: whether it may differ between a run and its baseline, and why. `rerun`:
+    whether a rerun's command line gives it "always", when "changed" from the default, or "never" (where the data
+    lies is this machine's; a certificate is of a whole run, no shard). `per_shard`: shards of one run may
+    differ in it.
+    """
+
+    name: str
+    label: str
+    flag: str
+    where: tuple[tuple[str, str], ...]
+    gate: Gate
+    reason: str
+    keyed: Callable[[RunSettings], bool] | None = None
+    rerun: str = "changed"
+    per_shard: bool = False
+
+    @property
+    def default(self) -> object:
+        return DEFAULTS.value(self.name)
+
+
+@dataclass(frozen=True)
+class Difference:
+    """One setting in which two runs differ: this run's value and the other's."""
+
+    setting: Setting
+    mine: object
+    theirs: object
+
+    @property
+    def name(self) -> str:
+        return self.setting.name
+
+    def against_baseline(self) -> str:
+        """``label: baseline X, this run Y (flag)``, as the gate names it."""
+        row = self.setting
+        return f"{row.label}: baseline {_shown(self.theirs)}, this run {_shown(self.mine)} ({row.flag})"
+
+
+def _always(settings: RunSettings) -> bool:
+    return True
+
+
+_S, _K, _F = Gate.SAME, Gate.KEYED, Gate.FREE
+TABLE: tuple[Setting, ...] = (
+    Setting("data", "data set", "--drivedegrade-data", (("dataset", "source"),), _F, "where the data lies is not "
+            "what it holds: the dataset fingerprint compares the scored frames' content", rerun="never",
+            per_shard=True),
+    Setting("split", "split", "--drivedegrade-split", (("dataset", "split"),), _S, "another split scores other "
+            "frames", rerun="always"),
+    Setting("frames", "frames asked for", "--drivedegrade-frames", (("dataset", "frames_requested"),
+            ("dataset", "frames")), _F, "the gate compares the frames scored (their count and the dataset "
+            "fingerprint), not how many were asked for"),
+    Setting("seed", "corruption seed", "--drivedegrade-seed", (("settings", "seed"),), _S, "another seed draws "
+            "other corruptions", keyed=_always, rerun="always"),
+    Setting("seeds", "corruption seeds", "--drivedegrade-seeds", (("settings", "seeds"),), _S, "a retention "
+            "averaged over several seeds is another quantity than one seed's", keyed=lambda s: s.seeds > 1),
+    Setting("batch", "batch", "--drivedegrade-batch", (("settings", "batch"),), _K, "batched float sums round "
+            "differently (within 1e-5 m); the run key holds it above 1", keyed=lambda s: s.batch > 1),
+    Setting("reuse", "reuse", "--drivedegrade-no-reuse", (("settings", "reuse"),), _K, "a reused plan is the "
+            "call's bit for bit; only with batches (where the run key holds it) does reuse change which frames "
+            "share a call", keyed=lambda s: s.batch > 1 and not s.reuse),
+    Setting("device", "device", "--drivedegrade-device", (("settings", "device"),), _K, "another device's kernels "
+            "round differently, as batches do; the run key holds it off cpu", keyed=lambda s: s.device != "cpu"),
+    Setting("timeout", "timeout", "--drivedegrade-timeout", (("settings", "timeout"),), _F, "it changes no plan a "
+            "frame got: a frame it stops is a conformance failure the certificate reports", rerun="always"),
+    Setting("metric", "verdict metric", "--drivedegrade-metric", (("settings", "verdict_metric"),), _S, "the "
+            "verdict is put on another retention"),
+    Setting("flat", "flat line", "--drivedegrade-flat", (("settings", "flat"),), _F, "the gate compares "
+            "retentions, which the flat line only labels"),
+    Setting("shard", "shard", "--drivedegrade-shard", (), _F, "each shard scores its own part of a run; a "
+            "certificate is of a whole run", rerun="never", per_shard=True),
+)
+_BY_NAME = {row.name: row for row in TABLE}
+
+
+def setting(name: str) -> Setting:
+    """The row of `TABLE` for a field of `RunSettings`."""
+    return _BY_NAME[name]
+
+
+def check_table() -> list[str]:
+    """What is wrong with `TABLE` against `RunSettings` (empty: every field has exactly one row, in field order)."""
+    names = [f.name for f in fields(RunSettings)]
+    rows = [row.name for row in TABLE]
+    return [] if names == rows else [f"RunSettings fields {names} but TABLE rows {rows}"]
+
+
+def _encode(value: object) -> Builtin:
+    if isinstance(value, (Path, Shard)):
+        return str(value)
+    assert value is None or isinstance(value, (str, int, float, bool)), value
+    return value
+
+
+def _decode(name: str, raw: object) -> object:
+    """A builtin back into the field's type; InvalidInput naming the setting when it cannot be."""
+    default = DEFAULTS.value(name)
+    if raw is None:
+        return default
+    try:
+        if not isinstance(raw, (str, int, float)):
+            raise ValueError(f"expected a number, a string or true / false, got {type(raw).__name__}")
+        if name == "data":
+            return None if raw == EMBEDDED_WORLD else Path(str(raw))
+        if name == "shard":
+            return Shard.parse(str(raw))
+        if isinstance(default, bool) or isinstance(raw, bool):
+            if not (isinstance(default, bool) and isinstance(raw, bool)):
+                raise ValueError(f"expected {type(default).__name__}, got {raw!r}")
+            return raw
+        if isinstance(default, float):
+            return float(raw)
+        return int(raw) if name == "frames" or isinstance(default, int) else str(raw)
+    except (ValueError, DriveDegradeError) as exc:
+        raise InvalidInput(f"setting {name!r}: {exc}") from None
+
+
+def _settings(found: Mapping[str, object]) -> RunSettings:
+    """RunSettings from decoded values by field name (each of the field's type: `_decode` made it so)."""
+    return RunSettings(**found)  # type: ignore[arg-type]
+
+
+def _text(value: object) -> str:
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _shown(value: object) -> str:
+    return repr(_encode(value))
+

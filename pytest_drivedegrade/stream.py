@@ -1,0 +1,337 @@
+"""How a planner is called on one cell: frames in scene order through the loader, ``reset`` at each scene, the
+context when ``predict`` takes it, batches, reuse of the clean plan, timeouts, and each failure named per frame
+(the planner's, or the data's: `DataFault`). `run_cell` scores what comes out into the cell's record.
+
+`run.RunContext` is what a run is (its settings, frames and caches) and hands itself in as the `Source`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+from types import FrameType
+from typing import Protocol
+
+import numpy as np
+
+from .cells import PDMS_FIELDS, REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
+from .constants import CAMERAS
+from .data.context import FrameContext
+from .data.frame import EgoStatus, Frame
+from .errors import DataError, DriveDegradeError, PlannerOutputError
+from .loader import CellSample, may_equal_clean, samples
+from .metrics.pdms import PreparedFrame
+from .metrics.trajectory import bit1_density, frame_metrics
+from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
+from .settings import RunSettings
+
+
+class DataFault(str):
+    """Why a frame failed when the fault is the data's (a missing, empty, truncated, undecodable or wrong-size
+    image), not the planner's: counted in `CellRecord.data_errors`, apart from the contract failures."""
+
+
+#: One frame's outcome in a stream: its sample and the validated plan, or why the frame failed (a `DataFault`
+#: when the data is to blame).
+FrameResult = tuple[CellSample, "np.ndarray | str"]
+#: A sample -> the clean plan to reuse for it, or None to call the planner.
+Reuser = Callable[[CellSample], "np.ndarray | None"]
+
+
+class Source(Protocol):
+    """What a stream reads from its run (`run.RunContext`): the settings and the per-process caches."""
+
+    @property
+    def settings(self) -> RunSettings: ...
+
+    def decode(self, frame: Frame, camera: str) -> np.ndarray: ...
+
+    def context_of(self, frame: Frame) -> FrameContext: ...
+
+    def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
+
+
+class PlannerTimeout(Exception):
+    """predict() ran past --drivedegrade-timeout on one frame."""
+
+
+@contextlib.contextmanager
+def time_limit(seconds: float) -> Iterator[None]:
+    """Raise PlannerTimeout inside the block after `seconds` (POSIX main thread; a no-op elsewhere or at 0)."""
+    usable = seconds > 0 and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+    if not usable:
+        yield
+        return
+
+    def expire(signum: int, frame: FrameType | None) -> None:
+        raise PlannerTimeout(f"predict() took longer than {seconds:g} s")
+
+    previous = signal.signal(signal.SIGALRM, expire)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+def may_reuse(settings: RunSettings, planner: Planner, family: str, severity: int) -> bool:
+    """Whether frames of this cell may reuse the clean plans: reuse is on (not --drivedegrade-no-reuse), the
+    planner is deterministic and has no ``reset`` (`CallStyle.reuses`), and some frame of the cell may deliver the
+    clean images on every camera the planner declares (`loader.may_equal_clean`). Never blackout S3
+    (`REAR_BLACKOUT_SEVERITY`): when it blacks out only cameras the planner does not read, it is the rear cameras'
+    null control and must call the planner to catch an undeclared read."""
+    if (family, severity) == ("blackout", REAR_BLACKOUT_SEVERITY):
+        return False
+    return settings.reuse and call_style(planner).reuses and \
+        may_equal_clean(family, severity, planner_cameras(planner))
+
+
+def reuser(clean: CellRecord, unread: tuple[str, ...]) -> Reuser:
+    """A sample -> the clean plan to reuse for it, or None to predict (see `stream`), in a cell that may reuse."""
+    if clean.family != "clean":
+        raise DriveDegradeError(f"the plans to reuse must be the clean cell's, not {clean.cell!r}'s")
+    cameras = tuple(c for c in CAMERAS if c not in unread)
+    index = {token: i for i, token in enumerate(clean.frames)}
+
+    def reuse(sample: CellSample) -> np.ndarray | None:
+        i = index.get(sample.frame.token)
+        if i is None or not sample.equals_clean(cameras) or not np.isfinite(clean.plans[i]).all():
+            return None
+        sample.reused_from = i
+        return np.array(clean.plans[i], dtype=np.float64, copy=True)
+
+    return reuse
+
+
+def stream(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
+           unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> Iterator[FrameResult]:
+    """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each frame
+    its sample and the validated plan, or the one-line reason the frame failed.
+
+    ``reset(scene_token)`` runs before the first frame of each scene, so no state crosses a scene or a cell; the
+    context goes in when ``predict`` takes it; each call gets private copies of its inputs, and a write into an
+    input image fails the frame naming the camera.
+
+    With `clean` (the run's clean cell), a deterministic planner without ``reset`` is not called on a frame whose
+    sample equals clean on every camera it reads (`CellSample.equals_clean`, decided structurally): the clean
+    plan is yielded instead (bit for bit what the call would return) and the sample is marked (``reused_from``:
+    its index in clean). A frame that failed in clean is called again.
+    """
+    style = call_style(planner)
+    reuse = reuser(clean, unread) if clean is not None and may_reuse(source.settings, planner, family, severity) \
+        else _predict_every_frame
+    feed = samples(frames, family, severity, seed=seed, decode=source.decode, unread=unread)
+    if source.settings.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
+        yield from _stream_batched(source, planner, feed, reuse)
+        return
+    scene = None
+    for sample in feed:
+        frame = sample.frame
+        reused = reuse(sample)
+        if reused is not None:  # a reusing planner has no reset, so no scene is skipped
+            yield sample, reused
+            continue
+        if style.resets and frame.scene_token != scene:
+            try:
+                getattr(planner, "reset")(frame.scene_token)  # noqa: B009 - optional: not in the Planner protocol
+            except Exception as exc:  # noqa: BLE001 - the planner's failure, named, never a crash
+                scene = None
+                yield sample, (f"frame {frame.token!r}: reset({frame.scene_token!r}) raised "
+                               f"{type(exc).__name__}: {exc}")
+                continue
+        scene = frame.scene_token
+        yield sample, _predict(source, planner, sample, style)
+
+
+def _stream_batched(source: Source, planner: Planner, feed: Iterator[CellSample],
+                    reuse: Reuser) -> Iterator[FrameResult]:
+    """`--drivedegrade-batch B`: B frames per ``predict_batch(images, egos, cmds, contexts)`` call, in order; each
+    frame's output is checked (and its inputs for writes) as a single prediction's would be. A frame that reuses
+    the clean plan skips the batch (B counts the frames predicted) and keeps its place."""
+    pending: list[tuple[CellSample, np.ndarray | None]] = []
+    todo = 0
+    for sample in feed:
+        reused = reuse(sample)
+        pending.append((sample, reused))
+        todo += reused is None
+        if todo == source.settings.batch:
+            yield from _flush(source, planner, pending)
+            pending, todo = [], 0
+    if pending:
+        yield from _flush(source, planner, pending)
+
+
+def _flush(source: Source, planner: Planner,
+           pending: list[tuple[CellSample, np.ndarray | None]]) -> Iterator[FrameResult]:
+    """The pending frames in order: the reused ones as they are, the others from one batch call."""
+    todo = [s for s, reused in pending if reused is None]
+    predicted = iter(_predict_batch(source, planner, todo) if todo else ())
+    for sample, reused in pending:
+        yield (sample, reused) if reused is not None else next(predicted)
+
+
+def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) -> Iterator[FrameResult]:
+    inputs = [_inputs(source, s, CallStyle(True, False)) for s in batch]
+    egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
+    try:
+        with time_limit(source.settings.timeout * len(batch)):
+            call = getattr(planner, "predict_batch")  # noqa: B009 - optional: not in the Planner protocol
+            raw = call([s.view for s in batch], egos, [s.frame.command for s in batch], contexts)
+        raw = to_numpy(raw)
+        if len(raw) != len(batch):
+            raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
+    except PlannerOutputError as exc:
+        for s in batch:
+            yield s, _data_fault(s) or f"frame {s.frame.token!r}: {exc}"
+        return
+    except Exception as exc:  # noqa: BLE001 - the planner's failure, on every frame of the batch
+        for s in batch:
+            yield s, _data_fault(s) or describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
+        return
+    for s, plan in zip(batch, raw):
+        yield s, _checked(s, plan)
+
+
+def _inputs(source: Source, sample: CellSample, style: CallStyle) -> tuple[EgoStatus, FrameContext | None]:
+    """The call's ego status and context (perturbed in the ego cells): every array in them read-only and a copy
+    private to this call, so nothing the planner does to them reaches another frame or cell."""
+    frame = sample.frame
+    ego = replace(frame.ego, past_xy=_readonly(frame.ego.past_xy))  # private to the call
+    context = source.context_of(frame).private() if style.takes_context else None
+    if is_ego(sample.family):  # the ego cells: the ego status and the context's CAN bus, perturbed or zeroed
+        from .corruptions.ego import perturb
+
+        ego, bus = perturb(ego, None if context is None else context.can_bus, sample.family, sample.severity,
+                           seed=source.settings.seed, frame=frame.token)
+        context = None if context is None else replace(context, can_bus=bus)
+    return ego, context
+
+
+def _predict(source: Source, planner: Planner, sample: CellSample, style: CallStyle) -> np.ndarray | str:
+    frame = sample.frame
+    ego, context = _inputs(source, sample, style)
+    predict: Callable[..., object] = planner.predict
+    try:
+        with time_limit(source.settings.timeout):
+            if style.takes_context:
+                raw = predict(sample.view, ego, frame.command, context=context)
+            else:
+                raw = predict(sample.view, ego, frame.command)
+    except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
+        return _data_fault(sample) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
+                                       describe_failure(exc, frame.token))
+    return _checked(sample, raw)
+
+
+def _checked(sample: CellSample, raw: object) -> np.ndarray | str:
+    """A returned plan, validated; or the frame's data fault (one the planner caught and planned around is still
+    the data's), or the write into an input image, or what is wrong with the plan."""
+    fault = _data_fault(sample)
+    if fault:
+        return fault
+    written = sample.written()
+    if written:
+        return _written_message(sample.frame.token, written)
+    try:
+        return validate_output(raw, sample.frame.token)
+    except PlannerOutputError as exc:
+        return str(exc)
+
+
+class _Clock:
+    """Where a cell's seconds go: decode, inject and the input check as the loader measured them, the planner
+    the rest of each frame's wait, metrics and pdms the scoring."""
+
+    def __init__(self) -> None:
+        self.spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
+        self.start = self.last = self.scoring = time.perf_counter()
+
+    def delivered(self, sample: CellSample) -> None:
+        elapsed = time.perf_counter() - self.last  # predict() plus the lazy decode, injection and input check
+        for part in ("decode", "inject", "check"):
+            self.spent[part] += sample.seconds[part]
+        self.spent["planner"] += elapsed - sum(sample.seconds.values())
+        self.scoring = time.perf_counter()
+
+    def pdms(self, took: float) -> None:
+        self.spent["pdms"] += took
+        self.spent["metrics"] -= took  # metrics is the rest
+
+    def scored(self) -> None:
+        self.last = time.perf_counter()
+        self.spent["metrics"] += self.last - self.scoring
+
+    def total(self) -> dict[str, float]:
+        return {**self.spent, "total": time.perf_counter() - self.start}
+
+
+def run_cell(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
+             unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> CellRecord:
+    """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
+    per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
+    (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice."""
+    rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
+    clock = _Clock()
+    for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread, seed=seed,
+                                                clean=clean)):
+        clock.delivered(sample)
+        if isinstance(result, str):
+            rows.fail(str(result), data=isinstance(result, DataFault))
+        elif sample.reused_from is not None and clean is not None:
+            rows.copy_row(i, clean, sample.reused_from)
+        else:
+            _score(source, rows, i, sample, result, clock)
+        clock.scored()
+    return rows.build(clock.total())
+
+
+def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray,
+           clock: _Clock) -> None:
+    """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read, PDMS."""
+    m = frame_metrics(plan, sample.frame)
+    rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
+             bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
+    start = time.perf_counter()
+    scored = source.pdms_frame(sample.frame).score(plan)
+    rows.put(i, map_scored=float(scored.map_scored), **{k: getattr(scored, k) for k in PDMS_FIELDS})
+    clock.pdms(time.perf_counter() - start)
+
+
+def _data_fault(sample: CellSample) -> DataFault | None:
+    """The frame's data fault (the first image that could not be produced), naming the frame, or None."""
+    if not sample.data_errors:
+        return None
+    return DataFault(f"frame {sample.frame.token!r}: {sample.data_errors[0]}")
+
+
+def _predict_every_frame(sample: CellSample) -> None:
+    """The reuser of a cell that does not reuse: every frame is predicted."""
+    return None
+
+
+def _written_message(token: str, cameras: list[str]) -> str:
+    return (f"frame {token!r}: predict() wrote into its input image of {', '.join(cameras)}; inputs are read-only: "
+            "copy before modifying (np.array(img), or tensor.clone() after torch.from_numpy)")
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    out = np.array(array, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def describe_failure(exc: BaseException, frame_token: str) -> str:
+    """One line naming the frame and what the planner did wrong."""
+    if isinstance(exc, PlannerTimeout):
+        return f"frame {frame_token!r}: {exc} (raise --drivedegrade-timeout if this planner is legitimately slow)"
+    if isinstance(exc, ValueError) and "read-only" in str(exc):
+        return (f"frame {frame_token!r}: predict() wrote to its input image ({exc}); the images are read-only: "
+                "copy before modifying (np.array(img))")
+    if isinstance(exc, TypeError) and "does not support item assignment" in str(exc):
+        return f"frame {frame_token!r}: predict() tried to modify the images mapping ({exc}); it is read-only"
+    return f"frame {frame_token!r}: predict() raised {type(exc).__name__}: {exc}"
