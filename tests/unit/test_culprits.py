@@ -18,6 +18,7 @@ from pytest_drivedegrade.cells import CellRecord, cell_id
 from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.plugin import checks
 from pytest_drivedegrade.run import unread_cameras
+from pytest_drivedegrade.settings import RunSettings
 from pytest_drivedegrade.store import ResultStore
 
 FRAMES = 4
@@ -39,7 +40,7 @@ class FakeContext:
 
     planner_path = None
     seed = 0
-    batch = 1
+    settings = RunSettings()
 
     def __init__(self) -> None:
         self.frames = [SimpleNamespace(token=f"tok{i}", scene_token=SCENES[i]) for i in range(FRAMES)]
@@ -243,7 +244,7 @@ def test_a_replay_runs_where_the_planner_was():
     assert checks._replay_span(context, FrontDiffWithReset(), 3) == (2, 4)  # scene s1 starts at frame 2
     assert checks._replay_span(context, FrontDiffWithReset(), 1) == (0, 2)
     assert checks._replay_span(context, ReadsBack(), 3) == (3, 4)
-    context.batch = 3
+    context.settings = RunSettings(batch=3)
     assert checks._replay_span(context, Batched(), 1) == (0, 3)
     assert checks._replay_span(context, Batched(), 3) == (3, 4)  # the last batch is short
     assert checks._replay_span(context, ReadsBack(), 1) == (1, 2)  # no predict_batch: one frame per call

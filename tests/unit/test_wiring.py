@@ -27,6 +27,7 @@ from pytest_drivedegrade.plugin import checks
 from pytest_drivedegrade.plugin.controller import gate, gather
 from pytest_drivedegrade.plugin.options import parse
 from pytest_drivedegrade.scoring.verdict import null_control
+from pytest_drivedegrade.settings import RunSettings
 from pytest_drivedegrade.store import ResultStore
 
 # --- options -------------------------------------------------------------------------------------------------
@@ -219,7 +220,7 @@ class FakeContext:
     def planner_info(self, planner: Any) -> Any:
         return SimpleNamespace(unread=self.unread)
 
-    batch = 1
+    settings = RunSettings()
 
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: Any = None, span: Any = None) -> Any:
         """A cell's record; with `span` (a replay of the null control's culprit search), its plans on those frames,
