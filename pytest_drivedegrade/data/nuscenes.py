@@ -27,10 +27,8 @@ from ..errors import DataError
 from . import geometry as geo
 from .frame import AgentBoxes, CameraInfo, Command, EgoStatus, Frame, command_from_future
 from .maps import DrivableArea, load_drivable_area
+from .tables import REQUIRED_TABLES, confined, load_table
 
-REQUIRED_TABLES = ("scene", "sample", "sample_data", "ego_pose", "calibrated_sensor", "sensor",
-                   "sample_annotation", "instance", "category")
-OPTIONAL_TABLES = ("log", "visibility", "attribute", "map")
 WORLD_MANIFEST = "drivedegrade_world.json"
 #: The `skipped` reason of keyframes that are read but not scored (fewer than six future keyframes).
 UNSCORED = "fewer than six future keyframes (not scored)"
@@ -65,85 +63,6 @@ def official_scene_names(split: str) -> list[str]:
     return sorted(official_split(split), key=lambda name: int(name.rpartition("-")[2]))
 
 
-#: The fields the reader uses from each table's rows, with their JSON types (checked at start-up, so a malformed
-#: row is named by its table file and token rather than failing later as a KeyError or a TypeError).
-_TOKEN: dict[str, type | tuple[type, ...]] = {"token": str}
-_POSE: dict[str, type | tuple[type, ...]] = {"translation": list, "rotation": list}
-ROW_FIELDS: dict[str, dict[str, type | tuple[type, ...]]] = {
-    "scene": {**_TOKEN, "name": str, "first_sample_token": str},
-    "sample": {**_TOKEN, "timestamp": int},
-    "sample_data": {**_TOKEN, "sample_token": str, "calibrated_sensor_token": str, "ego_pose_token": str,
-                    "filename": str, "width": int, "height": int},
-    "ego_pose": {**_TOKEN, **_POSE, "timestamp": int},
-    "calibrated_sensor": {**_TOKEN, **_POSE, "sensor_token": str, "camera_intrinsic": list},
-    "sensor": {**_TOKEN, "channel": str},
-    "sample_annotation": {**_TOKEN, **_POSE, "sample_token": str, "instance_token": str, "size": list},
-    "instance": {**_TOKEN, "category_token": str},
-    "category": {**_TOKEN, "name": str},
-    "log": _TOKEN,
-}
-
-
-def _row_problem(row: object, fields: dict[str, type | tuple[type, ...]]) -> str:
-    """What is wrong with one table row ("" when nothing): not an object, a missing field, a wrong type."""
-    if not isinstance(row, dict):
-        return f"is a JSON {type(row).__name__}, not an object"
-    for key, kind in fields.items():
-        if key not in row:
-            return f"lacks the field {key!r}"
-        value = row[key]
-        if not isinstance(value, kind) or isinstance(value, bool):
-            want = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
-            return f"has {key}={value!r:.60} ({type(value).__name__}), expected {want}"
-    return ""
-
-
-def _allowed(kind: type | tuple[type, ...]) -> set[type]:
-    return {kind} if isinstance(kind, type) else set(kind)
-
-
-def check_rows(path: Path, rows: object, fields: dict[str, type | tuple[type, ...]]) -> list[dict]:
-    """`rows` when the table is a list of objects with every field in `fields` of its type; else a DataError
-    naming the table file and the offending row's token (or its position when it has no token)."""
-    if not isinstance(rows, list):
-        raise DataError(f"nuScenes table {path} is a JSON {type(rows).__name__}, not a list of records; "
-                        "re-extract or regenerate the data")
-    try:  # the fast path: one set of types per field (about 0.1 s per million rows), no message built
-        if all({type(row[k]) for row in rows} <= _allowed(t) for k, t in fields.items()):
-            return rows
-    except (KeyError, TypeError, AttributeError):
-        pass
-    for i, row in enumerate(rows):
-        problem = _row_problem(row, fields)
-        if problem:
-            token = row.get("token") if isinstance(row, dict) else None
-            which = f"the record with token {token!r}" if isinstance(token, str) else f"record {i}"
-            raise DataError(f"nuScenes table {path}: {which} {problem}; re-extract or regenerate the data")
-    return rows
-
-
-def _load_table(path: Path) -> list[dict]:
-    if not path.is_file():
-        raise DataError(f"missing nuScenes table {path}: the data root must hold every table of the version "
-                        f"folder ({', '.join(REQUIRED_TABLES)})")
-    try:
-        rows = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"unreadable nuScenes table {path}: {exc}; re-extract or regenerate the data") from exc
-    return check_rows(path, rows, ROW_FIELDS.get(path.stem, {}))
-
-
-def confined(root: Path, name: str, where: str) -> Path:
-    """``root / name`` when `name` is a relative path that stays inside `root` after normalising ``..`` away;
-    else a DataError naming `where` (the table row). The check is on the name, not on resolved links, so a data
-    root whose ``samples/`` is a symbolic link to another disk (a common nuScenes install) still works."""
-    normal = os.path.normpath(name)
-    if not name.strip() or Path(name).is_absolute() or Path(name).drive or Path(normal).parts[:1] == ("..",):
-        raise DataError(f"{where}: filename {name!r} leaves the data root {root}; file names in sample_data must "
-                        "be relative paths inside it")
-    return root / normal
-
-
 class NuScenesReader:
     """Frames of one split of a nuScenes-format data root."""
 
@@ -173,7 +92,7 @@ class NuScenesReader:
         return found[0]
 
     def _index(self) -> None:
-        t = {name: _load_table(self.table_dir / f"{name}.json") for name in REQUIRED_TABLES}
+        t = {name: load_table(self.table_dir / f"{name}.json") for name in REQUIRED_TABLES}
         self.scenes = t["scene"]
         self.samples = {r["token"]: r for r in t["sample"]}
         self.poses = {r["token"]: r for r in t["ego_pose"]}
@@ -189,7 +108,7 @@ class NuScenesReader:
         inst = {r["token"]: categories.get(r["category_token"], "other") for r in t["instance"]}
         logs = {}
         if (self.table_dir / "log.json").is_file():
-            logs = {r["token"]: r.get("location", "") for r in _load_table(self.table_dir / "log.json")}
+            logs = {r["token"]: r.get("location", "") for r in load_table(self.table_dir / "log.json")}
         self.locations = {s["token"]: logs.get(s.get("log_token", ""), "") for s in self.scenes}
         self._maps: dict[str, DrivableArea | None] = {}
         self.annotations: dict[str, list[tuple]] = defaultdict(list)

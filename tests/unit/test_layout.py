@@ -23,7 +23,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "stream", "run", "store", "shards", "raypool", "floor"),  # running a cell (shards, Ray); the floor
+    ("loader", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),  # a cell (shards, Ray); floor
     ("scoring",),  # statistics over finished cells
     ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
     ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal
@@ -181,3 +181,67 @@ def test_the_checker_sees_a_submodule_entry_and_a_missing_folder(tmp_path, monke
     monkeypatch.setattr(module, "STAGES", (("",), ("metrics",)))
     with pytest.raises(AssertionError, match=r"not in STAGES: \['floor'\]"):
         test_folders_match_stages()
+
+
+#: The size a reader can hold in mind (STYLE.md): a module under this many lines, a function under `FUNCTION_LINES`.
+MODULE_LINES = 450
+FUNCTION_LINES = 60
+#: `Any` in annotations may only fall: the second pass of issue 19 halved it (344 -> at most 172); a new `Any`
+#: takes the place of one removed, or a real type.
+ANY_BUDGET = 172
+
+
+def _modules(root: Path) -> list[Path]:
+    return sorted(p for p in root.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def long_parts(root: Path) -> list[str]:
+    """Modules over MODULE_LINES lines and functions over FUNCTION_LINES lines below `root`, named."""
+    out = []
+    for path in _modules(root):
+        text = path.read_text()
+        name = path.relative_to(root).as_posix()
+        if text.count("\n") > MODULE_LINES:
+            out.append(f"{name}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = (node.end_lineno or node.lineno) - node.lineno + 1
+                if length > FUNCTION_LINES:
+                    out.append(f"{name}:{node.lineno} {node.name}(): {length} lines")
+    return out
+
+
+def any_annotations(root: Path) -> int:
+    """How many times `Any` is named in the annotations (arguments, returns, annotated names) below `root`."""
+    count = 0
+    for path in _modules(root):
+        for node in ast.walk(ast.parse(path.read_text())):
+            notes: list[ast.expr] = []
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                a = node.args
+                notes += [x.annotation for x in [*a.posonlyargs, *a.args, *a.kwonlyargs, a.vararg, a.kwarg]
+                          if x is not None and x.annotation is not None]
+                notes += [node.returns] if node.returns is not None else []
+            elif isinstance(node, ast.AnnAssign):
+                notes.append(node.annotation)
+            count += sum(isinstance(x, ast.Name) and x.id == "Any" for note in notes for x in ast.walk(note))
+    return count
+
+
+def test_modules_and_functions_stay_readable():
+    assert long_parts(PACKAGE) == []
+
+
+def test_any_in_annotations_stays_within_budget():
+    assert any_annotations(PACKAGE) <= ANY_BUDGET
+
+
+def test_the_size_checks_see_what_they_count(tmp_path):
+    """The counters themselves, on a made-up package: a long function, a long module, three `Any`s."""
+    body = "\n".join(f"    x{i} = {i}" for i in range(FUNCTION_LINES))
+    (tmp_path / "long.py").write_text(f"def f() -> None:\n{body}\n" + "\n" * MODULE_LINES)
+    (tmp_path / "typed.py").write_text("from typing import Any\nv: Any = 1\n"
+                                       "def g(a: Any, *b: int) -> dict[str, Any]:\n    return {}\n")
+    assert long_parts(tmp_path) == [f"long.py: {FUNCTION_LINES + 1 + MODULE_LINES} lines",
+                                    f"long.py:1 f(): {FUNCTION_LINES + 1} lines"]
+    assert any_annotations(tmp_path) == 3
