@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
-from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
+from .kernels import add_discrete_normal, discrete_gaussian_kernel, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
 
 #: From this defocus sigma up, the blur runs at half resolution (see `gaussian_blur`).
@@ -21,21 +21,26 @@ _PYRAMID_VARIANCE = (2**2 - 1) / 12 + 2**2 / 6
 
 
 def _gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
-    k = 2 * ceil(3 * sigma) + 1
-    return cv2.GaussianBlur(image, (k, k), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT_101)
+    """The discrete Gaussian of variance sigma^2 along x then y (one separable pass, rounded once)."""
+    kernel = discrete_gaussian_kernel(sigma)
+    return cv2.sepFilter2D(image, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT_101)
 
 
 @register("gaussian_blur", group="sensor", axis="quality", parameter="defocus sigma", unit="px",
           values=(0.5, 1.0, 2.0, 3.5, 6.0), random=False, spatial=True)
 def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> np.ndarray:
-    """Defocus as a Gaussian point spread function (separable, truncated at 3 sigma).
+    """Defocus as a Gaussian point spread function of variance sigma^2 (separable), at any sigma.
 
-    From sigma 3 px up the image is already smooth at half resolution, so the blur runs there: 2x area
-    downsampling, a Gaussian whose variance is sigma^2 less what the resampling adds, bilinear upsampling.
-    The point spread function keeps its variance and is Gaussian to within the resampling kernels' tails.
+    The kernel is the discrete Gaussian (`discrete_gaussian_kernel`), whose variance is sigma^2 also below
+    one pixel, where a Gaussian sampled at whole pixels hardly blurs. From sigma 3 px up the image is
+    already smooth at half resolution, so the blur runs there: 2x area downsampling, a discrete Gaussian
+    whose variance is sigma^2 less what the resampling adds, bilinear upsampling. The point spread
+    function keeps its variance and is Gaussian to within the resampling kernels' tails.
     """
     s = scaled(sigma, scale)
     h, w = image.shape[:2]
+    if s <= 0.0:
+        return image.copy()
     if s < _PYRAMID_SIGMA or min(h, w) < 16:
         return _gaussian(image, s)
     half = cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
