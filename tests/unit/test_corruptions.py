@@ -335,6 +335,34 @@ def test_gaussian_blur_below_the_pyramid_is_the_discrete_gaussian(severity, scal
     assert abs((out - exact).mean()) < 0.01
 
 
+def test_mean_drop_area_is_that_of_a_log_uniform_radius():
+    """pi x aspect x E[r^2] for r log-uniform on [14, 55] px (quadrature), 1.34 x the r_lo r_hi that sized
+    raindrop's batches before spec 4.0.0; and a fixed radius where the range is one point."""
+    from pytest_drivedegrade.corruptions.contamination import _DROP_ASPECT, _mean_drop_area
+
+    lo, hi = np.log(14.0), np.log(55.0)
+    u = np.linspace(lo, hi, 200_001)
+    mean_r2 = np.exp(2 * u).mean()  # E[r^2] = E[exp(2 U)], U uniform on [lo, hi]
+    assert _mean_drop_area(lo, hi) == pytest.approx(np.pi * _DROP_ASPECT * mean_r2, rel=1e-4)
+    assert _mean_drop_area(lo, hi) / (np.pi * _DROP_ASPECT * 14.0 * 55.0) == pytest.approx(1.34, abs=0.01)
+    assert _mean_drop_area(lo, lo) == pytest.approx(np.pi * _DROP_ASPECT * 14.0**2)
+
+
+@pytest.mark.parametrize("severity", [1, 3, 5])
+def test_raindrop_realisations_each_cover_the_fraction(severity):
+    """Each realisation, not only their mean, covers the declared share of the drop grid at opacity >= 1/2
+    within half the largest drop (the drop that reaches the fraction is kept only if that lands nearer)."""
+    from pytest_drivedegrade.corruptions.contamination import _DROP_ASPECT, _covered, _drop_params
+
+    fraction = FAMILIES["raindrop"].value(severity)
+    for seed in range(4):
+        params = _drop_params(np.random.default_rng(seed), 900, 1600, fraction, 1.0, 4.0)
+        cells = params.shape[0] * params.shape[1]
+        share = _covered(params, slice(0, params.shape[0]), slice(0, params.shape[1])) / cells
+        half_drop = 0.5 * np.pi * 55.0**2 * _DROP_ASPECT / 16.0 / cells  # grid cells of 4 x 4 px
+        assert abs(share - fraction) <= half_drop, (seed, share)
+
+
 def _line_mean(image: np.ndarray, length: float, slope: float) -> np.ndarray:
     """Brute force: the area-sampled segment `length` rows long on the digital line through each pixel,
     advancing along axis 0: n = floor(length) whole samples (window [i - n//2, i + n - 1 - n//2]) and the
