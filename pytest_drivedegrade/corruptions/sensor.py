@@ -29,7 +29,7 @@ def _gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
 @register("gaussian_blur", group="sensor", axis="quality", parameter="defocus sigma", unit="px",
           values=(0.5, 1.0, 2.0, 3.5, 6.0), random=False, spatial=True)
 def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> np.ndarray:
-    """Defocus as a Gaussian point spread function of variance sigma^2 (separable), at any sigma.
+    """Defocus as a Gaussian point spread function of variance sigma^2 at any sigma (the discrete Gaussian, separable).
 
     The kernel is the discrete Gaussian (`discrete_gaussian_kernel`), whose variance is sigma^2 also below
     one pixel, where a Gaussian sampled at whole pixels hardly blurs. From sigma 3 px up the image is
