@@ -28,30 +28,47 @@ def _mean_drop_area(lo: float, hi: float) -> float:
     return float(np.pi * mean_r2 * _DROP_ASPECT)
 
 
-def _covered(params: np.ndarray, rows: slice, cols: slice) -> int:
-    """Cells of params[rows, cols] under a drop at opacity >= 1/2 (what the fraction counts): inside their
-    drop's ellipse to rho <= 1 - 1 / (2 _DROP_EDGE), with the alpha ramp of `_drop_layer` (tested without
-    a division: dx^2 ry^2 + dy^2 rx^2 <= rho^2 rx^2 ry^2)."""
+def _covered(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    """Which cells of params[rows, cols] are under a drop at opacity >= 1/2 (what the fraction counts):
+    inside their drop's ellipse to rho <= 1 - 1 / (2 _DROP_EDGE), with the alpha ramp of `_drop_layer`
+    (tested without a division: dx^2 ry^2 + dy^2 rx^2 <= rho^2 rx^2 ry^2)."""
     box = params[rows, cols]
     dx = np.arange(cols.start, cols.stop, dtype=np.float32) + 0.5 - box[..., 0]
     dy = np.arange(rows.start, rows.stop, dtype=np.float32)[:, None] + 0.5 - box[..., 1]
     rx2, ry2 = np.square(box[..., 2]), np.square(box[..., 3])
     inside = dx * dx * ry2 + dy * dy * rx2 <= (1.0 - 0.5 / _DROP_EDGE) ** 2 * rx2 * ry2
-    return int(np.count_nonzero(inside & (rx2 > 0)))
+    return inside & (rx2 > 0)
 
 
-def _paint_drop(params: np.ndarray, drop: np.ndarray) -> tuple[int, tuple[slice, slice], np.ndarray]:
-    """Paint one drop (cx, cy, ax, ay in grid units) into `params` over what is there. Returns how much it
-    changed the covered cells (`_covered`, counted in its bounding box before and after: a drop over the
-    rim of another can also uncover a little), that box and what the box held before (to take it back)."""
-    cx, cy, ax, ay = (float(v) for v in drop)
-    centre, axes = (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay)))
-    box = (slice(max(0, centre[1] - axes[1] - 1), min(params.shape[0], centre[1] + axes[1] + 2)),
-           slice(max(0, centre[0] - axes[0] - 1), min(params.shape[1], centre[0] + axes[0] + 2)))
-    held = params[box].copy()
-    before = _covered(params, *box)
-    cv2.ellipse(params, centre, axes, 0, 0, 360, (cx, cy, ax, ay), -1)
-    return _covered(params, *box) - before, box, held
+class _DropGrid:
+    """The drop grid being painted: `params` (each wet cell's drop, cx, cy, rx, ry in grid units; rx = 0 where
+    the lens is dry), which cells are covered (`_covered`) and how many."""
+
+    def __init__(self, gh: int, gw: int) -> None:
+        self.params = np.zeros((gh, gw, 4), np.float32)
+        self.covered = np.zeros((gh, gw), bool)
+        self.area = 0
+
+    def paint(self, drop: np.ndarray, target: float) -> bool:
+        """Paint one drop over what is there (a drop over another's rim can also uncover a little, so the
+        covered cells are recounted in its bounding box). True once the covered cells reach `target`; the
+        drop that reaches it is taken back if stopping before it lands nearer to the target."""
+        cx, cy, ax, ay = (float(v) for v in drop)
+        centre, axes = (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay)))
+        box = (slice(max(0, centre[1] - axes[1] - 1), min(self.params.shape[0], centre[1] + axes[1] + 2)),
+               slice(max(0, centre[0] - axes[0] - 1), min(self.params.shape[1], centre[0] + axes[0] + 2)))
+        cells = (box[0].stop - box[0].start) * (box[1].stop - box[1].start)
+        held = self.params[box].copy() if self.area + cells >= target else None  # a gain is at most `cells`
+        cv2.ellipse(self.params, centre, axes, 0, 0, 360, (cx, cy, ax, ay), -1)
+        now = _covered(self.params, *box)
+        gain = int(np.count_nonzero(now)) - int(np.count_nonzero(self.covered[box]))
+        if self.area + gain < target:
+            self.covered[box] = now
+            self.area += gain
+            return False
+        if held is not None and self.area + gain - target > target - self.area:  # further past than short
+            self.params[box] = held
+        return True
 
 
 def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float,
@@ -65,24 +82,20 @@ def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scal
     only if that lands nearer to it than stopping before it does, so the covered share is unbiased.
     """
     gh, gw = max(1, round(h / step)), max(1, round(w / step))
-    params = np.zeros((gh, gw, 4), np.float32)
+    grid = _DropGrid(gh, gw)
     target = fraction * gh * gw
     lo, hi = np.log(scaled(_DROP_RADIUS[0], scale)), np.log(scaled(_DROP_RADIUS[1], scale))
     drop_cells = _mean_drop_area(lo, hi) / (step * step)
-    count = area = 0
-    while area < target and count < 5000:
-        batch = max(1, int((target - area) / drop_cells))
+    count = 0
+    while count < 5000:
+        batch = max(1, int((target - grid.area) / drop_cells))
         rx = np.maximum(1.0, np.exp(rng.uniform(lo, hi, batch)))
         new = np.stack([rng.uniform(0, w, batch), rng.uniform(0, h, batch), rx, rx * _DROP_ASPECT], axis=1) / step
         for drop in new:
-            gain, box, held = _paint_drop(params, drop)
             count += 1
-            if area + gain >= target:
-                if area + gain - target > target - area:  # further past the fraction than short of it
-                    params[box] = held
-                return params
-            area += gain
-    return params
+            if grid.paint(drop, target):
+                return grid.params
+    return grid.params
 
 
 def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -358,7 +358,7 @@ def test_raindrop_realisations_each_cover_the_fraction(severity):
     for seed in range(4):
         params = _drop_params(np.random.default_rng(seed), 900, 1600, fraction, 1.0, 4.0)
         cells = params.shape[0] * params.shape[1]
-        share = _covered(params, slice(0, params.shape[0]), slice(0, params.shape[1])) / cells
+        share = _covered(params, slice(0, params.shape[0]), slice(0, params.shape[1])).sum() / cells
         half_drop = 0.5 * np.pi * 55.0**2 * _DROP_ASPECT / 16.0 / cells  # grid cells of 4 x 4 px
         assert abs(share - fraction) <= half_drop, (seed, share)
 
