@@ -17,28 +17,85 @@ _DROP_MAGNIFICATION = 2.6
 #: Cell size of the drop layer (px at 1600 px width, at least one image pixel): a drop is a defocused
 #: object on the lens, so its refraction, shade and soft edge are built on this grid and upsampled.
 _DROP_GRID = 4.0
+#: A drop's opacity falls from 1 to 0 over its outer 1 / _DROP_EDGE of radius (its soft, defocused rim).
+_DROP_EDGE = 12.0
+
+
+def _mean_drop_area(lo: float, hi: float) -> float:
+    """Mean area (px^2) of a drop whose radius is log-uniform on [e^lo, e^hi]: pi aspect E[r^2], where
+    E[r^2] = (e^(2 hi) - e^(2 lo)) / (2 (hi - lo)) (1.34x e^(lo + hi) for the reference range)."""
+    mean_r2 = (np.exp(2 * hi) - np.exp(2 * lo)) / (2 * (hi - lo)) if hi > lo else np.exp(2 * lo)
+    return float(np.pi * mean_r2 * _DROP_ASPECT)
+
+
+def _covered(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    """Which cells of params[rows, cols] are under a drop at opacity >= 1/2 (what the fraction counts):
+    inside their drop's ellipse to rho <= 1 - 1 / (2 _DROP_EDGE), with the alpha ramp of `_drop_layer`
+    (tested without a division: dx^2 ry^2 + dy^2 rx^2 <= rho^2 rx^2 ry^2)."""
+    box = params[rows, cols]
+    dx = np.arange(cols.start, cols.stop, dtype=np.float32) + 0.5 - box[..., 0]
+    dy = np.arange(rows.start, rows.stop, dtype=np.float32)[:, None] + 0.5 - box[..., 1]
+    rx2, ry2 = np.square(box[..., 2]), np.square(box[..., 3])
+    inside = dx * dx * ry2 + dy * dy * rx2 <= (1.0 - 0.5 / _DROP_EDGE) ** 2 * rx2 * ry2
+    return inside & (rx2 > 0)
+
+
+class _DropGrid:
+    """The drop grid being painted: `params` (each wet cell's drop, cx, cy, rx, ry in grid units; rx = 0 where
+    the lens is dry), which cells are covered (`_covered`) and how many."""
+
+    def __init__(self, gh: int, gw: int) -> None:
+        self.params = np.zeros((gh, gw, 4), np.float32)
+        self.covered = np.zeros((gh, gw), bool)
+        self.area = 0
+
+    def paint(self, drop: np.ndarray, target: float) -> bool:
+        """Paint one drop over what is there (a drop over another's rim can also uncover a little, so the
+        covered cells are recounted in its bounding box). True once the covered cells reach `target`; the
+        drop that reaches it is taken back if stopping before it lands nearer to the target."""
+        cx, cy, ax, ay = (float(v) for v in drop)
+        centre, axes = (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay)))
+        box = (slice(max(0, centre[1] - axes[1] - 1), min(self.params.shape[0], centre[1] + axes[1] + 2)),
+               slice(max(0, centre[0] - axes[0] - 1), min(self.params.shape[1], centre[0] + axes[0] + 2)))
+        cells = (box[0].stop - box[0].start) * (box[1].stop - box[1].start)
+        held = self.params[box].copy() if self.area + cells >= target else None  # a gain is at most `cells`
+        cv2.ellipse(self.params, centre, axes, 0, 0, 360, (cx, cy, ax, ay), -1)
+        now = _covered(self.params, *box)
+        gain = int(np.count_nonzero(now)) - int(np.count_nonzero(self.covered[box]))
+        if self.area + gain < target:
+            self.covered[box] = now
+            self.area += gain
+            return False
+        if held is not None and self.area + gain - target > target - self.area:  # further past than short
+            self.params[box] = held
+        return True
 
 
 def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float,
                  step: float) -> np.ndarray:
-    """Drops added in batches until their union covers `fraction` of the frame, painted into a 4-channel
-    float32 grid of `step` px: each covered cell holds its drop's (cx, cy, rx, ry) in grid units (a later
-    drop covers an earlier one); rx = 0 where the lens is dry."""
+    """Drops added one by one until the cells they cover at opacity >= 1/2 (`_covered`) reach `fraction`
+    of the frame, painted into a 4-channel float32 grid of `step` px: each covered cell holds its drop's
+    (cx, cy, rx, ry) in grid units (a later drop covers an earlier one); rx = 0 where the lens is dry.
+
+    The drops are drawn in batches sized for the area still missing with the mean drop area (overlaps make
+    a batch fall short, so the batches converge from below). The drop that reaches the fraction is kept
+    only if that lands nearer to it than stopping before it does, so the covered share is unbiased.
+    """
     gh, gw = max(1, round(h / step)), max(1, round(w / step))
-    params = np.zeros((gh, gw, 4), np.float32)
+    grid = _DropGrid(gh, gw)
     target = fraction * gh * gw
     lo, hi = np.log(scaled(_DROP_RADIUS[0], scale)), np.log(scaled(_DROP_RADIUS[1], scale))
-    count = area = 0
-    while area < target and count < 5000:
-        batch = max(1, int((target - area) * step * step / (np.pi * np.exp(lo + hi) * _DROP_ASPECT)))
+    drop_cells = _mean_drop_area(lo, hi) / (step * step)
+    count = 0
+    while count < 5000:
+        batch = max(1, int((target - grid.area) / drop_cells))
         rx = np.maximum(1.0, np.exp(rng.uniform(lo, hi, batch)))
         new = np.stack([rng.uniform(0, w, batch), rng.uniform(0, h, batch), rx, rx * _DROP_ASPECT], axis=1) / step
-        for cx, cy, ax, ay in new:
-            cv2.ellipse(params, (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay))), 0, 0, 360,
-                        (float(cx), float(cy), float(ax), float(ay)), -1)
-        count += batch
-        area = int(np.count_nonzero(params[..., 2]))
-    return params
+        for drop in new:
+            count += 1
+            if grid.paint(drop, target):
+                return grid.params
+    return grid.params
 
 
 def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -62,7 +119,7 @@ def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
     map_x[wet] = (cx - dx * rx * lens) * step
     map_y[wet] = (cy - 1.5 * ry - dy * ry * lens) * step  # looks up, inverted
     shade[wet] = 1.0 - 0.45 * np.minimum(rho2, 1.0) ** 3
-    alpha[wet] = np.clip((1.0 - np.sqrt(rho2)) * 12.0, 0.0, 1.0)
+    alpha[wet] = np.clip((1.0 - np.sqrt(rho2)) * _DROP_EDGE, 0.0, 1.0)
     return map_x.reshape(gh, gw), map_y.reshape(gh, gw), shade.reshape(gh, gw), alpha.reshape(gh, gw)
 
 
@@ -70,8 +127,9 @@ def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
           unit="fraction", values=(0.03, 0.06, 0.10, 0.16, 0.25), random=True, spatial=True)
 def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
     """Water drops on the lens, each a small inverted fisheye view of the scene behind it, out of focus
-    (the drop sits far in front of the focal plane). The drop layer is built on a grid of 4 px at the
-    1600 px reference width (its content and edge are defocused anyway) and composited over the sharp frame."""
+    (the drop sits far in front of the focal plane), added until the drops at opacity >= 1/2 cover the
+    fraction. The drop layer is built on a grid of 4 px at the 1600 px reference width (its content and edge
+    are defocused anyway) and composited over the sharp frame."""
     h, w = image.shape[:2]
     step = max(1.0, scaled(_DROP_GRID, scale))
     map_x, map_y, shade, alpha = _drop_layer(_drop_params(rng, h, w, fraction, scale, step), step)

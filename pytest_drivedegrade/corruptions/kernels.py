@@ -1,12 +1,13 @@
-"""Shared numeric kernels of the injector: an exact, fast discrete-Gaussian sampler, sRGB transfer tables,
-and a smooth random field for irregular deposits. Pure numpy / OpenCV, vectorised.
+"""Shared numeric kernels of the injector: an exact, fast discrete-Gaussian sampler, the discrete Gaussian
+blur kernel, sRGB transfer tables, and a smooth random field for irregular deposits. Pure numpy / OpenCV,
+vectorised.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from functools import lru_cache
-from math import erf, sqrt
+from math import ceil, erf, log, sqrt
 from typing import NamedTuple
 
 import cv2
@@ -214,3 +215,23 @@ def coverage_mask(field: np.ndarray, fraction: float) -> np.ndarray:
 def scaled(value: float, scale: float) -> float:
     """A spatial parameter defined at 1600 px, scaled to this image's width."""
     return float(value) * scale
+
+
+@lru_cache(maxsize=32)
+def discrete_gaussian_kernel(sigma: float) -> np.ndarray:
+    """Lindeberg's discrete Gaussian, T(n) = exp(-t) I_n(t) with t = sigma^2, as a float64 1-D kernel.
+
+    It is the discrete analogue of the Gaussian (the kernel of diffusion on the integer grid): its variance
+    is exactly sigma^2 at any sigma, where the Gaussian sampled at whole pixels loses most of it below
+    about 0.5 px (sigma 0.25 sampled gives a kernel of sigma 0.026). Truncated at 4 sigma + 2 taps and
+    renormalised (sigma kept within 0.1 %). I_n by its power series, summed in log space.
+    """
+    t = float(sigma) ** 2
+    radius = ceil(4.0 * sigma) + 2
+    terms = int(t / 2 + 10 * sqrt(t) + 30)  # past the series' peak at m ~ t/2 by 10 standard deviations
+    log_factorial = np.concatenate([[0.0], np.cumsum(np.log(np.arange(1, terms + radius + 1)))])
+    m = np.arange(terms)[:, None]
+    n = np.arange(radius + 1)[None, :]
+    half = np.exp(-t + (2 * m + n) * log(t / 2) - log_factorial[m] - log_factorial[m + n]).sum(axis=0)
+    kernel = np.concatenate([half[:0:-1], half])
+    return kernel / kernel.sum()

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Version of the ladder (operators and values). A new value is a minor bump; a changed operator is major.
-SPEC_VERSION = "3.0.0"
+SPEC_VERSION = "4.0.0"
 
 #: Order of SPEC section 3: the twelve core families first, then the four contamination families.
 ORDER: tuple[str, ...] = (

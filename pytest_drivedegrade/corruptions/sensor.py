@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 from functools import lru_cache
 from math import ceil
 
@@ -10,7 +11,7 @@ import cv2
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
 
-from .kernels import add_discrete_normal, linear_to_srgb, scaled, srgb_to_linear_table
+from .kernels import add_discrete_normal, discrete_gaussian_kernel, linear_to_srgb, scaled, srgb_to_linear_table
 from .registry import register
 
 #: From this defocus sigma up, the blur runs at half resolution (see `gaussian_blur`).
@@ -20,21 +21,26 @@ _PYRAMID_VARIANCE = (2**2 - 1) / 12 + 2**2 / 6
 
 
 def _gaussian(image: np.ndarray, sigma: float) -> np.ndarray:
-    k = 2 * ceil(3 * sigma) + 1
-    return cv2.GaussianBlur(image, (k, k), sigmaX=sigma, sigmaY=sigma, borderType=cv2.BORDER_REFLECT_101)
+    """The discrete Gaussian of variance sigma^2 along x then y (one separable pass, rounded once)."""
+    kernel = discrete_gaussian_kernel(sigma)
+    return cv2.sepFilter2D(image, -1, kernel, kernel, borderType=cv2.BORDER_REFLECT_101)
 
 
 @register("gaussian_blur", group="sensor", axis="quality", parameter="defocus sigma", unit="px",
           values=(0.5, 1.0, 2.0, 3.5, 6.0), random=False, spatial=True)
 def gaussian_blur(image: np.ndarray, sigma: float, rng: None, scale: float) -> np.ndarray:
-    """Defocus as a Gaussian point spread function (separable, truncated at 3 sigma).
+    """Defocus as a Gaussian point spread function of variance sigma^2 at any sigma (the discrete Gaussian, separable).
 
-    From sigma 3 px up the image is already smooth at half resolution, so the blur runs there: 2x area
-    downsampling, a Gaussian whose variance is sigma^2 less what the resampling adds, bilinear upsampling.
-    The point spread function keeps its variance and is Gaussian to within the resampling kernels' tails.
+    The kernel is the discrete Gaussian (`discrete_gaussian_kernel`), whose variance is sigma^2 also below
+    one pixel, where a Gaussian sampled at whole pixels hardly blurs. From sigma 3 px up the image is
+    already smooth at half resolution, so the blur runs there: 2x area downsampling, a discrete Gaussian
+    whose variance is sigma^2 less what the resampling adds, bilinear upsampling. The point spread
+    function keeps its variance and is Gaussian to within the resampling kernels' tails.
     """
     s = scaled(sigma, scale)
     h, w = image.shape[:2]
+    if s <= 0.0:
+        return image.copy()
     if s < _PYRAMID_SIGMA or min(h, w) < 16:
         return _gaussian(image, s)
     half = cv2.resize(image, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
@@ -102,6 +108,149 @@ def _weighted_rows(view: np.ndarray, weights: np.ndarray, before: int, dst: np.n
     return cv2.filter2D(view, -1, kernel, dst=dst, anchor=(0, before), borderType=border)
 
 
+@dataclass(frozen=True)
+class _Window:
+    """The area-sampled segment down a line: the `n` rows from `before` rows back whole, the next one by
+    `fraction` when `extra`; `reach` rows in all, `weights` per row (summing to 1)."""
+
+    length: float
+    n: int
+    fraction: float
+    extra: bool
+    reach: int
+    before: int
+    weights: np.ndarray
+
+
+def _window(length: float) -> _Window:
+    """The window of a segment `length` rows long (>= 1, any real)."""
+    n = int(length + 1e-9)
+    fraction = float(length) - n
+    extra = fraction > _MIN_FRACTION  # the partial row at i - n//2 + n
+    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
+    return _Window(length, n, fraction, extra, n + 1 if extra else n, n // 2, weights)
+
+
+@dataclass(frozen=True)
+class _Shear:
+    """Row i of the image moves `shift[i]` (>= 0) columns right on the canvas: a whole shear of `-k` columns
+    per row (a stride) plus the residual `resid[i]` (>= 0, copied run by run), shift = resid - k i + c;
+    `margin` columns of edge padding on each side cover a window's sideways reach."""
+
+    k: int
+    shift: np.ndarray
+    resid: np.ndarray
+    c: int
+    margin: int
+
+
+def _shear(slope: float, rows: int, reach: int) -> _Shear:
+    """shift_i = -round(slope i) (made >= 0) split into a whole shear k i, k = round(slope), and a residual
+    -round((slope - k) i) with |slope - k| <= 1/2, whose runs of equal values are at least two rows long:
+    the residual is copied run by run, the whole shear is a stride (a view), so no angle copies row by row."""
+    k = int(np.sign(slope)) if abs(slope) > 0.5 else 0
+    i = np.arange(rows)
+    total = -np.round(slope * i).astype(np.int64)
+    shift = total - total.min()
+    resid = total + k * i
+    resid -= resid.min()
+    c = int(shift[0] - resid[0])  # shift_i = resid_i - k i + c
+    return _Shear(k, shift, resid, c, ceil(abs(slope) * reach) + 1)
+
+
+@dataclass(frozen=True)
+class _Canvas:
+    """The sheared canvas C[i, x] = D[i, x + k i - c] over the residual canvas D held flat in `buf` from
+    `slack` on, `sd` bytes a row, `px` bytes a pixel."""
+
+    buf: np.ndarray
+    slack: int
+    sd: int
+    k: int
+    c: int
+    px: int
+
+    def view(self, lo: int, hi: int, c0: int, c1: int) -> np.ndarray:
+        """Rows lo..hi - 1, columns c0..c1 - 1 of C, as a view."""
+        offset = self.slack + lo * self.sd + (c0 + self.k * lo - self.c) * self.px
+        return as_strided(self.buf[offset:], shape=(hi - lo, c1 - c0, self.px),
+                          strides=(self.sd + self.k * self.px, self.px, 1), writeable=False)
+
+
+def _sheared_canvas(image: np.ndarray, slope: float, sh: _Shear, reach: int, transposed: bool) -> _Canvas:
+    """The image (transposed first when `transposed`), padded with its edge pixels by `sh.margin` on each
+    side, laid out on the residual canvas D[i, resid_i + p] = padded[i, p], in a flat buffer with room on
+    both sides for the sheared views (row stride one pixel longer or shorter). Its rows are at least as
+    wide as a block's band, which OpenCV needs of a row stride."""
+    rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
+    px, margin, resid = image.shape[2], sh.margin, sh.resid
+    wp = cols + 2 * margin
+    padded = _scratch("padded", rows * wp * px).reshape(rows, wp, px)
+    if transposed:
+        cv2.transpose(image, dst=padded[:, margin:margin + cols])
+    else:
+        padded[:, margin:margin + cols] = image
+    padded[:, :margin] = padded[:, margin:margin + 1]
+    padded[:, margin + cols:] = padded[:, margin + cols - 1:margin + cols]
+    wd = max(wp + int(resid.max()), cols + ceil(abs(slope) * _LINE_BLOCK) + 4)
+    sd = wd * px
+    slack = (rows + wd + 2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px  # views reach at most a block out
+    buf = _scratch("canvas", 2 * slack + rows * sd)
+    canvas_d = buf[slack:slack + rows * sd].reshape(rows, wd, px)
+    for a, b, r in _runs(resid):
+        canvas_d[a:b, r:r + wp] = padded[a:b]
+    return _Canvas(buf, slack, sd, sh.k, sh.c, px)
+
+
+def _filter_block(canvas: _Canvas, sh: _Shear, win: _Window, first: int, last: int, rows: int, cols: int,
+                  held_buf: tuple[np.ndarray, int]) -> tuple[int, int, int]:
+    """Filter down the canvas columns of output rows first..last - 1 (and the rows their windows reach,
+    lo..hi - 1) over the band their lines occupy, straight into the work buffer `held_buf` (buffer, slack),
+    with room around it for the sheared view that reads it back. Returns (lo, band's left column, band
+    width)."""
+    bbuf, bslack = held_buf
+    px = canvas.px
+    hi = min(rows, last + win.reach - 1 - win.before)  # the block and its window's reach (at least n rows)
+    lo = max(0, min(first - win.before, hi - win.reach))
+    band = sh.shift[first:last]
+    left = sh.margin + int(band.min())
+    view = canvas.view(lo, hi, left, sh.margin + int(band.max()) + cols)
+    wb = view.shape[1]
+    held = bbuf[bslack:bslack + (hi - lo) * wb * px].reshape(hi - lo, wb, px)
+    if win.reach <= _SHORT_WINDOW:
+        filtered = _weighted_rows(view, win.weights, win.before, dst=held)
+    else:
+        filtered = _box_rows(view, win.n, dst=held)
+    if filtered is not held:  # a view shorter than its window was padded first
+        held[...] = filtered
+    if win.extra and win.reach > _SHORT_WINDOW:
+        # the partial row of output row i is canvas row i - before + n; past the last row, the last row
+        blurred = held[first - lo:last - lo]
+        start = first - win.before + win.n  # > first: only the image's last row can cut it short
+        inside = max(0, min(last - first, rows - start))
+        tail = view[start - lo:start - lo + inside]
+        if inside < last - first:
+            tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
+        cv2.addWeighted(blurred, win.n / win.length, tail, win.fraction / win.length, 0.0, dst=blurred)
+    return lo, left, wb
+
+
+def _unshear_block(out: np.ndarray, held_buf: tuple[np.ndarray, int], sh: _Shear, first: int, last: int,
+                   lo: int, left: int, wb: int) -> None:
+    """out[i, j] = blurred[i - first, j + margin + shift_i - left] for the block's rows, the whole shear
+    again a stride and the residual copied run by run."""
+    bbuf, bslack = held_buf
+    px = out.shape[2]
+    cols = out.shape[1]
+    resid = sh.resid[first:last]
+    low = int(resid.min())  # the view starts at the block's least residual: inside bbuf
+    offset = bslack + ((first - lo) * wb + low + sh.margin + sh.c - left - sh.k * first) * px
+    unsheared = as_strided(bbuf[offset:], shape=(last - first, cols + int(resid.max()) - low, px),
+                           strides=((wb - sh.k) * px, px, 1), writeable=False)
+    for a, b, r in _runs(resid):
+        out[first + a:first + b] = unsheared[a:b, r - low:r - low + cols]
+
+
 def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bool = False) -> np.ndarray:
     """Average along the digital lines {(i, c + round(slope * i))}, |slope| <= 1, over a segment `length`
     rows long (`length` >= 1, any real): lines advance one row per step and drift sideways by the rounded
@@ -121,84 +270,18 @@ def _line_blur(image: np.ndarray, length: float, slope: float, *, transposed: bo
     """
     rows, cols = image.shape[1::-1] if transposed else image.shape[:2]
     px = image.shape[2]  # H x W x C uint8
-    n = int(length + 1e-9)
-    fraction = float(length) - n
-    extra = fraction > _MIN_FRACTION  # the partial row at i - n//2 + n
-    reach = n + 1 if extra else n  # rows a window touches
-    before = n // 2
-    weights = np.array([1.0] * n + ([fraction] if extra else [])) / length
-    # shift_i = -round(slope i) (made >= 0) splits into a whole shear k i, k = round(slope), and a residual
-    # -round((slope - k) i) with |slope - k| <= 1/2, whose runs of equal values are at least two rows long:
-    # the residual is copied run by run, the whole shear is a stride (a view), so no angle copies row by row.
-    k = int(np.sign(slope)) if abs(slope) > 0.5 else 0
-    i = np.arange(rows)
-    total = -np.round(slope * i).astype(np.int64)
-    shift = total - total.min()
-    resid = total + k * i
-    resid -= resid.min()
-    c = int(shift[0] - resid[0])  # shift_i = resid_i - k i + c
-    margin = ceil(abs(slope) * reach) + 1
-    wp = cols + 2 * margin
-    padded = _scratch("padded", rows * wp * px).reshape(rows, wp, px)
-    if transposed:
-        cv2.transpose(image, dst=padded[:, margin:margin + cols])
-    else:
-        padded[:, margin:margin + cols] = image
-    padded[:, :margin] = padded[:, margin:margin + 1]
-    padded[:, margin + cols:] = padded[:, margin + cols - 1:margin + cols]
-    # the residual canvas D[i, resid_i + p] = padded[i, p], in a flat buffer with room on both sides for the
-    # sheared views: the canvas is C[i, x] = D[i, x + k i - c] (row stride one pixel longer or shorter); its
-    # rows are at least as wide as a block's band, which OpenCV needs of a row stride
-    wd = max(wp + int(resid.max()), cols + ceil(abs(slope) * _LINE_BLOCK) + 4)
-    sd = wd * px
-    slack = (rows + wd + 2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px  # views reach at most a block out
-    buf = _scratch("canvas", 2 * slack + rows * sd)
-    canvas_d = buf[slack:slack + rows * sd].reshape(rows, wd, px)
-    for a, b, r in _runs(resid):
-        canvas_d[a:b, r:r + wp] = padded[a:b]
-
-    def canvas(lo: int, hi: int, c0: int, c1: int) -> np.ndarray:
-        """Rows lo..hi - 1, columns c0..c1 - 1 of the sheared canvas C, as a view."""
-        offset = slack + lo * sd + (c0 + k * lo - c) * px
-        return as_strided(buf[offset:], shape=(hi - lo, c1 - c0, px), strides=(sd + k * px, px, 1), writeable=False)
-
+    win = _window(length)
+    sh = _shear(slope, rows, win.reach)
+    canvas = _sheared_canvas(image, slope, sh, win.reach, transposed)
     # contiguous (OpenCV transposes that twice as fast); a work buffer when the result is its transpose
     out = _scratch("out", rows * cols * px).reshape(rows, cols, px) if transposed else np.empty_like(image)
-    band_width = cols + min(rows, _LINE_BLOCK) + 2 * margin + 2
-    bslack = (2 * _LINE_BLOCK + 4 * (reach + margin) + 16) * px
-    bbuf = _scratch("band", 2 * bslack + (_LINE_BLOCK + reach) * band_width * px)
+    band_width = cols + min(rows, _LINE_BLOCK) + 2 * sh.margin + 2
+    bslack = (2 * _LINE_BLOCK + 4 * (win.reach + sh.margin) + 16) * px
+    held_buf = (_scratch("band", 2 * bslack + (_LINE_BLOCK + win.reach) * band_width * px), bslack)
     for first in range(0, rows, _LINE_BLOCK):
         last = min(rows, first + _LINE_BLOCK)
-        hi = min(rows, last + reach - 1 - before)  # the block and its window's reach (at least n rows)
-        lo = max(0, min(first - before, hi - reach))
-        band = shift[first:last]
-        left = margin + int(band.min())
-        view = canvas(lo, hi, left, margin + int(band.max()) + cols)
-        # filtered straight into a buffer with room around it, for the sheared view that reads it back
-        wb = view.shape[1]
-        held = bbuf[bslack:bslack + (hi - lo) * wb * px].reshape(hi - lo, wb, px)
-        if reach <= _SHORT_WINDOW:
-            filtered = _weighted_rows(view, weights, before, dst=held)
-        else:
-            filtered = _box_rows(view, n, dst=held)
-        if filtered is not held:  # a view shorter than its window was padded first
-            held[...] = filtered
-        blurred = held[first - lo:last - lo]
-        if extra and reach > _SHORT_WINDOW:
-            # the partial row of output row i is canvas row i - before + n; past the last row, the last row
-            start = first - before + n  # > first: only the image's last row can cut it short
-            inside = max(0, min(last - first, rows - start))
-            tail = view[start - lo:start - lo + inside]
-            if inside < last - first:
-                tail = np.concatenate([tail, np.repeat(view[-1:], last - first - inside, axis=0)])
-            cv2.addWeighted(blurred, n / length, tail, fraction / length, 0.0, dst=blurred)
-        # back: out[i, j] = blurred[i - first, j + margin + shift_i - left], the whole shear again a stride
-        low = int(resid[first:last].min())  # the view starts at the block's least residual: inside bbuf
-        offset = bslack + ((first - lo) * wb + low + margin + c - left - k * first) * px
-        unsheared = as_strided(bbuf[offset:], shape=(last - first, cols + int(resid[first:last].max()) - low, px),
-                               strides=((wb - k) * px, px, 1), writeable=False)
-        for a, b, r in _runs(resid[first:last]):
-            out[first + a:first + b] = unsheared[a:b, r - low:r - low + cols]
+        lo, left, wb = _filter_block(canvas, sh, win, first, last, rows, cols, held_buf)
+        _unshear_block(out, held_buf, sh, first, last, lo, left, wb)
     return cv2.transpose(out) if transposed else out
 
 

@@ -11,7 +11,12 @@ from hypothesis.extra.numpy import arrays
 
 from pytest_drivedegrade import FAMILIES, corrupt, corrupt_sample
 from pytest_drivedegrade.constants import CAMERAS
-from pytest_drivedegrade.corruptions.kernels import _discrete_normal_tables, add_discrete_normal, discrete_normal
+from pytest_drivedegrade.corruptions.kernels import (
+    _discrete_normal_tables,
+    add_discrete_normal,
+    discrete_gaussian_kernel,
+    discrete_normal,
+)
 from pytest_drivedegrade.corruptions.memory import flip_positions
 from pytest_drivedegrade.corruptions.sensor import _line_blur
 
@@ -277,6 +282,85 @@ def test_noise_tables_resolve_almost_every_draw_in_16_bits():
     """The bucket table leaves at most ~1% of the probability to the 32-bit refinement."""
     for sigma in (4.0, 16.0, 45.0):
         assert (_discrete_normal_tables(sigma, 255).bucket == -32768).mean() < 0.01
+
+
+def test_discrete_gaussian_kernel_known_values():
+    """exp(-t) I_n(t) at t = 1 (Abramowitz and Stegun 9.8: e^-1 I_0(1) = 0.4657596, e^-1 I_1(1) = 0.2079104,
+    e^-1 I_2(1) = 0.0499387), and for small t the three-tap limit [t/2, 1 - t, t/2]."""
+    k = discrete_gaussian_kernel(1.0)
+    c = len(k) // 2
+    np.testing.assert_allclose(k[c:c + 3], [0.4657596, 0.2079104, 0.0499387], rtol=1e-4)
+    small = discrete_gaussian_kernel(0.1)
+    c = len(small) // 2
+    np.testing.assert_allclose(small[c - 1:c + 2], [0.005, 0.99, 0.005], rtol=0.01)
+
+
+@settings(max_examples=60, deadline=None)
+@given(sigma=st.floats(0.05, 20.0))
+def test_discrete_gaussian_kernel_has_variance_sigma_squared(sigma):
+    """Symmetric, sums to 1, standard deviation sigma within 0.1 % at any sigma (a Gaussian sampled at whole
+    pixels has 0.026 for 0.25)."""
+    k = discrete_gaussian_kernel(sigma)
+    x = np.arange(len(k)) - len(k) // 2
+    np.testing.assert_array_equal(k, k[::-1])
+    assert k.sum() == pytest.approx(1.0, abs=1e-12) and (k > 0).all()
+    assert np.sqrt((k * x * x).sum()) == pytest.approx(sigma, rel=1e-3)
+
+
+@settings(max_examples=30, deadline=None)
+@given(a=st.floats(0.1, 4.0), b=st.floats(0.1, 4.0))
+def test_discrete_gaussians_compose_like_gaussians(a, b):
+    """The semigroup property that makes it the discrete analogue of the Gaussian: blurring by sigma a
+    then b is blurring by sqrt(a^2 + b^2), exactly up to the kernels' truncation."""
+    both = np.convolve(discrete_gaussian_kernel(a), discrete_gaussian_kernel(b))
+    one = discrete_gaussian_kernel(float(np.hypot(a, b)))
+    pad = (len(both) - len(one)) // 2
+    if pad >= 0:
+        one = np.pad(one, pad)
+    else:
+        both = np.pad(both, -pad)
+    assert np.abs(both - one).max() < 2e-4
+
+
+@pytest.mark.parametrize("severity, scale", [(1, 0.5), (1, 1.0), (2, 1.0), (3, 0.5), (3, 1.0)])
+def test_gaussian_blur_below_the_pyramid_is_the_discrete_gaussian(severity, scale):
+    """Below sigma 3 px the operator is the discrete Gaussian along x and y with reflected edges, rounded
+    once (within a level of the exact float result, and on average within 0.01)."""
+    image = textured(40, 70, seed=severity)
+    sigma = FAMILIES["gaussian_blur"].value(severity) * scale
+    out = FAMILIES["gaussian_blur"].op(image, FAMILIES["gaussian_blur"].value(severity), None, scale)
+    k = discrete_gaussian_kernel(sigma)
+    exact = cv2.sepFilter2D(image.astype(np.float64), cv2.CV_64F, k, k, borderType=cv2.BORDER_REFLECT_101)
+    assert np.abs(out - exact).max() <= 1.0
+    assert abs((out - exact).mean()) < 0.01
+
+
+def test_mean_drop_area_is_that_of_a_log_uniform_radius():
+    """pi x aspect x E[r^2] for r log-uniform on [14, 55] px (quadrature), 1.34 x the r_lo r_hi that sized
+    raindrop's batches before spec 4.0.0; and a fixed radius where the range is one point."""
+    from pytest_drivedegrade.corruptions.contamination import _DROP_ASPECT, _mean_drop_area
+
+    lo, hi = np.log(14.0), np.log(55.0)
+    u = np.linspace(lo, hi, 200_001)
+    mean_r2 = np.exp(2 * u).mean()  # E[r^2] = E[exp(2 U)], U uniform on [lo, hi]
+    assert _mean_drop_area(lo, hi) == pytest.approx(np.pi * _DROP_ASPECT * mean_r2, rel=1e-4)
+    assert _mean_drop_area(lo, hi) / (np.pi * _DROP_ASPECT * 14.0 * 55.0) == pytest.approx(1.34, abs=0.01)
+    assert _mean_drop_area(lo, lo) == pytest.approx(np.pi * _DROP_ASPECT * 14.0**2)
+
+
+@pytest.mark.parametrize("severity", [1, 3, 5])
+def test_raindrop_realisations_each_cover_the_fraction(severity):
+    """Each realisation, not only their mean, covers the declared share of the drop grid at opacity >= 1/2
+    within half the largest drop (the drop that reaches the fraction is kept only if that lands nearer)."""
+    from pytest_drivedegrade.corruptions.contamination import _DROP_ASPECT, _covered, _drop_params
+
+    fraction = FAMILIES["raindrop"].value(severity)
+    for seed in range(4):
+        params = _drop_params(np.random.default_rng(seed), 900, 1600, fraction, 1.0, 4.0)
+        cells = params.shape[0] * params.shape[1]
+        share = _covered(params, slice(0, params.shape[0]), slice(0, params.shape[1])).sum() / cells
+        half_drop = 0.5 * np.pi * 55.0**2 * _DROP_ASPECT / 16.0 / cells  # grid cells of 4 x 4 px
+        assert abs(share - fraction) <= half_drop, (seed, share)
 
 
 def _line_mean(image: np.ndarray, length: float, slope: float) -> np.ndarray:
