@@ -11,8 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pytest_drivedegrade.closedloop import CellResult, Corruption, Route, RunResult, load_routes, route_of, run_cell, \
-    run_route
+from pytest_drivedegrade.closedloop import (
+    CellResult,
+    Corruption,
+    Route,
+    RunResult,
+    load_routes,
+    route_of,
+    run_cell,
+    run_route,
+)
 from pytest_drivedegrade.closedloop.camera import RouteCameras
 from pytest_drivedegrade.closedloop.expert import WorldExpert
 from pytest_drivedegrade.closedloop.results import END_OFF_ROAD, END_UNSCORED
