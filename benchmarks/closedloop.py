@@ -45,6 +45,12 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
     return {name: make[name]() for name in names}
 
 
+def _route_cell(ds: list[float | None]) -> str:
+    """A route's mean DS over its seeds, or "unsc" when a run of it is unscored."""
+    scored = [d for d in ds if d is not None]
+    return f"{sum(scored) / len(scored):6.1f}" if scored and len(scored) == len(ds) else f"{'unsc':>6}"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cache-root", type=Path, default=ROOT / ".pytest_cache/d/drivedegrade")
@@ -66,9 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             timings, start = Timings(), time.perf_counter()
             cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings)
             wall = time.perf_counter() - start
-            per_route = [[r.ds for r in cell.runs if r.route == route.name] for route in routes]
-            cols = " ".join(f"{'-' if any(d is None for d in ds) else sum(ds) / len(ds):>6.1f}"  # type: ignore[misc]
-                            if ds and all(d is not None for d in ds) else f"{'unsc':>6}" for ds in per_route)
+            cols = " ".join(_route_cell([r.ds for r in cell.runs if r.route == route.name]) for route in routes)
             lo, hi = cell.bounds
             mean = f"{cell.mean:6.1f}" if cell.mean is not None else "   n/a"
             print(f"{name:<18} {cell.cell:<18} {cols} {mean}  [{lo:5.1f}, {hi:5.1f}]  {timings.render:6.1f} "

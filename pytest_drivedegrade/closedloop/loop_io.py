@@ -26,7 +26,8 @@ def to_ego(xy: np.ndarray, pose: tuple[float, float, float]) -> np.ndarray:
 
 def ego_status(history: Sequence[tuple[float, float, float]], pose: tuple[float, float, float], speed: float,
                accel: float, yaw_rate: float) -> EgoStatus:
-    """The ego status of the simulated state: body-frame velocity and acceleration, yaw rate, and the last
+    """The ego status of the simulated state: body-frame velocity, acceleration (lateral: the centripetal v x yaw
+    rate, as the reader derives it from poses), yaw rate, and the last
     PAST_STEPS route-step poses in the current frame (oldest first; before the start, the reader's rule:
     extrapolated back at the current velocity)."""
     past = np.zeros((PAST_STEPS, 2))
@@ -34,7 +35,7 @@ def ego_status(history: Sequence[tuple[float, float, float]], pose: tuple[float,
         row = PAST_STEPS - n
         past[row] = to_ego(np.array(history[-n][:2]), pose)[0] if n <= len(history) else \
             -np.array([speed, 0.0]) * n * STEP_SECONDS
-    return EgoStatus((float(speed), 0.0), (float(accel), 0.0), float(yaw_rate), past)
+    return EgoStatus((float(speed), 0.0), (float(accel), float(speed * yaw_rate)), float(yaw_rate), past)
 
 
 def route_command(route: Route, pose: tuple[float, float, float], speed: float) -> Command:

@@ -23,6 +23,7 @@ from pytest_drivedegrade.closedloop import (
 )
 from pytest_drivedegrade.closedloop.camera import RouteCameras
 from pytest_drivedegrade.closedloop.expert import WorldExpert
+from pytest_drivedegrade.closedloop.loop_io import ego_status, frame_context, route_command
 from pytest_drivedegrade.closedloop.results import END_OFF_ROAD, END_UNSCORED
 from pytest_drivedegrade.data.context import FrameContext
 from pytest_drivedegrade.data.frame import Command, EgoStatus
@@ -175,3 +176,28 @@ def test_cell_bounds_and_moments_on_known_runs() -> None:
     assert cell.mean == 60.0 and cell.std == 20.0 and cell.unscored == 2
     assert cell.bounds == (30.0, 80.0)
     assert cell.completion == pytest.approx(0.6)
+
+
+def test_at_the_logged_state_the_planner_gets_what_the_reader_gives(world: Path) -> None:
+    """Ego status, command and frame context of the simulated state equal the data's at the logged poses."""
+    route = load_routes(world)[0]
+    ego = route.scene.ego
+    frames = [f for f in NuScenesReader(world).frames() if f.scene_name == route.name]
+    for k in (0, 3, 12, 25):
+        frame, t = frames[k], 5 * k
+        pose = (float(ego.xy[t, 0]), float(ego.xy[t, 1]), float(ego.yaw[t]))
+        history = [(float(ego.xy[5 * j, 0]), float(ego.xy[5 * j, 1]), float(ego.yaw[5 * j])) for j in range(k)]
+        status = ego_status(history, pose, float(ego.speed[t]), float(ego.accel[t]),
+                            float((ego.yaw[t + 1] - ego.yaw[t]) / 0.1))
+        assert status.velocity == pytest.approx(frame.ego.velocity, abs=0.05)
+        assert status.acceleration == pytest.approx(frame.ego.acceleration, abs=0.15)
+        assert status.yaw_rate == pytest.approx(frame.ego.yaw_rate, abs=0.01)
+        assert status.past_xy == pytest.approx(frame.ego.past_xy, abs=0.05)
+        assert route_command(route, pose, float(ego.speed[t])) == frame.command
+        ours, theirs = frame_context(route, k, pose, status), FrameContext.of(frame)
+        assert (ours.index, ours.timestamp, ours.scene_name) == (theirs.index, theirs.timestamp, theirs.scene_name)
+        assert ours.ego2global == pytest.approx(theirs.ego2global, abs=1e-6)
+        for cam, cal in theirs.calibration.items():
+            assert ours.calibration[cam].image_size == cal.image_size
+            assert ours.calibration[cam].sensor2ego == pytest.approx(cal.sensor2ego, abs=1e-6)
+            assert ours.calibration[cam].intrinsic == pytest.approx(cal.intrinsic, abs=1e-6)
