@@ -69,23 +69,23 @@ def agent_boxes(route: Route, step: int) -> tuple[AgentBoxes, np.ndarray]:
     return boxes, speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
 
 
-def collisions(route: Route, pose: Pose, step: int, astray: bool) -> list[tuple[str, int]]:
-    """At-fault contacts at log `step`: (kind, agent index) per agent touched; props as (collision_static, -1 - i)."""
+def collisions(route: Route, pose: Pose, step: int, astray: bool) -> list[tuple[str, int, bool]]:
+    """Contacts at log `step`: (kind, agent index, at fault) per agent touched; props as (collision_static, -1 - i,
+    True). The caller judges an agent by its first contact only, as NAVSIM ignores a not-at-fault track after."""
     boxes, velocities = agent_boxes(route, step)
     states, out = _states(pose), []
     for j in hits(pose.xy, pose.yaw, boxes, EGO_SIZE):
         agent = route.scene.agents[int(j)]
         contact = Contact.of(0, boxes, int(j), np.arange(len(boxes)), velocities)
-        if at_fault(states, contact, np.array([astray]), agent.parked):
-            kind = "collision_pedestrian" if agent.kind in ("pedestrian", "cyclist") else "collision_vehicle"
-            out.append((kind, int(j)))
+        kind = "collision_pedestrian" if agent.kind in ("pedestrian", "cyclist") else "collision_vehicle"
+        out.append((kind, int(j), at_fault(states, contact, np.array([astray]), agent.parked)))
     props = route.scene.props
     near = [i for i, p in enumerate(props) if np.hypot(*(np.asarray(p.xy) - pose.xy)) < PROP_REACH]
     if near and pose.speed > 0.1:
         pb = AgentBoxes(np.array([props[i].xy for i in near], dtype=np.float64),
                         np.array([props[i].size[:2] for i in near], dtype=np.float64),
                         np.array([props[i].yaw for i in near], dtype=np.float64), ("other",) * len(near))
-        out += [("collision_static", -1 - near[int(j)]) for j in hits(pose.xy, pose.yaw, pb, EGO_SIZE)]
+        out += [("collision_static", -1 - near[int(j)], True) for j in hits(pose.xy, pose.yaw, pb, EGO_SIZE)]
     return out
 
 

@@ -110,9 +110,11 @@ def _judge_step(run: _Run, k: int, t: int) -> str | None:
         gain = min(progress - run.best, pose.speed * DT + 1.0)
         run.best += gain
         run.lost += gain if outside > 0 else 0.0
-    for kind, who in judge.collisions(route, pose, t, outside > 0):
-        if who not in run.touched:
+    for kind, who, fault in judge.collisions(route, pose, t, outside > 0):
+        if who not in run.touched:  # an agent is judged by its first contact
             run.touched.add(who)
+            if not fault:
+                continue
             what = route.scene.agents[who].role if who >= 0 else route.scene.props[-1 - who].kind
             run.infractions.append(Infraction(kind, k, t, what))
     if outside > 0 and not run.off_road:  # one off-road infraction per excursion

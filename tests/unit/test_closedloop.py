@@ -16,6 +16,7 @@ from pytest_drivedegrade.closedloop import (
     Corruption,
     Route,
     RunResult,
+    judge,
     load_routes,
     route_of,
     run_cell,
@@ -24,7 +25,7 @@ from pytest_drivedegrade.closedloop import (
 from pytest_drivedegrade.closedloop.camera import RouteCameras
 from pytest_drivedegrade.closedloop.expert import WorldExpert
 from pytest_drivedegrade.closedloop.loop_io import ego_status, frame_context, route_command
-from pytest_drivedegrade.closedloop.results import END_OFF_ROAD, END_UNSCORED
+from pytest_drivedegrade.closedloop.results import END_BLOCKED, END_OFF_ROAD, END_UNSCORED
 from pytest_drivedegrade.data.context import FrameContext
 from pytest_drivedegrade.data.frame import Command, EgoStatus
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
@@ -201,3 +202,27 @@ def test_at_the_logged_state_the_planner_gets_what_the_reader_gives(world: Path)
             assert ours.calibration[cam].image_size == cal.image_size
             assert ours.calibration[cam].sensor2ego == pytest.approx(cal.sensor2ego, abs=1e-6)
             assert ours.calibration[cam].intrinsic == pytest.approx(cal.intrinsic, abs=1e-6)
+
+
+class Stop:
+    """Plans to stand still."""
+
+    cameras: tuple[str, ...] = ()
+
+    def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
+        return np.zeros((6, 2))
+
+
+def test_standing_still_ends_blocked_and_a_rear_end_by_the_follower_is_not_at_fault(routes: dict[int, Route]) -> None:
+    route = routes[0]
+    assert "follower" in [a.role for a in route.scene.agents]
+    run = run_route(Stop(), route)
+    assert run.end == END_BLOCKED and run.infractions == ()
+    assert run.ds is not None and run.completion is not None and run.ds == pytest.approx(100 * run.completion)
+    assert run.ds < 20
+    contacts = []
+    for t in range(len(run.trace)):
+        x, y, yaw = run.trace[t]
+        pose = judge.Pose(float(x), float(y), float(yaw), 0.0, 0.0)
+        contacts += judge.collisions(route, pose, t, False)
+    assert contacts and all(route.scene.agents[who].role == "follower" for _, who, _ in contacts)
