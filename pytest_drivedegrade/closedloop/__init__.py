@@ -1,7 +1,8 @@
 """The closed loop (SPEC section 13): the planner drives the embedded world through a degraded camera stream.
 
 `routes` turns the world's val scenes into routes, `camera` renders a route's cameras at any ego pose,
-`simulate` runs one (route, seed) through planner -> tracker -> bicycle model, `results` holds the typed run and
+`simulate` runs one (route, seed) through planner -> tracker -> bicycle model (`loop_io`: what the planner is
+given, `judge`: collisions, off-road, the road ahead at one step), `results` holds the typed run and
 cell results (Driving Score, completion, infractions, identification bounds), `expert` is the privileged
 reference driver that validates the simulator.
 """

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pytest_drivedegrade.closedloop import (
     CellResult,
@@ -226,3 +228,13 @@ def test_standing_still_ends_blocked_and_a_rear_end_by_the_follower_is_not_at_fa
         pose = judge.Pose(float(x), float(y), float(yaw), 0.0, 0.0)
         contacts += judge.collisions(route, pose, t, False)
     assert contacts and all(route.scene.agents[who].role == "follower" for _, who, _ in contacts)
+
+
+@given(st.lists(st.one_of(st.none(), st.floats(0.0, 100.0)), min_size=1, max_size=12), st.floats(0.0, 1.0))
+@settings(max_examples=60, deadline=None)
+def test_the_bounds_hold_every_assignment_of_the_unscored_runs(ds: list[float | None], fill: float) -> None:
+    cell = CellResult.of("c", [RunResult("r", 0, d, None, "x", (), np.zeros((1, 3))) for d in ds])
+    assigned = float(np.mean([100.0 * fill if d is None else d for d in ds]))
+    lo, hi = cell.bounds
+    assert lo - 1e-9 <= assigned <= hi + 1e-9
+    assert hi - lo == pytest.approx(100.0 * ds.count(None) / len(ds))
