@@ -24,6 +24,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
     ("loader", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),  # a cell (shards, Ray); floor
+    ("closedloop",),  # the closed loop: routes of the world, simulator, run and cell scores (spec 13)
     ("scoring",),  # statistics over finished cells
     ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
     ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal

@@ -1,0 +1,87 @@
+"""The closed loop on the default world, timed: per-route Driving Score of the world's expert, constant velocity,
+the ego-only floor and camera_cnn on the clean cell and blackout S5, and the seconds spent rendering, planning,
+tracking and scoring.
+
+    python benchmarks/closedloop.py [--seeds 1] [--planners expert,constant_velocity,floor,camera_cnn]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import torch
+
+from pytest_drivedegrade.closedloop import Corruption, load_routes, run_cell
+from pytest_drivedegrade.closedloop.expert import WorldExpert
+from pytest_drivedegrade.closedloop.simulate import Timings
+
+ROOT = Path(__file__).resolve().parents[1]
+CELLS = (Corruption(), Corruption("blackout", 5))
+
+
+def load_planner_file(stem: str) -> Any:
+    spec = importlib.util.spec_from_file_location(f"_bench_{stem}", ROOT / "planners" / f"{stem}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> dict[str, Any]:
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.floor import load_or_train_floor
+
+    make = {"expert": lambda: WorldExpert(routes),
+            "constant_velocity": lambda: load_planner_file("constant_velocity").ConstantVelocity(),
+            "floor": lambda: load_or_train_floor(NuScenesReader(root, split="train"), cache_root / "floor"),
+            "camera_cnn": lambda: load_planner_file("camera_cnn").CameraCNNPlanner()}
+    return {name: make[name]() for name in names}
+
+
+def _route_cell(ds: list[float | None]) -> str:
+    """A route's mean DS over its seeds, or "unsc" when a run of it is unscored."""
+    scored = [d for d in ds if d is not None]
+    return f"{sum(scored) / len(scored):6.1f}" if scored and len(scored) == len(ds) else f"{'unsc':>6}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cache-root", type=Path, default=ROOT / ".pytest_cache/d/drivedegrade")
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--planners", default="expert,constant_velocity,floor,camera_cnn")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    from pytest_drivedegrade.data.world import ensure_default_world
+
+    root = ensure_default_world(args.cache_root)
+    routes = load_routes(root)
+    print("routes: " + ", ".join(f"{r.name} ({r.length:.0f} m)" for r in routes))
+    header = f"{'planner':<18} {'cell':<18} " + " ".join(f"{r.name[-4:]:>6}" for r in routes) + \
+        "   mean  bounds          render  plan  track  score  wall"
+    print(header)
+    for name, planner in planners(args.planners.split(","), routes, args.cache_root, root).items():
+        for corruption in CELLS:
+            timings, start = Timings(), time.perf_counter()
+            cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings)
+            wall = time.perf_counter() - start
+            cols = " ".join(_route_cell([r.ds for r in cell.runs if r.route == route.name]) for route in routes)
+            lo, hi = cell.bounds
+            mean = f"{cell.mean:6.1f}" if cell.mean is not None else "   n/a"
+            print(f"{name:<18} {cell.cell:<18} {cols} {mean}  [{lo:5.1f}, {hi:5.1f}]  {timings.render:6.1f} "
+                  f"{timings.plan:5.1f} {timings.track:6.1f} {timings.score:6.1f} {wall:5.1f}")
+            kinds = ", ".join(f"{k} {v}" for k, v in cell.infractions.items()) or "none"
+            ends = ", ".join(f"{r.route[-4:]}:{r.end}" for r in cell.runs)
+            print(f"{'':<18} infractions: {kinds}; ends: {ends}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,100 @@
+"""What the world says about the simulated ego at one 10 Hz step: at-fault collisions (with the open-loop PDMS
+rule for who is at fault, `metrics.pdms.rules.at_fault`), whether it is off the drivable area and how far, and
+whether the road ahead is free (for the blocked end)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..constants import EGO_LENGTH, EGO_WIDTH
+from ..data.frame import AgentBoxes
+from ..data.nuscenes import coarse_category
+from ..data.world.roads import distance_to_roads
+from ..metrics.pdms.agents import hits
+from ..metrics.pdms.motion import EgoStates
+from ..metrics.pdms.rules import Contact, at_fault
+from .routes import Route
+
+EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
+#: Props (buildings, trees, poles) farther than this from the ego are not tested for contact (m).
+PROP_REACH = 15.0
+#: The corridor ahead that must be free of agents for a standstill to count as blocked: length, half width (m).
+AHEAD_M, AHEAD_HALF_WIDTH = 20.0, 2.5
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The simulated ego at one step, world frame: box centre, heading, speed and acceleration along it."""
+
+    x: float
+    y: float
+    yaw: float
+    speed: float
+    accel: float
+
+    @property
+    def xy(self) -> np.ndarray:
+        return np.array([self.x, self.y])
+
+
+def footprint(pose: Pose) -> np.ndarray:
+    """The ego box's four corners (4, 2), world frame."""
+    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]]) * (EGO_SIZE / 2)
+    return pose.xy + local @ np.array([[c, s], [-s, c]])
+
+
+def outside_m(route: Route, pose: Pose) -> float:
+    """How far (m) the ego box's farthest corner lies outside the drivable area (<= 0: inside)."""
+    return float(distance_to_roads(route.scene.net, footprint(pose)).max())
+
+
+def _states(pose: Pose) -> EgoStates:
+    heading = np.array([pose.yaw])
+    vel = pose.speed * np.array([[np.cos(pose.yaw), np.sin(pose.yaw)]])
+    return EgoStates(pose.xy[None], vel, pose.accel * vel / max(pose.speed, 1e-9), heading, np.array([pose.speed]))
+
+
+def agent_boxes(route: Route, step: int) -> tuple[AgentBoxes, np.ndarray]:
+    """The agents' boxes at log `step` (world frame) and their velocities (N, 2)."""
+    agents = route.scene.agents
+    if not agents:
+        return AgentBoxes.empty(), np.zeros((0, 2))
+    yaw = np.array([a.yaw[step] for a in agents])
+    speed = np.array([a.speed[step] for a in agents])
+    boxes = AgentBoxes(np.array([a.xy[step] for a in agents]), np.array([a.size[:2] for a in agents]), yaw,
+                       tuple(coarse_category(a.category) for a in agents))
+    return boxes, speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], axis=1)
+
+
+def collisions(route: Route, pose: Pose, step: int, astray: bool) -> list[tuple[str, int, bool]]:
+    """Contacts at log `step`: (kind, agent index, at fault) per agent touched; props as (collision_static, -1 - i,
+    True). The caller judges an agent by its first contact only, as NAVSIM ignores a not-at-fault track after."""
+    boxes, velocities = agent_boxes(route, step)
+    states, out = _states(pose), []
+    for j in hits(pose.xy, pose.yaw, boxes, EGO_SIZE):
+        agent = route.scene.agents[int(j)]
+        contact = Contact.of(0, boxes, int(j), np.arange(len(boxes)), velocities)
+        kind = "collision_pedestrian" if agent.kind in ("pedestrian", "cyclist") else "collision_vehicle"
+        out.append((kind, int(j), at_fault(states, contact, np.array([astray]), agent.parked)))
+    props = route.scene.props
+    near = [i for i, p in enumerate(props) if np.hypot(*(np.asarray(p.xy) - pose.xy)) < PROP_REACH]
+    if near and pose.speed > 0.1:
+        pb = AgentBoxes(np.array([props[i].xy for i in near], dtype=np.float64),
+                        np.array([props[i].size[:2] for i in near], dtype=np.float64),
+                        np.array([props[i].yaw for i in near], dtype=np.float64), ("other",) * len(near))
+        out += [("collision_static", -1 - near[int(j)], True) for j in hits(pose.xy, pose.yaw, pb, EGO_SIZE)]
+    return out
+
+
+def road_ahead_free(route: Route, pose: Pose, step: int) -> bool:
+    """No agent box centre in the corridor AHEAD_M ahead of the ego (a standstill there is the planner's)."""
+    boxes, _ = agent_boxes(route, step)
+    if not len(boxes):
+        return True
+    rel = np.asarray(boxes.center) - pose.xy
+    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+    fwd, side = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
+    return not bool(((fwd > 0) & (fwd < AHEAD_M) & (np.abs(side) < AHEAD_HALF_WIDTH)).any())

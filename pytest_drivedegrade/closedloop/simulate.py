@@ -1,0 +1,225 @@
+"""One closed-loop run: planner at 2 Hz on cameras rendered at the simulated pose and degraded by the cell's
+corruption, its plan executed at 10 Hz by NAVSIM's LQR tracker and kinematic bicycle model
+(`metrics.tracking`), scored CARLA-leaderboard style. Other agents replay their logs (non-reactive)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..corruptions.api import corrupt_sample
+from ..data.world.agents import DT
+from ..metrics.tracking import InitialState, interpolate_plan, track
+from ..planning import Planner, call_style, planner_cameras, validate_output
+from . import judge
+from .camera import RouteCameras
+from .loop_io import ego_status, frame_context, route_command
+from .results import (
+    END_BLOCKED,
+    END_COMPLETE,
+    END_OFF_ROAD,
+    END_SCENE,
+    END_UNSCORED,
+    PENALTIES,
+    CellResult,
+    Infraction,
+    RunResult,
+)
+from .routes import Route, lane_progress
+
+#: 10 Hz sim steps per planner call (2 Hz) and executed per plan: the first 0.5 s of each tracked plan.
+PLAN_EVERY = 5
+#: Blocked: no 0.5 m of progress for this many sim steps (10 s) while the road ahead is free.
+BLOCKED_STEPS = 100
+PROGRESS_MARK_M = 0.5
+#: Off-road end: the ego box this far (m) outside the drivable area (a car wholly off the carriageway).
+OFF_ROAD_END_M = 2.0
+#: Progress counts only within this lateral distance (m) of the route's lane (not along a parallel road).
+LANE_REACH_M = 4.0
+#: A planner call slower than this (s) leaves the run unscored.
+PLAN_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class Corruption:
+    """The cell's corruption: family ("clean", a ladder family or "blind") and severity 0..5."""
+
+    family: str = "clean"
+    severity: int = 0
+
+    @property
+    def name(self) -> str:
+        return "clean" if self.family == "clean" else f"{self.family}-s{self.severity}"
+
+
+@dataclass
+class Timings:
+    """Seconds spent, summed over runs: rendering, planning, tracking, scoring."""
+
+    render: float = 0.0
+    plan: float = 0.0
+    track: float = 0.0
+    score: float = 0.0
+
+
+@dataclass
+class _Run:
+    """The mutable state of a run in progress."""
+
+    route: Route
+    pose: judge.Pose
+    yaw_rate: float
+    steering: float = 0.0
+    best: float = 0.0  # farthest progress along the route (m)
+    lost: float = 0.0  # progress made while outside the drivable area (m)
+    mark_m: float = 0.0
+    mark_step: int = 0
+    history: list[tuple[float, float, float]] = field(default_factory=list)
+    trace: list[tuple[float, float, float]] = field(default_factory=list)
+    infractions: list[Infraction] = field(default_factory=list)
+    touched: set[int] = field(default_factory=set)
+    off_road: bool = False
+
+    @property
+    def xyyaw(self) -> tuple[float, float, float]:
+        return (self.pose.x, self.pose.y, self.pose.yaw)
+
+    def completion(self) -> float:
+        return float(np.clip((self.best - self.lost) / max(self.route.length, 1e-9), 0.0, 1.0))
+
+
+def _start(route: Route) -> _Run:
+    ego, t = route.scene.ego, route.start_step
+    yaw_rate = float((ego.yaw[t + 1] - ego.yaw[t]) / DT)
+    pose = judge.Pose(float(ego.xy[t, 0]), float(ego.xy[t, 1]), float(ego.yaw[t]), float(ego.speed[t]),
+                      float(ego.accel[t]))
+    run = _Run(route, pose, yaw_rate, mark_step=t)
+    run.trace.append(run.xyyaw)
+    return run
+
+
+def _judge_step(run: _Run, k: int, t: int) -> str | None:
+    """Score sim step `t` (the ego already moved there): progress, off-road, collisions; the end reason if any."""
+    route, pose = run.route, run.pose
+    outside = judge.outside_m(route, pose)
+    s, d = lane_progress(route, pose.xy)
+    progress = float(np.clip(s[0], 0.0, route.length))
+    if abs(float(d[0])) < LANE_REACH_M and progress > run.best:
+        gain = min(progress - run.best, pose.speed * DT + 1.0)
+        run.best += gain
+        run.lost += gain if outside > 0 else 0.0
+    for kind, who, fault in judge.collisions(route, pose, t, outside > 0):
+        if who not in run.touched:  # an agent is judged by its first contact
+            run.touched.add(who)
+            if not fault:
+                continue
+            what = route.scene.agents[who].role if who >= 0 else route.scene.props[-1 - who].kind
+            run.infractions.append(Infraction(kind, k, t, what))
+    if outside > 0 and not run.off_road:  # one off-road infraction per excursion
+        run.infractions.append(Infraction("off_road", k, t))
+    run.off_road = outside > 0
+    if run.best >= route.length - 1e-6:
+        return END_COMPLETE
+    if outside > OFF_ROAD_END_M:
+        return END_OFF_ROAD
+    if run.best - run.mark_m >= PROGRESS_MARK_M:
+        run.mark_m, run.mark_step = run.best, t
+    elif t - run.mark_step >= BLOCKED_STEPS:
+        if judge.road_ahead_free(route, pose, t):
+            return END_BLOCKED
+        run.mark_step = t
+    return None
+
+
+def _plan(planner: Planner, run: _Run, k: int, images: dict[str, np.ndarray], takes_context: bool,
+          timings: Timings) -> np.ndarray:
+    """The planner's validated plan at route step `k` (raises what the planner raises, or PlannerOutputError)."""
+    route = run.route
+    status = ego_status(run.history, run.xyyaw, run.pose.speed, run.pose.accel, run.yaw_rate)
+    cmd = route_command(route, run.xyyaw, run.pose.speed)
+    token = f"{route.name}/closed/{k}"
+    t0 = time.perf_counter()
+    if takes_context:
+        ctx = frame_context(route, k, run.xyyaw, status)
+        raw = planner.predict(images, status, cmd, context=ctx)  # type: ignore[call-arg]
+    else:
+        raw = planner.predict(images, status, cmd)
+    elapsed = time.perf_counter() - t0
+    timings.plan += elapsed
+    if elapsed > PLAN_TIMEOUT_S:
+        raise TimeoutError(f"predict took {elapsed:.1f} s (limit {PLAN_TIMEOUT_S:.0f} s)")
+    return validate_output(raw, token)
+
+
+def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings) -> str | None:
+    """Track the plan from the simulated state and drive its first 0.5 s, judging every 0.1 s step."""
+    t0 = time.perf_counter()
+    start = InitialState(run.pose.speed, 0.0, run.pose.accel, 0.0, run.yaw_rate, run.steering)
+    states = track(interpolate_plan(plan), start)
+    timings.track += time.perf_counter() - t0
+    x0, y0, yaw0 = run.xyyaw
+    c, s = np.cos(yaw0), np.sin(yaw0)
+    t1 = time.perf_counter()
+    try:
+        for i in range(1, PLAN_EVERY + 1):
+            lx, ly = float(states.x[0, i]), float(states.y[0, i])
+            run.pose = judge.Pose(x0 + c * lx - s * ly, y0 + s * lx + c * ly, yaw0 + float(states.heading[0, i]),
+                                  max(float(states.velocity_x[0, i]), 0.0), float(states.acceleration_x[0, i]))
+            run.yaw_rate, run.steering = float(states.yaw_rate[0, i]), float(states.steering_angle[0, i])
+            run.trace.append(run.xyyaw)
+            end = _judge_step(run, k, t + i)
+            if end is not None:
+                return end
+    finally:
+        timings.score += time.perf_counter() - t1
+    return None
+
+
+def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
+    penalty = float(np.prod([PENALTIES[i.kind] for i in run.infractions if i.kind in PENALTIES]))
+    completion = run.completion()
+    return RunResult(run.route.name, seed, 100.0 * completion * penalty, completion, end, tuple(run.infractions),
+                     np.array(run.trace), steps=steps)
+
+
+def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
+              timings: Timings | None = None) -> RunResult:
+    """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>").
+    A planner that raises, times out or returns a bad plan leaves the run unscored (ds None, `error` set)."""
+    timings = timings if timings is not None else Timings()
+    style = call_style(planner)
+    t0 = time.perf_counter()
+    cameras = RouteCameras(route, planner_cameras(planner))
+    timings.render += time.perf_counter() - t0
+    if style.resets:
+        planner.reset(route.name)  # type: ignore[attr-defined]
+    run, previous = _start(route), None
+    k, t = 0, route.start_step
+    while t + PLAN_EVERY <= route.end_step:
+        t0 = time.perf_counter()
+        images = cameras.images(run.xyyaw, t)
+        if images and (corruption.family != "clean"):
+            images = corrupt_sample(images, corruption.family, corruption.severity, seed=seed,
+                                    frame=f"{route.name}/{k}", previous=previous)
+        previous = images
+        timings.render += time.perf_counter() - t0
+        try:
+            plan = _plan(planner, run, k, images, style.takes_context, timings)
+        except Exception as exc:  # noqa: BLE001 - any failure of the planner leaves the run unscored
+            return RunResult(route.name, seed, None, None, END_UNSCORED, tuple(run.infractions),
+                             np.array(run.trace), f"step {k}: {type(exc).__name__}: {exc}", k)
+        run.history.append(run.xyyaw)
+        end = _execute(run, plan, k, t, timings)
+        k, t = k + 1, t + PLAN_EVERY
+        if end is not None:
+            return _result(run, seed, end, k)
+    return _result(run, seed, END_SCENE, k)
+
+
+def run_cell(planner: Planner, routes: list[Route], corruption: Corruption = Corruption(),
+             seeds: tuple[int, ...] = (0,), timings: Timings | None = None) -> CellResult:
+    """Every route under every seed: the cell's runs, route-major."""
+    runs = [run_route(planner, route, corruption, seed, timings) for route in routes for seed in seeds]
+    return CellResult.of(f"closed-{corruption.name}", runs)
