@@ -47,6 +47,11 @@ DEFAULT_BOUND = 5.0
 #: The share of the admissible bet ever staked (Waudby-Smith & Ramdas use 1/2 to 3/4).
 BET_CAP = 0.5
 SEVERITIES = (1, 2, 3, 4, 5)
+#: The two ways a decision can be settled (see `settle_mean`).
+METHODS = ("betting", "asymptotic")
+#: The asymptotic CS is tuned to be tightest near this many units, and is not used before a few units.
+ASYMPTOTIC_TSTAR = 100.0
+ASYMPTOTIC_MIN_UNITS = 10
 
 
 @dataclass(frozen=True)
@@ -68,14 +73,32 @@ def _bets(z: np.ndarray, m_z: np.ndarray, est_z: np.ndarray, var: np.ndarray, be
     return np.minimum(lam, BET_CAP / np.maximum(room, 1e-12))
 
 
+def _asymptotic_hits(x: np.ndarray, m: float, alpha: float) -> dict[str, np.ndarray]:
+    """Where the asymptotic CS (Waudby-Smith, Arnold, Wu, Wang & Ramdas 2024, Gaussian mixture, rho tuned for
+    t* = 100 units; two-sided at 2 alpha = one alpha per side) lies wholly below / at or above m."""
+    t = np.arange(1, len(x) + 1, dtype=float)
+    mean = np.cumsum(x) / t
+    var = np.maximum(np.cumsum(x ** 2) / t - mean ** 2, 0.0)
+    a2 = 2.0 * alpha
+    rho2 = (-2.0 * math.log(a2) + math.log(-2.0 * math.log(a2) + 1.0)) / ASYMPTOTIC_TSTAR
+    half = np.sqrt(var) * np.sqrt(2.0 * (t * rho2 + 1.0) / (t ** 2 * rho2) * np.log(np.sqrt(t * rho2 + 1.0) / a2))
+    ok = t >= ASYMPTOTIC_MIN_UNITS
+    return {"below": ok & (mean + half < m), "above": ok & (mean - half >= m)}
+
+
 def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float, population: int, alpha: float,
-                level: float = math.nan) -> Settlement:
+                level: float = math.nan, method: str = "betting") -> Settlement:
     """Settle "mean over the population of x below m, or at/above m" from the stream `x` (units in draw order,
-    each in [lo, hi]), at error level `alpha` per decision; "open" when neither test crossed yet."""
+    each in [lo, hi]), at error level `alpha` per decision; "open" when neither test crossed yet. `method`
+    "betting" (nonasymptotic, the default) or "asymptotic" (`_asymptotic_hits`: needs finite variance only,
+    valid as the units grow; exhaustion still uses [lo, hi])."""
     xs = np.clip(np.asarray(x, dtype=float), lo, hi)
     n, width = len(xs), hi - lo
     if n == 0:
         return Settlement(level, "open", 0, "")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    clt = _asymptotic_hits(xs, m, alpha) if method == "asymptotic" else None
     z, mz0 = (xs - lo) / width, (m - lo) / width
     t = np.arange(1, n + 1, dtype=float)
     seen = np.concatenate([[0.0], np.cumsum(z)[:-1]])  # sum of z before unit t
@@ -89,12 +112,15 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
     first: dict[str, tuple[int, str]] = {}
     for side in ("below", "above"):
         below = side == "below"
-        lam = _bets(z, m_z, est_z, var, below)
-        gain = lam * ((m_z - z) if below else (z - m_z))
-        log_k = np.cumsum(np.log1p(np.maximum(gain, -1.0 + 1e-15)))
+        if clt is None:
+            lam = _bets(z, m_z, est_z, var, below)
+            gain = lam * ((m_z - z) if below else (z - m_z))
+            crossed = np.cumsum(np.log1p(np.maximum(gain, -1.0 + 1e-15))) >= threshold
+        else:
+            crossed = clt[side]
         total = seen + z  # sum of z through unit t; the best / worst the rest can add is (N - t) or 0
         certain = (total + (population - t)) < population * mz0 if below else total >= population * mz0
-        hit_e, hit_c = np.flatnonzero(log_k >= threshold), np.flatnonzero(certain)
+        hit_e, hit_c = np.flatnonzero(crossed), np.flatnonzero(certain)
         cands = [(int(hit_e[0]) + 1, "evidence")] if len(hit_e) else []
         cands += [(int(hit_c[0]) + 1, "exhausted")] if len(hit_c) else []
         if cands:
@@ -112,11 +138,11 @@ def clip_units(values: Sequence[float] | np.ndarray, bound: float = DEFAULT_BOUN
 
 
 def settle_retention(clean: np.ndarray, cell: np.ndarray, level: float, *, population: int, alpha: float,
-                     bound: float = DEFAULT_BOUND) -> Settlement:
+                     bound: float = DEFAULT_BOUND, method: str = "betting") -> Settlement:
     """Settle r < level ("below") or r >= level ("above") from paired per-unit mean L2 in draw order."""
     a, _ = clip_units(clean, bound)
     b, _ = clip_units(cell, bound)
-    return settle_mean(a - level * b, 0.0, -level * bound, bound, population, alpha, level)
+    return settle_mean(a - level * b, 0.0, -level * bound, bound, population, alpha, level, method)
 
 
 def settled(decisions: Sequence[Settlement]) -> dict[float, Settlement]:
@@ -135,12 +161,12 @@ class CellStop:
 
 
 def run_cell(clean: np.ndarray, cell: np.ndarray, levels: Sequence[float], *, alpha: float,
-             bound: float = DEFAULT_BOUND, max_units: int | None = None) -> CellStop:
+             bound: float = DEFAULT_BOUND, max_units: int | None = None, method: str = "betting") -> CellStop:
     """The stopping rule: draw units until every decision in `levels` is settled, or the data (or `max_units`)
     run out. `clean`/`cell` hold the whole population in draw order; the rule reads only the prefix it uses."""
     n = len(clean) if max_units is None else min(len(clean), max_units)
-    decisions = tuple(settle_retention(clean[:n], cell[:n], c, population=len(clean), alpha=alpha, bound=bound)
-                      for c in levels)
+    decisions = tuple(settle_retention(clean[:n], cell[:n], c, population=len(clean), alpha=alpha, bound=bound,
+                                       method=method) for c in levels)
     if all(d.side != "open" for d in decisions):
         used = max(d.units for d in decisions)
         reason = "data" if used == len(clean) and any(d.how == "exhausted" for d in decisions) else "settled"
@@ -160,14 +186,15 @@ def alpha_per_decision(alpha: float, decisions: int) -> float:
 
 
 def retention_interval(clean: np.ndarray, cell: np.ndarray, *, alpha: float, bound: float = DEFAULT_BOUND,
-                       population: int | None = None, grid: np.ndarray | None = None) -> tuple[float, float]:
+                       population: int | None = None, grid: np.ndarray | None = None,
+                       method: str = "betting") -> tuple[float, float]:
     """Anytime-valid interval for r from the units seen: the levels neither test rejects (coverage 1 - 2 alpha,
     one alpha per side). Levels on `grid` (default 0.00 .. 2.00 by 0.005)."""
     levels = np.round(np.arange(0.0, 2.0001, 0.005), 3) if grid is None else grid
     pop = len(clean) if population is None else population
     low, high = -math.inf, math.inf
     for c in levels:
-        d = settle_retention(clean, cell, float(c), population=pop, alpha=alpha, bound=bound)
+        d = settle_retention(clean, cell, float(c), population=pop, alpha=alpha, bound=bound, method=method)
         if d.side == "above":
             low = max(low, float(c))
         elif d.side == "below":
@@ -293,7 +320,7 @@ class GateBaseline:
 
 def gate_cell(clean: np.ndarray, cell: np.ndarray, baseline: GateBaseline, order: Sequence[int], *,
               tolerance: float, alpha: float, bound: float = DEFAULT_BOUND,
-              max_units: int | None = None) -> Settlement:
+              max_units: int | None = None, method: str = "betting") -> Settlement:
     """Sequential test of "retention dropped by more than `tolerance`" (side "below": a regression, r_now <
     r_base - tolerance; "above": none), paired with the baseline unit by unit.
 
@@ -311,4 +338,4 @@ def gate_cell(clean: np.ndarray, cell: np.ndarray, baseline: GateBaseline, order
     b, _ = clip_units(np.asarray(cell)[idx], bound)
     e = (a - k * b) - (bc[idx] - k * bx[idx])
     reach = (1.0 + abs(k)) * bound
-    return settle_mean(e, -float(np.mean(bc - k * bx)), -reach, reach, len(bc), alpha, k)
+    return settle_mean(e, -float(np.mean(bc - k * bx)), -reach, reach, len(bc), alpha, k, method)
