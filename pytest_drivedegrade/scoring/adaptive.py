@@ -119,7 +119,8 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
         else:
             crossed = clt[side]
         total = seen + z  # sum of z through unit t; the best / worst the rest can add is (N - t) or 0
-        certain = (total + (population - t)) < population * mz0 if below else total >= population * mz0
+        slack = 1e-9 * population  # rounding never settles a population that sits on the line
+        certain = (total + (population - t)) < population * mz0 - slack if below else total >= population * mz0 + slack
         hit_e, hit_c = np.flatnonzero(crossed), np.flatnonzero(certain)
         cands = [(int(hit_e[0]) + 1, "evidence")] if len(hit_e) else []
         cands += [(int(hit_c[0]) + 1, "exhausted")] if len(hit_c) else []
@@ -142,6 +143,10 @@ def settle_retention(clean: np.ndarray, cell: np.ndarray, level: float, *, popul
     """Settle r < level ("below") or r >= level ("above") from paired per-unit mean L2 in draw order."""
     a, _ = clip_units(clean, bound)
     b, _ = clip_units(cell, bound)
+    if len(a) == population and population > 0:  # all data: the full run's own comparison decides a tie
+        exact = "below" if float(np.mean(a)) / float(np.mean(b)) < level else "above"
+        got = settle_mean(a - level * b, 0.0, -level * bound, bound, population, alpha, level, method)
+        return got if got.units < population else Settlement(level, exact, population, "exhausted")
     return settle_mean(a - level * b, 0.0, -level * bound, bound, population, alpha, level, method)
 
 
