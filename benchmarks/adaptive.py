@@ -48,7 +48,7 @@ def study(runs: int, seed: int) -> None:
           f"{'betting units':>13} {'asympt units':>12}")
     for i, (name, level, r) in enumerate(SCENARIOS):
         bet, naive, used_b = error_rates(r, level, runs, 750, seed + i)
-        asy, _, used_a = error_rates(r, level, runs, 750, seed + i, method="asymptotic")
+        asy, _, used_a = error_rates(r, level, runs, 750, seed + i, method="asymptotic", naive=False)
         print(f"{name:<18} {level:>5.2f} {r:>6.2f} {bet:>11.3f} {asy:>10.3f} {naive:>9.3f} {used_b:>13.1%} "
               f"{used_a:>12.1%}")
 
@@ -96,31 +96,51 @@ def noise_for(r: float, model: str) -> float:
 
 def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.random.Generator,
                  method: str, model: str) -> tuple[float, int, int]:
-    """(share of the full run's passes, cells visited, monotonicity flags) of one simulated adaptive run."""
+    """(share of the full run's passes, cells visited, monotonicity flags) of one simulated adaptive run: each
+    family scheduled (`schedule_family`), each cell stopped by `run_cell` on the two thresholds, then the axes'
+    S5 cells extended until `axis_settled` clears the flat line (or the data run out)."""
     from test_adaptive import population
 
     from pytest_drivedegrade.corruptions.ladder import QUALITY_FAMILIES
-    from pytest_drivedegrade.scoring.adaptive import alpha_per_decision, cell_levels, run_cell, schedule_family
+    from pytest_drivedegrade.scoring.adaptive import alpha_per_decision, run_cell, schedule_family
 
     n = len(passes)
-    axis = set(QUALITY_FAMILIES) | {"blackout"}
-    alpha = alpha_per_decision(0.05, len(profile) * 5 * 2 + len(axis))
+    alpha = alpha_per_decision(0.05, len(profile) * 5 * 2 + len(QUALITY_FAMILIES) + 1)
     cum = np.concatenate([[0], np.cumsum(passes)])
     base = np.minimum(rng.lognormal(np.log(0.8), 0.45, n), 2.5)  # the same clean units in every cell
-    cost, visited_cells, flags, most = 0.0, 0, 0, 0
+    used: dict[tuple[str, int], int] = {}
+    s5: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    flags = 0
     for fam, curve in profile.items():
         seen: dict[int, dict[float, str]] = {}
         while (plan := schedule_family(seen)).next_severity is not None:
             s = plan.next_severity
             clean, cell = population(rng, n, curve[s], noise_for(curve[s], model), clean=base)
-            stop = run_cell(clean, cell, cell_levels(s, fam in axis), alpha=alpha, method=method)
-            seen[s] = {d.level: d.side for d in stop.decisions}
-            cost += min(cum[stop.units], FRAMES)  # a cell that needs every unit runs as the full stream
-            most = max(most, stop.units)
-            visited_cells += 1
+            stop = run_cell(clean, cell, (0.9, 0.75), alpha=alpha, method=method)
+            seen[s], used[fam, s] = {d.level: d.side for d in stop.decisions}, stop.units
+            if s == 5:
+                s5[fam] = (clean, cell)
         flags += bool(plan.violations)
-    cost += (CELLS - 5 * len(profile)) * min(cum[most], FRAMES)  # clean, null control, others on the units used
-    return cost / (CELLS * FRAMES), visited_cells, flags
+    for axis in (QUALITY_FAMILIES, ("blackout",)):
+        extend_axis(axis, s5, used, alpha, method)
+    cost = sum(min(cum[u], FRAMES) for u in used.values())  # a cell needing every unit runs as the full stream
+    cost += (CELLS - 5 * len(profile)) * min(cum[max(used.values())], FRAMES)  # clean, null control, the rest
+    return cost / (CELLS * FRAMES), len(used), flags
+
+
+def extend_axis(axis: tuple[str, ...], s5: dict[str, tuple[np.ndarray, np.ndarray]],
+                used: dict[tuple[str, int], int], alpha: float, method: str) -> None:
+    """Grow the axis' S5 cells by 5 % of the units at a time until the axis clears the flat line."""
+    from pytest_drivedegrade.scoring.adaptive import axis_settled, retention_interval
+
+    n = len(next(iter(s5.values()))[0])
+    while True:
+        spans = [retention_interval(s5[f][0][:used[f, 5]], s5[f][1][:used[f, 5]], alpha=alpha, population=n,
+                                    method=method) for f in axis]
+        if axis_settled(spans)[0] != "open" or all(used[f, 5] == n for f in axis):
+            return
+        for f in axis:
+            used[f, 5] = min(n, used[f, 5] + max(1, n // 20))
 
 
 def gate_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.random.Generator,

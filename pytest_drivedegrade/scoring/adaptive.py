@@ -185,6 +185,17 @@ def cell_levels(severity: int, axis: bool, flat: float = DEFAULT_FLAT) -> tuple[
     return levels + (flat,) if axis and severity == 5 else levels
 
 
+def axis_settled(intervals: Sequence[tuple[float, float]], flat: float = DEFAULT_FLAT) -> tuple[str, float, float]:
+    """An axis (the mean of S5 retentions) against the flat line from its cells' anytime-valid intervals: the
+    mean of the lows and of the highs bounds the mean whenever every cell's interval holds (the union bound
+    already spent on the cells), so the axis is "below" / "above" (at or above) the line once that interval
+    clears it, else "open". Returns (side, low, high)."""
+    low = float(np.mean([i[0] for i in intervals]))
+    high = float(np.mean([i[1] for i in intervals]))
+    side = "below" if high < flat else "above" if low >= flat else "open"
+    return side, low, high
+
+
 def alpha_per_decision(alpha: float, decisions: int) -> float:
     """The union bound: each of `decisions` (counted before the run) at alpha / decisions."""
     return alpha / max(1, decisions)

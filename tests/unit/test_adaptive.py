@@ -16,6 +16,7 @@ from pytest_drivedegrade.scoring.adaptive import (
     GateBaseline,
     Settlement,
     alpha_per_decision,
+    axis_settled,
     cell_levels,
     cut_units,
     gate_cell,
@@ -73,8 +74,9 @@ def naive_stop(clean: np.ndarray, cell: np.ndarray, level: float, rng: np.random
 
 
 def error_rates(r: float, level: float, runs: int, n: int, seed: int, method: str = "betting",
-                alpha: float = 0.05) -> tuple[float, float, float]:
-    """(adaptive error rate, naive error rate, adaptive mean share of units used) over `runs` populations."""
+                alpha: float = 0.05, naive: bool = True) -> tuple[float, float, float]:
+    """(adaptive error rate, naive error rate (NaN when `naive` is off), adaptive mean share of units used) over
+    `runs` populations."""
     rng = np.random.default_rng(seed)
     bad_a = bad_n = 0
     used = 0.0
@@ -84,8 +86,8 @@ def error_rates(r: float, level: float, runs: int, n: int, seed: int, method: st
         d = settle_retention(clean, cell, level, population=n, alpha=alpha, bound=BOUND, method=method)
         bad_a += wrong(d.side, truth, level)
         used += d.units / n
-        bad_n += wrong(naive_stop(clean, cell, level, rng)[0], truth, level)
-    return bad_a / runs, bad_n / runs, used / runs
+        bad_n += wrong(naive_stop(clean, cell, level, rng)[0], truth, level) if naive else 0
+    return bad_a / runs, (bad_n / runs if naive else float("nan")), used / runs
 
 
 # -- known answers ----------------------------------------------------------------------------------------------
@@ -139,6 +141,12 @@ def test_levels_and_alpha_split() -> None:
     assert cell_levels(5, axis=True, flat=0.95) == (0.9, 0.75, 0.95)
     assert cell_levels(5, axis=False) == (0.9, 0.75)
     assert alpha_per_decision(0.05, 10) == pytest.approx(0.005)
+
+
+def test_an_axis_settles_from_its_cells_intervals() -> None:
+    assert axis_settled([(0.7, 0.8), (0.6, 0.9)], 0.95) == ("below", 0.65, 0.85)
+    assert axis_settled([(0.96, 1.0), (0.97, 1.01)], 0.95)[0] == "above"
+    assert axis_settled([(0.9, 1.0), (0.97, 1.01)], 0.95)[0] == "open"
 
 
 def test_the_interval_covers_the_truth_and_shrinks() -> None:
