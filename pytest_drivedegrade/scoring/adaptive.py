@@ -16,6 +16,11 @@ inequality gives P(sup_t K_t >= 1/a) <= a, whatever stopping time is used. Bets 
 bet from the running mean and variance), capped at half the admissible bet. A decision also settles, without
 error, once the units left cannot change its sign ("exhausted").
 
+A second method, "asymptotic" (Waudby-Smith, Arnold, Wu, Wang & Ramdas 2024, "Time-uniform central limit theory
+and asymptotic confidence sequences", Ann. Statist.), needs a finite variance only and is valid as the units grow:
+far cheaper, but it trusts the units seen (`benchmarks/adaptive.py` measures both; spec/README says when each
+meets issue 22's targets).
+
 Why betting and not a ratio CS: a confidence sequence for the ratio needs a delta-method (asymptotic) argument;
 the linearised sign test is exact, nonasymptotic and uses the pairing (per-unit difficulty cancels in x_u).
 
@@ -28,6 +33,8 @@ could take, so a loose B slows every decision.
 boundary only "below" is wrong), so each side runs at the decision's level a_d and the decision errs with
 probability <= a_d. Across the certificate's K decisions a union bound: a_d = alpha / K, K counted before the run
 (every decision every cell could take), which bounds the chance that *any* settled decision is wrong by alpha.
+The label rests on the axes, so an axis (a mean of S5 retentions) is decided against the flat line from its
+cells' intervals (`axis_settled`), not cell by cell.
 """
 
 from __future__ import annotations
