@@ -3,7 +3,8 @@
 A stored result is a `CellPayload` with its run key (spec and tool versions, planner and dataset fingerprints,
 scored frames, seed) and its record's content digest; a rerun reuses exactly the results whose key matches and
 whose record still hashes to its digest, so an interrupted run resumes, a changed planner, data set, ladder or
-tool recomputes, and a stored file edited by hand is recomputed (and reported in `digest_failures`).
+tool recomputes, and a stored file edited by hand, or without a digest, is recomputed (and reported in
+`digest_failures`).
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ from typing import Any, cast
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..cells import CellRecord
+from ..cells import CellRecord, record_digest
 from ..errors import DriveDegradeError
 from ..scoring.records import RunAnalysis
 from ..scoring.verdict import VERDICT_LABELS
@@ -146,11 +146,13 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
                       records: Mapping[str, CellRecord] | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
     run's `records`, each cell carries ``plans_digest`` (`CellRecord.plans_digest`), what `drivedegrade
-    reproduce` compares a rerun with."""
+    reproduce` compares a rerun with, and ``record_digest`` (`cells.record_digest`), what its stored cell file
+    must hash to."""
     cells = [{k: row[k] for k in CERTIFICATE_CELL if k in row} for row in (s.flat() for s in analysis.summaries)]
     for cell in cells:
         if records is not None and cell["cell"] in records:
             cell["plans_digest"] = records[cell["cell"]].plans_digest()
+            cell["record_digest"] = record_digest(records[cell["cell"]].to_builtins())
     nc = analysis.null_control or {"passed": None, "max_abs_diff": None, "max_l2_change": None}
     return {
         "schema": SCHEMA,
@@ -327,10 +329,11 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
         expect(f"cells[{i}].severity", c.get("severity"), type(c.get("severity")) is int, "an integer")
         for k in ("l2_avg", "retention", "retention_ci_low", "retention_ci_high"):
             expect(f"cells[{i}].{k}", c.get(k), _num(c.get(k)), "a number or null")
-        if "plans_digest" in c:  # absent from certificates written before digests of the plans existed
-            got = c["plans_digest"]
-            expect(f"cells[{i}].plans_digest", got, isinstance(got, str) and bool(_HEX64.match(got)),
-                   "64 lowercase hex digits")
+        for k in ("plans_digest", "record_digest"):  # absent from certificates written before these digests
+            if k in c:
+                got = c[k]
+                expect(f"cells[{i}].{k}", got, isinstance(got, str) and bool(_HEX64.match(got)),
+                       "64 lowercase hex digits")
         for k in ("conformance_errors", "data_errors"):  # failed-frame counts (data_errors: spec 3, may be absent)
             if k in c:
                 expect(f"cells[{i}].{k}", c.get(k), type(c.get(k)) is int and c[k] >= 0, "a count")
