@@ -235,7 +235,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
 def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, tolerance: float, *, partial: bool = False,
          any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
-    own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another
+    own items), and so does a baseline that leaves part of the run uncompared, or a run that leaves part of the
+    baseline uncomputed (`-k`, fewer families: unless `partial`), or a baseline that is another
     planner's (unless `any_planner`), with a line saying what was not compared."""
     if baseline is None:
         return [], False
@@ -254,7 +255,7 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
         lines.append(f"baseline: FAILED: {foreign}")
         failed = True
     gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get("retention") is not None],
-                        cert.get("axes"))
+                        cert.get("axes") or {})
     if gaps and partial:
         lines.append(f"baseline (--drivedegrade-baseline-partial): not compared: {'; '.join(gaps)}")
     elif gaps:

@@ -57,3 +57,24 @@ def test_item2_merge_refuses_a_shard_cell_without_record_digest(dd, capsys):
     err = capsys.readouterr().err
     assert "clean.json" in err and "no record_digest" in err
     assert not (dd.pytester.path / "m" / "testplanner" / "certificate.json").exists()
+
+
+@pytest.mark.parametrize("narrow", [("-k", "not blackout"), ("-k", "clean"), ("--drivedegrade-families", "jpeg")])
+def test_item3_a_narrowed_gated_run_fails_naming_what_it_did_not_compute(dd, narrow):
+    """Item 3: a gated run narrowed by ``-k`` or a shorter family list fails the gate, naming the baseline's
+    cells it did not compute, unless --drivedegrade-baseline-partial (which names them too)."""
+    dd.write_planner()
+    dd.run(families="jpeg,blackout", severities="5").assert_outcomes(passed=5)
+    baseline = dd.pytester.path / "baseline.json"
+    baseline.write_text((dd.folder() / "certificate.json").read_text())
+    families = "jpeg,blackout" if narrow[0] == "-k" else narrow[1]
+    args = narrow if narrow[0] == "-k" else ()
+    narrowed = dd.run("--drivedegrade-baseline", str(baseline), *args, families=families, severities="5",
+                      report="fresh")  # a fresh checkout: no stored cells of the baseline's run to fill the gaps
+    assert narrowed.ret == 1
+    narrowed.stdout.fnmatch_lines(["*baseline: FAILED: not compared: * cell(s) of the baseline were not computed "
+                                   "by this run: *blackout-s5*"])
+    partial = dd.run("--drivedegrade-baseline", str(baseline), "--drivedegrade-baseline-partial", *args,
+                     families=families, severities="5", report="fresh2")
+    assert partial.ret == 0
+    partial.stdout.fnmatch_lines(["*baseline (--drivedegrade-baseline-partial): not compared: *blackout-s5*"])
