@@ -40,9 +40,10 @@ def test_item2_a_stored_cell_without_record_digest_is_recomputed_not_trusted(dd)
     assert json.loads(path.read_text())["record"]["plans"] == original["record"]["plans"]
     cert = load_json(dd.folder() / "certificate.json")
     assert cert["cost"]["resumed_cells"] == ["blind", "clean", "null"]
-    for cell in cert["cells"]:
-        stored = json.loads((dd.folder() / "cells" / f"{cell['cell']}.json").read_text())
-        assert cell["record_digest"] == stored["record_digest"] == record_digest(stored["record"])
+    assert sorted(cert["record_digests"]) == sorted(c["cell"] for c in cert["cells"])
+    for cell, digest in cert["record_digests"].items():
+        stored = json.loads((dd.folder() / "cells" / f"{cell}.json").read_text())
+        assert digest == stored["record_digest"] == record_digest(stored["record"])
 
 
 def test_item2_merge_refuses_a_shard_cell_without_record_digest(dd, capsys):
@@ -78,3 +79,71 @@ def test_item3_a_narrowed_gated_run_fails_naming_what_it_did_not_compute(dd, nar
                      families=families, severities="5", report="fresh2")
     assert partial.ret == 0
     partial.stdout.fnmatch_lines(["*baseline (--drivedegrade-baseline-partial): not compared: *blackout-s5*"])
+
+
+#: A front-camera planner without reset that tracks scenes through ``context.scene_token`` (item 4): its plan
+#: drifts with the number of frames of the scene it has seen, so a skipped call changes later plans. `declare`
+#: is a class-body line (``deterministic = True`` for a planner that claims what it is not), `context` whether
+#: predict takes the context (without it the planner counts every call it ever had).
+TRACKER = '''
+import numpy as np
+import pytest
+
+T = 0.5 * np.arange(1, 7)
+
+
+class Tracker:
+    cameras = ("CAM_FRONT",)
+    name = "tracker"
+    {declare}
+
+    def __init__(self):
+        self.at, self.seen = None, 0
+
+    def predict(self, images, ego, cmd{context}):
+        at = {at}  # a new track at another scene, or back at an earlier keyframe (the next cell's pass)
+        self.seen = self.seen + 1 if self.at is not None and at[0] == self.at[0] and at[1] > self.at[1] else 1
+        self.at = at
+        plan = np.zeros((6, 2))
+        plan[:, 0] = max(ego.velocity[0], 0.0) * T
+        plan[:, 1] = float(images["CAM_FRONT"][::8, ::8].mean()) / 255.0 + 0.01 * self.seen
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return Tracker()
+'''
+
+
+def _tracker(dd, *extra, declare="", context=True, report):
+    dd.pytester.makepyfile(tracker=TRACKER.format(declare=declare, context=", context" if context else "",
+                                                  at="(context.scene_token, context.index)" if context
+                                                  else "(0, self.seen)"))
+    return dd.run("-p", "no:xdist", *extra, planner="tracker.py", report=report,
+                  families="blackout,frame_dropout", severities="1,3")
+
+
+def test_item4_a_temporal_planner_that_sees_the_stream_is_not_reused(dd):
+    """Item 4: a planner whose predict takes the context and that does not declare ``deterministic = True`` may
+    track scenes by ``context.scene_token``: its frames are never reused, so its cells equal those of a run with
+    --drivedegrade-no-reuse (reuse would skip calls and certify other numbers)."""
+    on = _tracker(dd, report="on")
+    on.assert_outcomes(passed=7)
+    off = _tracker(dd, "--drivedegrade-no-reuse", report="off")
+    off.assert_outcomes(passed=7)
+    a = load_json(dd.folder("tracker", report="on") / "certificate.json")
+    b = load_json(dd.folder("tracker", report="off") / "certificate.json")
+    assert a["cost"]["reused"] == 0
+    assert a["cells"] == b["cells"] and a["axes"] == b["axes"]
+
+
+@pytest.mark.parametrize("context", [True, False], ids=["declares-deterministic", "no-context"])
+def test_item4_the_reuse_control_fails_a_planner_whose_reused_plans_differ(dd, context):
+    """Item 4, the reuse control: a planner that reuse applies to (it declares ``deterministic = True``, or its
+    predict takes no context) but whose plans depend on its call history is predicted on a sample of the reused
+    frames; a plan that differs bit for bit from the reused one fails the cell loudly, saying why."""
+    result = _tracker(dd, declare="deterministic = True" if context else "", context=context, report="r")
+    assert result.ret == 1
+    result.stdout.fnmatch_lines(["*reuse control failed: predict() on inputs equal to the clean cell's returned "
+                                 "another plan than clean's*"])
