@@ -147,3 +147,43 @@ def test_item4_the_reuse_control_fails_a_planner_whose_reused_plans_differ(dd, c
     assert result.ret == 1
     result.stdout.fnmatch_lines(["*reuse control failed: predict() on inputs equal to the clean cell's returned "
                                  "another plan than clean's*"])
+
+
+def test_item6_reproduce_checks_the_arithmetic_the_planner_and_draws_a_fresh_sample(dd, capsys):
+    """Item 6: `reproduce` refuses a resealed certificate whose verdict contradicts its cells before any rerun,
+    refuses another planner (its name here) unless --any-planner, and draws its default sample from fresh
+    randomness, naming the seed so that --seed draws the same cells again."""
+    from pytest_drivedegrade.certificate.reproduce import sample_cells
+    from pytest_drivedegrade.certificate.seal import seal, verify, write_certificate
+
+    planner = dd.write_planner()
+    dd.run("-p", "no:xdist", families="jpeg,blackout", severities="2,5").assert_outcomes(passed=7)
+    cert_path = dd.folder() / "certificate.json"
+    cert = verify(cert_path)
+    forged = dict(cert)
+    forged["verdict"] = {**cert["verdict"], "label": "not-shown-to-use-cameras"
+                         if cert["verdict"]["label"] != "not-shown-to-use-cameras" else "uses-cameras"}
+    forged_path = dd.pytester.path / "forged.json"
+    write_certificate(forged_path, seal(forged))
+    capsys.readouterr()
+    assert main(["reproduce", str(forged_path), str(planner)]) == 2
+    out, err = capsys.readouterr()
+    assert "contradict its own cells" in err and "verdict" in err and "sample seed" not in out
+
+    seeds = []
+    for _ in range(2):
+        assert main(["reproduce", str(cert_path), str(planner), "--cells", "1"]) == 0
+        out, _err = capsys.readouterr()
+        line = next(x for x in out.splitlines() if x.startswith("reproduce: sample seed "))
+        assert "(fresh randomness; --seed" in line
+        seed = line.split()[3]
+        seeds.append(seed)
+        cells = line.split(": ", 2)[2].split(", ")
+        assert cells == sample_cells([c["cell"] for c in cert["cells"]], cert["digest"], 1, salt=seed)
+    assert seeds[0] != seeds[1]  # 1 in 2**31 to collide
+
+    planner.write_text(planner.read_text().replace("name = 'testplanner'", "name = 'another'"))
+    assert main(["reproduce", str(cert_path), str(planner), "--cells", "0", "--seed", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "the planner is not the certificate's (name 'another' here, 'testplanner' in the certificate" in err
+    assert main(["reproduce", str(cert_path), str(planner), "--cells", "0", "--seed", "1", "--any-planner"]) == 0
