@@ -229,6 +229,24 @@ def undetermined_by_failures(v: dict[str, Any], failed: Mapping[str, Mapping[str
             "ego_label": "undetermined", "borderline": False}
 
 
+def undetermined_by_null_control(v: dict[str, Any], nc: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The verdict of a run whose null control failed (M4): ``undetermined``, since plans that move with no
+    corruption cannot tell a camera's effect from the planner's own; the label the axes give is kept as
+    ``computed_label`` (after `undetermined_by_failures`, whose reason it extends). Otherwise `v` as is."""
+    if not nc or nc.get("passed") is not False:
+        return v
+    reason = (f"the null control failed (plans moved by up to {float(nc.get('max_l2_change') or 0.0):.6g} m with no "
+              "corruption applied)")
+    text = (f"Undetermined: {reason}. Plans that change when nothing changed cannot be told from a camera's "
+            f"effect: the axes give {v['computed_label']}, but a verdict is not sealed on them; make predict() "
+            "deterministic (or declare the cameras it reads) and rerun.")
+    if v["label"] == "undetermined" and v.get("case") == "failed-frames":
+        text = f"{v['text']} Also {reason}."
+    return {**v, "label": "undetermined", "case": v["case"] if v.get("case") == "failed-frames" else
+            "null-control-failed", "text": text, "ego_label": "undetermined", "borderline": False,
+            "reason": reason if not v.get("reason") else f"{v['reason']}; {reason}"}
+
+
 def separable_from_null(endpoint_shift: float, wander: float) -> bool:
     """A cell is separable only if its mean 3 s endpoint shift from clean exceeds the null's largest wander
     (a mean against a maximum: conservative). With a bit-identical null, any change at all is separable."""
@@ -257,7 +275,8 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     per-seed retentions and the two-level bootstrap's CI.
 
     A cell with failed frames (planner contract or data) makes the verdict ``undetermined`` with the reason
-    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``.
+    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``. So does a
+    failed null control (`undetermined_by_null_control`).
 
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
     floor's clean l2_avg when it was run; `seeds` the run's ``--drivedegrade-seeds`` (recorded in the
@@ -320,7 +339,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     if v["borderline"]:
         v["text"] += iv.borderline_text(cast(float, confidence))
     failed = failed_cells(by_cell.values(), groups.order)
-    v = undetermined_by_failures(v, failed)
+    v = undetermined_by_null_control(undetermined_by_failures(v, failed), nc)
     partial = list(failed)  # the figures are still computed, and flagged as resting on partial cells
     ax["partial"] = ax_pdms["partial"] = partial
     for fam, entry in th.items():
