@@ -237,7 +237,8 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("certificate", metavar="CERT", help="the certificate.json to check (verified first)")
     p.add_argument("planner", metavar="PLANNER", help="the planner file (.py) the certificate was made with")
     p.add_argument("--cells", type=int, default=3, metavar="N",
-                   help="sampled cells besides clean and null (default 3; drawn by the certificate's digest and --seed)")
+                   help="sampled cells besides clean and null (default 3; drawn by the certificate's digest and "
+                        "--seed)")
     p.add_argument("--data", metavar="PATH", help="the data set's root when the certificate's is not on this "
                                                   "machine (default: the certificate's, or the embedded world)")
     p.add_argument("--seed", type=int, metavar="INT", help="the sample seed (default: fresh randomness, printed so "

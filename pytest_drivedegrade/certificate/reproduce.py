@@ -1,10 +1,10 @@
 """`drivedegrade reproduce CERT PLANNER`: check a certificate by rerunning some of its cells bit for bit.
 
 The suite is deterministic (same command, same bits on any worker layout), so the strongest check a stranger can
-make is to rerun cells and compare plans. The certificate is verified first; then clean, the null control and N
-other cells, sampled from the certificate's digest and a seed, are
-rerun by the real pipeline (the sample is drawn from fresh randomness unless ``--seed`` repeats one, and the output
-says which seed drew it; a certificate whose verdict contradicts its cells is refused, as `verify` refuses it): a ``python -m pytest --drivedegrade PLANNER -k CELLS`` subprocess into a fresh report
+make is to rerun cells and compare plans. The certificate is verified first, and refused when its thresholds, axes
+or verdict contradict its cells (verify's arithmetic); then clean, the null control and N other cells, sampled
+from the certificate's digest and a seed (fresh randomness unless ``--seed`` repeats one; the output names it), are
+rerun by the real pipeline: a ``python -m pytest --drivedegrade PLANNER -k CELLS`` subprocess into a fresh report
 folder, with the settings the certificate records (`RunSettings.from_certificate`, `RunSettings.rerun_argv`) and no
 pytest cache (``-p no:cacheprovider``: no stored cell and no last-failed state can leak in). Each cell's
 ``plans_digest`` is compared as it finishes, then every certified figure of the sampled cells.
