@@ -143,7 +143,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     if context is None:
         return None
     out = Outcome()
-    store = store or ResultStore(options.report_dir)
+    store = store or ResultStore(options.report_dir, resume=options.resume)
     run = gather(received, expected, store)
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")

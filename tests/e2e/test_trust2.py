@@ -187,3 +187,61 @@ def test_item6_reproduce_checks_the_arithmetic_the_planner_and_draws_a_fresh_sam
     err = capsys.readouterr().err
     assert "the planner is not the certificate's (name 'another' here, 'testplanner' in the certificate" in err
     assert main(["reproduce", str(cert_path), str(planner), "--cells", "0", "--seed", "1", "--any-planner"]) == 0
+
+
+#: A planner whose model lives in a module beside it (item 5): the plan's offset comes from `trust2_model`.
+MODEL_PLANNER = '''
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from trust2_model import OFFSET  # noqa: E402
+
+
+class Modelled:
+    cameras = ("CAM_FRONT",)
+    name = "modelled"
+
+    def predict(self, images, ego, cmd):
+        plan = np.zeros((6, 2))
+        plan[:, 0] = max(ego.velocity[0], 0.0) * 0.5 * np.arange(1, 7) + OFFSET
+        plan[:, 1] = float(images["CAM_FRONT"][::8, ::8].mean()) / 255.0
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return Modelled()
+'''
+
+
+def test_item5_a_changed_imported_module_is_not_reused_and_no_resume_recomputes(dd):
+    """Item 5: the planner fingerprint covers a module the planner file imports from beside it, so changing that
+    module recomputes the stored cells (stale: planner_fingerprint) instead of reusing them; and
+    --drivedegrade-no-resume recomputes every cell of an unchanged planner."""
+    from pytest_drivedegrade.planning import covered_modules
+
+    dd.pytester.makepyfile(modelled=MODEL_PLANNER, trust2_model="OFFSET = 0.0\n")
+    planner = dd.pytester.path / "modelled.py"
+    assert [p.name for p in covered_modules(planner)] == ["modelled.py", "trust2_model.py"]
+
+    def certify(*extra):
+        result = dd.run("-p", "no:xdist", *extra, planner="modelled.py", families="jpeg", severities="1")
+        result.assert_outcomes(passed=4)
+        return result, load_json(dd.folder("modelled") / "certificate.json")
+
+    _, first = certify()
+    again, second = certify()
+    again.stdout.fnmatch_lines(["*reused 4 stored cell(s)*"])
+    (dd.pytester.path / "trust2_model.py").write_text("OFFSET = 0.25\n")
+    changed, third = certify()
+    assert third["planner"]["fingerprint"] != first["planner"]["fingerprint"]
+    assert third["cost"]["resumed_cells"] == []
+    changed.stdout.fnmatch_lines(["*not reused: 4 stored cell(s) recomputed because their run key differs in "
+                                  "planner_fingerprint*"])
+    fresh, fourth = certify("--drivedegrade-no-resume")
+    assert fourth["cost"]["resumed_cells"] == [] and "stored cell(s)" not in fresh.stdout.str()
+    assert fourth["planner"]["fingerprint"] == third["planner"]["fingerprint"]
