@@ -133,6 +133,18 @@ def provenance(config: pytest.Config, options: RunOptions, context: RunContext, 
                           planner_file=planner_file)
 
 
+def coverage_lines(path: Path | None) -> list[str]:
+    """Which modules besides the planner file its fingerprint covers (`planning.covered_modules`), when any: a
+    change to them recomputes the stored cells; a change to anything else (installed packages, data) does not."""
+    if path is None or not path.is_file():
+        return []
+    from ..planning import covered_modules
+
+    extra = covered_modules(path)[1:]
+    return [f"planner fingerprint covers {path.name} and {len(extra)} module(s) it imports from outside "
+            f"site-packages: {', '.join(p.name for p in extra)}"] if extra else []
+
+
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
                baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
@@ -148,7 +160,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
-    out.lines += reuse_lines(received, run, store)
+    out.lines += reuse_lines(received, run, store) + coverage_lines(options.planner_path)
     if options.settings.shard is not None:
         return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them

@@ -235,7 +235,8 @@ def test_item5_a_changed_imported_module_is_not_reused_and_no_resume_recomputes(
 
     _, first = certify()
     again, second = certify()
-    again.stdout.fnmatch_lines(["*reused 4 stored cell(s)*"])
+    again.stdout.fnmatch_lines(["*reused 4 stored cell(s)*", "planner fingerprint covers modelled.py and 1 "
+                                "module(s) it imports from outside site-packages: trust2_model.py"])
     (dd.pytester.path / "trust2_model.py").write_text("OFFSET = 0.25\n")
     changed, third = certify()
     assert third["planner"]["fingerprint"] != first["planner"]["fingerprint"]
