@@ -406,8 +406,8 @@ class CellPayload:
     @classmethod
     def from_builtins(cls, data: Mapping[str, Any]) -> CellPayload:
         """Inverse of `to_builtins`; `InvalidInput` naming the missing field otherwise, `RecordDigestMismatch` when
-        the record does not hash to its ``record_digest`` (a payload without one, from before digests, is not
-        checked: its run key lacks the tool version, so it is never reused)."""
+        the record does not hash to its ``record_digest`` or has none (a record without a digest cannot be
+        checked, so it is never trusted: a digest failure like an edited one)."""
         if not isinstance(data, Mapping):
             raise InvalidInput(f"a cell payload is a JSON object, found {type(data).__name__}")
         try:
@@ -417,7 +417,10 @@ class CellPayload:
         if not isinstance(key, Mapping) or not isinstance(planner, str):
             raise InvalidInput("cell payload: `key` must be an object and `planner` a string")
         recorded = data.get("record_digest")
-        if recorded is not None and isinstance(record, Mapping) and record_digest(record) != recorded:
+        if recorded is None and isinstance(record, Mapping):
+            raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record has no record_digest, so it "
+                                       "cannot be checked: it was edited or written by hand")
+        if isinstance(record, Mapping) and record_digest(record) != recorded:
             raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record hashes to "
                                        f"{record_digest(record)[:16]}..., not to its recorded digest "
                                        f"{str(recorded)[:16]}...: it was edited or corrupted on disk")

@@ -94,7 +94,8 @@ def _reproduce(args: argparse.Namespace) -> int:
     from .certificate.reproduce import reproduce
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
-                     salt="" if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep)
+                     salt=None if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep,
+                     any_planner=args.any_planner)
 
 
 def _keygen(args: argparse.Namespace) -> int:
@@ -236,11 +237,14 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("certificate", metavar="CERT", help="the certificate.json to check (verified first)")
     p.add_argument("planner", metavar="PLANNER", help="the planner file (.py) the certificate was made with")
     p.add_argument("--cells", type=int, default=3, metavar="N",
-                   help="sampled cells besides clean and null (default 3; sampled from the certificate's digest)")
+                   help="sampled cells besides clean and null (default 3; drawn by the certificate's digest and "
+                        "--seed)")
     p.add_argument("--data", metavar="PATH", help="the data set's root when the certificate's is not on this "
                                                   "machine (default: the certificate's, or the embedded world)")
-    p.add_argument("--seed", type=int, metavar="INT", help="draw another sample of cells (default: the certificate's "
-                                                           "digest alone picks them)")
+    p.add_argument("--seed", type=int, metavar="INT", help="the sample seed (default: fresh randomness, printed so "
+                                                           "the same cells can be drawn again)")
+    p.add_argument("--any-planner", action="store_true", help="rerun with a planner other than the certificate's "
+                                                              "(name or fingerprint): compare its plans anyway")
     p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature")
     p.add_argument("--keep", action="store_true", help="keep the rerun's report folder (kept anyway when a cell "
                                                        "differs)")

@@ -14,8 +14,11 @@ that file as a plugin module is the pytest plugin's job; this module only judges
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import inspect
+import sys
+import sysconfig
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -280,8 +283,71 @@ def _source_bytes(planner: Any, path: str | Path | None) -> bytes:
     return f"{type(planner).__module__}.{type(planner).__qualname__}".encode()
 
 
+def _outside(file: Path) -> bool:
+    """Whether `file` is the standard library's, an installed package's (site-packages) or this tool's own (its
+    version is in the run key): code a planner's fingerprint leaves out."""
+    roots = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
+    roots.add(str(Path(__file__).resolve().parent))
+    resolved = str(file.resolve())
+    return "site-packages" in file.parts or "dist-packages" in file.parts or \
+        any(resolved.startswith(str(Path(r).resolve()) + "/") for r in roots)
+
+
+def _module_file(name: str, near: Path) -> Path | None:
+    """The source file of module `name` as the planner imports it: the loaded module's, else one beside `near`."""
+    module = sys.modules.get(name)
+    found = getattr(module, "__file__", None) if module is not None else None
+    if found:
+        return Path(found)
+    for candidate in (near / f"{name.replace('.', '/')}.py", near / name.replace(".", "/") / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imports(file: Path) -> list[tuple[str, int]]:
+    """(module, relative level) of every import statement in `file`, in order (none when it does not parse)."""
+    try:
+        tree = ast.parse(file.read_bytes())
+    except (OSError, SyntaxError, ValueError):
+        return []
+    out: list[tuple[str, int]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, 0) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            out += [(node.module or "", node.level)] + \
+                [(f"{node.module}.{a.name}" if node.module else a.name, node.level) for a in node.names]
+    return out
+
+
+def covered_modules(path: str | Path) -> list[Path]:
+    """The planner file and every module it imports, transitively, from outside the standard library,
+    site-packages and this tool (`_outside`), found among the loaded modules or beside the importing file:
+    the sources `planner_fingerprint` folds in, in a stable order (the planner file first)."""
+    start = Path(path).resolve()
+    seen, queue = [start], [start]
+    while queue:
+        file = queue.pop(0)
+        for name, level in _imports(file):
+            base = file.parent
+            for _ in range(max(level - 1, 0)):
+                base = base.parent
+            found = _module_file(name, base) if level else \
+                (_module_file(name, file.parent) if name else None)
+            if found is None or found.suffix != ".py" or not found.is_file() or _outside(found):
+                continue
+            found = found.resolve()
+            if found not in seen:
+                seen.append(found)
+                queue.append(found)
+    return [start, *sorted(seen[1:])]
+
+
 def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
-    """A SHA-256 hex digest identifying a planner: its file's source plus its weights or declared state.
+    """A SHA-256 hex digest identifying a planner: its file's source, the source of every module it imports
+    from outside the standard library, site-packages and this tool (`covered_modules`: a model kept in a module
+    beside it), plus its weights or declared state.
 
     State: a ``fingerprint`` attribute (a string, or a callable returning one) and the bytes of a torch
     ``state_dict`` (on the planner or its ``model`` / ``net``), each when present: a declared fingerprint never
@@ -290,6 +356,9 @@ def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
     """
     digest = hashlib.sha256(b"drivedegrade-planner-v1|")
     digest.update(_source_bytes(planner, path))
+    if path is not None and Path(path).is_file():  # the modules it imports from outside installed packages
+        for module in covered_modules(path)[1:]:
+            digest.update(f"|module|{module.name}|".encode() + module.read_bytes())
     digest.update(f"|class|{type(planner).__module__}.{type(planner).__qualname__}".encode())
     declared = getattr(planner, "fingerprint", None)
     if callable(declared):

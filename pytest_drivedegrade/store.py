@@ -3,7 +3,8 @@
 A stored result is a `CellPayload` with its run key (spec and tool versions, planner and dataset fingerprints,
 scored frames, seed) and its record's content digest; a rerun reuses exactly the results whose key matches and
 whose record still hashes to its digest, so an interrupted run resumes, a changed planner, data set, ladder or
-tool recomputes, and a stored file edited by hand is recomputed (and reported in `digest_failures`).
+tool recomputes, and a stored file edited by hand, or without a digest, is recomputed (and reported in
+`digest_failures`).
 """
 
 from __future__ import annotations
@@ -21,8 +22,10 @@ from .errors import InvalidInput
 class ResultStore:
     """`<report>/<planner>/cells/`, or `<report>/<planner>/<shard label>/cells/` for one shard of a run."""
 
-    def __init__(self, report_dir: Path, shard: str | None = None) -> None:
+    def __init__(self, report_dir: Path, shard: str | None = None, *, resume: bool = True) -> None:
         self.report_dir, self.shard = Path(report_dir), shard
+        #: False (--drivedegrade-no-resume): every read finds nothing, so every cell is computed again
+        self.resume = resume
         #: cell -> why its stored record was not reused although present: its content digest failed
         self.digest_failures: dict[str, str] = {}
         #: cell -> the run-key fields in which its stored result differed (so it was not reused), comma-separated
@@ -41,7 +44,10 @@ class ResultStore:
 
     def read(self, planner: str, cell: str, key: Mapping[str, Any]) -> CellPayload | None:
         """The stored payload of `cell` when its run key equals `key`; None when absent, stale, unreadable or
-        edited (its record no longer hashes to its digest: noted in `digest_failures`)."""
+        edited (its record no longer hashes to its digest: noted in `digest_failures`); always None without
+        `resume`."""
+        if not self.resume:
+            return None
         try:
             data = json.loads(self.path(planner, cell).read_text())
             payload = CellPayload.from_builtins(data)

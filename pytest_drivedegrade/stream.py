@@ -79,16 +79,41 @@ def time_limit(seconds: float) -> Iterator[None]:
         signal.signal(signal.SIGALRM, previous)
 
 
+#: The reuse control: the second reused frame of a cell (the first with a skipped call before it, where a planner
+#: that keeps state would show it) and every this-many-th after it are also predicted, and the plan must equal the
+#: reused clean plan bit for bit (frame-by-frame calls only: a batch of one may round differently from the batch
+#: that computed clean). A cell that reuses r frames makes (r + 6) // 8 such calls.
+REUSE_CONTROL_EVERY = 8
+
+
 def may_reuse(settings: RunSettings, planner: Planner, family: str, severity: int) -> bool:
     """Whether frames of this cell may reuse the clean plans: reuse is on (not --drivedegrade-no-reuse), the
-    planner is deterministic and has no ``reset`` (`CallStyle.reuses`), and some frame of the cell may deliver the
-    clean images on every camera the planner declares (`loader.may_equal_clean`). Never blackout S3
-    (`REAR_BLACKOUT_SEVERITY`): when it blacks out only cameras the planner does not read, it is the rear cameras'
-    null control and must call the planner to catch an undeclared read."""
+    planner is deterministic and has no ``reset`` (`CallStyle.reuses`), it cannot see the stream (its
+    ``predict`` takes no ``context``, so no scene token to track scenes by) or it declares ``deterministic =
+    True`` itself, and some frame of the cell may deliver the clean images on every camera the planner declares
+    (`loader.may_equal_clean`). Never blackout S3 (`REAR_BLACKOUT_SEVERITY`): when it blacks out only cameras the
+    planner does not read, it is the rear cameras' null control and must call the planner to catch an undeclared
+    read. The reuse control (`stream`) checks the rest: a planner that keeps state without a context."""
     if (family, severity) == ("blackout", REAR_BLACKOUT_SEVERITY):
         return False
-    return settings.reuse and call_style(planner).reuses and \
+    style = call_style(planner)
+    blind_to_stream = not style.takes_context or getattr(planner, "deterministic", None) is not None
+    return settings.reuse and style.reuses and blind_to_stream and \
         may_equal_clean(family, severity, planner_cameras(planner))
+
+
+def _reuse_control(source: Source, planner: Planner, sample: CellSample, style: CallStyle,
+                   reused: np.ndarray) -> np.ndarray | str:
+    """A reused frame predicted anyway: the reused plan when the call returns it bit for bit, else the frame's
+    failure saying that reuse does not hold for this planner (or why the call failed)."""
+    got = _predict(source, planner, sample, style)
+    if isinstance(got, str) or np.array_equal(got, reused):
+        return reused if not isinstance(got, str) else got
+    diff = float(np.nanmax(np.abs(got - reused))) if np.isfinite(got).any() else float("nan")
+    return (f"frame {sample.frame.token!r}: reuse control failed: predict() on inputs equal to the clean cell's "
+            f"returned another plan than clean's (max abs difference {diff:.6g} m), so its clean plans cannot "
+            "stand for its calls: its plans depend on call history; give it a reset(), declare deterministic = "
+            "False, or run with --drivedegrade-no-reuse")
 
 
 def reuser(clean: CellRecord, unread: tuple[str, ...]) -> Reuser:
@@ -120,7 +145,9 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
     With `clean` (the run's clean cell), a deterministic planner without ``reset`` is not called on a frame whose
     sample equals clean on every camera it reads (`CellSample.equals_clean`, decided structurally): the clean
     plan is yielded instead (bit for bit what the call would return) and the sample is marked (``reused_from``:
-    its index in clean). A frame that failed in clean is called again.
+    its index in clean). A frame that failed in clean is called again. On frame-by-frame calls, the second
+    reused frame and every `REUSE_CONTROL_EVERY`-th after it are predicted as well (the reuse control): a plan
+    that is not the reused one bit for bit fails the frame, naming why.
     """
     style = call_style(planner)
     reuse = reuser(clean, unread) if clean is not None and may_reuse(source.settings, planner, family, severity) \
@@ -129,12 +156,14 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
     if source.settings.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
         yield from _stream_batched(source, planner, feed, reuse)
         return
-    scene = None
+    scene, reuses = None, 0
     for sample in feed:
         frame = sample.frame
         reused = reuse(sample)
         if reused is not None:  # a reusing planner has no reset, so no scene is skipped
-            yield sample, reused
+            reuses += 1
+            controlled = reuses % REUSE_CONTROL_EVERY == 2
+            yield sample, _reuse_control(source, planner, sample, style, reused) if controlled else reused
             continue
         if style.resets and frame.scene_token != scene:
             try:

@@ -143,8 +143,8 @@ def _failed(cells: Sequence[Cell]) -> list[str]:
 
 def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> list[str]:
     """The label from the certificate's (checked) axes and its flat line, or ``undetermined`` when a cell has
-    failed frames (then ``verdict.failed_cells`` must name exactly those cells); the flat line agrees with
-    settings."""
+    failed frames (then ``verdict.failed_cells`` must name exactly those cells) or the null control failed; the
+    flat line agrees with settings."""
     v, settings = _section(cert, "verdict"), _section(cert, "settings")
     problems: list[str] = []
     flat = _number(v.get("flat", settings.get("flat", DEFAULT_FLAT)))
@@ -170,6 +170,13 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
         if "computed_label" in v and v.get("computed_label") != label:
             problems.append(f"verdict.computed_label: certificate says {v.get('computed_label')!r}, its axes and "
                             f"flat line {flat:g} give {label!r}")
+    elif _section(cert, "null_control").get("passed") is False:
+        if v.get("label") != "undetermined":
+            problems.append(f"verdict.label: certificate says {v.get('label')!r}, but its null control failed, "
+                            "which makes it 'undetermined'")
+        if "computed_label" in v and v.get("computed_label") != label:
+            problems.append(f"verdict.computed_label: certificate says {v.get('computed_label')!r}, its axes and "
+                            f"flat line {flat:g} give {label!r}")
     elif v.get("label") != label:
         problems.append(f"verdict.label: certificate says {v.get('label')!r}, its axes and flat line {flat:g} "
                         f"give {label!r}")
@@ -178,7 +185,8 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
         problems.append(f"verdict.failed_cells: certificate names {shown!r}, but none of its cells has failed "
                         "frames")
     if "ego_label" in v and "ego_removal" in axes:
-        expected = "undetermined" if failed else ego_label(_number(axes.get("ego_removal")), flat)
+        nc_failed = _section(cert, "null_control").get("passed") is False
+        expected = "undetermined" if failed or nc_failed else ego_label(_number(axes.get("ego_removal")), flat)
         if v.get("ego_label") != expected:
             problems.append(f"verdict.ego_label: certificate says {v.get('ego_label')!r}, its ego axis gives "
                             f"{expected!r}")

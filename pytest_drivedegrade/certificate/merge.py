@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import CellPayload, CellRecord
+from ..cells import CellPayload, CellRecord, RecordDigestMismatch
 from ..errors import DriveDegradeError
 from ..settings import RunSettings
 from .finished import FinishedRun, FloorFigures
@@ -76,6 +76,8 @@ def load_shard(folder: Path) -> ShardResult:
         file = path.parent / "cells" / f"{cell}.json"
         try:
             payload = CellPayload.from_builtins(json.loads(file.read_text()))
+        except RecordDigestMismatch as exc:  # edited, or without a digest: never merged, never silently skipped
+            raise DriveDegradeError(f"{file}: {exc}; rerun that shard (its other cells are reused)") from None
         except (OSError, ValueError):
             continue  # a missing or broken cell file: reported as a missing cell of this shard
         if dict(payload.key) == manifest["key"] and payload.cell == cell:

@@ -1,8 +1,9 @@
 """`drivedegrade reproduce CERT PLANNER`: check a certificate by rerunning some of its cells bit for bit.
 
 The suite is deterministic (same command, same bits on any worker layout), so the strongest check a stranger can
-make is to rerun cells and compare plans. The certificate is verified first; then clean, the null control and N
-other cells, sampled from the certificate's digest (the same certificate always samples the same cells), are
+make is to rerun cells and compare plans. The certificate is verified first, and refused when its thresholds, axes
+or verdict contradict its cells (verify's arithmetic); then clean, the null control and N other cells, sampled
+from the certificate's digest and a seed (fresh randomness unless ``--seed`` repeats one; the output names it), are
 rerun by the real pipeline: a ``python -m pytest --drivedegrade PLANNER -k CELLS`` subprocess into a fresh report
 folder, with the settings the certificate records (`RunSettings.from_certificate`, `RunSettings.rerun_argv`) and no
 pytest cache (``-p no:cacheprovider``: no stored cell and no last-failed state can leak in). Each cell's
@@ -14,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import secrets
 import shlex
 import shutil
 import subprocess
@@ -235,11 +237,31 @@ def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
     return cells
 
 
+def consistent(cert: Mapping[str, Any], path: Path) -> None:
+    """DriveDegradeError when the certificate's thresholds, axes or verdict contradict its cells (verify's
+    arithmetic, `consistency.check_consistency`): a resealed certificate is not worth a rerun."""
+    from .consistency import check_consistency
+
+    problems = check_consistency(cert)
+    if problems:
+        raise DriveDegradeError(f"{path}: its thresholds, axes or verdict contradict its own cells ("
+                                f"{'; '.join(problems[:3])}{'; ...' if len(problems) > 3 else ''}): `drivedegrade "
+                                "verify` rejects it; nothing was rerun")
+
+
+def fresh_seed() -> str:
+    """A sample seed no one can predict from the certificate (the OS's randomness), as ``--seed`` takes it."""
+    return str(secrets.randbelow(2**31))
+
+
 def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data: str | None = None,
-              salt: str = "", public_key: str | None = None, keep: bool = False,
-              say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None) -> int:
+              salt: str | None = None, public_key: str | None = None, keep: bool = False,
+              any_planner: bool = False, say: Callable[[str], None] = print,
+              progress: Callable[[str], None] | None = None) -> int:
     """Rerun clean, null and `n` sampled cells; 0 when every one is identical to the certificate, 1 otherwise.
-    Usage errors (a missing planner or certificate, one that does not verify) raise DriveDegradeError."""
+    Usage errors (a missing planner or certificate, one that does not verify or contradicts its cells, a rerun
+    by another planner unless `any_planner`) raise DriveDegradeError. Without `salt` (``--seed``) the sample is
+    drawn from fresh randomness (`fresh_seed`), said in the output so the same cells can be drawn again."""
     from .. import __version__
     from ..corruptions.ladder import SPEC_VERSION
     from .seal import runtime_versions
@@ -249,6 +271,9 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
         raise DriveDegradeError(f"planner file {planner} does not exist or is not a .py file: give the file the "
                                 "certificate was made with")
     cert, proof = verified(cert_path, public_key)
+    consistent(cert, cert_path)
+    drawn = "given" if salt is not None else "fresh randomness"
+    salt = fresh_seed() if salt is None else salt
     cells = sample_cells(usable(cert, cert_path), cert["digest"], n, salt)
     root = data_root(cert, data, Path.cwd())
     note(f"reproduce: {cert_path}: {proof}; planner {cert['planner'].get('name')!r}, {len(cert['cells'])} cells")
@@ -258,7 +283,8 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     report_dir = Path(tempfile.mkdtemp(prefix="drivedegrade-reproduce-"))
     argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
-    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [])
+    say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
+    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner)
     rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
     if rc in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
@@ -291,6 +317,7 @@ class Judge:
     say: Callable[[str], None]
     note: Callable[[str], None]
     expected: list[str]
+    any_planner: bool = False
     results: dict[str, str] = field(default_factory=dict)
     started: float = field(default_factory=time.perf_counter)
 
@@ -299,8 +326,25 @@ class Judge:
         self.results[cell] = verdict
         self.say(f"{prefix}{cell}: {verdict}{because}")
 
+    def other_planner(self, payload: CellPayload) -> None:
+        """DriveDegradeError (the rerun is stopped) when the rerun's planner is not the certificate's, by name or
+        fingerprint, unless `any_planner`."""
+        theirs = self.cert["planner"]
+        differ = []
+        if payload.planner != theirs.get("name"):
+            differ.append(f"name {payload.planner!r} here, {theirs.get('name')!r} in the certificate")
+        here = str(payload.key.get("planner_fingerprint"))
+        if here != str(theirs.get("fingerprint")):
+            differ.append(f"fingerprint {here[:16]}... here, {str(theirs.get('fingerprint'))[:16]}... in the "
+                          "certificate")
+        if differ and not self.any_planner:
+            raise DriveDegradeError(f"the planner is not the certificate's ({'; '.join(differ)}): reproduce checks "
+                                    "a certificate with the planner it was made with; pass --any-planner to compare "
+                                    "another planner's plans with it")
+
     def on_cell(self, payload: CellPayload) -> None:
         if not self.results:  # the first cell says which planner and data the rerun had
+            self.other_planner(payload)
             for name, section, what in (("planner_fingerprint", "planner", "planner"),
                                         ("dataset_fingerprint", "dataset", "data set")):
                 here, there = str(payload.key.get(name)), str(self.cert[section].get("fingerprint"))

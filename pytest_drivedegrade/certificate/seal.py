@@ -24,7 +24,7 @@ from typing import Any, cast
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..cells import CellRecord
+from ..cells import CellRecord, record_digest
 from ..errors import DriveDegradeError
 from ..scoring.records import RunAnalysis, null_control_section
 from ..scoring.verdict import VERDICT_LABELS
@@ -146,7 +146,9 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
                       records: Mapping[str, CellRecord] | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
     run's `records`, each cell carries ``plans_digest`` (`CellRecord.plans_digest`), what `drivedegrade
-    reproduce` compares a rerun with."""
+    reproduce` compares a rerun with, and ``record_digests`` maps each cell to `cells.record_digest` of its record,
+    what its stored cell file (``cells/<cell>.json``) must hash to. That digest covers the record's timings too,
+    so it sits beside the cells, not in them: the cells section stays the same on any layout and rerun."""
     cells = [{k: row[k] for k in CERTIFICATE_CELL if k in row} for row in (s.flat() for s in analysis.summaries)]
     for cell in cells:
         if records is not None and cell["cell"] in records:
@@ -170,6 +172,8 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command,
                  "versions": dict(provenance.versions)},
         "created": created or datetime.now(timezone.utc).replace(microsecond=0).isoformat(),
+        **({"record_digests": {c["cell"]: record_digest(records[c["cell"]].to_builtins()) for c in cells
+                               if c["cell"] in records}} if records is not None else {}),
     }
 
 
@@ -333,6 +337,11 @@ def check_schema(cert: Mapping[str, Any]) -> list[str]:
         for k in ("conformance_errors", "data_errors"):  # failed-frame counts (data_errors: spec 3, may be absent)
             if k in c:
                 expect(f"cells[{i}].{k}", c.get(k), type(c.get(k)) is int and c[k] >= 0, "a count")
+    digests = cert.get("record_digests", {})  # absent from certificates written before it
+    expect("record_digests", digests, isinstance(digests, dict), "an object")
+    for cell, got in digests.items() if isinstance(digests, dict) else ():
+        expect(f"record_digests.{cell}", got, isinstance(got, str) and bool(_HEX64.match(got)),
+               "64 lowercase hex digits")
     for fam, t in (cert.get("thresholds") or {}).items() if isinstance(cert.get("thresholds"), dict) else ():
         for k in ("s10", "s25"):
             v = t.get(k) if isinstance(t, dict) else t

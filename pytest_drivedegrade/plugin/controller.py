@@ -133,6 +133,18 @@ def provenance(config: pytest.Config, options: RunOptions, context: RunContext, 
                           planner_file=planner_file)
 
 
+def coverage_lines(path: Path | None) -> list[str]:
+    """Which modules besides the planner file its fingerprint covers (`planning.covered_modules`), when any: a
+    change to them recomputes the stored cells; a change to anything else (installed packages, data) does not."""
+    if path is None or not path.is_file():
+        return []
+    from ..planning import covered_modules
+
+    extra = covered_modules(path)[1:]
+    return [f"planner fingerprint covers {path.name} and {len(extra)} module(s) it imports from outside "
+            f"site-packages: {', '.join(p.name for p in extra)}"] if extra else []
+
+
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
                baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
@@ -143,12 +155,12 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     if context is None:
         return None
     out = Outcome()
-    store = store or ResultStore(options.report_dir)
+    store = store or ResultStore(options.report_dir, resume=options.resume)
     run = gather(received, expected, store)
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
-    out.lines += reuse_lines(received, run, store)
+    out.lines += reuse_lines(received, run, store) + coverage_lines(options.planner_path)
     if options.settings.shard is not None:
         return finish_shard(config, options, context, run, store, out, expected, planner_file)
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
@@ -235,7 +247,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
 def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, tolerance: float, *, partial: bool = False,
          any_planner: bool = False) -> tuple[list[str], bool]:
     """--drivedegrade-baseline: (lines, failed); an axis that regressed fails the session (cells fail in their
-    own items), and so does a baseline that leaves part of the run uncompared (unless `partial`) or is another
+    own items), and so does a baseline that leaves part of the run uncompared, or a run that leaves part of the
+    baseline uncomputed (`-k`, fewer families: unless `partial`), or a baseline that is another
     planner's (unless `any_planner`), with a line saying what was not compared."""
     if baseline is None:
         return [], False
@@ -254,7 +267,7 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
         lines.append(f"baseline: FAILED: {foreign}")
         failed = True
     gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get("retention") is not None],
-                        cert.get("axes"))
+                        cert.get("axes") or {})
     if gaps and partial:
         lines.append(f"baseline (--drivedegrade-baseline-partial): not compared: {'; '.join(gaps)}")
     elif gaps:

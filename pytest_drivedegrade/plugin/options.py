@@ -71,6 +71,10 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "name and needs no flag)", {"action": "store_true"}),
     OptionSpec("--drivedegrade-tolerance", "drivedegrade_tolerance", "allowed retention drop below the baseline "
                f"(default {DEFAULT_TOLERANCE:g})", {"metavar": "X"}),
+    OptionSpec("--drivedegrade-no-resume", "drivedegrade_no_resume", "recompute every cell, reusing no stored "
+               "result (default: a cell stored with the same run key is reused; the key holds the planner's "
+               "fingerprint, which covers its file and the modules it imports from outside site-packages)",
+               {"action": "store_true"}),
     OptionSpec("--drivedegrade-report-overwrite", "drivedegrade_report_overwrite", "replace the outputs of "
                "another planner (another planner file) that hold the report folder of this planner's name "
                "(default: refused)", {"action": "store_true"}),
@@ -179,6 +183,7 @@ class RunOptions:
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
+    resume: bool = True  #: not --drivedegrade-no-resume: reuse stored cells of the same run key (results unchanged)
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
 
 
@@ -298,5 +303,6 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
+        resume=not _flag(config, "drivedegrade_no_resume"),
         ray=_ray(config),
     )

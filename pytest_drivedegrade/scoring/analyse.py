@@ -27,6 +27,7 @@ from .verdict import (
     run_axes,
     separable_from_null,
     undetermined_by_failures,
+    undetermined_by_null_control,
     verdict,
 )
 
@@ -42,7 +43,8 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     per-seed retentions and the two-level bootstrap's CI.
 
     A cell with failed frames (planner contract or data) makes the verdict ``undetermined`` with the reason
-    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``.
+    (`undetermined_by_failures`); the axes and thresholds are still computed, flagged by ``partial``. So does a
+    failed null control (`undetermined_by_null_control`).
 
     Requires the clean cell. `groups` defaults to ``FamilyGroups.from_registry()``; `floor_l2` is the ego-only
     floor's clean l2_avg when it was run (`floor_ego_removal` its ego_blind retention); `seeds` the run's
@@ -70,7 +72,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
     v = run_verdict(ax_pdms if metric == "pdms" else ax, per, metric=metric, flat=flat)
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax,
-                       undetermined_by_failures(v, failed), nc,
+                       undetermined_by_null_control(undetermined_by_failures(v, failed), nc), nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms)

@@ -115,9 +115,11 @@ def _retentions(cert: Mapping[str, Any]) -> dict[Any, Any]:
 
 def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mapping[str, Any] | None = None) \
         -> list[str]:
-    """What of this run the baseline cannot gate, one phrase per kind: it is incomplete
-    (``completeness.complete`` false), it has no retention for some of `cells`, or it has no value for a gated
-    axis that this run has (`axes`: this run's, None at start-up). Empty when the baseline covers the run."""
+    """What the gate cannot compare, one phrase per kind: the baseline is incomplete (``completeness.complete``
+    false), it has no retention for some of `cells`, or no value for a gated axis that this run has; and, once
+    the run is done (`axes`: this run's, None at start-up), what the baseline has and this run did not compute
+    (a run narrowed by ``-k`` or a shorter family list: its cells and axes). Empty when both cover each other."""
+    cells = list(cells)
     out = []
     comp = baseline.get("completeness")
     if isinstance(comp, Mapping) and comp.get("complete") is False:
@@ -134,6 +136,19 @@ def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mappin
     null_axes = [a for a in GATED_AXES if mine.value(a) is not None and theirs_axes.value(a) is None]
     if null_axes:
         out.append(f"axes {', '.join(null_axes)} are null in the baseline")
+    return out + ([] if axes is None else _not_computed(theirs, cells, theirs_axes, mine))
+
+
+def _not_computed(theirs: Mapping[Any, Any], cells: list[str], base_axes: Axes, axes: Axes) -> list[str]:
+    """The baseline's cells (with a retention) and gated axes that this finished run has no value for."""
+    out = []
+    skipped = [str(c) for c, r in theirs.items() if r is not None and c not in set(cells)]
+    if skipped:
+        shown = ", ".join(skipped[:8]) + (f" and {len(skipped) - 8} more" if len(skipped) > 8 else "")
+        out.append(f"{len(skipped)} cell(s) of the baseline were not computed by this run: {shown}")
+    dropped = [a for a in GATED_AXES if base_axes.value(a) is not None and axes.value(a) is None]
+    if dropped:
+        out.append(f"axes {', '.join(dropped)} of the baseline are null in this run")
     return out
 
 

@@ -211,6 +211,25 @@ def undetermined_by_failures(v: Verdict, failed: Mapping[str, FailedCell]) -> Ve
                    failed_cells=dict(failed), computed_label=v.label, ego_label="undetermined", borderline=False)
 
 
+def undetermined_by_null_control(v: Verdict, nc: NullControl | None) -> Verdict:
+    """The verdict of a run whose null control failed (M4): ``undetermined``, since plans that move with no
+    corruption cannot tell a camera's effect from the planner's own; the label the axes give is kept as
+    ``computed_label`` (after `undetermined_by_failures`, whose reason it extends). Otherwise `v` as is."""
+    if nc is None or nc.passed is not False:
+        return v
+    reason = (f"the null control failed (plans moved by up to {float(nc.max_l2_change or 0.0):.6g} m with no "
+              "corruption applied)")
+    text = (f"Undetermined: {reason}. Plans that change when nothing changed cannot be told from a camera's "
+            f"effect: the axes give {v.computed_label}, but a verdict is not sealed on them; make predict() "
+            "deterministic (or declare the cameras it reads) and rerun.")
+    failed_frames = v.label == "undetermined" and v.case == "failed-frames"
+    if failed_frames:
+        text = f"{v.text} Also {reason}."
+    return replace(v, label="undetermined", case="failed-frames" if failed_frames else "null-control-failed",
+                   text=text, ego_label="undetermined", borderline=False,
+                   reason=reason if not v.reason else f"{v.reason}; {reason}")
+
+
 def separable_from_null(endpoint_shift: float, wander: float) -> bool:
     """A cell is separable only if its mean 3 s endpoint shift from clean exceeds the null's largest wander
     (a mean against a maximum: conservative). With a bit-identical null, any change at all is separable."""
