@@ -237,7 +237,7 @@ def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
     return cells
 
 
-def consistent(cert: Mapping[str, Any], path: Path) -> None:
+def consistent(cert: Mapping[str, object], path: Path) -> None:
     """DriveDegradeError when the certificate's thresholds, axes or verdict contradict its cells (verify's
     arithmetic, `consistency.check_consistency`): a resealed certificate is not worth a rerun."""
     from .consistency import check_consistency

@@ -107,7 +107,8 @@ def planner_mismatch(baseline: Mapping[str, Any], name: str | None) -> str | Non
             "--drivedegrade-baseline-any-planner to gate one planner against another's certificate")
 
 
-def _retentions(cert: Mapping[str, Any]) -> dict[Any, Any]:
+def _retentions(cert: Mapping[str, object]) -> dict[object, object]:
+    """A certificate's retention per cell id (whatever it holds; the gate checks the values it uses)."""
     cells = cert.get("cells")
     return {c.get("cell"): c.get("retention") for c in cells if isinstance(c, Mapping)} \
         if isinstance(cells, list) else {}
@@ -139,7 +140,7 @@ def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mappin
     return out + ([] if axes is None else _not_computed(theirs, cells, theirs_axes, mine))
 
 
-def _not_computed(theirs: Mapping[Any, Any], cells: list[str], base_axes: Axes, axes: Axes) -> list[str]:
+def _not_computed(theirs: Mapping[object, object], cells: list[str], base_axes: Axes, axes: Axes) -> list[str]:
     """The baseline's cells (with a retention) and gated axes that this finished run has no value for."""
     out = []
     skipped = [str(c) for c, r in theirs.items() if r is not None and c not in set(cells)]
