@@ -9,6 +9,15 @@ import pytest
 DATA = Path(__file__).parent / "data" / "nuscenes"
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_configure(config: pytest.Config) -> None:
+    """Under ``-n`` the tests marked ``xdist_group("ray")`` share one worker (xdist's ``loadgroup``, which spreads
+    every other test as ``load`` does): their stray-daemon check counts each Ray daemon that appeared during a
+    test, so another worker's Ray run at the same time would be counted as left behind."""
+    if getattr(config.option, "dist", "no") == "load":
+        config.option.dist = "loadgroup"
+
+
 @pytest.fixture(scope="session")
 def nuscenes_frames():
     """camera name -> (path, RGB uint8 1600x900 image) for the one real keyframe."""

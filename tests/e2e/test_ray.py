@@ -23,6 +23,9 @@ from pytest_drivedegrade.errors import DriveDegradeError  # noqa: E402
 from pytest_drivedegrade.plugin.actors import PlannerFile  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
+#: Every test that starts Ray runs on one xdist worker (`--dist loadgroup`, pyproject addopts): the no_stray_ray
+#: check counts the Ray daemons that appeared during a test, and another worker's Ray run would be counted.
+pytestmark = pytest.mark.xdist_group("ray")
 
 #: test_examples' world (11 scenes, two val), rendered once into the test session's cache.
 two_scene_world = test_examples.two_scene_world

@@ -13,6 +13,9 @@ from plugin_support import no_traceback  # noqa: E402
 from test_trust import FRONT_CHANGE, no_camera_named  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
+#: Every test that starts Ray runs on one xdist worker (`--dist loadgroup`, pyproject addopts): the no_stray_ray
+#: check counts the Ray daemons that appeared during a test, and another worker's Ray run would be counted.
+pytestmark = pytest.mark.xdist_group("ray")
 
 no_stray_ray = test_ray.no_stray_ray  # the fixture: no Ray daemon outlives the run
 
