@@ -285,7 +285,7 @@ def _prefetch(config: pytest.Config) -> int:
     given = _number(config, "drivedegrade_prefetch", int, None, 0, MAX_PREFETCH)
     if given is not None:
         return int(given)
-    workers = getattr(config.option, "numprocesses", None)
+    workers = config.getoption("numprocesses", default=None)  # -n, an int once xdist has read "auto"
     processes = workers if isinstance(workers, int) and workers > 0 else 1
     if value(config, "drivedegrade_ray") == "local":
         processes = int(_number(config, "drivedegrade_ray_actors", int, 2, 1, None))
