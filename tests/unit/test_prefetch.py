@@ -107,3 +107,27 @@ def test_a_given_depth_wins_and_none_follows_the_xdist_workers(monkeypatch):
     assert prefetch_depth(RunSettings(prefetch=0)) == 0
     monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "512")
     assert prefetch_depth(RunSettings()) == 0
+
+
+def test_the_cost_ledger_gives_each_process_wall_time_and_planner_busy():
+    from pytest_drivedegrade.cells import CellRecord, RecordBuilder
+    from pytest_drivedegrade.certificate.estimate import overhead_per_prediction
+    from pytest_drivedegrade.scoring.records import cost_ledger
+
+    def record(cell, seconds):
+        return RecordBuilder(cell, "jpeg", 1, ["a", "b"]).build(seconds)
+
+    first = record("jpeg-s1", {"planner": 3.0, "decode": 1.0, "total": 4.0, "wall@aa": 4.0, "planner@aa": 3.0})
+    parts = [record("jpeg-s2", {"planner": 1.0, "total": 2.0, "wall@aa": 2.0, "planner@aa": 1.0}),
+             record("jpeg-s2", {"planner": 2.0, "total": 2.0, "wall@bb": 2.0, "planner@bb": 2.0})]
+    joined = CellRecord.concat(parts)  # a cell whose scene groups ran in two processes (Ray actors)
+    cost = cost_ledger([first, record("jpeg-s3", {"planner": 0.5, "total": 1.0}), joined])
+    assert cost["wall"] == 8.0  # the record without wall@ keys (stored before them) adds no process
+    assert cost["processes"] == [{"wall": 6.0, "planner_busy": 4.0 / 6.0}, {"wall": 2.0, "planner_busy": 1.0}]
+    assert cost["planner_busy"] == pytest.approx(6.0 / 8.0)
+    assert cost["cells"]["jpeg-s2"]["wall"] == 4.0
+    # estimate: the planner waited wall x (1 - busy) = 2 s over 8 predictions (2 + 2 frames, the joined cell 4)
+    assert cost["predictions"] == 8 and overhead_per_prediction(cost) == pytest.approx(2.0 / 8)
+    old = cost_ledger([record("jpeg-s3", {"planner": 0.5, "decode": 0.25, "total": 1.0})])
+    assert old["wall"] is None and old["planner_busy"] is None and old["processes"] == []
+    assert overhead_per_prediction(old) == pytest.approx(0.25 / 2)
