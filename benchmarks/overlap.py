@@ -4,7 +4,7 @@ next frames made and the last one scored beside its calls (--drivedegrade-prefet
 Ray actor. For each it prints the cells' wall time from the certificate's cost ledger (``cost.wall``) over
 predictions x 25 ms (1.00: the planner never waited), ``planner_busy``, and whether cells.csv is the same.
 
-    python benchmarks/overlap.py [--frames 48] [--families jpeg,fog,...] [--prefetch 2] [--skip-ray]
+    python benchmarks/overlap.py [--frames 48] [--families jpeg,fog,...] [--prefetch 2] [--skip-ray] [--skip-local]
 """
 
 from __future__ import annotations
@@ -75,18 +75,19 @@ def main() -> None:
     ap.add_argument("--families", default=FAMILIES)
     ap.add_argument("--prefetch", type=int, default=2)
     ap.add_argument("--skip-ray", action="store_true")
+    ap.add_argument("--skip-local", action="store_true", help="only the Ray actor")
     args = ap.parse_args()
     common = ["--drivedegrade-frames", str(args.frames), "--drivedegrade-families", args.families]
-    layouts = [("-n 0", ["-n", "0"])]
+    layouts = [] if args.skip_local else [("-n 0", ["-n", "0"])]
     if not args.skip_ray:
         layouts.append(("ray local, 1 actor", ["--drivedegrade-ray", "local", "--drivedegrade-ray-actors", "1"]))
     with tempfile.TemporaryDirectory() as name:
         tmp = Path(name)
         (tmp / "sleepy.py").write_text(PLANNER)
-        for label, layout in layouts:
-            serial, csv_serial = certify(tmp, "serial", [*common, *layout, "--drivedegrade-prefetch", "0"])
-            ahead, csv_ahead = certify(tmp, "ahead", [*common, *layout, "--drivedegrade-prefetch",
-                                                      str(args.prefetch)])
+        for n, (label, layout) in enumerate(layouts):  # fresh report folders: nothing is resumed from a store
+            serial, csv_serial = certify(tmp, f"serial{n}", [*common, *layout, "--drivedegrade-prefetch", "0"])
+            ahead, csv_ahead = certify(tmp, f"ahead{n}", [*common, *layout, "--drivedegrade-prefetch",
+                                                          str(args.prefetch)])
             print(line(f"{label}, prefetch 0", serial))
             print(line(f"{label}, prefetch {args.prefetch}", ahead))
             print(f"{'':<28} cells.csv identical: {'yes' if csv_serial == csv_ahead else 'NO'}; wall ratio "
