@@ -17,8 +17,11 @@ again.
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable, ItemsView, Iterator, KeysView, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from types import MappingProxyType
+from typing import TypeVar
 
 import numpy as np
 
@@ -32,6 +35,7 @@ from .data.frame import Frame
 from .errors import DataError
 
 Decode = Callable[[Frame, str], np.ndarray]
+T = TypeVar("T")
 
 
 class DropoutState:
@@ -155,6 +159,9 @@ class CellSample(Mapping[str, np.ndarray]):
         self.frame, self.family, self.severity, self.seed = frame, family, severity, seed
         self._decode, self._unread, self._dropout = decode, unread, dropout
         self._made: dict[str, np.ndarray] = {}  # camera -> the image as produced (never handed out)
+        # camera -> (image as produced, the planner's copy), or what producing it raised: made ahead of the read
+        # by `produce` (a prefetch thread), taken over by the first read; a camera never read is never delivered
+        self._ready: dict[str, tuple[np.ndarray, np.ndarray] | Exception] = {}
         self._cache: dict[str, np.ndarray] = {}  # camera -> the planner's private copy
         self.seconds = {"decode": 0.0, "inject": 0.0, "check": 0.0}
         #: Data faults met while producing an image (missing, empty, truncated, wrong-size file): the frame is a
@@ -163,6 +170,9 @@ class CellSample(Mapping[str, np.ndarray]):
         #: Set by the run when the clean cell's plan was reused for this frame (nothing was read or predicted):
         #: the frame's index in the clean record, whose row of figures the frame then takes.
         self.reused_from: int | None = None
+        #: Seconds the planner computed on this frame (its call, net of the images made lazily inside it; a
+        #: batch's call shared evenly), set by the stream.
+        self.called = 0.0
 
     def equals_clean(self, cameras: tuple[str, ...]) -> bool:
         """Whether this frame delivers the clean image on every camera of `cameras` (the planner's declared
@@ -180,17 +190,41 @@ class CellSample(Mapping[str, np.ndarray]):
             if camera not in CAMERAS:
                 raise KeyError(camera)
             try:
-                image = np.ascontiguousarray(self._make(camera))
+                ready = self._ready.pop(camera, None)
+                if isinstance(ready, Exception):
+                    raise ready
+                self._made[camera], self._cache[camera] = ready or self._produced(camera)
             except DataError as exc:
                 self.data_errors.append(str(exc))
                 raise
-            image.setflags(write=False)
-            start = time.perf_counter()
-            copy = image.copy()
-            copy.setflags(write=False)
-            self.seconds["check"] += time.perf_counter() - start
-            self._made[camera], self._cache[camera] = image, copy
         return self._cache[camera]
+
+    def produce(self, cameras: tuple[str, ...]) -> None:
+        """Make the images of `cameras` ahead of the planner's read (on a prefetch thread, before the sample is
+        handed over): each is delivered, or what making it raised is raised, only when the planner reads it, so
+        the frame's images, data faults and energy are what the serial path's lazy reads give."""
+        for camera in cameras:
+            if camera in self._cache or camera in self._ready:
+                continue
+            try:
+                self._ready[camera] = self._produced(camera)
+            except Exception as exc:  # noqa: BLE001 - raised again at the planner's read, as the lazy path would
+                self._ready[camera] = exc
+
+    @property
+    def ahead(self) -> int:
+        """The images made ahead and not yet read (`produce`)."""
+        return sum(not isinstance(v, Exception) for v in self._ready.values())
+
+    def _produced(self, camera: str) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's image as produced and the planner's private copy of it, both read-only."""
+        image = np.ascontiguousarray(self._make(camera))
+        image.setflags(write=False)
+        start = time.perf_counter()
+        copy = image.copy()
+        copy.setflags(write=False)
+        self.seconds["check"] += time.perf_counter() - start
+        return image, copy
 
     @property
     def view(self) -> Mapping[str, np.ndarray]:
@@ -258,3 +292,36 @@ def samples(frames: list[Frame], family: str, severity: int, *, seed: int, decod
     for frame in frames:
         dropout = state.advance(frame, probability, seed, severity) if state else None
         yield CellSample(frame, family, severity, seed=seed, decode=decode, unread=unread, dropout=dropout)
+
+
+def ahead(items: Iterator[tuple[CellSample, T]], cameras: tuple[str, ...], depth: int,
+          wanted: Callable[[T], bool]) -> Iterator[tuple[CellSample, T]]:
+    """`items` in their order, each sample's `cameras` made (`CellSample.produce`) on one thread beside the
+    caller, up to `depth` frames ahead of the one handed out, where `wanted` says the sample will be read.
+
+    Memory: at most `depth` frames' images made ahead of the caller's (up to six images and their copies each);
+    `depth` 0 is the serial path, every image made lazily when read. `items` itself is drawn in order on the
+    caller's thread (frame_dropout's state, the reuse decision), so nothing but when an image is made changes.
+    """
+    if depth <= 0:
+        yield from items
+        return
+    pool = ThreadPoolExecutor(1, thread_name_prefix="drivedegrade-prefetch")
+    queue: deque[tuple[CellSample, T, Future[None] | None]] = deque()
+    try:
+        for sample, extra in items:
+            queue.append((sample, extra, pool.submit(sample.produce, cameras) if wanted(extra) else None))
+            if len(queue) > depth:
+                yield _ready(queue.popleft())
+        while queue:
+            yield _ready(queue.popleft())
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ready(entry: tuple[CellSample, T, Future[None] | None]) -> tuple[CellSample, T]:
+    """A queued sample once its images are made (the caller waits here, outside the planner's call)."""
+    sample, extra, made = entry
+    if made is not None:
+        made.result()
+    return sample, extra

@@ -70,6 +70,7 @@ class RunSettings:
     metric: str = "l2"  #: the retention the verdict is put on (l2 or pdms)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
+    prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `stream.prefetch_depth`)
 
     @property
     def data_source(self) -> str:
@@ -239,6 +240,9 @@ TABLE: tuple[Setting, ...] = (
             "retentions, which the flat line only labels"),
     Setting("shard", "shard", "--drivedegrade-shard", (), _F, "each shard scores its own part of a run; a "
             "certificate is of a whole run", rerun="never", per_shard=True),
+    Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "
+            "corrupted and scored, never what: every output is the serial path's bit for bit", rerun="never",
+            per_shard=True),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 
@@ -280,7 +284,7 @@ def _decode(name: str, raw: object) -> object:
             return raw
         if isinstance(default, float):
             return float(raw)
-        return int(raw) if name == "frames" or isinstance(default, int) else str(raw)
+        return int(raw) if name in ("frames", "prefetch") or isinstance(default, int) else str(raw)
     except (ValueError, DriveDegradeError) as exc:
         raise InvalidInput(f"setting {name!r}: {exc}") from None
 

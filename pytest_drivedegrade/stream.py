@@ -8,11 +8,15 @@ context when ``predict`` takes it, batches, reuse of the clean plan, timeouts, a
 from __future__ import annotations
 
 import contextlib
+import os
+import secrets
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
+from functools import partial
 from types import FrameType
 from typing import Protocol
 
@@ -23,7 +27,7 @@ from .constants import CAMERAS
 from .data.context import FrameContext
 from .data.frame import EgoStatus, Frame
 from .errors import DataError, DriveDegradeError, PlannerOutputError
-from .loader import CellSample, may_equal_clean, samples
+from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import bit1_density, frame_metrics
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
@@ -152,14 +156,14 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
     style = call_style(planner)
     reuse = reuser(clean, unread) if clean is not None and may_reuse(source.settings, planner, family, severity) \
         else _predict_every_frame
-    feed = samples(frames, family, severity, seed=seed, decode=source.decode, unread=unread)
+    feed = ((s, reuse(s)) for s in samples(frames, family, severity, seed=seed, decode=source.decode, unread=unread))
+    pairs = ahead(feed, _declared(planner), prefetch_depth(source.settings), wanted=_is_none)
     if source.settings.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
-        yield from _stream_batched(source, planner, feed, reuse)
+        yield from _stream_batched(source, planner, pairs)
         return
     scene, reuses = None, 0
-    for sample in feed:
+    for sample, reused in pairs:
         frame = sample.frame
-        reused = reuse(sample)
         if reused is not None:  # a reusing planner has no reset, so no scene is skipped
             reuses += 1
             controlled = reuses % REUSE_CONTROL_EVERY == 2
@@ -167,7 +171,8 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
             continue
         if style.resets and frame.scene_token != scene:
             try:
-                getattr(planner, "reset")(frame.scene_token)  # noqa: B009 - optional: not in the Planner protocol
+                with _calling([sample]):
+                    getattr(planner, "reset")(frame.scene_token)  # noqa: B009 - optional: not in the protocol
             except Exception as exc:  # noqa: BLE001 - the planner's failure, named, never a crash
                 scene = None
                 yield sample, (f"frame {frame.token!r}: reset({frame.scene_token!r}) raised "
@@ -177,15 +182,14 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
         yield sample, _predict(source, planner, sample, style)
 
 
-def _stream_batched(source: Source, planner: Planner, feed: Iterator[CellSample],
-                    reuse: Reuser) -> Iterator[FrameResult]:
+def _stream_batched(source: Source, planner: Planner,
+                    pairs: Iterator[tuple[CellSample, np.ndarray | None]]) -> Iterator[FrameResult]:
     """`--drivedegrade-batch B`: B frames per ``predict_batch(images, egos, cmds, contexts)`` call, in order; each
     frame's output is checked (and its inputs for writes) as a single prediction's would be. A frame that reuses
     the clean plan skips the batch (B counts the frames predicted) and keeps its place."""
     pending: list[tuple[CellSample, np.ndarray | None]] = []
     todo = 0
-    for sample in feed:
-        reused = reuse(sample)
+    for sample, reused in pairs:
         pending.append((sample, reused))
         todo += reused is None
         if todo == source.settings.batch:
@@ -208,7 +212,7 @@ def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) ->
     inputs = [_inputs(source, s, CallStyle(True, False)) for s in batch]
     egos, contexts = [e for e, _ in inputs], [c for _, c in inputs]
     try:
-        with time_limit(source.settings.timeout * len(batch)):
+        with _calling(batch), time_limit(source.settings.timeout * len(batch)):
             call = getattr(planner, "predict_batch")  # noqa: B009 - optional: not in the Planner protocol
             raw = call([s.view for s in batch], egos, [s.frame.command for s in batch], contexts)
         raw = to_numpy(raw)
@@ -246,7 +250,7 @@ def _predict(source: Source, planner: Planner, sample: CellSample, style: CallSt
     ego, context = _inputs(source, sample, style)
     predict: Callable[..., object] = planner.predict
     try:
-        with time_limit(source.settings.timeout):
+        with _calling([sample]), time_limit(source.settings.timeout):
             if style.takes_context:
                 raw = predict(sample.view, ego, frame.command, context=context)
             else:
@@ -273,62 +277,158 @@ def _checked(sample: CellSample, raw: object) -> np.ndarray | str:
 
 
 class _Clock:
-    """Where a cell's seconds go: decode, inject and the input check as the loader measured them, the planner
-    the rest of each frame's wait, metrics and pdms the scoring."""
+    """Where a cell's seconds go: decode, inject and the input check as the loader measured them (on whichever
+    thread made the image), the planner its calls (`CellSample.called`), metrics and pdms the scoring, and the
+    cell's wall time in this process, also under this process's own key (`process_key`) for the cost ledger."""
 
     def __init__(self) -> None:
         self.spent = {"decode": 0.0, "inject": 0.0, "planner": 0.0, "metrics": 0.0, "pdms": 0.0, "check": 0.0}
-        self.start = self.last = self.scoring = time.perf_counter()
+        self.scoring = {"metrics": 0.0, "pdms": 0.0}  # added to by the scoring thread only
+        self.start = time.perf_counter()
 
     def delivered(self, sample: CellSample) -> None:
-        elapsed = time.perf_counter() - self.last  # predict() plus the lazy decode, injection and input check
         for part in ("decode", "inject", "check"):
             self.spent[part] += sample.seconds[part]
-        self.spent["planner"] += elapsed - sum(sample.seconds.values())
-        self.scoring = time.perf_counter()
-
-    def pdms(self, took: float) -> None:
-        self.spent["pdms"] += took
-        self.spent["metrics"] -= took  # metrics is the rest
-
-    def scored(self) -> None:
-        self.last = time.perf_counter()
-        self.spent["metrics"] += self.last - self.scoring
+        self.spent["planner"] += sample.called
 
     def total(self) -> dict[str, float]:
-        return {**self.spent, "total": time.perf_counter() - self.start}
+        wall = time.perf_counter() - self.start
+        spent = {**self.spent, **{k: self.spent[k] + v for k, v in self.scoring.items()}}
+        key = process_key()
+        return {**spent, "total": wall, f"wall@{key}": wall, f"planner@{key}": spent["planner"]}
+
+
+class _Scorer:
+    """Scores frame k-1 on one thread while the planner computes frame k (`overlap`), in frame order, with at
+    most one frame waiting; without `overlap` each frame is scored at once, in the caller's thread (the serial
+    path). A scoring failure is raised at the next frame or at the end, as the serial path raises it."""
+
+    def __init__(self, overlap: bool) -> None:
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="drivedegrade-score") if overlap else None
+        self.last: Future[None] | None = None
+
+    def __enter__(self) -> _Scorer:
+        return self
+
+    def submit(self, score: Callable[[], None]) -> None:
+        if self.pool is None:
+            score()
+            return
+        self.drain()
+        self.last = self.pool.submit(score)
+
+    def drain(self) -> None:
+        last, self.last = self.last, None
+        if last is not None:
+            last.result()
+
+    def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
+        if self.pool is None:
+            return
+        try:
+            if kind is None:
+                self.drain()
+        finally:
+            self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 def run_cell(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
              unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> CellRecord:
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
     per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
-    (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice."""
+    (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice.
+    With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call."""
     rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
     clock = _Clock()
-    for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread, seed=seed,
-                                                clean=clean)):
-        clock.delivered(sample)
-        if isinstance(result, str):
-            rows.fail(str(result), data=isinstance(result, DataFault))
-        elif sample.reused_from is not None and clean is not None:
-            rows.copy_row(i, clean, sample.reused_from)
-        else:
-            _score(source, rows, i, sample, result, clock)
-        clock.scored()
+    with _Scorer(prefetch_depth(source.settings) > 0) as scorer:
+        for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
+                                                    seed=seed, clean=clean)):
+            clock.delivered(sample)
+            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock))
     return rows.build(clock.total())
+
+
+def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str,
+            clean: CellRecord | None, clock: _Clock) -> None:
+    """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores."""
+    if isinstance(result, str):
+        rows.fail(str(result), data=isinstance(result, DataFault))
+    elif sample.reused_from is not None and clean is not None:
+        rows.copy_row(i, clean, sample.reused_from)
+    else:
+        _score(source, rows, i, sample, result, clock)
 
 
 def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray,
            clock: _Clock) -> None:
     """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read, PDMS."""
+    start = time.perf_counter()
     m = frame_metrics(plan, sample.frame)
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
-    start = time.perf_counter()
+    middle = time.perf_counter()
     scored = source.pdms_frame(sample.frame).score(plan)
     rows.put(i, map_scored=float(scored.map_scored), **{k: getattr(scored, k) for k in PDMS_FIELDS})
-    clock.pdms(time.perf_counter() - start)
+    clock.scoring["metrics"] += middle - start
+    clock.scoring["pdms"] += time.perf_counter() - middle
+
+
+#: The --drivedegrade-prefetch of a machine with a core to spare for the loading and scoring threads.
+SPARE_CORE_PREFETCH = 2
+
+
+def auto_prefetch(processes: int, cpus: int | None = None) -> int:
+    """The default --drivedegrade-prefetch: `SPARE_CORE_PREFETCH` where the machine has more cores than the
+    `processes` that run cells on it (each process's planner keeps one busy, its loading and scoring threads
+    need another), else 0: the threads would only take cores from the other workers."""
+    cpus = os.cpu_count() if cpus is None else cpus
+    return SPARE_CORE_PREFETCH if (cpus or 1) > processes else 0
+
+
+def prefetch_depth(settings: RunSettings) -> int:
+    """The frames made ahead of the planner (`loader.ahead`): the setting, or where it is None (settings made
+    outside the options) `auto_prefetch` for this process among the xdist workers it knows of."""
+    if settings.prefetch is not None:
+        return settings.prefetch
+    return auto_prefetch(max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)))
+
+
+_PROCESS: tuple[int, str] = (0, "")
+
+
+def process_key() -> str:
+    """This process's name in the cost ledger (`CellRecord.seconds` ``wall@KEY``): random, never a pid or host,
+    and new in a forked child."""
+    global _PROCESS
+    if _PROCESS[0] != os.getpid():
+        _PROCESS = (os.getpid(), secrets.token_hex(4))
+    return _PROCESS[1]
+
+
+@contextlib.contextmanager
+def _calling(batch: list[CellSample]) -> Iterator[None]:
+    """Time the planner's call on `batch` into `CellSample.called`, net of the images made lazily inside it."""
+    made = sum(sum(s.seconds.values()) for s in batch)
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        took = time.perf_counter() - start - (sum(sum(s.seconds.values()) for s in batch) - made)
+        for s in batch:
+            s.called += took / len(batch)
+
+
+def _declared(planner: Planner) -> tuple[str, ...]:
+    """The cameras to make ahead: the planner's declared ones (none where the declaration is invalid: the cells
+    report that)."""
+    try:
+        return planner_cameras(planner)
+    except DriveDegradeError:
+        return ()
+
+
+def _is_none(reused: np.ndarray | None) -> bool:
+    return reused is None
 
 
 def _data_fault(sample: CellSample) -> DataFault | None:

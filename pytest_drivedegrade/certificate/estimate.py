@@ -25,10 +25,18 @@ class Estimate:
 
 
 def overhead_per_prediction(cost: Mapping[str, Any] | None) -> float:
-    """Seconds the suite spends per prediction besides the planner (decode, inject, score, check), from a
-    certificate's cost ledger; 0 without one."""
+    """Seconds per prediction the planner waits for the suite, from a certificate's cost ledger; 0 without one.
+
+    Where the ledger has the cells' wall time and ``planner_busy`` (`scoring.records.cost_ledger`), it is what
+    was measured: the wall time the planner was not computing, per prediction (with --drivedegrade-prefetch the
+    suite's decoding, injection and scoring hide behind the planner's calls, and only what did not hide counts).
+    From an older ledger, the suite's own seconds (decode, inject, score, check) per prediction: all of it
+    serial, as it was then."""
     if not cost or not cost.get("predictions"):
         return 0.0
+    wall, busy = cost.get("wall"), cost.get("planner_busy")
+    if isinstance(wall, (int, float)) and wall > 0 and isinstance(busy, (int, float)):
+        return float(wall) * (1.0 - float(busy)) / float(cost["predictions"])
     sec = cost["seconds"]
     besides = sum(float(sec.get(k, 0.0)) for k in ("decode", "inject", "metrics", "pdms", "check"))
     return besides / float(cost["predictions"])
@@ -46,7 +54,7 @@ def estimate(fps: float, frames: int, gpus: Sequence[int], *, cells: int = DEFAU
 def estimate_lines(rows: Sequence[Estimate], fps: float, frames: int, cells: int, overhead: float) -> list[str]:
     head = f"{cells} cells x {frames} frames = {cells * frames:,} predictions at {fps:g} frames/s per GPU"
     if overhead:
-        head += f", plus {overhead * 1000:.1f} ms per prediction of decoding, injection and scoring"
+        head += f", plus {overhead * 1000:.1f} ms per prediction the planner waits for decoding, injection and scoring"
     lines = [head, f"{'GPUs':>6} {'wall time':>12}"]
     for r in rows:
         hours = r.wall_hours

@@ -95,6 +95,11 @@ OPTIONS: tuple[OptionSpec, ...] = (
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
+    OptionSpec("--drivedegrade-prefetch", "drivedegrade_prefetch", "frames decoded and corrupted ahead of the "
+               "planner, on a thread beside it, while another thread scores the frame before (0: all in one thread, "
+               "one frame after the other; every output is the same either way). Default: 2 where this machine "
+               "has a core to spare (more cores than xdist workers or local Ray actors + 1), else 0, so that "
+               "the threads never slow the -n workers", {"metavar": "N"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
                "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
                "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
@@ -268,7 +273,28 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         metric=metric,
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
+        prefetch=_prefetch(config),
     )
+
+
+#: The deepest --drivedegrade-prefetch: each frame ahead holds up to six decoded and corrupted images.
+MAX_PREFETCH = 64
+
+
+def _prefetch(config: pytest.Config) -> int:
+    """--drivedegrade-prefetch N, or the machine's default (`stream.prefetch_depth`): the processes that run cells
+    here are the xdist workers, or a local Ray cluster's actors (default 2); a remote cluster's actors have
+    their own machines, counted as one process each."""
+    from ..stream import auto_prefetch
+
+    given = _number(config, "drivedegrade_prefetch", int, None, 0, MAX_PREFETCH)
+    if given is not None:
+        return int(given)
+    workers = config.getoption("numprocesses", default=None)  # -n, an int once xdist has read "auto"
+    processes = workers if isinstance(workers, int) and workers > 0 else 1
+    if value(config, "drivedegrade_ray") == "local":
+        processes = int(_number(config, "drivedegrade_ray_actors", int, 2, 1, None))
+    return auto_prefetch(processes)
 
 
 def parse(config: pytest.Config) -> RunOptions:

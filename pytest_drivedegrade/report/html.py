@@ -209,8 +209,17 @@ def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, object] | None:
     fps = cost.get("planner_frames_per_second")
     cells = cost.get("cells", {})
     reused_cells = ", ".join(f"{c} {int(v['reused'])}" for c, v in sorted(cells.items()) if v.get("reused"))
+    processes = [{"wall": f"{float(p['wall']):.1f}", "busy": _percent(p.get("planner_busy"))}
+                 for p in cost.get("processes", [])]
+    wall = cost.get("wall")
     return {"predictions": cost["predictions"], "reused": cost.get("reused", 0), "rows": rows,
-            "fps": f"{fps:.1f}" if fps else "—", "reused_cells": reused_cells}
+            "fps": f"{fps:.1f}" if fps else "—", "reused_cells": reused_cells,
+            "wall": f"{float(wall):.1f}" if wall else None, "busy": _percent(cost.get("planner_busy")),
+            "processes": processes}
+
+
+def _percent(share: object) -> str:
+    return f"{100 * float(share):.0f} %" if isinstance(share, (int, float)) else "—"
 
 
 def write_report(path: str | os.PathLike[str], analysis: RunAnalysis, provenance: Provenance, **kwargs: Any) -> Path:

@@ -77,7 +77,16 @@ def cost_line(cost: Mapping[str, Any]) -> str:
     return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
             f"cells: planner "
             f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
-            f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}")
+            f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}"
+            + _busy(cost))
+
+
+def _busy(cost: Mapping[str, Any]) -> str:
+    """The cells' wall time and the planner's share of it, where the ledger has them."""
+    wall, busy = cost.get("wall"), cost.get("planner_busy")
+    if not wall or busy is None:
+        return ""
+    return f"; wall in cells {float(wall):.1f} (planner busy {100 * float(busy):.0f} %)"
 
 
 def publish(run: FinishedRun, report_dir: Path, *, signing_key: Ed25519PrivateKey | None = None) -> Published:

@@ -329,20 +329,46 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     """What the run cost: predictions made (frames predicted, every seed run counted) and reused (frames whose
     inputs equal clean's, given the clean plan instead of a call; `CellRecord.reused`), and seconds
     decoding, injecting, planning, scoring and checking inputs, in total and per cell; the planner's frames per
-    second. Seconds are process CPU-wall time inside the cells (workers add up), not the run's wall time."""
+    second. Seconds are process CPU-wall time inside the cells (workers add up), not the run's wall time; with
+    --drivedegrade-prefetch the parts overlap, so they may add up to more than the wall.
+
+    ``wall``: the seconds each process spent inside cells (``processes``, largest first, with its
+    ``planner_busy``) and their sum; ``planner_busy``: the share of that wall time the planner was computing
+    (1.0: it never waited for the suite). None where the records carry no wall time (stored before it was kept).
+    """
     per_cell: dict[str, dict[str, float]] = {}
     totals = dict.fromkeys(COST_PARTS, 0.0)
+    walls: dict[str, list[float]] = {}
     predictions = reused = 0
     for record in records:
         runs = [record, *getattr(record, "seed_runs", [])]
         saved = sum(int(getattr(r, "reused", 0)) for r in runs)
         made = sum(len(r.frames) for r in runs) - saved
         spent = {part: sum(float(r.seconds.get(part, 0.0)) for r in runs) for part in COST_PARTS}
-        per_cell[record.cell] = {"predictions": made, "reused": saved, **spent}
+        per_cell[record.cell] = {"predictions": made, "reused": saved, **spent,
+                                 "wall": sum(float(r.seconds.get("total", 0.0)) for r in runs)}
         predictions += made
         reused += saved
         for part in COST_PARTS:
             totals[part] += spent[part]
+        for r in runs:
+            _add_walls(walls, r.seconds)
+    processes = sorted(({"wall": w, "planner_busy": _share(p, w)} for w, p in walls.values()),
+                       key=lambda p: -float(p["wall"] or 0.0))
+    wall = sum(w for w, _ in walls.values())
     return {"predictions": predictions, "reused": reused, "seconds": totals, "cells": per_cell,
-            "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None}
+            "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None,
+            "wall": wall if walls else None, "planner_busy": _share(sum(p for _, p in walls.values()), wall),
+            "processes": processes}
 
+
+def _add_walls(walls: dict[str, list[float]], seconds: Mapping[str, float]) -> None:
+    """A record's wall and planner seconds per process (``wall@KEY``, ``planner@KEY``: `stream.process_key`)."""
+    for key, value in seconds.items():
+        kind, at, process = key.partition("@")
+        if at and kind in ("wall", "planner"):
+            walls.setdefault(process, [0.0, 0.0])[kind == "planner"] += float(value)
+
+
+def _share(part: float, whole: float) -> float | None:
+    return min(1.0, part / whole) if whole > 0 else None

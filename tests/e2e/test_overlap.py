@@ -1,0 +1,73 @@
+"""--drivedegrade-prefetch end to end (SPEC section 16): the next frames made and the last one scored beside the
+planner's calls give the serial path's outputs bit for bit (plans digests, cells.csv, every cell's record) for the
+reference planners, in one process and under -n 2; a planner that raises, hangs or writes into its input mid-stream
+is reported exactly as serially; the cost ledger gives each process's wall time and planner_busy."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import load_json, no_traceback  # noqa: E402
+from test_shards import two_scene_world  # noqa: E402, F401 - 2 val scenes: the temporal planner resets between them
+
+PLANNERS = Path(__file__).resolve().parents[2] / "planners"
+
+pytest_plugins = ["plugin_support"]
+
+
+def outputs(folder: Path) -> tuple[str, dict[str, str], dict[str, dict]]:
+    """cells.csv, the certificate's plans digest per cell, and every stored cell record without its timings."""
+    cert = load_json(folder / "certificate.json")
+    records = {}
+    for path in sorted((folder / "cells").glob("*.json")):
+        record = load_json(path)["record"]
+        record.pop("seconds")
+        records[path.stem] = record
+    return (folder / "cells.csv").read_text(), {c["cell"]: c["plans_digest"] for c in cert["cells"]}, records
+
+
+@pytest.mark.parametrize("planner", ["camera_cnn.py", "temporal_cnn.py"])
+def test_prefetch_gives_the_serial_outputs_bit_for_bit(dd, two_scene_world, planner):  # noqa: F811
+    kw = {"planner": str(PLANNERS / planner), "data": two_scene_world, "families": "frame_dropout,jpeg,blackout",
+          "severities": "3,5"}
+    name = planner.removesuffix(".py")
+    got = {}
+    for depth, layout in (("0", "-p no:xdist"), ("1", "-p no:xdist"), ("3", "-p no:xdist"), ("3", "-n 2")):
+        report = f"p{depth}{layout[1]}"
+        dd.run(*layout.split(), "--drivedegrade-frames", "8", "--drivedegrade-prefetch", depth, report=report,
+               **kw).assert_outcomes(passed=9)
+        got[report] = outputs(dd.pytester.path / report / name)
+        cost = load_json(dd.pytester.path / report / name / "certificate.json")["cost"]
+        assert cost["wall"] > 0 and 0 < cost["planner_busy"] <= 1
+        assert len(cost["processes"]) == (2 if layout == "-n 2" else 1)
+        assert cost["wall"] == pytest.approx(sum(p["wall"] for p in cost["processes"]))
+    serial = got.pop("p0p")
+    for report, other in got.items():
+        assert other[0] == serial[0], report
+        assert other[1] == serial[1], report
+        assert other[2] == serial[2], report
+    assert len(serial[1]) == 9
+
+
+def test_a_failing_planner_is_reported_as_in_the_serial_path(dd, scored_tokens):
+    """Faults on the second frame of four (raise, NaN, a write into the input, a hang past the timeout) while the
+    frames after it are being made and the one before it scored. The timeout is 2 s so that the first call, which
+    reads the data set for its ground truth, passes on a loaded machine."""
+    frame = scored_tokens[1]
+    faults = {"gaussian_blur-s1": "raise", "gaussian_blur-s5": "nan", "jpeg-s5": "write", "blackout-s1": "hang"}
+    dd.write_planner(faults={cell: (fault, frame) for cell, fault in faults.items()})
+    runs = {}
+    for depth in ("0", "3"):
+        result = dd.run("-p", "no:xdist", "--drivedegrade-timeout", "2", "--drivedegrade-prefetch", depth,
+                        report=f"r{depth}")
+        result.assert_outcomes(passed=5, failed=4)
+        no_traceback(result)
+        lines = [line for line in result.stdout.lines if line.startswith(("cell ", "  frame ", "    frame "))
+                 or "frame '" in line]
+        runs[depth] = (lines, outputs(dd.folder(report=f"r{depth}")))
+    assert runs["3"] == runs["0"]
+    assert any("took longer than 2 s" in line for line in runs["0"][0])
+    assert any("boom in the test planner" in line for line in runs["0"][0])

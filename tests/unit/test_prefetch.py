@@ -1,0 +1,133 @@
+"""--drivedegrade-prefetch: `loader.ahead` makes at most N frames ahead of the one handed out, in order; a sample
+made ahead delivers, faults and counts exactly as one made lazily; the default depth follows the machine's cores."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+from test_loader import Decoder, make_frames
+
+from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.errors import DataError
+from pytest_drivedegrade.loader import ahead, samples
+from pytest_drivedegrade.metrics.trajectory import bit1_density
+from pytest_drivedegrade.settings import RunSettings
+from pytest_drivedegrade.stream import auto_prefetch, prefetch_depth
+
+
+class Counted:
+    """A stand-in sample: `produce` records that frame `index` was made (slowly, on the prefetch thread)."""
+
+    made: list[int]
+    lock = threading.Lock()
+
+    def __init__(self, index: int, made: list[int]) -> None:
+        self.index, self.made = index, made
+
+    def produce(self, cameras: tuple[str, ...]) -> None:
+        time.sleep(0.002)
+        with self.lock:
+            self.made.append(self.index)
+
+
+@pytest.mark.parametrize("depth", [1, 2, 3, 5])
+def test_never_more_than_n_frames_are_made_ahead_of_the_one_handed_out(depth):
+    made: list[int] = []
+    asked: list[int] = []
+
+    def items():
+        for k in range(20):
+            asked.append(k)
+            yield Counted(k, made), k
+
+    got = []
+    for _sample, k in ahead(items(), CAMERAS, depth, wanted=lambda k: True):  # type: ignore[arg-type]
+        with Counted.lock:
+            ahead_now = [m for m in made if m > k]
+        assert max(asked) <= k + depth  # drawn (and so submitted) at most N ahead
+        assert len(ahead_now) <= depth
+        assert k in made  # the frame handed out is made before the caller gets it
+        got.append(k)
+        time.sleep(0.003)  # the planner's call: the next frames are made meanwhile
+    assert got == list(range(20))
+    assert sorted(made) == list(range(20))
+
+
+def test_depth_zero_is_the_lazy_serial_path_and_unwanted_frames_are_not_made():
+    made: list[int] = []
+    items = [(Counted(k, made), k) for k in range(6)]
+    assert [k for _, k in ahead(iter(items), CAMERAS, 0, wanted=lambda k: True)] == list(range(6))  # type: ignore[arg-type]
+    assert made == []
+    assert [k for _, k in ahead(iter(items), CAMERAS, 2, wanted=lambda k: k % 2 == 0)] == list(range(6))  # type: ignore[arg-type]
+    assert sorted(made) == [0, 2, 4]
+
+
+@pytest.mark.parametrize("family", ["jpeg", "frame_dropout", "null", "fog"])
+def test_a_sample_made_ahead_delivers_and_counts_as_a_lazy_one(family):
+    frames = make_frames(6, scenes=2)
+    lazy = list(samples(frames, family, 4, seed=3, decode=Decoder(), unread=("CAM_BACK",)))
+    early = list(samples(frames, family, 4, seed=3, decode=Decoder(), unread=("CAM_BACK",)))
+    for a, b in zip(lazy, early):
+        b.produce(CAMERAS)
+        for cam in ("CAM_FRONT", "CAM_BACK"):  # the planner reads two of the six made
+            np.testing.assert_array_equal(a[cam], b[cam])
+            assert not b[cam].flags.writeable
+        assert sorted(b.delivered) == sorted(a.delivered) == ["CAM_BACK", "CAM_FRONT"]  # the energy: what was read
+        assert bit1_density(b.delivered) == bit1_density(a.delivered)
+        assert b.written() == [] and b.ahead == 4  # the four unread images are never delivered
+
+
+def test_a_data_fault_met_ahead_is_raised_and_counted_only_when_read():
+    def decode(frame, camera):
+        if camera == "CAM_BACK":
+            raise DataError(f"truncated JPEG {camera}.jpg")
+        return np.zeros((36, 64, 3), np.uint8)
+
+    sample = next(samples(make_frames(1), "jpeg", 2, seed=0, decode=decode))
+    sample.produce(CAMERAS)
+    assert sample.data_errors == []  # a camera the planner never reads is no fault of the frame
+    sample["CAM_FRONT"]
+    with pytest.raises(DataError, match="truncated JPEG CAM_BACK.jpg"):
+        sample["CAM_BACK"]
+    with pytest.raises(DataError):  # read again: raised and counted again, as the lazy path does
+        sample["CAM_BACK"]
+    assert sample.data_errors == ["truncated JPEG CAM_BACK.jpg"] * 2
+
+
+@pytest.mark.parametrize(("processes", "cpus", "depth"), [(1, 2, 2), (2, 2, 0), (3, 2, 0), (1, 1, 0), (7, 8, 2)])
+def test_the_default_depth_needs_a_core_to_spare(processes, cpus, depth):
+    assert auto_prefetch(processes, cpus) == depth
+
+
+def test_a_given_depth_wins_and_none_follows_the_xdist_workers(monkeypatch):
+    assert prefetch_depth(RunSettings(prefetch=3)) == 3
+    assert prefetch_depth(RunSettings(prefetch=0)) == 0
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "512")
+    assert prefetch_depth(RunSettings()) == 0
+
+
+def test_the_cost_ledger_gives_each_process_wall_time_and_planner_busy():
+    from pytest_drivedegrade.cells import CellRecord, RecordBuilder
+    from pytest_drivedegrade.certificate.estimate import overhead_per_prediction
+    from pytest_drivedegrade.scoring.records import cost_ledger
+
+    def record(cell, seconds):
+        return RecordBuilder(cell, "jpeg", 1, ["a", "b"]).build(seconds)
+
+    first = record("jpeg-s1", {"planner": 3.0, "decode": 1.0, "total": 4.0, "wall@aa": 4.0, "planner@aa": 3.0})
+    parts = [record("jpeg-s2", {"planner": 1.0, "total": 2.0, "wall@aa": 2.0, "planner@aa": 1.0}),
+             record("jpeg-s2", {"planner": 2.0, "total": 2.0, "wall@bb": 2.0, "planner@bb": 2.0})]
+    joined = CellRecord.concat(parts)  # a cell whose scene groups ran in two processes (Ray actors)
+    cost = cost_ledger([first, record("jpeg-s3", {"planner": 0.5, "total": 1.0}), joined])
+    assert cost["wall"] == 8.0  # the record without wall@ keys (stored before them) adds no process
+    assert cost["processes"] == [{"wall": 6.0, "planner_busy": 4.0 / 6.0}, {"wall": 2.0, "planner_busy": 1.0}]
+    assert cost["planner_busy"] == pytest.approx(6.0 / 8.0)
+    assert cost["cells"]["jpeg-s2"]["wall"] == 4.0
+    # estimate: the planner waited wall x (1 - busy) = 2 s over 8 predictions (2 + 2 frames, the joined cell 4)
+    assert cost["predictions"] == 8 and overhead_per_prediction(cost) == pytest.approx(2.0 / 8)
+    old = cost_ledger([record("jpeg-s3", {"planner": 0.5, "decode": 0.25, "total": 1.0})])
+    assert old["wall"] is None and old["planner_busy"] is None and old["processes"] == []
+    assert overhead_per_prediction(old) == pytest.approx(0.25 / 2)
