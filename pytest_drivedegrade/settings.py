@@ -70,7 +70,7 @@ class RunSettings:
     metric: str = "l2"  #: the retention the verdict is put on (l2 or pdms)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
-    prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `stream.prefetch_depth`)
+    prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
 
     @property
     def data_source(self) -> str:

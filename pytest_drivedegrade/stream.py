@@ -8,13 +8,10 @@ context when ``predict`` takes it, batches, reuse of the clean plan, timeouts, a
 from __future__ import annotations
 
 import contextlib
-import os
-import secrets
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from functools import partial
 from types import FrameType
@@ -30,6 +27,7 @@ from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import bit1_density, frame_metrics
+from .pacing import Scorer, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
 
@@ -298,40 +296,6 @@ class _Clock:
         return {**spent, "total": wall, f"wall@{key}": wall, f"planner@{key}": spent["planner"]}
 
 
-class _Scorer:
-    """Scores frame k-1 on one thread while the planner computes frame k (`overlap`), in frame order, with at
-    most one frame waiting; without `overlap` each frame is scored at once, in the caller's thread (the serial
-    path). A scoring failure is raised at the next frame or at the end, as the serial path raises it."""
-
-    def __init__(self, overlap: bool) -> None:
-        self.pool = ThreadPoolExecutor(1, thread_name_prefix="drivedegrade-score") if overlap else None
-        self.last: Future[None] | None = None
-
-    def __enter__(self) -> _Scorer:
-        return self
-
-    def submit(self, score: Callable[[], None]) -> None:
-        if self.pool is None:
-            score()
-            return
-        self.drain()
-        self.last = self.pool.submit(score)
-
-    def drain(self) -> None:
-        last, self.last = self.last, None
-        if last is not None:
-            last.result()
-
-    def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
-        if self.pool is None:
-            return
-        try:
-            if kind is None:
-                self.drain()
-        finally:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-
-
 def run_cell(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
              unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> CellRecord:
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
@@ -340,7 +304,7 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call."""
     rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
     clock = _Clock()
-    with _Scorer(prefetch_depth(source.settings) > 0) as scorer:
+    with Scorer(prefetch_depth(source.settings) > 0) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean)):
             clock.delivered(sample)
@@ -371,38 +335,6 @@ def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan
     rows.put(i, map_scored=float(scored.map_scored), **{k: getattr(scored, k) for k in PDMS_FIELDS})
     clock.scoring["metrics"] += middle - start
     clock.scoring["pdms"] += time.perf_counter() - middle
-
-
-#: The --drivedegrade-prefetch of a machine with a core to spare for the loading and scoring threads.
-SPARE_CORE_PREFETCH = 2
-
-
-def auto_prefetch(processes: int, cpus: int | None = None) -> int:
-    """The default --drivedegrade-prefetch: `SPARE_CORE_PREFETCH` where the machine has more cores than the
-    `processes` that run cells on it (each process's planner keeps one busy, its loading and scoring threads
-    need another), else 0: the threads would only take cores from the other workers."""
-    cpus = os.cpu_count() if cpus is None else cpus
-    return SPARE_CORE_PREFETCH if (cpus or 1) > processes else 0
-
-
-def prefetch_depth(settings: RunSettings) -> int:
-    """The frames made ahead of the planner (`loader.ahead`): the setting, or where it is None (settings made
-    outside the options) `auto_prefetch` for this process among the xdist workers it knows of."""
-    if settings.prefetch is not None:
-        return settings.prefetch
-    return auto_prefetch(max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)))
-
-
-_PROCESS: tuple[int, str] = (0, "")
-
-
-def process_key() -> str:
-    """This process's name in the cost ledger (`CellRecord.seconds` ``wall@KEY``): random, never a pid or host,
-    and new in a forked child."""
-    global _PROCESS
-    if _PROCESS[0] != os.getpid():
-        _PROCESS = (os.getpid(), secrets.token_hex(4))
-    return _PROCESS[1]
 
 
 @contextlib.contextmanager

@@ -282,10 +282,10 @@ MAX_PREFETCH = 64
 
 
 def _prefetch(config: pytest.Config) -> int:
-    """--drivedegrade-prefetch N, or the machine's default (`stream.prefetch_depth`): the processes that run cells
+    """--drivedegrade-prefetch N, or the machine's default (`pacing.prefetch_depth`): the processes that run cells
     here are the xdist workers, or a local Ray cluster's actors (default 2); a remote cluster's actors have
     their own machines, counted as one process each."""
-    from ..stream import auto_prefetch
+    from ..pacing import auto_prefetch
 
     given = _number(config, "drivedegrade_prefetch", int, None, 0, MAX_PREFETCH)
     if given is not None:

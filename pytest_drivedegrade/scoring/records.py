@@ -363,7 +363,7 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
 
 
 def _add_walls(walls: dict[str, list[float]], seconds: Mapping[str, float]) -> None:
-    """A record's wall and planner seconds per process (``wall@KEY``, ``planner@KEY``: `stream.process_key`)."""
+    """A record's wall and planner seconds per process (``wall@KEY``, ``planner@KEY``: `pacing.process_key`)."""
     for key, value in seconds.items():
         kind, at, process = key.partition("@")
         if at and kind in ("wall", "planner"):

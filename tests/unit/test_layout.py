@@ -23,7 +23,9 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
     ("cells",),  # which cells exist, what one yields, bit-identity
-    ("loader", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),  # a cell (shards, Ray); floor
+    # running a cell: decode and inject, the threads beside the planner, calling it, the run, stored cells, shards,
+    # Ray actors; the ego-only floor
+    ("loader", "pacing", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),
     ("closedloop",),  # the closed loop: routes of the world, simulator, run and cell scores (spec 13)
     ("scoring",),  # statistics over finished cells
     ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun

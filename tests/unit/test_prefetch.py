@@ -14,8 +14,8 @@ from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.errors import DataError
 from pytest_drivedegrade.loader import ahead, samples
 from pytest_drivedegrade.metrics.trajectory import bit1_density
+from pytest_drivedegrade.pacing import auto_prefetch, prefetch_depth
 from pytest_drivedegrade.settings import RunSettings
-from pytest_drivedegrade.stream import auto_prefetch, prefetch_depth
 
 
 class Counted:
