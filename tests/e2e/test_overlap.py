@@ -43,7 +43,9 @@ def test_prefetch_gives_the_serial_outputs_bit_for_bit(dd, two_scene_world, plan
         cost = load_json(dd.pytester.path / report / name / "certificate.json")["cost"]
         assert cost["wall"] > 0 and 0 < cost["planner_busy"] <= 1
         assert len(cost["processes"]) == (2 if layout == "-n 2" else 1)
-        assert cost["wall"] == pytest.approx(sum(p["wall"] for p in cost["processes"]))
+        # each figure is rounded to 6 decimals in the certificate: the sum may be off by half a unit per term
+        assert cost["wall"] == pytest.approx(sum(p["wall"] for p in cost["processes"]),
+                                             abs=5e-7 * (len(cost["processes"]) + 1))
     serial = got.pop("p0p")
     for report, other in got.items():
         assert other[0] == serial[0], report
