@@ -7,6 +7,7 @@ cell to it, or to a planner that runs elsewhere (`PlannerElsewhere`: Ray actors)
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,6 +107,8 @@ class RunContext:
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
+    #: the prefetch thread (`loader.ahead`) and the planner's thread may decode at once: one fills the cache
+    _decode_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _clean: dict[int, CellRecord] = field(default_factory=dict)
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
@@ -200,8 +203,13 @@ class RunContext:
         """
         key = (frame.token, camera)
         image = self._decoded.get(key)
-        if image is None:
-            image = self.reader.load_image(frame.cameras[camera])
+        if image is not None:
+            return image
+        image = self.reader.load_image(frame.cameras[camera])
+        with self._decode_lock:  # another thread may have decoded it meanwhile: keep one copy, count it once
+            cached = self._decoded.get(key)
+            if cached is not None:
+                return cached
             if self._decoded_bytes + image.nbytes <= DECODE_CACHE_BYTES:
                 image.setflags(write=False)
                 self._decoded[key] = image

@@ -109,8 +109,10 @@ def _reuse_control(source: Source, planner: Planner, sample: CellSample, style: 
     """A reused frame predicted anyway: the reused plan when the call returns it bit for bit, else the frame's
     failure saying that reuse does not hold for this planner (or why the call failed)."""
     got = _predict(source, planner, sample, style)
-    if isinstance(got, str) or np.array_equal(got, reused):
-        return reused if not isinstance(got, str) else got
+    if isinstance(got, str):  # the call itself failed: that failure is the frame's
+        return got
+    if np.array_equal(got, reused):
+        return reused
     diff = float(np.nanmax(np.abs(got - reused))) if np.isfinite(got).any() else float("nan")
     return (f"frame {sample.frame.token!r}: reuse control failed: predict() on inputs equal to the clean cell's "
             f"returned another plan than clean's (max abs difference {diff:.6g} m), so its clean plans cannot "
