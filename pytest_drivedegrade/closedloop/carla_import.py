@@ -19,7 +19,7 @@ from pathlib import Path
 from ..atomic import atomic_write_text
 from ..errors import DataError
 from .carla_results import LeaderboardRun, ResultsFile, parse_source, read_results
-from .results import CellResult
+from .results import CellResult, RunResult
 
 CSV_NAME, SUMMARY_NAME = "closed_loop.csv", "closed_loop_summary.json"
 CSV_COLUMNS = ("cell", "route_id", "route", "repetition", "seed", "ds", "completion", "penalty", "end", "status",
@@ -39,7 +39,7 @@ class ImportedCell:
 
     @property
     def result(self) -> CellResult:
-        return CellResult.of(self.cell, [run.run_result() for run in self.runs])
+        return CellResult.of(self.cell, [run.run_result() for run in self.runs])  # the cell's DS, bounds
 
 
 def gather(sources: Sequence[str]) -> list[ImportedCell]:
@@ -64,6 +64,12 @@ def gather(sources: Sequence[str]) -> list[ImportedCell]:
                 seen[key] = f.path
     order = sorted(by_cell, key=lambda c: (c != "clean", list(by_cell).index(c)))
     return [ImportedCell(f"closed-{cell}", tuple(by_cell[cell])) for cell in order]
+
+
+def run_lists(cells: Sequence[ImportedCell]) -> dict[str, list[RunResult]]:
+    """Cell id -> its runs as the suite's `RunResult`s (no traces): the per-cell run lists the closed-loop
+    analysis takes (`scoring.closed_loop.analyse_runs`), as the plugin's closed cells give them."""
+    return {cell.cell: [run.run_result() for run in cell.runs] for cell in cells}
 
 
 def _cell(value: float | None) -> str:

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pytest_drivedegrade.cli import main
-from pytest_drivedegrade.closedloop.carla_import import CSV_NAME, SUMMARY_NAME, gather
+from pytest_drivedegrade.closedloop.carla_import import CSV_NAME, SUMMARY_NAME, gather, run_lists
 from pytest_drivedegrade.closedloop.carla_results import read_results
 from pytest_drivedegrade.closedloop.results import END_BLOCKED, END_COMPLETE, END_OFF_ROAD, END_UNSCORED
 from pytest_drivedegrade.errors import DataError
@@ -76,6 +76,11 @@ def test_crashed_and_unrun_routes_are_unscored_and_widen_the_bounds(tmp_path: Pa
     assert bo.mean == pytest.approx(40.0) and bo.unscored == 2
     assert bo.bounds == pytest.approx((80 / 4, 280 / 4))  # unscored runs at 0 and at 100
     assert bo.infractions == {"collision_pedestrian": 1, "route_dev": 1}
+    lists = run_lists(cells)  # what the closed-loop analysis takes: cell id -> the suite's runs
+    assert list(lists) == ["closed-clean", "closed-blackout-s5"]
+    assert [(r.route, r.seed, r.ds, r.end) for r in lists["closed-blackout-s5"]][:2] == [
+        ("RouteScenario_0_rep0", 0, 50.0, END_COMPLETE), ("RouteScenario_1_rep0", 0, None, END_UNSCORED)]
+    assert lists["closed-blackout-s5"][1].error == "Failed - Agent crashed"
 
 
 def test_the_cli_writes_one_csv_row_per_run_and_the_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
