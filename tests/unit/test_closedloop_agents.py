@@ -1,6 +1,6 @@
 """Reactive agents in the closed loop: IDM's known answers, an agent that brakes for the ego stopped ahead of it
-(where its log drives into it), agents the ego never gets in front of replaying their logs exactly, log replay
-as the untouched default, determinism."""
+(where its log drives into it) and is rendered where it stopped, agents the ego never gets in front of replaying
+their logs exactly, log replay as the untouched default, determinism."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 
 from pytest_drivedegrade.closedloop import judge, route_of, run_route
 from pytest_drivedegrade.closedloop.agents import IDM, leader_gap, run_world
+from pytest_drivedegrade.closedloop.camera import RouteCameras
 from pytest_drivedegrade.closedloop.routes import Route
 from pytest_drivedegrade.data.frame import Command, EgoStatus
 from pytest_drivedegrade.data.world.scene import make_scene
@@ -68,6 +69,10 @@ def test_an_agent_brakes_for_the_ego_standing_ahead_of_it(route: Route) -> None:
     for i, (ours, logged) in enumerate(zip(mine.scene.agents, route.scene.agents)):
         if i != follower:  # the ego is never in their way: their logs replay exactly
             assert ours.xy.tobytes() == logged.xy.tobytes() and ours.speed.tobytes() == logged.speed.tobytes()
+    at, xyyaw = 60, (pose.x, pose.y, pose.yaw)  # 6 s in: the log's follower drove through, ours waits behind
+    behind = RouteCameras(mine, ("CAM_BACK",)).images(xyyaw, at)["CAM_BACK"]
+    assert not np.array_equal(behind, RouteCameras(route, ("CAM_BACK",)).images(xyyaw, at)["CAM_BACK"])
+    assert np.array_equal(behind, RouteCameras(mine, ("CAM_BACK",)).images(xyyaw, at)["CAM_BACK"])
 
 
 def test_a_reactive_run_leaves_the_scene_unwritten_and_repeats_bit_for_bit(route: Route) -> None:
