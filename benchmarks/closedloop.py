@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         walls = []
         for corruption in SLICE if args.slice else CELLS:
             timings, start, cpu = Timings(), time.perf_counter(), time.process_time()
-            cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings, args.agents)
+            cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings, agents=args.agents)
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu
             walls.append(cpu)
             cols = " ".join(_route_cell([r.ds for r in cell.runs if r.route == route.name]) for route in routes)

@@ -190,7 +190,7 @@ def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
 
 
 def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
-              timings: Timings | None = None, agents: str = "log") -> RunResult:
+              timings: Timings | None = None, *, agents: str = "log") -> RunResult:
     """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>"),
     the other agents replayed (`agents="log"`) or reactive (`"reactive"`). A planner that raises, times out or
     returns a bad plan leaves the run unscored (ds None, `error` set)."""
@@ -227,7 +227,7 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
 
 
 def run_cell(planner: Planner, routes: list[Route], corruption: Corruption = Corruption(),
-             seeds: tuple[int, ...] = (0,), timings: Timings | None = None, agents: str = "log") -> CellResult:
+             seeds: tuple[int, ...] = (0,), timings: Timings | None = None, *, agents: str = "log") -> CellResult:
     """Every route under every seed: the cell's runs, route-major."""
-    runs = [run_route(planner, route, corruption, seed, timings, agents) for route in routes for seed in seeds]
+    runs = [run_route(planner, route, corruption, seed, timings, agents=agents) for route in routes for seed in seeds]
     return CellResult.of(f"closed-{corruption.name}", runs)
