@@ -1,4 +1,5 @@
-"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate.
+"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate,
+closed-loop import.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -177,6 +178,28 @@ def _estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _closed_loop_import(args: argparse.Namespace) -> int:
+    """CARLA leaderboard results files (one per cell) into closed_loop.csv and closed_loop_summary.json."""
+    from .closedloop.carla_import import import_results
+
+    for line in import_results(args.files, Path(args.out)):
+        print(line)
+    return 0
+
+
+def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
+    """closed-loop import: runs of a real simulator into the closed-loop analysis."""
+    p = sub.add_parser("closed-loop", help="closed-loop results from a simulator: import CARLA leaderboard runs")
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    q = actions.add_parser("import", help="read CARLA leaderboard results files (one per cell) into closed_loop.csv "
+                                          "and closed_loop_summary.json")
+    q.add_argument("files", nargs="+", metavar="RESULTS.json",
+                   help="the leaderboard's --checkpoint files, one per cell: CELL=FILE (e.g. blackout-s5=bo5.json), or "
+                        "FILE named by its \"drivedegrade\": {\"cell\": ...} object or its file name")
+    q.add_argument("--out", required=True, help="output folder")
+    q.set_defaults(func=_closed_loop_import)
+
+
 def _add_input_commands(sub: argparse._SubParsersAction) -> None:
     """spec, preview and world: what the suite injects, and the data it can render."""
     p = sub.add_parser("spec", help="emit the corruption ladder from the injector's own tables")
@@ -268,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_commands(sub)
     _add_run_commands(sub)
     _add_certificate_commands(sub)
+    _add_closed_loop_commands(sub)
     return parser
 
 

@@ -1,10 +1,17 @@
 """The route's cameras rendered at any ego pose: the world renderer's steps (`data.world.export.render_scene`)
 at the simulated pose instead of the logged one, JPEG round trip included, so that a planner sees what the data
-root's images would have shown had the car been there. Only the cameras asked for are rendered."""
+root's images would have shown had the car been there. Only the cameras asked for are rendered.
+
+Faster than rendering a keyframe from scratch, with the same pixels: the backdrop (ground, sky, scenery) is built
+once per route and process, and agents the renderer would skip (too far for their parts or shadows) are never
+modelled."""
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -13,39 +20,83 @@ from ..data.world import models, render, texture
 from ..data.world.export import JPEG_QUALITY
 from .routes import Route
 
+#: Agents farther than this from the ego (m) have no part the renderer draws (a part's centre within 6 m of its
+#: agent's, the camera within 3 m of the ego, parts beyond render.SOLID_MAX skipped): they are not modelled.
+SOLID_REACH = render.SOLID_MAX + 25.0
+#: Agents farther than this from the camera (m) cast no shadow the renderer draws (it stops at 80 m).
+SHADOW_REACH = 81.0
+#: Routes whose backdrops a process keeps (ground maps are 40 to 70 MB each at 800x450: about 0.5 GB at most).
+BACKDROPS_KEPT = 8
+
+
+@dataclass
+class Backdrop:
+    """What every render of a route shares and nothing in a run changes: ground texture, sky, static scenery and
+    the per-camera precomputation (filled as cameras are asked for). Built by the exporter's random streams in the
+    exporter's order, so the textures equal the data's."""
+
+    ground: texture.GroundMap
+    sky: np.ndarray
+    static: models.Parts
+    pre: dict[str, render.CameraPrecomp] = field(default_factory=dict)
+
+    def camera(self, route: Route, cam: str) -> render.CameraPrecomp:
+        if cam not in self.pre:
+            self.pre[cam] = render.precompute(route.rig, cam, route.scene.style.haze_m)
+        return self.pre[cam]
+
+
+_BACKDROPS: OrderedDict[tuple[int, int, str, int, int], Backdrop] = OrderedDict()
+_LOCK = threading.Lock()
+
+
+def backdrop(route: Route) -> Backdrop:
+    """The route's backdrop, built once per process and kept for the next runs of the route (other seeds, other
+    cells; the reactive copy of a route shares its scene's backdrop): the least recently used goes first."""
+    scene = route.scene
+    front = route.rig.cameras["CAM_FRONT"]
+    key = (int(scene.seed), int(scene.index), scene.name, int(front.width), int(front.height))
+    with _LOCK:
+        if key in _BACKDROPS:
+            _BACKDROPS.move_to_end(key)
+            return _BACKDROPS[key]
+        rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
+        ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng)
+        sky = texture.sky_panorama(scene.style, rng)
+        static = models.Parts()
+        for prop in scene.props:
+            getattr(models, prop.kind)(static, prop, rng)
+        made = _BACKDROPS[key] = Backdrop(ground, sky, static)
+        while len(_BACKDROPS) > BACKDROPS_KEPT:
+            _BACKDROPS.popitem(last=False)
+        return made
+
 
 class RouteCameras:
-    """What a route's renders share (ground texture, sky, scenery, per-camera precomputation), built once; then
-    `images(pose, step, cameras)`. The random streams are the exporter's, so the textures equal the data's."""
+    """A route's cameras at any pose: `images(pose, step)`; the backdrop comes from the process's cache."""
 
     def __init__(self, route: Route, cameras: Sequence[str]) -> None:
-        scene = route.scene
-        rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
         self.route = route
         self.cameras = tuple(cameras)
-        self.ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng) \
-            if self.cameras else None
-        self.sky = texture.sky_panorama(scene.style, rng) if self.cameras else None
-        self.static = models.Parts()
-        if self.cameras:
-            for prop in scene.props:
-                getattr(models, prop.kind)(self.static, prop, rng)
-        self.pre = {cam: render.precompute(route.rig, cam, scene.style.haze_m) for cam in self.cameras}
+        self.backdrop = backdrop(route) if self.cameras else None
+        self.pre = {cam: self.backdrop.camera(route, cam) for cam in self.cameras} if self.backdrop else {}
 
     def images(self, pose: tuple[float, float, float], step: int) -> dict[str, np.ndarray]:
         """RGB uint8 images of the cameras at world `pose` (x, y, yaw), agents at log `step`."""
-        if self.ground is None or self.sky is None:
+        if self.backdrop is None:
             return {}
-        scene, rig = self.route.scene, self.route.rig
-        parts = models.Parts(list(self.static.boxes), list(self.static.colours), dict(self.static.decals))
-        render.agent_parts(parts, scene.agents, step)
+        scene, rig, back = self.route.scene, self.route.rig, self.backdrop
+        parts = models.Parts(list(back.static.boxes), list(back.static.colours), dict(back.static.decals))
+        near = [a for a in scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
+        render.agent_parts(parts, near, step)
         out = {}
         for cam in self.cameras:
             info = rig.cameras[cam]
-            img = render.draw_background(self.pre[cam], (info.height, info.width), self.ground, self.sky, pose,
+            img = render.draw_background(self.pre[cam], (info.height, info.width), back.ground, back.sky, pose,
                                          scene.style)
             w2c, centre = render.world_to_camera(rig, cam, pose)
-            render.draw_shadows(img, scene.agents, step, info, w2c, scene.style)
+            shadowed = [a for a in near if np.hypot(*(a.xy[step] - centre[:2])) < SHADOW_REACH]
+            render.draw_shadows(img, shadowed, step, info, w2c, scene.style)
             render.draw_solids(img, parts, info, w2c, centre, scene.style)
             _, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY,
                                                                                   JPEG_QUALITY])

@@ -1,6 +1,7 @@
 """One closed-loop run: planner at 2 Hz on cameras rendered at the simulated pose and degraded by the cell's
 corruption, its plan executed at 10 Hz by NAVSIM's LQR tracker and kinematic bicycle model
-(`metrics.tracking`), scored CARLA-leaderboard style. Other agents replay their logs (non-reactive)."""
+(`metrics.tracking`), scored CARLA-leaderboard style. Other agents replay their logs (non-reactive,
+`agents="log"`) or follow IDM along their logged paths and brake for the ego (`agents="reactive"`, `agents.py`)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from ..data.world.agents import DT
 from ..metrics.tracking import InitialState, interpolate_plan, track
 from ..planning import Planner, call_style, planner_cameras, validate_output
 from . import judge
+from .agents import ReactiveAgents, run_world
 from .camera import RouteCameras
 from .loop_io import ego_status, frame_context, route_command
 from .results import (
@@ -81,6 +83,7 @@ class _Run:
     infractions: list[Infraction] = field(default_factory=list)
     touched: set[int] = field(default_factory=set)
     off_road: bool = False
+    world: ReactiveAgents | None = None  # the reactive agents, None when they replay their logs
 
     @property
     def xyyaw(self) -> tuple[float, float, float]:
@@ -164,6 +167,8 @@ def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings) -> s
     t1 = time.perf_counter()
     try:
         for i in range(1, PLAN_EVERY + 1):
+            if run.world is not None:  # the agents move to t + i from where the ego was at t + i - 1
+                run.world.advance(t + i, run.pose)
             lx, ly = float(states.x[0, i]), float(states.y[0, i])
             run.pose = judge.Pose(x0 + c * lx - s * ly, y0 + s * lx + c * ly, yaw0 + float(states.heading[0, i]),
                                   max(float(states.velocity_x[0, i]), 0.0), float(states.acceleration_x[0, i]))
@@ -185,10 +190,12 @@ def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
 
 
 def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
-              timings: Timings | None = None) -> RunResult:
-    """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>").
-    A planner that raises, times out or returns a bad plan leaves the run unscored (ds None, `error` set)."""
+              timings: Timings | None = None, *, agents: str = "log") -> RunResult:
+    """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>"),
+    the other agents replayed (`agents="log"`) or reactive (`"reactive"`). A planner that raises, times out or
+    returns a bad plan leaves the run unscored (ds None, `error` set)."""
     timings = timings if timings is not None else Timings()
+    route, world = run_world(route, agents)
     style = call_style(planner)
     t0 = time.perf_counter()
     cameras = RouteCameras(route, planner_cameras(planner))
@@ -196,6 +203,7 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
     if style.resets:
         planner.reset(route.name)  # type: ignore[attr-defined]
     run, previous = _start(route), None
+    run.world = world
     k, t = 0, route.start_step
     while t + PLAN_EVERY <= route.end_step:
         t0 = time.perf_counter()
@@ -219,7 +227,7 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
 
 
 def run_cell(planner: Planner, routes: list[Route], corruption: Corruption = Corruption(),
-             seeds: tuple[int, ...] = (0,), timings: Timings | None = None) -> CellResult:
+             seeds: tuple[int, ...] = (0,), timings: Timings | None = None, *, agents: str = "log") -> CellResult:
     """Every route under every seed: the cell's runs, route-major."""
-    runs = [run_route(planner, route, corruption, seed, timings) for route in routes for seed in seeds]
+    runs = [run_route(planner, route, corruption, seed, timings, agents=agents) for route in routes for seed in seeds]
     return CellResult.of(f"closed-{corruption.name}", runs)

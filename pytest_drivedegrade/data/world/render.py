@@ -161,18 +161,49 @@ def draw_solids(img: np.ndarray, parts: models.Parts, cam, world_to_cam: np.ndar
     shade = (0.55 + 0.5 * np.clip(normals @ style.sun, 0, None)) * style.light
     haze = 1.0 - np.exp(-dist / style.haze_m)
     sky = style.sky_horizon
+    groups: list[tuple[np.ndarray, np.ndarray]] = []  # what _fill_many would get, call by call, far to near
     for j in np.argsort(-dist, kind="stable"):
         p = keep[j]
         cols = parts.colours[p] * shade[j][:, None] * (1 - haze[j]) + sky * haze[j]
         dec = parts.decals.get(p)
         faces = np.flatnonzero(visible[j])
-        _fill_many(img, cc[p][FACES[faces]], cam.intrinsic, cols[faces])
+        groups.append((cc[p][FACES[faces]], cols[faces]))
         if dec is not None and dist[j] < DECAL_MAX:
             sel = np.flatnonzero(np.isin(dec[0], faces))
             if len(sel):
                 q = dec[1][sel] @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
                 dc = dec[2][sel] * shade[j][dec[0][sel]][:, None] * (1 - haze[j]) + sky * haze[j]
-                _fill_many(img, q, cam.intrinsic, dc)
+                groups.append((q, dc))
+    _fill_in_order(img, groups, cam.intrinsic)
+
+
+def _fill_in_order(img, groups: list[tuple[np.ndarray, np.ndarray]], intrinsic) -> None:
+    """`_fill_many(img, quads, intrinsic, colours)` for each group in turn, the same fills in the same order
+    (per group: the polygons wholly in front, then the clipped ones), with every unclipped quad projected in
+    one numpy pass instead of one per group: fewer numpy calls, the same pixels."""
+    if not groups:
+        return
+    quads = np.concatenate([g[0] for g in groups])
+    colours = np.concatenate([g[1] for g in groups])
+    front: np.ndarray = np.asarray((quads[:, :, 2] >= NEAR_PLANE).all(1))
+    q = quads[front]
+    uv = q[..., :2] / q[..., 2:3] @ intrinsic[:2, :2].T + intrinsic[:2, 2]
+    pts = iter(np.round(uv * (1 << SHIFT)).astype(np.int32))
+    listed = colours.tolist()
+    start = 0
+    for group, _ in groups:
+        stop = start + len(group)
+        for i in range(start, stop):
+            if front[i]:
+                cv2.fillConvexPoly(img, next(pts), listed[i], AA, SHIFT)
+        for i in range(start, stop):
+            if not front[i]:
+                poly = clip_polygon_near(quads[i])
+                if len(poly) >= 3:
+                    uv1 = poly[:, :2] / poly[:, 2:3] @ intrinsic[:2, :2].T + intrinsic[:2, 2]
+                    cv2.fillConvexPoly(img, np.round(uv1 * (1 << SHIFT)).astype(np.int32), colours[i].tolist(), AA,
+                                       SHIFT)
+        start = stop
 
 
 def draw_shadows(img, agents: list[Agent], step: int, cam, world_to_cam, style) -> None:

@@ -1,0 +1,121 @@
+"""`drivedegrade closed-loop import`: CARLA leaderboard results files (one per cell) into the closed loop's
+outputs: `closed_loop.csv` (one row per run) and `closed_loop_summary.json` (per cell: DS mean and standard
+deviation over the scored runs, the identification bounds with the unscored runs at 0 and at 100, mean completion,
+infractions by kind), the same numbers `results.CellResult` gives the embedded world's runs.
+
+Files of one cell are that cell's seeds: a file's "drivedegrade".seed, else its place among the cell's files
+(0, 1, ...). The same (cell, route id, seed) twice is an error naming both files.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..atomic import atomic_write_text
+from ..errors import DataError
+from .carla_results import LeaderboardRun, ResultsFile, parse_source, read_results
+from .results import CellResult, RunResult
+
+CSV_NAME, SUMMARY_NAME = "closed_loop.csv", "closed_loop_summary.json"
+CSV_COLUMNS = ("cell", "route_id", "route", "repetition", "seed", "ds", "completion", "penalty", "end", "status",
+               "infractions", "reported_ds", "length_m", "source")
+
+
+@dataclass(frozen=True)
+class ImportedCell:
+    """One cell's files and runs, and the cell result the analysis reads (`cell` with the "closed-" prefix)."""
+
+    cell: str
+    files: tuple[ResultsFile, ...]
+
+    @property
+    def runs(self) -> tuple[LeaderboardRun, ...]:
+        return tuple(run for f in self.files for run in f.runs)
+
+    @property
+    def result(self) -> CellResult:
+        return CellResult.of(self.cell, [run.run_result() for run in self.runs])  # the cell's DS, bounds
+
+
+def gather(sources: Sequence[str]) -> list[ImportedCell]:
+    """Read every source (`FILE` or `CELL=FILE`) and group the files by cell: clean first, then in the order
+    the cells first appear."""
+    if not sources:
+        raise DataError("closed-loop import: no results files given")
+    by_cell: dict[str, list[ResultsFile]] = {}
+    for source in sources:
+        name, path = parse_source(source)
+        probe = read_results(path, name)  # small files: read once for the cell, again with its next seed
+        found = read_results(path, name, seed=len(by_cell.get(probe.cell, [])))
+        by_cell.setdefault(found.cell, []).append(found)
+    seen: dict[tuple[str, str, int], str] = {}
+    for cell, files in by_cell.items():
+        for f in files:
+            for run in f.runs:
+                key = (cell, run.route_id, run.seed)
+                if key in seen:
+                    raise DataError(f"{f.path}: route {run.route_id} of cell {cell} under seed {run.seed} is also in "
+                                    f"{seen[key]}: give each file of a cell its own \"drivedegrade\".seed")
+                seen[key] = f.path
+    order = sorted(by_cell, key=lambda c: (c != "clean", list(by_cell).index(c)))
+    return [ImportedCell(f"closed-{cell}", tuple(by_cell[cell])) for cell in order]
+
+
+def run_lists(cells: Sequence[ImportedCell]) -> dict[str, list[RunResult]]:
+    """Cell id -> its runs as the suite's `RunResult`s (no traces): the per-cell run lists the closed-loop
+    analysis takes (`scoring.closed_loop.analyse_runs`), as the plugin's closed cells give them."""
+    return {cell.cell: [run.run_result() for run in cell.runs] for cell in cells}
+
+
+def _cell(value: float | None) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def csv_text(cells: Sequence[ImportedCell]) -> str:
+    """One row per run, cells in order, runs in file and record order."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for cell in cells:
+        for f in cell.files:
+            for run in f.runs:
+                kinds = ";".join(f"{kind}:{n}" for kind, n in run.infractions)
+                writer.writerow([cell.cell, run.route_id, run.route, run.repetition, run.seed, _cell(run.ds),
+                                 _cell(run.completion), _cell(run.penalty), run.end, run.status, kinds,
+                                 _cell(run.reported_ds), repr(run.length_m), f.path])
+    return buf.getvalue()
+
+
+def summary(cells: Sequence[ImportedCell]) -> dict[str, object]:
+    """Per cell: runs, scored, unscored, DS mean and std (scored runs), bounds, completion, infractions."""
+    out: dict[str, object] = {}
+    for cell in cells:
+        result = cell.result
+        lo, hi = result.bounds
+        out[cell.cell] = {"files": [f.path for f in cell.files], "seeds": sorted({f.seed for f in cell.files}),
+                          "runs": len(result.runs), "scored": len(result.scored), "unscored": result.unscored,
+                          "ds_mean": result.mean, "ds_std": result.std, "ds_bounds": [lo, hi],
+                          "completion": result.completion, "infractions": result.infractions}
+    return {"source": "carla-leaderboard", "cells": out}
+
+
+def import_results(sources: Sequence[str], out: Path) -> list[str]:
+    """Read the sources, write the CSV and the summary into `out`; the lines to print."""
+    cells = gather(sources)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = atomic_write_text(out / CSV_NAME, csv_text(cells))
+    json_path = atomic_write_text(out / SUMMARY_NAME, json.dumps(summary(cells), indent=2, sort_keys=True) + "\n")
+    lines = []
+    for cell in cells:
+        r = cell.result
+        lo, hi = r.bounds
+        mean = "n/a" if r.mean is None else f"{r.mean:.1f}"
+        lines.append(f"{cell.cell}: DS {mean} over {len(r.scored)} scored of {len(r.runs)} runs, bounds "
+                     f"[{lo:.1f}, {hi:.1f}], from {len(cell.files)} file(s)")
+    lines.append(f"wrote {csv_path} and {json_path}")
+    return lines

@@ -1,0 +1,133 @@
+"""`drivedegrade closed-loop import`: leaderboard results files (2.x and 1.0 layouts, written here as the
+leaderboard's statistics manager writes them) into typed runs, closed_loop.csv and the summary with bounds; a
+crashed route and a route never run are unscored, never dropped; bad input is one error naming the file."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from pytest_drivedegrade.cli import main
+from pytest_drivedegrade.closedloop.carla_import import CSV_NAME, SUMMARY_NAME, gather, run_lists
+from pytest_drivedegrade.closedloop.carla_results import read_results
+from pytest_drivedegrade.closedloop.results import END_BLOCKED, END_COMPLETE, END_OFF_ROAD, END_UNSCORED
+from pytest_drivedegrade.errors import DataError
+
+INFRACTION_KEYS_2X = ("collisions_layout", "collisions_pedestrian", "collisions_vehicle", "red_light",
+                      "stop_infraction", "outside_route_lanes", "min_speed_infractions",
+                      "yield_emergency_vehicle_infractions", "scenario_timeouts", "route_dev", "vehicle_blocked",
+                      "route_timeout")
+
+
+def record_2x(index: int, route: int, status: str, ds: float, rc: float, penalty: float,
+              **infractions: list[str]) -> dict[str, object]:
+    """One route record as leaderboard 2.x's statistics manager writes it."""
+    return {"index": index, "route_id": f"RouteScenario_{route}_rep0", "status": status,
+            "num_infractions": sum(len(v) for v in infractions.values()),
+            "infractions": {k: list(infractions.get(k, [])) for k in INFRACTION_KEYS_2X},
+            "scores": {"score_route": rc, "score_penalty": penalty, "score_composed": ds},
+            "meta": {"route_length": 812.5, "duration_game": 120.0, "duration_system": 400.0}}
+
+
+def results_2x(records: list[dict[str, object]], planned: int | None = None, **extra: object) -> dict[str, object]:
+    n = len(records) if planned is None else planned
+    return {"_checkpoint": {"global_record": {}, "progress": [len(records), n], "records": records},
+            "entry_status": "Finished", "eligible": True, "sensors": ["carla_camera"], "values": [], "labels": [],
+            **extra}
+
+
+def write(path: Path, data: object) -> str:
+    path.write_text(json.dumps(data, indent=4))
+    return str(path)
+
+
+CLEAN = [record_2x(0, 0, "Perfect", 100.0, 100.0, 1.0),
+         record_2x(1, 1, "Completed", 60.0, 100.0, 0.6, collisions_vehicle=["Agent collided against object ..."]),
+         record_2x(2, 2, "Failed - Agent got blocked", 40.0, 40.0, 1.0, vehicle_blocked=["Agent got blocked ..."])]
+BLACKOUT = [record_2x(0, 0, "Completed", 50.0, 100.0, 0.5, collisions_pedestrian=["Agent collided ..."]),
+            record_2x(1, 1, "Failed - Agent crashed", 12.0, 20.0, 0.6),  # the agent raised: unscored
+            record_2x(2, 2, "Failed - Agent deviated from the route", 30.0, 30.0, 1.0, route_dev=["deviated"])]
+
+
+def test_a_2x_file_reads_into_typed_runs(tmp_path: Path) -> None:
+    found = read_results(Path(write(tmp_path / "clean.json", results_2x(CLEAN))))
+    assert found.cell == "clean" and found.seed == 0 and found.entry_status == "Finished"
+    assert [(r.route, r.repetition, r.ds, r.completion, r.end) for r in found.runs] == [
+        ("RouteScenario_0", 0, 100.0, 1.0, END_COMPLETE), ("RouteScenario_1", 0, 60.0, 1.0, END_COMPLETE),
+        ("RouteScenario_2", 0, 40.0, 0.4, END_BLOCKED)]
+    assert found.runs[1].infractions == (("collision_vehicle", 1),)
+    assert found.runs[2].infractions == (("vehicle_blocked", 1),)
+
+
+def test_crashed_and_unrun_routes_are_unscored_and_widen_the_bounds(tmp_path: Path) -> None:
+    clean = write(tmp_path / "a.json", results_2x(CLEAN))
+    blackout = write(tmp_path / "b.json", results_2x(BLACKOUT, planned=4))  # the evaluation stopped after 3 of 4
+    cells = gather([f"blackout-s5={blackout}", f"clean={clean}"])
+    assert [c.cell for c in cells] == ["closed-clean", "closed-blackout-s5"]
+    clean_cell, bo = cells[0].result, cells[1].result
+    assert clean_cell.mean == pytest.approx(200 / 3) and clean_cell.bounds == pytest.approx((200 / 3, 200 / 3))
+    runs = cells[1].runs
+    assert [r.end for r in runs] == [END_COMPLETE, END_UNSCORED, END_OFF_ROAD, END_UNSCORED]
+    assert runs[1].ds is None and runs[1].reported_ds == 12.0 and runs[1].status == "Failed - Agent crashed"
+    assert runs[3].route_id == "unrun_3" and "progress says 4 routes" in runs[3].status
+    assert bo.mean == pytest.approx(40.0) and bo.unscored == 2
+    assert bo.bounds == pytest.approx((80 / 4, 280 / 4))  # unscored runs at 0 and at 100
+    assert bo.infractions == {"collision_pedestrian": 1, "route_dev": 1}
+    lists = run_lists(cells)  # what the closed-loop analysis takes: cell id -> the suite's runs
+    assert list(lists) == ["closed-clean", "closed-blackout-s5"]
+    assert [(r.route, r.seed, r.ds, r.end) for r in lists["closed-blackout-s5"]][:2] == [
+        ("RouteScenario_0_rep0", 0, 50.0, END_COMPLETE), ("RouteScenario_1_rep0", 0, None, END_UNSCORED)]
+    assert lists["closed-blackout-s5"][1].error == "Failed - Agent crashed"
+
+
+def test_the_cli_writes_one_csv_row_per_run_and_the_summary(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    clean = write(tmp_path / "clean.json", results_2x(CLEAN))
+    named = write(tmp_path / "run7.json", results_2x(BLACKOUT, drivedegrade={"cell": "closed-blackout-s5", "seed": 3}))
+    assert main(["closed-loop", "import", clean, named, "--out", str(tmp_path / "out")]) == 0
+    assert "closed-blackout-s5: DS 40.0 over 2 scored of 3 runs, bounds [26.7, 60.0]" in capsys.readouterr().out
+    rows = list(csv.DictReader((tmp_path / "out" / CSV_NAME).open()))
+    assert len(rows) == 6 and {r["cell"] for r in rows} == {"closed-clean", "closed-blackout-s5"}
+    crashed = next(r for r in rows if r["status"] == "Failed - Agent crashed")
+    assert (crashed["ds"], crashed["end"], crashed["seed"], crashed["reported_ds"]) == ("", "unscored", "3", "12.0")
+    summary = json.loads((tmp_path / "out" / SUMMARY_NAME).read_text())["cells"]
+    assert summary["closed-clean"]["ds_bounds"] == pytest.approx([200 / 3, 200 / 3])
+    assert summary["closed-blackout-s5"]["unscored"] == 1 and summary["closed-blackout-s5"]["seeds"] == [3]
+
+
+def test_a_1_0_file_and_a_cells_second_file_as_its_next_seed(tmp_path: Path) -> None:
+    old = {"route_id": "RouteScenario_5", "index": 0, "status": "Completed",
+           "infractions": {"collisions_layout": ["hit a pole"], "collisions_pedestrian": [], "collisions_vehicle": [],
+                           "outside_route_lanes": ["30% off"], "red_light": [], "route_dev": [], "route_timeout": [],
+                           "stop_infraction": [], "vehicle_blocked": []},
+           "scores": {"score_composed": 45.5, "score_penalty": 0.455, "score_route": 100.0},
+           "meta": {"duration_game": 80.0, "duration_system": 300.0, "route_length": 600.0}}
+    data = {"_checkpoint": {"global_record": {}, "progress": [1, 1], "records": [old]}, "entry_status": "Finished",
+            "eligible": True, "sensors": [], "values": [], "labels": []}
+    first, second = write(tmp_path / "s0.json", data), write(tmp_path / "s1.json", data)
+    (cell,) = gather([f"motion_blur-s3={first}", f"motion_blur-s3={second}"])
+    assert [(r.route, r.seed, r.ds) for r in cell.runs] == [("RouteScenario_5", 0, 45.5), ("RouteScenario_5", 1, 45.5)]
+    assert cell.runs[0].infractions == (("collision_static", 1), ("off_road", 1))
+
+
+def test_bad_input_is_one_error_naming_the_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    missing = tmp_path / "nope.json"
+    with pytest.raises(DataError, match=f"{missing}: no such results file"):
+        gather([f"clean={missing}"])
+    broken = write(tmp_path / "clean.json", "x")
+    Path(broken).write_text("{\"_checkpoint\": ")
+    assert main(["closed-loop", "import", broken, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("drivedegrade: error: ") and f"{broken}: not JSON" in err and "Traceback" not in err
+    with pytest.raises(DataError, match="not a leaderboard results file"):
+        gather([write(tmp_path / "clean.json", {"records": []})])
+    bad = results_2x([record_2x(0, 0, "Completed", 140.0, 100.0, 1.0)])
+    with pytest.raises(DataError, match=r"records\[0\]: scores.score_composed: expected a number in \[0, 100\]"):
+        gather([write(tmp_path / "clean.json", bad)])
+    with pytest.raises(DataError, match="'results' is not a cell name"):
+        gather([write(tmp_path / "results.json", results_2x(CLEAN))])
+    dup = write(tmp_path / "d.json", results_2x(CLEAN, drivedegrade={"cell": "clean", "seed": 0}))
+    with pytest.raises(DataError, match="RouteScenario_0_rep0 of cell clean under seed 0 is also in"):
+        gather([dup, dup])
