@@ -217,7 +217,7 @@ def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     safe = df.copy()
-    for col in safe.columns[safe.dtypes == object]:  # text cells only: numbers are written as numbers
+    for col in safe.select_dtypes(exclude="number").columns:  # text cells only: numbers stay numbers
         safe[col] = safe[col].map(neutralise)
     csv_path = atomic_write_text(folder / "compare.csv", safe.to_csv(index=False, float_format="%.6g"))
     html_path = atomic_write_text(folder / "compare.html", _html(df, warnings))
