@@ -73,8 +73,10 @@ def _verify(args: argparse.Namespace) -> int:
     if signer is not None:
         level = f"signature verifies: issued by the holder of the key with fingerprint {signer}"
     elif isinstance(cert.get("signature"), dict):
-        level = (f"signed by the key with fingerprint {cert['signature'].get('public_key_fingerprint')}, signature "
-                 "NOT checked: pass --public-key to check who issued it; integrity only")
+        level = (f"the signature was NOT checked: the certificate says it was signed by the key with fingerprint "
+                 f"{cert['signature'].get('public_key_fingerprint')}, but anyone can write that; check who issued "
+                 f"it with: drivedegrade verify {args.file} --public-key NAME.pub (the issuer's public key); "
+                 "integrity only")
     else:
         level = f"{UNSIGNED_TEXT}: the digest catches an accidental edit, not a deliberate one"
     missing = incompleteness(cert)

@@ -57,7 +57,7 @@ def find_manifest(folder: Path) -> Path:
 def load_shard(folder: Path) -> ShardResult:
     path = find_manifest(Path(folder))
     try:
-        manifest = read_strict_json(path, constants=True)
+        manifest = cast("dict[str, Any]", read_strict_json(path, constants=True))  # its shape is checked below
     except CertificateError as exc:  # names the file, and the overflowing number or duplicate key and where
         raise DriveDegradeError(f"unreadable shard manifest: {exc}") from None
     if not isinstance(manifest, dict) or manifest.get("schema") != SHARD_SCHEMA:
@@ -156,7 +156,22 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
-                       missing_shards=tuple(missing_shards))
+                       missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells))
+
+
+def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
+    """What to do about the cells some shard lacks, naming which shard lacks which (a merge's missing cells are
+    finished by rerunning that shard, not the merge); empty when none lacks any."""
+    parts = []
+    for s in shards:
+        lacking = [c for c in cells if c not in s.payloads]
+        if lacking:
+            shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
+            parts.append(f"shard {s.manifest['index']}/{s.manifest['count']} ({s.folder}) lacks {shown}")
+    if not parts:
+        return ""
+    return ("; ".join(parts) + ": rerun each such shard with its own command (--drivedegrade-shard I/N; its "
+            "finished cells are reused), then run this merge again")
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,
