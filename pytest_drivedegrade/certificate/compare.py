@@ -103,7 +103,7 @@ def _settings_differences(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> lis
     out = []
     first_path, first = read[0]
     for path, other in read[1:]:
-        out += [f"different {d.setting.label}s ({d.setting.flag}): {d.theirs!r} in {first_path}; {d.mine!r} in "
+        out += [f"different {d.setting.label} ({d.setting.flag}): {d.theirs!r} in {first_path}; {d.mine!r} in "
                 f"{path}" for d in other.baseline_differences(first)]
     return out
 
@@ -119,7 +119,7 @@ def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool
         for path, cert in certs:
             seen.setdefault(repr(_value(cert, section, key)), []).append(path)
         if len(seen) > 1:
-            problems.append(f"different {what}s: " + "; ".join(f"{v} in {', '.join(p)}" for v, p in seen.items()))
+            problems.append(f"different {what}: " + "; ".join(f"{v} in {', '.join(p)}" for v, p in seen.items()))
     problems += _settings_differences(certs)
     if problems and not force:
         raise CompareError(" and ".join(problems) + "; retentions are comparable only under the same ladder, data "
