@@ -273,7 +273,8 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     if foreign:
         lines.append(f"baseline: FAILED: {foreign}")
         failed = True
-    key, axes_key = METRIC_FIELDS[metric := gate_metric(cert)]
+    metric = gate_metric(cert)  # the gate compares the verdict's metric (M13)
+    key, axes_key = METRIC_FIELDS[metric]
     gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get(key) is not None],
                         cert.get(axes_key) or {}, metric)
     if gaps and partial:
