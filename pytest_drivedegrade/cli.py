@@ -74,8 +74,10 @@ def _verify(args: argparse.Namespace) -> int:
     if signer is not None:
         level = f"signature verifies: issued by the holder of the key with fingerprint {signer}"
     elif isinstance(cert.get("signature"), dict):
-        level = (f"signed by the key with fingerprint {cert['signature'].get('public_key_fingerprint')}, signature "
-                 "NOT checked: pass --public-key to check who issued it; integrity only")
+        level = (f"the signature was NOT checked: the certificate says it was signed by the key with fingerprint "
+                 f"{cert['signature'].get('public_key_fingerprint')}, but anyone can write that; check who issued "
+                 f"it with: drivedegrade verify {args.file} --public-key NAME.pub (the issuer's public key); "
+                 "integrity only")
     else:
         level = f"{UNSIGNED_TEXT}: the digest catches an accidental edit, not a deliberate one"
     missing = incompleteness(cert)
@@ -142,8 +144,8 @@ def _merge(args: argparse.Namespace) -> int:
 
 
 def _compare(args: argparse.Namespace) -> int:
-    """Compare certificates: compare.csv and compare.html in --out; exit 2 for an unreadable, edited or
-    incomparable certificate."""
+    """Compare certificates: compare.csv and compare.html in --out; exit 2 for an unreadable, edited,
+    inconsistent (verify's arithmetic) or incomparable certificate; an incomplete one is compared and marked."""
     from .certificate.compare import write_compare
     from .certificate.seal import CertificateMismatch
 
@@ -154,6 +156,7 @@ def _compare(args: argparse.Namespace) -> int:
         return 2
     for row in df.itertuples():
         flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
+        flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"
         print(f"{row.planner}: clean L2 {row.clean_l2:.3f} (rank {row.rank_clean_l2}), mean retention rank "
               f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}{flag}")
     print(f"wrote {csv_path} and {html_path}", file=sys.stderr)
@@ -280,7 +283,8 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("compare", help="compare certificates: compare.csv and compare.html, ranks and reversals")
     p.add_argument("certificates", nargs="+", metavar="CERT", help="certificate.json files (verified first)")
     p.add_argument("--out", required=True, help="output folder for compare.csv and compare.html")
-    p.add_argument("--force", action="store_true", help="compare certificates of different spec versions or data sets")
+    p.add_argument("--force", action="store_true", help="compare certificates of different spec versions, data sets "
+                                                        "or settings (never one whose arithmetic verify rejects)")
     p.set_defaults(func=_compare)
 
 

@@ -4,7 +4,10 @@ One row per certificate: planner, clean L2, clean PDMS, the axes (L2 and PDMS, t
 the verdicts and the floor; ranks by clean L2 (lower is better) and by mean retention (higher is better), and a
 rank reversal flagged where a planner is better than another on clean L2 but worse on mean retention (or the
 other way round): a planner that plans better on clean images yet relies on them more. Every certificate is
-verified first; certificates of different spec versions or data sets are refused unless ``force``.
+verified first, digest and arithmetic (`consistency`): one verify rejects is refused, an incomplete one is
+compared and marked (``status``); certificates of different spec versions, data sets or settings that change
+the numbers (`check_comparable` names each) are refused unless ``force``. The CSV's text cells are neutralised
+against spreadsheet formulas.
 
 Written with pandas (imported here only): ``compare.csv`` and a self-contained ``compare.html``.
 """
@@ -69,22 +72,80 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
     return row
 
 
+#: What else makes two certificates' retentions the same quantity, besides the settings table's SAME rows
+#: (`RunSettings.baseline_differences`): (what, section, key); ``tool`` is read in ``tool.versions``.
+COMPARABLE: tuple[tuple[str, str, str], ...] = (
+    ("spec version", "", "spec_version"), ("data set", "dataset", "fingerprint"),
+    ("scored frames", "dataset", "frames"), ("metric convention", "settings", "convention"),
+    ("retention kind", "settings", "kind"), ("retention metric", "settings", "metric"),
+    ("threshold levels", "settings", "threshold_levels"), ("OpenCV version", "versions", "opencv"),
+    ("numpy version", "versions", "numpy"))
+
+
+def _value(cert: Mapping[str, Any], section: str, key: str) -> object:
+    if not section:
+        return cert.get(key)
+    part = _section(_section(cert, "tool"), "versions") if section == "versions" else _section(cert, section)
+    return part.get(key)
+
+
+def _settings_differences(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> list[str]:
+    """The settings table's rows that make retentions another quantity (the gate's), each certificate against
+    the first, as 'label (flag): X in A; Y in B'."""
+    from ..settings import RunSettings
+
+    read = []
+    for path, cert in certs:
+        try:
+            read.append((path, RunSettings.from_certificate(cert)))
+        except DriveDegradeError as exc:
+            return [f"unreadable settings in {path} ({exc})"]
+    out = []
+    first_path, first = read[0]
+    for path, other in read[1:]:
+        out += [f"different {d.setting.label} ({d.setting.flag}): {d.theirs!r} in {first_path}; {d.mine!r} in "
+                f"{path}" for d in other.baseline_differences(first)]
+    return out
+
+
 def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool = False) -> list[str]:
-    """The mismatches (spec version, data set) between the certificates, as lines; raise `CompareError` unless
-    `force` (then they are returned as warnings)."""
+    """The differences between the certificates in what makes their retentions comparable (spec version, data
+    set, scored frames, metric, seeds and the other settings the gate compares, the OpenCV and numpy versions
+    that render the corruptions), as lines naming each value and file; raise `CompareError` unless `force` (then
+    they are returned as warnings)."""
     problems = []
-    for what in ("spec version", "data set"):
-        seen: dict[object, list[str]] = {}
+    for what, section, key in COMPARABLE:
+        seen: dict[str, list[str]] = {}
         for path, cert in certs:
-            value = cert.get("spec_version") if what == "spec version" else (cert.get("dataset") or {}).get(
-                "fingerprint")
-            seen.setdefault(value, []).append(path)
+            seen.setdefault(repr(_value(cert, section, key)), []).append(path)
         if len(seen) > 1:
-            problems.append(f"different {what}s: " + "; ".join(f"{v!r} in {', '.join(p)}" for v, p in seen.items()))
+            problems.append(f"different {what}: " + "; ".join(f"{v} in {', '.join(p)}" for v, p in seen.items()))
+    problems += _settings_differences(certs)
     if problems and not force:
-        raise CompareError(" and ".join(problems) + "; retentions are comparable only under the same ladder and "
-                           "data (pass --force to compare anyway)")
+        raise CompareError(" and ".join(problems) + "; retentions are comparable only under the same ladder, data "
+                           "and settings (pass --force to compare anyway)")
     return problems
+
+
+def check_sound(path: str, cert: Mapping[str, Any]) -> str:
+    """A certificate's status for the comparison: ``complete``, or ``incomplete: <what is missing>`` (compared,
+    and marked); `CompareError` when verify's arithmetic does not add up (a certificate verify rejects is never
+    compared, not even with --force)."""
+    from .consistency import check_consistency, incompleteness
+
+    problems = check_consistency(cert)
+    if problems:
+        shown = "; ".join(problems[:3]) + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+        raise CompareError(f"{path}: the digest verifies but the arithmetic does not add up ({shown}); `drivedegrade "
+                           f"verify {path}` names every field: refused")
+    missing = incompleteness(cert)
+    return "complete" if missing is None else f"incomplete: {missing}"
+
+
+def neutralise(value: object) -> object:
+    """A text cell that a spreadsheet would run as a formula (it starts with = + - @, a tab or a carriage
+    return) with a leading apostrophe, as OWASP's CSV-injection advice says; anything else unchanged."""
+    return "'" + value if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r") else value
 
 
 def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFrame:
@@ -121,6 +182,8 @@ def _html(df: pd.DataFrame, warnings: Sequence[str]) -> str:
     notes = "".join(f"<li>{html.escape(str(r.planner))}: better on one ranking, worse on the other, against "
                     f"{html.escape(str(r.reversed_with))}</li>" for r in flagged.itertuples())
     warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
+    warn += "".join(f"<p class='warn'>INCOMPLETE, compared as it is: {html.escape(str(r.certificate))}: "
+                    f"{html.escape(str(r.status))}</p>" for r in df.itertuples() if r.status != "complete")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>DriveDegrade comparison</title>
 <style>
@@ -147,10 +210,15 @@ def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     if not paths:
         raise CompareError("no certificate given")
     certs = [(os.fspath(p), verify(p)) for p in paths]
+    status = [check_sound(path, cert) for path, cert in certs]
     warnings = check_comparable(certs, force)
     df = compare_frame(certs)
+    df.insert(1, "status", status)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    csv_path = atomic_write_text(folder / "compare.csv", df.to_csv(index=False, float_format="%.6g"))
+    safe = df.copy()
+    for col in safe.select_dtypes(exclude="number").columns:  # text cells only: numbers stay numbers
+        safe[col] = safe[col].map(neutralise)
+    csv_path = atomic_write_text(folder / "compare.csv", safe.to_csv(index=False, float_format="%.6g"))
     html_path = atomic_write_text(folder / "compare.html", _html(df, warnings))
     return csv_path, html_path, df

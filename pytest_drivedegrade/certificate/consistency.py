@@ -24,6 +24,7 @@ from typing import Any
 
 from ..cells import cell_id, is_camera_ladder
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
+from ..corruptions.ladder import FAMILIES
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds, Threshold
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
 from ..scoring.verdict import FamilyGroups, compute_axes, ego_label, verdict
@@ -140,6 +141,67 @@ def _failed(cells: Sequence[Cell]) -> list[str]:
     return [str(c.get("cell")) for c in cells
             if any(isinstance(n := c.get(k), int) and n > 0 for k in ("conformance_errors", "data_errors"))]
 
+def _cell_tolerance(clean: float, cell: float) -> float:
+    """How far a retention recomputed from two stored L2 figures may be off the stored one: each stored figure
+    is off by up to HALF_UNIT, propagated through clean / cell, plus the retention's own rounding."""
+    return HALF_UNIT * (1.0 / abs(cell) + abs(clean) / cell ** 2) + TOLERANCE
+
+
+def _recomputable(c: Cell, clean: Cell, seeds: int) -> bool:
+    """A cell whose retention is exactly clean's L2 over its own: every frame planned in both (no failed frame,
+    as many frames as clean) and one corruption seed (with several, retention is the mean of per-seed ratios)."""
+    fam = c.get("family")
+    seeded = seeds > 1 and isinstance(fam, str) and fam in FAMILIES and FAMILIES[fam].random
+    return not seeded and not _failed([c, clean]) and c.get("frames") == clean.get("frames")
+
+
+def check_cell_retentions(cert: Mapping[str, object], cells: Sequence[Cell]) -> list[str]:
+    """Each cell's ``retention`` against its own figures: clean's ``l2_avg`` over the cell's (M(clean) / M(cell),
+    an error metric; the other way round for a reward), wherever every frame was planned in both and one seed ran.
+    The thresholds and axes are recomputed from the stored retentions; this ties those retentions to the L2."""
+    settings = _section(cert, "settings")
+    seeds = settings.get("seeds", 1)
+    kind = settings.get("kind", "error")
+    clean = next((c for c in cells if c.get("cell") == "clean"), None)
+    base = None if clean is None else _number(clean.get("l2_avg"))
+    if clean is None or base is None or base == 0 or kind not in ("error", "reward"):
+        return []
+    problems: list[str] = []
+    for c in cells:
+        own = _number(c.get("l2_avg"))
+        if own is None or own == 0 or not _recomputable(c, clean, seeds if isinstance(seeds, int) else 1):
+            continue
+        got = base / own if kind == "error" else own / base
+        tol = _cell_tolerance(base, own) if kind == "error" else _cell_tolerance(own, base)
+        recorded = _number(c.get("retention"))
+        if recorded is None or abs(recorded - got) > tol + 1e-12:
+            problems.append(f"cells.{c.get('cell')}.retention: certificate says {_fmt(c.get('retention'))}, its l2_avg "
+                            f"{own:.6f} against clean's {base:.6f} gives {got:.6f}")
+    return problems
+
+
+def check_null_control(cert: Mapping[str, object], cells: Sequence[Cell]) -> list[str]:
+    """The recorded null control against the clean and null cells' ``plans_digest``: equal digests mean
+    bit-identical plans, so the control cannot have failed or changed a frame; different digests with every
+    frame planned in both mean different plans, so it cannot have passed."""
+    nc = _section(cert, "null_control")
+    by_cell = {c.get("cell"): c for c in cells}
+    clean, null = by_cell.get("clean"), by_cell.get("null")
+    if clean is None or null is None:
+        return []
+    a, b = clean.get("plans_digest"), null.get("plans_digest")
+    if not isinstance(a, str) or not isinstance(b, str):
+        return []
+    passed, changed = nc.get("passed"), nc.get("frames_changed", 0)
+    if a == b and (passed is False or (isinstance(changed, int) and changed > 0)):
+        return [f"null_control.passed: certificate says {passed!r} with {changed!r} frame(s) changed, but the "
+                "null cell's plans_digest equals clean's: its plans are bit-identical, so the control passed"]
+    complete = not _failed([clean, null]) and clean.get("frames") == null.get("frames")
+    if a != b and complete and passed is not False:
+        return [f"null_control.passed: certificate says {passed!r}, but the null cell's plans_digest differs from "
+                "clean's with every frame planned in both: its plans differ, so the control failed"]
+    return []
+
 
 def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> list[str]:
     """The label from the certificate's (checked) axes and its flat line, or ``undetermined`` when a cell has
@@ -201,7 +263,7 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
         groups = FamilyGroups.from_registry()
     cells = [c for c in cert.get("cells", []) if isinstance(c, Mapping)] if isinstance(cert.get("cells"), list) \
         else []
-    problems = check_thresholds(cert, cells)
+    problems = check_cell_retentions(cert, cells) + check_null_control(cert, cells) + check_thresholds(cert, cells)
     if isinstance(cert.get("axes"), Mapping):
         problems += check_axes(cert["axes"], cells, "retention", "axes", groups)
     if isinstance(cert.get("axes_pdms"), Mapping) and any("pdms_retention" in c for c in cells):

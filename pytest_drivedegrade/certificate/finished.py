@@ -57,5 +57,6 @@ class FinishedRun:
     front: tuple[str, np.ndarray] | None
     missing_cells: tuple[str, ...] = ()
     missing_shards: tuple[int, ...] = ()
+    missing_advice: str = ""  #: what to do about the missing cells (a merge: which shard to rerun); "" the default
     resumed_cells: tuple[str, ...] | None = None
     notes: tuple[str, ...] = ()

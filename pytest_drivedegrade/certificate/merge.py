@@ -11,11 +11,10 @@ as the Ray pool joins its scene groups) and returns the `FinishedRun` an unshard
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -23,7 +22,7 @@ from ..cells import CellPayload, CellRecord, RecordDigestMismatch
 from ..errors import DriveDegradeError
 from ..settings import RunSettings
 from .finished import FinishedRun, FloorFigures
-from .seal import Provenance, run_provenance
+from .seal import CertificateError, Provenance, read_strict_json, run_provenance
 
 #: 2: the run's settings in one ``settings`` object (`RunSettings.to_builtins`) rather than spread over the manifest.
 SHARD_SCHEMA = "drivedegrade-shard/2"
@@ -58,9 +57,9 @@ def find_manifest(folder: Path) -> Path:
 def load_shard(folder: Path) -> ShardResult:
     path = find_manifest(Path(folder))
     try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DriveDegradeError(f"{path}: unreadable shard manifest ({exc})") from None
+        manifest = cast("dict[str, Any]", read_strict_json(path, constants=True))  # its shape is checked below
+    except CertificateError as exc:  # names the file, and the overflowing number or duplicate key and where
+        raise DriveDegradeError(f"unreadable shard manifest: {exc}") from None
     if not isinstance(manifest, dict) or manifest.get("schema") != SHARD_SCHEMA:
         older = isinstance(manifest, dict) and str(manifest.get("schema", "")).startswith("drivedegrade-shard/")
         raise DriveDegradeError(f"{path}: " + (f"a shard manifest of another version ({manifest['schema']}, this "
@@ -74,10 +73,14 @@ def load_shard(folder: Path) -> ShardResult:
     payloads: dict[str, CellPayload] = {}
     for cell in manifest["cells"]:
         file = path.parent / "cells" / f"{cell}.json"
+        if not file.is_file():
+            continue  # a cell this shard did not finish: reported as a missing cell of this shard
         try:
-            payload = CellPayload.from_builtins(json.loads(file.read_text()))
+            payload = CellPayload.from_builtins(cast("Mapping[str, Any]", read_strict_json(file, constants=True)))
         except RecordDigestMismatch as exc:  # edited, or without a digest: never merged, never silently skipped
             raise DriveDegradeError(f"{file}: {exc}; rerun that shard (its other cells are reused)") from None
+        except CertificateError as exc:  # an overflowing number, a duplicate key: named, never skipped
+            raise DriveDegradeError(f"{exc}; rerun that shard (its other cells are reused)") from None
         except (OSError, ValueError):
             continue  # a missing or broken cell file: reported as a missing cell of this shard
         if dict(payload.key) == manifest["key"] and payload.cell == cell:
@@ -153,7 +156,22 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
-                       missing_shards=tuple(missing_shards))
+                       missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells))
+
+
+def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
+    """What to do about the cells some shard lacks, naming which shard lacks which (a merge's missing cells are
+    finished by rerunning that shard, not the merge); empty when none lacks any."""
+    parts = []
+    for s in shards:
+        lacking = [c for c in cells if c not in s.payloads]
+        if lacking:
+            shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
+            parts.append(f"shard {s.manifest['index']}/{s.manifest['count']} ({s.folder}) lacks {shown}")
+    if not parts:
+        return ""
+    return ("; ".join(parts) + ": rerun each such shard with its own command (--drivedegrade-shard I/N; its "
+            "finished cells are reused), then run this merge again")
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,

@@ -202,10 +202,25 @@ _TOKENS = re.compile(r'"(?:[^"\\]|\\.)*"|[\[\]{}]')
 
 
 class _Constant:
-    """Stands in for a NaN / Infinity literal while parsing, so the check can name where it was."""
+    """Stands in for a NaN / Infinity literal, or a number literal no double can hold (1e999), while parsing,
+    so the check can name where it was."""
 
-    def __init__(self, literal: str) -> None:
-        self.literal = literal
+    def __init__(self, literal: str, what: str = "JSON has no such number") -> None:
+        self.literal, self.what = literal, what
+
+
+#: The longest integer literal read (Python refuses to convert past 4300 digits; no figure needs 100).
+MAX_INT_DIGITS = 1000
+
+
+def _float(literal: str) -> float | _Constant:
+    """A number literal as a double; one that overflows (1e999 reads as infinity) stands in as a `_Constant`."""
+    value = float(literal)
+    return value if math.isfinite(value) else _Constant(literal[:40], "it overflows a double")
+
+
+def _int(literal: str) -> int | _Constant:
+    return int(literal) if len(literal) <= MAX_INT_DIGITS else _Constant(literal[:40] + "...", "too long a number")
 
 
 class _Object(dict):
@@ -244,7 +259,7 @@ def _too_deep(text: str) -> str | None:
 def _strict_problem(obj: object, where: str = "") -> str | None:
     """The first NaN / Infinity literal or duplicate key in the parsed tree, as 'what at path', or None."""
     if isinstance(obj, _Constant):
-        return f"a {obj.literal} literal at {where or 'the top level'} (JSON has no such number)"
+        return f"a {obj.literal} literal at {where or 'the top level'} ({obj.what})"
     if isinstance(obj, dict):
         if isinstance(obj, _Object) and obj.duplicates:
             return f"duplicate key {obj.duplicates[0]!r} in {where or 'the top-level object'}"
@@ -261,15 +276,39 @@ def _strict_problem(obj: object, where: str = "") -> str | None:
 
 
 def parse_certificate_text(text: str, where: str) -> dict[str, Any]:
-    """Parse a certificate's text strictly: NaN / Infinity literals, duplicate keys (JSON's parser keeps the
-    last silently, so what is shown and what is hashed could differ) and nesting deeper than MAX_DEPTH are
-    refused with a ``CertificateError`` naming the file, the problem and where it is."""
+    """Parse a certificate's text strictly: NaN / Infinity literals, a number that overflows a double (1e999),
+    duplicate keys (JSON's parser keeps the last silently, so what is shown and what is hashed could differ) and
+    nesting deeper than MAX_DEPTH are refused with a ``CertificateError`` naming the file, the problem and where
+    it is."""
+    data = parse_strict_json(text, where)
+    if not isinstance(data, dict):
+        raise CertificateError(f"{where}: a certificate is a JSON object, found {type(data).__name__}")
+    return cast("dict[str, Any]", data)
+
+
+def read_strict_json(path: str | os.PathLike[str], *, constants: bool = False) -> object:
+    """A JSON file of the suite (a cell file, a shard manifest) read as strictly as a certificate
+    (`parse_strict_json`; with `constants`, NaN / Infinity literals are read, as a cell file holds them); a
+    ``CertificateError`` naming the file and the problem otherwise."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CertificateError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CertificateError(f"{path}: cannot read it ({exc})") from None
+    return parse_strict_json(text, os.fspath(path), constants=constants)
+
+
+def parse_strict_json(text: str, where: str, *, constants: bool = False) -> object:
+    """`parse_certificate_text` for any JSON value (plain dicts and lists); with `constants`, NaN / Infinity
+    literals are numbers (a number literal that overflows still is not: no writer of the suite writes one)."""
     deep = _too_deep(text)
     if deep is not None:
         raise CertificateError(f"{where}: malformed: nested deeper than {MAX_DEPTH} levels at {deep}; a "
                                "certificate is a few levels deep")
     try:
-        data = json.loads(text, object_pairs_hook=_pairs, parse_constant=_Constant)
+        data = json.loads(text, object_pairs_hook=_pairs, parse_constant=float if constants else _Constant,
+                          parse_float=_float, parse_int=_int)
     except json.JSONDecodeError as exc:
         raise CertificateError(f"{where}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})") \
             from None
@@ -279,8 +318,6 @@ def parse_certificate_text(text: str, where: str) -> dict[str, Any]:
     if problem is not None:
         raise CertificateError(f"{where}: malformed: {problem}; certificates are written as strict JSON, so "
                                "this file was not written by drivedegrade or was edited")
-    if not isinstance(data, dict):
-        raise CertificateError(f"{where}: a certificate is a JSON object, found {type(data).__name__}")
     return _plain(data)
 
 

@@ -28,7 +28,7 @@ from ..report.junit import plain
 from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
 from ..scoring.baseline import cell_regression
 from ..scoring.records import finite_mean, horizon_metrics
-from ..scoring.retention import record_retention
+from ..scoring.retention import paired_retention, record_retention
 from ..store import ResultStore
 
 
@@ -165,6 +165,15 @@ def prefetch(context: RunContext, planner: Any, family: str, severity: int, *, s
         planner.prefetch(context, family, severity, unread=unread, seed=seed)
 
 
+def gated_retention(clean: CellRecord, record: CellRecord, metric: str) -> float:
+    """The cell's retention on the verdict's metric, as its certificate row holds it: L2 (`record_retention`) or
+    PDMS (M(cell) / M(clean) over the frames scored in both, averaged over seed runs), which the gate compares."""
+    if metric != "pdms":
+        return record_retention(clean, record)
+    values = [paired_retention(clean.pdms, run.pdms, "reward") for run in record.runs()]
+    return values[0] if len(values) == 1 else finite_mean(values)
+
+
 def certify(context: RunContext, planner: Any, family: str, severity: int, *, store: ResultStore,
             baseline: Mapping[str, Any] | None, tolerance: float) -> tuple[CellPayload, list[str]]:
     """Run (or resume) one cell and check it; returns (payload for the controller, failure messages)."""
@@ -194,8 +203,8 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         if cell == "null" or rear_is_null:
             failures += _identity(context, planner, record, clean, unread if cell == "null" else rear)
         if baseline is not None:
-            retention = record_retention(clean, record)
-            reg = cell_regression(cell, retention, baseline, tolerance)
+            metric = context.settings.metric
+            reg = cell_regression(cell, gated_retention(clean, record, metric), baseline, tolerance, metric)
             if reg:
                 failures.append(f"retention regressed beyond --drivedegrade-tolerance {tolerance:g}: {reg.message()}")
     resumed = stored is not None

@@ -252,7 +252,14 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     planner's (unless `any_planner`), with a line saying what was not compared."""
     if baseline is None:
         return [], False
-    from ..scoring.baseline import BaselineError, compare_to_baseline, not_compared, planner_mismatch
+    from ..scoring.baseline import (
+        METRIC_FIELDS,
+        BaselineError,
+        compare_to_baseline,
+        gate_metric,
+        not_compared,
+        planner_mismatch,
+    )
 
     try:
         result = compare_to_baseline(cert, baseline, tolerance)
@@ -266,8 +273,10 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     if foreign:
         lines.append(f"baseline: FAILED: {foreign}")
         failed = True
-    gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get("retention") is not None],
-                        cert.get("axes") or {})
+    metric = gate_metric(cert)  # the gate compares the verdict's metric (M13)
+    key, axes_key = METRIC_FIELDS[metric]
+    gaps = not_compared(baseline, [c["cell"] for c in cert.get("cells", []) if c.get(key) is not None],
+                        cert.get(axes_key) or {}, metric)
     if gaps and partial:
         lines.append(f"baseline (--drivedegrade-baseline-partial): not compared: {'; '.join(gaps)}")
     elif gaps:

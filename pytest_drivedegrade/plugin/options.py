@@ -63,6 +63,10 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "certificate.json (default reports)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-baseline", "drivedegrade_baseline", "a stored certificate.json: fail cells and axes "
                "whose retention regressed", {"metavar": "FILE"}),
+    OptionSpec("--drivedegrade-baseline-public-key", "drivedegrade_baseline_public_key", "require the baseline "
+               "certificate to be signed by this Ed25519 public key (NAME.pub): an unsigned baseline, or one signed "
+               "by another key or edited after signing, fails the run (default: the digest is checked, not who "
+               "issued it)", {"metavar": "PUB"}),
     OptionSpec("--drivedegrade-baseline-partial", "drivedegrade_baseline_partial", "accept a baseline that does "
                "not cover this run (an incomplete run, cells or axes it lacks): gate on what both have and list "
                "what was not compared (default: such a baseline fails)", {"action": "store_true"}),
@@ -187,6 +191,7 @@ class RunOptions:
     sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
+    baseline_public_key: Path | None = None  #: --drivedegrade-baseline-public-key: the baseline must be signed by it
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
     resume: bool = True  #: not --drivedegrade-no-resume: reuse stored cells of the same run key (results unchanged)
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
@@ -315,7 +320,10 @@ def parse(config: pytest.Config) -> RunOptions:
         if not s.isdigit() or int(s) not in SEVERITIES:
             raise _fail("drivedegrade_severities", f"severity {s!r} is not one of 1, 2, 3, 4, 5")
         severities.append(int(s))
-    baseline = value(config, "drivedegrade_baseline")
+    baseline, public_key = value(config, "drivedegrade_baseline"), value(config, "drivedegrade_baseline_public_key")
+    if public_key and not baseline:
+        raise _fail("drivedegrade_baseline_public_key", "a public key to check the baseline with, but no "
+                    "--drivedegrade-baseline: pass the baseline certificate too, or drop the key")
     return RunOptions(
         planner_path=planner_path,
         settings=_settings(config, here),
@@ -328,6 +336,7 @@ def parse(config: pytest.Config) -> RunOptions:
         sign_key_pem=signing_key_pem(config, here),
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
+        baseline_public_key=(here / str(public_key)).resolve() if public_key else None,
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
         resume=not _flag(config, "drivedegrade_no_resume"),
         ray=_ray(config),

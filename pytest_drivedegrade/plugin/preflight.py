@@ -30,19 +30,32 @@ OUTPUT_FILES = ("certificate.json", "cells.csv", "report.html", "shard.json")
 # --- the baseline ------------------------------------------------------------------------------------------------
 
 def load_baseline(options: RunOptions) -> dict[str, Any] | None:
-    """--drivedegrade-baseline, verified (None without one); a missing, edited or unreadable file, or this run's
-    own output, is a usage error."""
+    """--drivedegrade-baseline, verified as `drivedegrade verify` verifies (None without one): a missing, edited
+    or unreadable file, one whose arithmetic does not add up, one not signed by --drivedegrade-baseline-public-key
+    (when given), or this run's own output, is a usage error naming why."""
     if options.baseline_path is None:
         return None
+    from ..certificate.consistency import check_consistency
     from ..certificate.seal import CertificateError, verify
+    from ..certificate.signing import load_public_key, verify_signature
 
+    where = f"--drivedegrade-baseline: {options.baseline_path}"
     if not options.baseline_path.is_file():
-        raise pytest.UsageError(f"--drivedegrade-baseline: {options.baseline_path} does not exist")
+        raise pytest.UsageError(f"{where} does not exist")
     refuse_own_output(options)
     try:
-        return verify(options.baseline_path)
-    except CertificateError as exc:
-        raise pytest.UsageError(f"--drivedegrade-baseline: {exc}") from None
+        cert = verify(options.baseline_path)
+        if options.baseline_public_key is not None:
+            verify_signature(cert, load_public_key(options.baseline_public_key), where=str(options.baseline_path))
+    except CertificateError as exc:  # SignatureFailure included: unsigned, another key, edited after signing
+        flag = " (--drivedegrade-baseline-public-key)" if options.baseline_public_key is not None else ""
+        raise pytest.UsageError(f"--drivedegrade-baseline{flag}: {exc}") from None
+    problems = check_consistency(cert)
+    if problems:
+        raise pytest.UsageError(f"{where}: refused: the digest verifies but the arithmetic does not add up "
+                                f"({'; '.join(problems[:3])}{'; ...' if len(problems) > 3 else ''}): `drivedegrade "
+                                "verify` rejects it, so it cannot be trusted as a baseline")
+    return cert
 
 
 def refuse_own_output(options: RunOptions) -> None:
@@ -76,7 +89,7 @@ def check_baseline(baseline: Mapping[str, object] | None, options: RunOptions, c
                                   frames_scored=context.frames_total, settings=options.settings)
     except BaselineError as exc:
         raise pytest.UsageError(f"{where}: {exc}") from None
-    gaps = not_compared(baseline, [cell_id(f, s) for f, s in cells])
+    gaps = not_compared(baseline, [cell_id(f, s) for f, s in cells], metric=options.settings.metric)
     if gaps and not options.baseline_partial:
         raise pytest.UsageError(f"{where}: the baseline does not cover this run, so part of it would not be "
                                 f"compared: {'; '.join(gaps)}; certify a complete baseline with this run's "

@@ -102,7 +102,7 @@ def publish(run: FinishedRun, report_dir: Path, *, signing_key: Ed25519PrivateKe
     cert, written = write_outputs(report_dir, run.provenance, run.records, analysis, run.missing_cells,
                                   gt=run.gt, montage=front_montage(run), completeness=completeness, cost=cost,
                                   signing_key=signing_key)
-    lines = [*summary_lines(analysis, run.missing_cells), *run.notes]
+    lines = [*summary_lines(analysis, run.missing_cells, run.missing_advice), *run.notes]
     if run.missing_shards:
         lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, run.missing_shards))} missing; the certificate "
                      "says completeness: false")

@@ -72,8 +72,9 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
     return lines
 
 
-def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
-    """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells."""
+def summary_lines(analysis: RunAnalysis, missing: Sequence[str], advice: str = "") -> list[str]:
+    """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells (with
+    `advice`, what to do about them; by default rerunning the same command)."""
     verdict = analysis.verdict
     lines = [f"verdict: {verdict.label} - {verdict.text}", f"axes: {_axes_line(analysis.axes)}"]
     lines += pdms_ego_lines(analysis)
@@ -92,6 +93,6 @@ def summary_lines(analysis: RunAnalysis, missing: Sequence[str]) -> list[str]:
     lines += retention_table(analysis)
     lines += interval_lines(analysis)
     if missing:
-        lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; rerun the same command to "
-                     "compute only these (finished cells are reused)")
+        lines.append(f"missing cells ({len(missing)}): {', '.join(missing)}; " + (advice or "rerun the same "
+                     "command to compute only these (finished cells are reused)"))
     return lines

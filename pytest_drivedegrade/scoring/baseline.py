@@ -20,18 +20,43 @@ class BaselineError(DriveDegradeError):
 
 @dataclass(frozen=True)
 class Regression:
-    """One retention that fell more than the tolerance below its baseline."""
+    """One retention (on the verdict's metric) that fell more than the tolerance below its baseline."""
 
     name: str  # a cell id, or "axis:quality"
     baseline: float
     current: float
+    tolerance: float = 0.0
+    metric: str = "l2"
 
     @property
     def drop(self) -> float:
         return self.baseline - self.current
 
     def message(self) -> str:
-        return f"{self.name}: retention {self.current:.3f} vs baseline {self.baseline:.3f} (drop {self.drop:.3f})"
+        """``name: retention X vs baseline Y (drop D)`` with as many decimals (3 at least) as it takes for the
+        printed drop to exceed the printed tolerance: 1.0000 vs 0.9996 reads ``drop 0.0004``, never 0.000."""
+        d = shown_digits(self.drop, self.tolerance)
+        what = "PDMS retention" if self.metric == "pdms" else "retention"
+        return f"{self.name}: {what} {self.current:.{d}f} vs baseline {self.baseline:.{d}f} (drop {self.drop:.{d}f})"
+
+
+def shown_digits(drop: float, tolerance: float, least: int = 3, most: int = 12) -> int:
+    """The fewest decimals, from `least`, at which `drop` (above `tolerance`) prints above the tolerance."""
+    for d in range(least, most + 1):
+        if round(drop, d) > round(tolerance, d):
+            return d
+    return most
+
+
+#: Each verdict metric's (per-cell retention field, axes section) in a certificate.
+METRIC_FIELDS = {"l2": ("retention", "axes"), "pdms": ("pdms_retention", "axes_pdms")}
+
+
+def gate_metric(cert: Mapping[str, object]) -> str:
+    """The metric a certificate's verdict is put on, which its gate compares (``verdict.metric``, l2 before it
+    was recorded)."""
+    metric = _section(cert, "verdict").get("metric", "l2")
+    return metric if isinstance(metric, str) and metric in METRIC_FIELDS else "l2"
 
 
 #: The metric convention of certificates written before it was recorded, and the tool's (not an option).
@@ -107,15 +132,16 @@ def planner_mismatch(baseline: Mapping[str, Any], name: str | None) -> str | Non
             "--drivedegrade-baseline-any-planner to gate one planner against another's certificate")
 
 
-def _retentions(cert: Mapping[str, object]) -> dict[object, object]:
-    """A certificate's retention per cell id (whatever it holds; the gate checks the values it uses)."""
-    cells = cert.get("cells")
-    return {c.get("cell"): c.get("retention") for c in cells if isinstance(c, Mapping)} \
+def _retentions(cert: Mapping[str, object], metric: str = "l2") -> dict[object, object]:
+    """A certificate's retention on `metric` per cell id (whatever it holds; the gate checks the values it
+    uses)."""
+    cells, key = cert.get("cells"), METRIC_FIELDS[metric][0]
+    return {c.get("cell"): c.get(key) for c in cells if isinstance(c, Mapping)} \
         if isinstance(cells, list) else {}
 
 
-def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mapping[str, Any] | None = None) \
-        -> list[str]:
+def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mapping[str, Any] | None = None,
+                 metric: str = "l2") -> list[str]:
     """What the gate cannot compare, one phrase per kind: the baseline is incomplete (``completeness.complete``
     false), it has no retention for some of `cells`, or no value for a gated axis that this run has; and, once
     the run is done (`axes`: this run's, None at start-up), what the baseline has and this run did not compute
@@ -128,12 +154,12 @@ def not_compared(baseline: Mapping[str, Any], cells: Iterable[str], axes: Mappin
         out.append(f"the baseline run is incomplete (completeness.complete is false; {len(missing)} cell(s) missing"
                    + (f", shard(s) missing: {', '.join(map(str, comp['missing_shards']))}"
                       if comp.get("missing_shards") else "") + ")")
-    theirs = _retentions(baseline)
+    theirs = _retentions(baseline, metric)
     lacking = [c for c in cells if theirs.get(c) is None]
     if lacking:
         shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
         out.append(f"{len(lacking)} cell(s) of this run have no retention in the baseline: {shown}")
-    mine, theirs_axes = Axes.from_builtins(axes), Axes.from_builtins(baseline.get("axes"))
+    mine, theirs_axes = Axes.from_builtins(axes), Axes.from_builtins(baseline.get(METRIC_FIELDS[metric][1]))
     null_axes = [a for a in GATED_AXES if mine.value(a) is not None and theirs_axes.value(a) is None]
     if null_axes:
         out.append(f"axes {', '.join(null_axes)} are null in the baseline")
@@ -153,17 +179,22 @@ def _not_computed(theirs: Mapping[object, object], cells: list[str], base_axes: 
     return out
 
 
-def cell_regression(cell: str, current: float, baseline: Mapping[str, Any], tolerance: float) -> Regression | None:
-    """The regression of one cell against the baseline certificate, or None (also when the cell is new)."""
-    base = {c.get("cell"): c.get("retention") for c in baseline.get("cells", [])}.get(cell)
-    if base is None or current is None or not math.isfinite(current):
+def cell_regression(cell: str, current: float, baseline: Mapping[str, Any], tolerance: float,
+                    metric: str = "l2") -> Regression | None:
+    """The regression of one cell's retention on `metric` against the baseline certificate, or None (also when
+    the cell is new)."""
+    base = _retentions(baseline, metric).get(cell)
+    if not isinstance(base, (int, float)) or current is None or not math.isfinite(current):
         return None
-    return Regression(cell, float(base), float(current)) if float(base) - current > tolerance else None
+    return Regression(cell, float(base), float(current), tolerance, metric) \
+        if float(base) - current > tolerance else None
 
 
 def compare_to_baseline(current: Mapping[str, Any], baseline: Mapping[str, Any],
                         tolerance: float = DEFAULT_TOLERANCE) -> dict[str, list[Regression]]:
-    """Cells and axes (quality, removal, mean) whose retention fell more than `tolerance` below the baseline.
+    """Cells and axes (quality, removal, mean) whose retention fell more than `tolerance` below the baseline, on
+    the metric of `current`'s verdict (`gate_metric`: L2 retention and ``axes``, or PDMS retention and
+    ``axes_pdms``; the baseline's metric is the same, or `check_baseline_compatible` refuses it).
 
     `current` and `baseline` are certificate-shaped mappings. Returns {"cells": [...], "axes": [...]}; an axis
     regression fails the session. Raises ``BaselineError`` on an incompatible baseline.
@@ -174,12 +205,14 @@ def compare_to_baseline(current: Mapping[str, Any], baseline: Mapping[str, Any],
                               settings=RunSettings.from_certificate(current),
                               frames_scored=frames if isinstance(frames, int) else None,
                               convention=str(_section(current, "settings").get("convention", CONVENTION)))
+    metric = gate_metric(current)
+    key, axes_key = METRIC_FIELDS[metric]
     cells = [reg for c in current.get("cells", [])
-             if (reg := cell_regression(c["cell"], c.get("retention"), baseline, tolerance))]
+             if (reg := cell_regression(c["cell"], c.get(key), baseline, tolerance, metric))]
     axes = []
-    ours, base_axes = Axes.from_builtins(current.get("axes")), Axes.from_builtins(baseline.get("axes"))
+    ours, base_axes = Axes.from_builtins(current.get(axes_key)), Axes.from_builtins(baseline.get(axes_key))
     for name in GATED_AXES:
         mine, theirs = ours.value(name), base_axes.value(name)
         if mine is not None and theirs is not None and theirs - mine > tolerance:
-            axes.append(Regression(f"axis:{name}", theirs, mine))
+            axes.append(Regression(f"axis:{name}", theirs, mine, tolerance, metric))
     return {"cells": cells, "axes": axes}
