@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pytest_drivedegrade.data.maps import LaneMap, arcline_poses, parse_lane_map
+from pytest_drivedegrade.data.vectormap import LENGTH, WIDTH, clip_polyline, extract
 from pytest_drivedegrade.data.world import export
 from pytest_drivedegrade.data.world.lanemap import ARC_M
 from pytest_drivedegrade.data.world.roads import LANE_WIDTH
@@ -133,3 +134,38 @@ def test_the_reader_on_a_real_schema_map():
     with pytest.raises(DataError, match="malformed"):
         parse_lane_map(data, "boston-seaport", "x.json")
 
+
+
+def test_clip_polyline_known_answers():
+    pieces = clip_polyline(np.array([[-10.0, 0.0], [10.0, 0.0]]), 5.0, 1.0)
+    assert len(pieces) == 1 and pieces[0].tolist() == [[-5.0, 0.0], [5.0, 0.0]]
+    zigzag = np.array([[-4.0, 0.0], [0.0, 3.0], [4.0, 0.0]])  # leaves |y| <= 1 and comes back
+    pieces = clip_polyline(zigzag, 5.0, 1.0)
+    assert len(pieces) == 2
+    np.testing.assert_allclose(pieces[0], [[-4.0, 0.0], [-4.0 + 4.0 / 3.0, 1.0]])
+    np.testing.assert_allclose(pieces[1], [[4.0 - 4.0 / 3.0, 1.0], [4.0, 0.0]])
+    inside = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 0.0]])
+    assert np.array_equal(clip_polyline(inside, 5.0, 1.0)[0], inside)
+    assert clip_polyline(np.array([[6.0, 0.0], [9.0, 0.0]]), 5.0, 1.0) == []
+
+
+def test_the_vector_map_of_every_keyframe_has_dividers_and_boundaries_in_the_box(maps):
+    """The VAD-style extraction (60 m along the heading, 30 m across): dividers and boundaries at every keyframe,
+    everything inside the box; beside the ego (outside junctions, where dividers stop) the nearest divider lies
+    1.75 m to its side."""
+    beside = total = 0
+    for index, (scene, _, lane_map) in maps.items():
+        for step in scene.key_steps[::4]:
+            pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
+            vm = extract(lane_map, pose)
+            assert vm.dividers and vm.boundaries, (index, step)
+            for line in vm.dividers + vm.ped_crossings + vm.boundaries:
+                assert np.all(np.abs(line) <= np.array([LENGTH, WIDTH]) / 2 + 1e-9)
+            # where each divider crosses the ego's lateral axis (x = 0)
+            near = np.array([p[1] + (q[1] - p[1]) * (0.0 - p[0]) / (q[0] - p[0]) for d in vm.dividers
+                             for p, q in zip(d[:-1], d[1:]) if min(p[0], q[0]) <= 0.0 < max(p[0], q[0])])
+            total += 1
+            if len(near):
+                beside += 1
+                assert np.min(np.abs(np.abs(near) - LANE_WIDTH / 2)) < 0.05, (index, step)
+    assert beside >= 0.75 * total

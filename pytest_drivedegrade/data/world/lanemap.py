@@ -123,11 +123,13 @@ class MapTables:
         return toks
 
     def polygon(self, ring: np.ndarray) -> str:
-        o = ring[0]
-        simple = cv2.approxPolyDP((ring - o).astype(np.float32).reshape(-1, 1, 2), POLY_TOLERANCE, True)
+        """A polygon of the ring's vertices that Douglas-Peucker keeps within POLY_TOLERANCE: the original
+        (float64) vertices, so two polygons sharing an edge share its coordinates exactly (no sliver between)."""
+        flat = (ring - ring[0]).astype(np.float32)
+        simple = cv2.approxPolyDP(flat.reshape(-1, 1, 2), POLY_TOLERANCE, True).reshape(-1, 2)
+        keep = [int(np.flatnonzero((flat == v).all(1))[0]) for v in simple]
         tok = self.token("polygon")
-        self.layers["polygon"].append({"token": tok, "exterior_node_tokens": self.nodes(
-            simple.reshape(-1, 2).astype(np.float64) + o), "holes": []})
+        self.layers["polygon"].append({"token": tok, "exterior_node_tokens": self.nodes(ring[keep]), "holes": []})
         return tok
 
     def line(self, xy: np.ndarray) -> tuple[str, list[str]]:
@@ -238,10 +240,12 @@ def lane_layers(net: RoadNet, crosswalks: list[float], token, seed: int, index: 
         for a0, b0 in _runs(~inside & ~shared):
             for a, b in _pieces(a0, b0):
                 xy, yaw = c.xy[a:b + 1], c.yaw[a:b + 1]
+                lo = a - _overlap(inside, shared, a0 - 1, -1, net, road) if a == a0 else a
+                hi = b + _overlap(inside, shared, b0 + 1, 1, net, road) if b == b0 else b
                 seg = t.token("road_segment")
                 t.layers["road_segment"].append({"token": seg, "polygon_token": t.polygon(
-                    _strip(xy, yaw, -road.half_width, road.half_width)), "is_intersection": False,
-                    "drivable_area_token": ""})
+                    _strip(c.xy[lo:hi + 1], c.yaw[lo:hi + 1], -road.half_width, road.half_width)),
+                    "is_intersection": False, "drivable_area_token": ""})
                 if r == 0:
                     route_pieces.append((a, b, seg))
                 _lanes_of(t, "lane", road, xy, yaw, _dividers(t, road, net, a, b, yellow))
@@ -253,6 +257,19 @@ def lane_layers(net: RoadNet, crosswalks: list[float], token, seed: int, index: 
     _crossings(t, net, crosswalks, route_pieces)
     t.link()
     return t
+
+
+def _overlap(inside: np.ndarray, shared: np.ndarray, i: int, way: int, net: RoadNet, road: Road) -> int:
+    """Samples a road segment reaches past its piece's end `i - way` so that it overlaps its neighbour (no crack
+    in the union): one into a junction square, or into the route's carriageway where another road leaves it."""
+    if not 0 <= i < len(inside):
+        return 0
+    if inside[i]:
+        return 1
+    if not shared[i]:
+        return 0
+    run = _runs(shared[i::way] if way == 1 else shared[i::-1])
+    return min(run[0][1] + 1 if run else 1, round(2 * (net.route.half_width + road.half_width) / STEP))
 
 
 def _on_route(net: RoadNet, xy: np.ndarray, reach: float) -> np.ndarray:
