@@ -22,6 +22,7 @@ pytest_plugins = ["plugin_support"]
 FUSION = '''
 import hashlib
 import json
+import os
 
 import numpy as np
 import pytest
