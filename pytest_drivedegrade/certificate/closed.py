@@ -8,10 +8,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import Any
 
 from ..closedloop.analysis import CLEAN, NULL, parting_step
-from ..closedloop.cells import ClosedPayload, ClosedRecord
+from ..closedloop.cells import ClosedPayload, ClosedRecord, Json
 from ..closedloop.results import PENALTIES
 from ..scoring.closed_loop import ClosedAnalysis, analyse_rows, check_section
 from ..scoring.verdict import VERDICT_LABELS
@@ -19,11 +18,12 @@ from ..settings import RunSettings
 from .seal import SCHEMA, Provenance
 
 #: How the loop is simulated, as the section says it.
-SIMULATOR = {"world": "the embedded world, rendered at the simulated pose (only the cameras the planner reads)",
-             "tracker": "NAVSIM LQR tracker and kinematic bicycle model at 10 Hz",
-             "agents": "non-reactive: the other agents replay their logs",
-             "penalties": dict(PENALTIES), "off_road": "driving outside the drivable area removes the completion "
-             "it covers"}
+SIMULATOR: dict[str, Json] = {
+    "world": "the embedded world, rendered at the simulated pose (only the cameras the planner reads)",
+    "tracker": "NAVSIM LQR tracker and kinematic bicycle model at 10 Hz",
+    "agents": "non-reactive: the other agents replay their logs",
+    "penalties": {k: v for k, v in PENALTIES.items()},
+    "off_road": "driving outside the drivable area removes the completion it covers"}
 
 
 @dataclass(frozen=True)
@@ -68,16 +68,16 @@ class ClosedRun:
                             null_rows=[RunRow.of(r) for r in null.null_runs] if null is not None else [],
                             flat=flat, open_label=open_label, first_step=self.first_step())
 
-    def section(self, open_label: str | None, flat: float) -> dict[str, Any]:
+    def section(self, open_label: str | None, flat: float) -> dict[str, Json]:
         """The ``closed_loop`` section: settings, simulator, figures, each cell's record digest, missing cells."""
+        digests: dict[str, Json] = {c: rec.digest() for c, rec in self.records.items()}
+        missing: list[Json] = list(self.missing)
         return {**self.settings.closed_loop_settings(), "simulator": SIMULATOR,
-                **self.analysis(open_label, flat).figures(),
-                "record_digests": {c: rec.digest() for c, rec in self.records.items()},
-                "missing_cells": list(self.missing)}
+                **self.analysis(open_label, flat).figures(), "record_digests": digests, "missing_cells": missing}
 
 
 def closed_only_certificate(prov: Provenance, run: ClosedRun, flat: float, created: str | None = None) \
-        -> dict[str, Any]:
+        -> dict[str, object]:
     """The unsealed certificate of a run that drove closed cells only (``--drivedegrade-loop closed``): no open
     cell, so its open-loop axes are empty and its open-loop verdict undetermined; the ``closed_loop`` section
     says what the closed cells do."""
@@ -100,7 +100,7 @@ def closed_only_certificate(prov: Provenance, run: ClosedRun, flat: float, creat
     }
 
 
-def check_closed_loop(cert: Mapping[str, Any]) -> list[str]:
+def check_closed_loop(cert: Mapping[str, object]) -> list[str]:
     """The ``closed_loop`` section recomputed from its own run rows (and the open-loop label of a certificate
     that has open cells); empty when it adds up or there is no such section."""
     section = cert.get("closed_loop")

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
-from .cells import NULL_CELL, closed_id, trace_digest
+from .cells import NULL_CELL, Json, as_int, as_map, as_opt_float, closed_id, trace_digest
 from .results import END_UNSCORED, RunResult
 
 CLEAN = closed_id("clean", 0)
@@ -42,15 +41,16 @@ class RunRow:
         return cls(run.route, int(run.seed), run.ds, run.completion, run.end if run.ds is not None else END_UNSCORED,
                    trace_digest(run), dict(sorted(counts.items())))
 
-    def to_list(self) -> list[Any]:
-        return [self.route, self.seed, self.ds, self.completion, self.end, self.trace, dict(self.infractions)]
+    def to_list(self) -> list[Json]:
+        kinds: dict[str, Json] = dict(self.infractions)
+        return [self.route, self.seed, self.ds, self.completion, self.end, self.trace, kinds]
 
     @classmethod
-    def from_list(cls, row: Sequence[Any]) -> RunRow:
+    def from_list(cls, row: Sequence[object]) -> RunRow:
+        """Inverse of `to_list`; ValueError saying what is malformed."""
         route, seed, ds, completion, end, trace, infractions = row
-        return cls(str(route), int(seed), None if ds is None else float(ds),
-                   None if completion is None else float(completion), str(end), str(trace),
-                   {str(k): int(v) for k, v in dict(infractions).items()})
+        return cls(str(route), as_int(seed, "seed"), as_opt_float(ds, "ds"), as_opt_float(completion, "completion"),
+                   str(end), str(trace), {str(k): as_int(v, "count") for k, v in as_map(infractions).items()})
 
     def same(self, other: RunRow) -> bool:
         """Bit-identical runs: the same route and seed, trace digest, DS and end."""
@@ -111,13 +111,15 @@ class CellFigures:
                 counts[k] = counts.get(k, 0) + v
         return dict(sorted(counts.items()))
 
-    def figures(self) -> dict[str, Any]:
+    def figures(self) -> dict[str, Json]:
         low, high = self.bounds
+        kinds: dict[str, Json] = dict(self.infractions)
+        rows: list[Json] = [r.to_list() for r in self.rows]
         return {"cell": self.cell, "family": self.family, "severity": self.severity, "runs": len(self.rows),
                 "unscored": self.unscored, "ds_mean": self.mean, "ds_std": self.std, "ds_low": low, "ds_high": high,
-                "completion": self.completion, "infractions": self.infractions, "retention": self.retention,
+                "completion": self.completion, "infractions": kinds, "retention": self.retention,
                 "retention_low": self.retention_low, "retention_high": self.retention_high,
-                "separable_from_null": self.separable_from_null, "run_rows": [r.to_list() for r in self.rows]}
+                "separable_from_null": self.separable_from_null, "run_rows": rows}
 
 
 def first_difference(clean: Sequence[RunRow], other: Sequence[RunRow]) -> RunRow | None:
@@ -154,10 +156,11 @@ class NullFigures:
     high: float | None = None
     rows: tuple[RunRow, ...] = ()
 
-    def figures(self) -> dict[str, Any]:
+    def figures(self) -> dict[str, Json]:
+        rows: list[Json] = [r.to_list() for r in self.rows]
         return {"mode": self.mode, "passed": self.passed, "first_route": self.first_route,
                 "first_seed": self.first_seed, "first_step": self.first_step, "wander": self.wander,
-                "low": self.low, "high": self.high, "run_rows": [r.to_list() for r in self.rows]}
+                "low": self.low, "high": self.high, "run_rows": rows}
 
 
 def null_figures(cells: Mapping[str, CellFigures], reads_rear: bool, null_rows: Sequence[RunRow],

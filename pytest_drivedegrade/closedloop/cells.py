@@ -10,11 +10,12 @@ import hashlib
 import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypeAlias
 
 import numpy as np
 
 from ..errors import DriveDegradeError, InvalidInput
+from ..settings import Builtin
 from .results import Infraction, RunResult
 
 PREFIX = "closed-"
@@ -28,6 +29,37 @@ NULL_CELL = ("blackout", 3)
 CLOSED_RECORD_VERSION = 1
 #: The plan rates the loop supports: 10 Hz sim steps divide evenly into planner calls.
 HZ_CHOICES = (1, 2, 5, 10)
+#: JSON as builtins: what a stored closed cell, a Ray actor's result and the certificate section hold.
+Json: TypeAlias = None | bool | int | float | str | list["Json"] | dict[str, "Json"]
+
+
+def as_float(value: object, where: str = "value") -> float:
+    """A JSON number as float; ValueError naming `where` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}: expected a number, got {value!r:.40}")
+    return float(value)
+
+
+def as_opt_float(value: object, where: str = "value") -> float | None:
+    return None if value is None else as_float(value, where)
+
+
+def as_int(value: object, where: str = "value") -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{where}: expected an integer, got {value!r:.40}")
+    return value
+
+
+def as_list(value: object, where: str = "value") -> list[object]:
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"{where}: expected a list, got {type(value).__name__}")
+    return list(value)
+
+
+def as_map(value: object, where: str = "value") -> Mapping[str, object]:
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{where}: expected an object, got {type(value).__name__}")
+    return value
 
 
 def closed_id(family: str, severity: int) -> str:
@@ -85,20 +117,22 @@ def shard_runs(runs: Sequence[tuple[str, int]], index: int, count: int) -> list[
     return list(runs[(index - 1) * n // count: index * n // count])
 
 
-def run_to_builtins(run: RunResult) -> dict[str, Any]:
+def run_to_builtins(run: RunResult) -> dict[str, Json]:
+    trace: list[Json] = [[float(v) for v in row] for row in np.asarray(run.trace, dtype=np.float64).reshape(-1, 3)]
     return {"route": run.route, "seed": int(run.seed), "ds": run.ds, "completion": run.completion, "end": run.end,
             "infractions": [[i.kind, int(i.step), int(i.sim_step), i.what] for i in run.infractions],
-            "trace": np.asarray(run.trace, dtype=np.float64).reshape(-1, 3).tolist(), "error": run.error,
-            "steps": int(run.steps)}
+            "trace": trace, "error": run.error, "steps": int(run.steps)}
 
 
-def run_from_builtins(data: Mapping[str, Any]) -> RunResult:
-    ds, completion = data["ds"], data["completion"]
-    return RunResult(str(data["route"]), int(data["seed"]), None if ds is None else float(ds),
-                     None if completion is None else float(completion), str(data["end"]),
-                     tuple(Infraction(str(k), int(s), int(t), str(w)) for k, s, t, w in data["infractions"]),
+def run_from_builtins(data: Mapping[str, object]) -> RunResult:
+    infractions = []
+    for item in as_list(data["infractions"], "infractions"):
+        kind, step, sim_step, what = as_list(item, "infraction")
+        infractions.append(Infraction(str(kind), as_int(step), as_int(sim_step), str(what)))
+    return RunResult(str(data["route"]), as_int(data["seed"], "seed"), as_opt_float(data["ds"], "ds"),
+                     as_opt_float(data["completion"], "completion"), str(data["end"]), tuple(infractions),
                      np.asarray(data["trace"], dtype=np.float64).reshape(-1, 3), str(data.get("error", "")),
-                     int(data.get("steps", 0)))
+                     as_int(data.get("steps", 0), "steps"))
 
 
 def trace_digest(run: RunResult) -> str:
@@ -119,26 +153,28 @@ class ClosedRecord:
     null_runs: tuple[RunResult, ...] = ()
     seconds: Mapping[str, float] = field(default_factory=dict)
 
-    def content(self) -> dict[str, Any]:
-        return {"cell": self.cell, "family": self.family, "severity": int(self.severity),
-                "runs": [run_to_builtins(r) for r in self.runs],
-                "null_runs": [run_to_builtins(r) for r in self.null_runs]}
+    def content(self) -> dict[str, Json]:
+        runs: list[Json] = [run_to_builtins(r) for r in self.runs]
+        null_runs: list[Json] = [run_to_builtins(r) for r in self.null_runs]
+        return {"cell": self.cell, "family": self.family, "severity": int(self.severity), "runs": runs,
+                "null_runs": null_runs}
 
     def digest(self) -> str:
         """SHA-256 hex of the record's content (runs and traces, not the seconds)."""
         text = json.dumps(self.content(), sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(text.encode()).hexdigest()
 
-    def to_builtins(self) -> dict[str, Any]:
-        return {**self.content(), "seconds": {k: float(v) for k, v in self.seconds.items()}}
+    def to_builtins(self) -> dict[str, Json]:
+        seconds: dict[str, Json] = {k: float(v) for k, v in self.seconds.items()}
+        return {**self.content(), "seconds": seconds}
 
     @classmethod
-    def from_builtins(cls, data: Mapping[str, Any]) -> ClosedRecord:
+    def from_builtins(cls, data: Mapping[str, object]) -> ClosedRecord:
         try:
-            return cls(str(data["cell"]), str(data["family"]), int(data["severity"]),
-                       tuple(run_from_builtins(r) for r in data["runs"]),
-                       tuple(run_from_builtins(r) for r in data.get("null_runs", ())),
-                       {str(k): float(v) for k, v in dict(data.get("seconds") or {}).items()})
+            return cls(str(data["cell"]), str(data["family"]), as_int(data["severity"], "severity"),
+                       tuple(run_from_builtins(as_map(r, "run")) for r in as_list(data["runs"], "runs")),
+                       tuple(run_from_builtins(as_map(r, "run")) for r in as_list(data.get("null_runs", []))),
+                       {str(k): as_float(v, "seconds") for k, v in as_map(data.get("seconds") or {}).items()})
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidInput(f"not a closed-loop cell record ({type(exc).__name__}: {exc})") from None
 
@@ -159,7 +195,7 @@ class ClosedPayload:
     """What travels to the controller and is stored as ``cells/closed-<cell>.json``: the record with its run
     key, planner and content digest, and whether it was reused from the store."""
 
-    key: Mapping[str, Any]
+    key: Mapping[str, Builtin]
     planner: str
     record: ClosedRecord
     resumed: bool = False
@@ -168,16 +204,18 @@ class ClosedPayload:
     def cell(self) -> str:
         return self.record.cell
 
-    def to_builtins(self) -> dict[str, Any]:
+    def to_builtins(self) -> dict[str, Json]:
         return {"key": dict(self.key), "planner": self.planner, "record": self.record.to_builtins(),
                 "digest": self.record.digest(), "resumed": self.resumed}
 
     @classmethod
-    def from_builtins(cls, data: Mapping[str, Any]) -> ClosedPayload:
+    def from_builtins(cls, data: object) -> ClosedPayload:
         """Inverse of `to_builtins`; InvalidInput when the record no longer hashes to its digest (edited)."""
-        if not isinstance(data, Mapping) or "record" not in data:
+        if not isinstance(data, Mapping) or not isinstance(data.get("record"), Mapping):
             raise InvalidInput("not a closed-loop cell file")
         record = ClosedRecord.from_builtins(data["record"])
         if data.get("digest") != record.digest():
             raise InvalidInput(f"{record.cell}: the stored runs no longer hash to their digest (edited or corrupted)")
-        return cls(dict(data.get("key") or {}), str(data.get("planner", "")), record, bool(data.get("resumed")))
+        key = {str(k): v for k, v in as_map(data.get("key") or {}).items()
+               if v is None or isinstance(v, (str, int, float))}
+        return cls(key, str(data.get("planner", "")), record, bool(data.get("resumed")))

@@ -9,7 +9,6 @@ import json
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 from ..cells import Property, rear_cameras
 from ..certificate.closed import ClosedRun
@@ -19,18 +18,22 @@ from ..closedloop.cells import (
     NULL_CELL,
     ClosedPayload,
     ClosedRecord,
+    as_float,
+    as_map,
     closed_id,
+    run_from_builtins,
     run_list,
     shard_runs,
 )
+from ..closedloop.results import RunResult
 from ..closedloop.routes import Route, load_routes
 from ..closedloop.simulate import Corruption, Timings, run_route
 from ..errors import DriveDegradeError, InvalidInput
 from ..planning import planner_name
 from ..report.junit import plain
-from ..run import PlannerElsewhere, RunContext
+from ..run import AnyPlanner, PlannerElsewhere, RunContext
 from ..scoring.closed_loop import analyse_rows
-from ..settings import RunSettings
+from ..settings import Builtin, RunSettings
 from ..store import ResultStore
 
 #: The report attribute that carries a finished closed cell's payload (as builtins) to the controller.
@@ -56,7 +59,7 @@ class ClosedState:
         return self.routes
 
 
-def closed_key(context: RunContext, planner: Any) -> dict[str, Any]:
+def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
     """A closed cell's run key: the run's (tool, planner and data fingerprints, seed) and the closed settings."""
     s = context.settings
     return {**context.run_key(planner), "closed_record_version": CLOSED_RECORD_VERSION,
@@ -64,13 +67,15 @@ def closed_key(context: RunContext, planner: Any) -> dict[str, Any]:
             "closed_steps": s.closed_steps}
 
 
-def drive(context: RunContext, state: ClosedState, planner: Any, family: str, severity: int) -> ClosedRecord:
+def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: str, severity: int) -> ClosedRecord:
     """Every run of the cell this process drives (a shard's share of them), in run order."""
     s = context.settings
-    routes = {r.name: r for r in state.route_list(context)}
+    routes = {r.name: r for r in state.route_list(context)}  # the names; actors build their own routes
     runs = run_list(list(routes), [s.seed + k for k in range(s.closed_seeds)])
     if s.shard is not None:
         runs = shard_runs(runs, s.shard.index, s.shard.count)
+    if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own
+        return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps)
     timings, out = Timings(), []
     for route, seed in runs:
         out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
@@ -79,7 +84,27 @@ def drive(context: RunContext, state: ClosedState, planner: Any, family: str, se
     return ClosedRecord(closed_id(family, severity), family, severity, tuple(out), seconds=seconds)
 
 
-def read_stored(store: ResultStore, planner: str, cell: str, key: Mapping[str, Any]) -> ClosedPayload | None:
+def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]], family: str, severity: int,
+                     plan_every: int, max_steps: int | None) -> ClosedRecord:
+    """The cell's runs on Ray planner actors (`closedloop.remote.drive_one`), collected in run order."""
+    from ..raypool import RayPlanner
+
+    if not isinstance(planner, RayPlanner):
+        raise DriveDegradeError("closed-loop cells run on Ray planner actors or in this process only")
+    got = planner.jobs("pytest_drivedegrade.closedloop.remote:drive_one",
+                       [{"family": family, "severity": severity, "route": route, "seed": seed,
+                         "plan_every": plan_every, "max_steps": max_steps} for route, seed in runs])
+    seconds: dict[str, float] = {}
+    out: list[RunResult] = []
+    for item in got:
+        g = as_map(item, "a closed-loop run's result")
+        for k, v in as_map(g["seconds"]).items():
+            seconds[k] = seconds.get(k, 0.0) + as_float(v)
+        out.append(run_from_builtins(as_map(g["run"])))
+    return ClosedRecord(closed_id(family, severity), family, severity, tuple(out), seconds=seconds)
+
+
+def read_stored(store: ResultStore, planner: str, cell: str, key: Mapping[str, Builtin]) -> ClosedPayload | None:
     """The stored closed cell with this run key (None when absent, stale, edited, or without resume)."""
     if not store.resume:
         return None
@@ -96,7 +121,7 @@ def write_stored(store: ResultStore, payload: ClosedPayload) -> None:
     atomic_write_text(store.path(payload.planner, payload.cell), json.dumps(payload.to_builtins()))
 
 
-def reads_rear(context: RunContext, planner: Any) -> bool:
+def reads_rear(context: RunContext, planner: AnyPlanner) -> bool:
     return bool(set(rear_cameras()) & set(context.planner_info(planner).cameras))
 
 
@@ -127,12 +152,9 @@ def properties(record: ClosedRecord, resumed: bool) -> tuple[Property, ...]:
     return tuple((k, plain(v)) for k, v in values.items())
 
 
-def certify_closed(context: RunContext, state: ClosedState, planner: Any, family: str, severity: int, *,
+def certify_closed(context: RunContext, state: ClosedState, planner: AnyPlanner, family: str, severity: int, *,
                    store: ResultStore) -> tuple[ClosedPayload, list[str]]:
     """Run (or resume) one closed cell and check it: (payload for the controller, failure messages)."""
-    if isinstance(planner, PlannerElsewhere):
-        raise DriveDegradeError("closed-loop cells do not run on Ray planner actors yet; run them without "
-                                "--drivedegrade-ray (with -n for parallel workers)")
     default = context.planner_path.stem if context.planner_path else "planner"
     name, key, cell = planner_name(planner, default), closed_key(context, planner), closed_id(family, severity)
     stored = read_stored(store, name, cell, key)
@@ -162,7 +184,7 @@ def certify_closed(context: RunContext, state: ClosedState, planner: Any, family
 
 
 def gather_closed(received: Mapping[str, ClosedPayload], expected: Sequence[str], store: ResultStore,
-                  planner: str | None, key: Mapping[str, Any] | None) -> tuple[dict[str, ClosedPayload], list[str]]:
+                  planner: str | None, key: Mapping[str, Builtin] | None) -> tuple[dict[str, ClosedPayload], list[str]]:
     """The run's closed cells: this session's plus stored ones of the same run, in `expected` order; and the
     expected cells neither has."""
     first = next(iter(received.values()), None)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -93,7 +93,7 @@ class CellCollector(pytest.File):
     cells: list[tuple[str, int]]
     call: Any
     closed: list[tuple[str, int]] = []  #: the closed-loop cells, after the open ones
-    closed_call: Any = None
+    closed_call: Callable[..., None] | None = None
 
     def collect(self) -> Iterator[CellItem]:
         if self.module is not None:

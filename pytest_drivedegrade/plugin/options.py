@@ -7,7 +7,7 @@ names the option, never a traceback later in the run. Light: no heavy imports at
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -274,7 +274,7 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
     if metric not in ("l2", "pdms"):
         raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
-    return RunSettings(
+    return _closed(config, RunSettings(
         data=(here / data).resolve() if data else None,
         split=split,
         frames=_number(config, "drivedegrade_frames", int, DEFAULTS.frames, 1, None),
@@ -288,11 +288,10 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
         prefetch=_prefetch(config),
-        **_closed(config),
-    )
+    ))
 
 
-def _closed(config: pytest.Config) -> dict[str, Any]:
+def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
     """The closed-loop settings (SPEC section 13), each checked."""
     from ..closedloop.cells import HZ_CHOICES, selection
 
@@ -312,10 +311,10 @@ def _closed(config: pytest.Config) -> dict[str, Any]:
     if hz not in HZ_CHOICES:
         raise _fail("drivedegrade_closed_hz", f"must be one of {', '.join(map(str, HZ_CHOICES))} (a whole number of "
                     f"10 Hz steps per call), got {hz}")
-    return {"loop": loop, "closed_cells": cells, "closed_hz": hz,
-            "closed_seeds": _number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
-            "closed_routes": _number(config, "drivedegrade_closed_routes", int, None, 1, None),
-            "closed_steps": _number(config, "drivedegrade_closed_steps", int, None, 1, None)}
+    return replace(settings, loop=loop, closed_cells=cells, closed_hz=hz,
+                   closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
+                   closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
+                   closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None))
 
 
 #: The deepest --drivedegrade-prefetch: each frame ahead holds up to six decoded and corrupted images.

@@ -20,7 +20,7 @@ from ..cells import CellPayload, run_order
 from ..closedloop.cells import ClosedPayload, closed_id
 from ..closedloop.cells import selection as closed_selection
 from ..errors import DriveDegradeError
-from ..run import RunContext
+from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
 from . import SESSION_KEY, preflight
 from .closed import CLOSED_ATTR, ClosedState, write_stored
@@ -50,12 +50,20 @@ def _certify_cell(planner: object, request: pytest.FixtureRequest) -> None:
     session.run_item(item, planner)
 
 
-def _certify_closed(planner: object, request: pytest.FixtureRequest) -> None:
+def _certify_closed(planner: AnyPlanner, request: pytest.FixtureRequest) -> None:
     """One closed-loop cell (SPEC section 13): the planner drives the world's routes through the cell's cameras."""
     session = request.config.stash[SESSION_KEY]
     item = request.node
     assert isinstance(item, ClosedItem)
     session.run_closed_item(item, planner)
+
+
+def _certify_closed_in_actors(request: pytest.FixtureRequest) -> None:
+    """One closed-loop cell under --drivedegrade-ray: its runs are jobs of the planner actors."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    assert isinstance(item, ClosedItem) and session.remote is not None
+    session.run_closed_item(item, session.remote)
 
 
 def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
@@ -120,7 +128,8 @@ class DriveDegradeSession:
         collector = CellCollector.from_parent(parent, path=file_path)
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
         collector.module, collector.cells, collector.call = self.planner_module, self.cells, call
-        collector.closed, collector.closed_call = self.closed, _certify_closed
+        collector.closed = self.closed
+        collector.closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
         return collector
 
     @pytest.hookimpl(tryfirst=True)
@@ -179,7 +188,7 @@ class DriveDegradeSession:
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
 
-    def run_closed_item(self, item: ClosedItem, planner: object) -> None:
+    def run_closed_item(self, item: ClosedItem, planner: AnyPlanner) -> None:
         """One closed-loop cell: drive (or resume) its runs and check the null control (`plugin.closed`)."""
         from .closed import certify_closed
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from ..atomic import atomic_write_text
 from ..certificate.closed import ClosedRun
@@ -78,7 +78,7 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun) -> list[str]:
 
 
 def publish_closed_only(report_dir: Path, prov: Provenance, run: ClosedRun, flat: float, *,
-                        signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, Any], list[str]]:
+                        signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, object], list[str]]:
     """A run of closed cells only: its certificate (signed when a key is given), closed_loop.csv and report.html;
     (the sealed certificate, the terminal lines)."""
     from ..certificate.closed import closed_only_certificate

@@ -16,10 +16,9 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
 
 from ..closedloop.analysis import CLEAN, NULL, CellFigures, NullFigures, RunRow, null_figures
-from ..closedloop.cells import parse_id
+from ..closedloop.cells import Json, as_float, as_list, as_map, parse_id
 from ..closedloop.results import RunResult
 from ..constants import DEFAULT_FLAT
 from .records import Axes
@@ -50,7 +49,7 @@ class ClosedAnalysis:
     axes: Mapping[str, float | None]
     label: str
     labels: tuple[str, ...]
-    separation: Mapping[str, Any]
+    separation: Mapping[str, float | bool | None]
     flat: float
     open_label: str | None
 
@@ -65,13 +64,15 @@ class ClosedAnalysis:
             return None
         return self.open_label == self.label
 
-    def figures(self) -> dict[str, Any]:
-        return {"cells": [c.figures() for c in self.cells], "null_control": None if self.null is None else
-                self.null.figures(), "axes": dict(self.axes),
-                "verdict": {"label": self.label, "labels_under_bounds": sorted(set(self.labels)),
-                            "robust": self.robust, "flat": self.flat},
-                "separation": dict(self.separation),
-                "open_loop": {"label": self.open_label, "agrees": self.agrees}}
+    def figures(self) -> dict[str, Json]:
+        cells: list[Json] = [c.figures() for c in self.cells]
+        labels: list[Json] = list(sorted(set(self.labels)))
+        axes: dict[str, Json] = dict(self.axes)
+        separation: dict[str, Json] = dict(self.separation)
+        return {"cells": cells, "null_control": None if self.null is None else self.null.figures(), "axes": axes,
+                "verdict": {"label": self.label, "labels_under_bounds": labels, "robust": self.robust,
+                            "flat": self.flat},
+                "separation": separation, "open_loop": {"label": self.open_label, "agrees": self.agrees}}
 
 
 def _retentions(cells: Sequence[CellFigures], reads_rear: bool, null: NullFigures | None) -> list[CellFigures]:
@@ -168,22 +169,28 @@ def _diff(problems: list[str], where: str, recorded: object, recomputed: object)
         problems.append(f"{where}: certificate says {recorded!r:.80}, its run rows give {recomputed!r:.80}")
 
 
-def check_section(section: Mapping[str, Any], open_label: str | None) -> list[str]:
+def _rows(value: object) -> list[RunRow]:
+    return [RunRow.from_list(as_list(r, "run row")) for r in as_list(value, "run_rows")]
+
+
+def check_section(section: Mapping[str, object], open_label: str | None) -> list[str]:
     """Recompute the ``closed_loop`` figures from the section's own run rows (per cell and the null's), its
     flat line and the open-loop label; every figure that disagrees, as ``closed_loop.<field>: ... gives ...``."""
     try:
-        cells = {str(c["cell"]): [RunRow.from_list(r) for r in c["run_rows"]] for c in section["cells"]}
-        nc = section.get("null_control") or {}
-        null_rows = [RunRow.from_list(r) for r in nc.get("run_rows", [])]
-        flat = float(section["verdict"]["flat"])
-        got = analyse_rows(cells, reads_rear=nc.get("mode") == "wander", null_rows=null_rows, flat=flat,
-                           open_label=open_label, first_step=nc.get("first_step")).figures()
+        recorded = [as_map(c, "cell") for c in as_list(section["cells"], "cells")]
+        cells = {str(c["cell"]): _rows(c["run_rows"]) for c in recorded}
+        nc = as_map(section.get("null_control") or {}, "null_control")
+        step = nc.get("first_step")
+        got = analyse_rows(cells, reads_rear=nc.get("mode") == "wander", null_rows=_rows(nc.get("run_rows", [])),
+                           flat=as_float(as_map(section["verdict"], "verdict")["flat"], "verdict.flat"),
+                           open_label=open_label, first_step=step if isinstance(step, int) else None).figures()
     except (KeyError, TypeError, ValueError) as exc:
         return [f"closed_loop: malformed ({type(exc).__name__}: {exc})"]
     problems: list[str] = []
-    recorded_cells = {c.get("cell"): c for c in section["cells"]}
-    for cell in got["cells"]:
-        _diff(problems, f"closed_loop.cells.{cell['cell']}", recorded_cells.get(cell["cell"]), cell)
+    by_cell = {c.get("cell"): c for c in recorded}
+    for cell in as_list(got["cells"]):
+        mine = as_map(cell)
+        _diff(problems, f"closed_loop.cells.{mine['cell']}", by_cell.get(mine["cell"]), mine)
     for key in ("null_control", "axes", "verdict", "separation", "open_loop"):
         _diff(problems, f"closed_loop.{key}", section.get(key), got[key])
     return problems
