@@ -128,3 +128,16 @@ def test_a_planner_that_raises_leaves_its_runs_unscored_and_the_bounds_widen(dd)
     assert dark["retention_low"] == 0.0 and dark["retention_high"] > 1.0
     rows = read_csv(dd.folder("driver") / "closed_loop.csv")
     assert [r["end"] for r in rows if r["cell"] == "closed-blackout-s5"] == ["unscored", "unscored"]
+
+
+@pytest.mark.xdist_group("ray")
+def test_closed_cells_on_ray_planner_actors_give_the_local_closed_loop_csv(dd):
+    pytest.importorskip("ray")
+    write(dd)
+    closed(dd, "-p", "no:xdist", "--drivedegrade-closed-cells", "clean,blackout-s5").assert_outcomes(passed=2)
+    ray = dd.run(*CLOSED, "--drivedegrade-closed-cells", "clean,blackout-s5", "--drivedegrade-ray", "local",
+                 "-p", "no:xdist", planner="driver.py", report="ray", subprocess=True)
+    ray.assert_outcomes(passed=2)
+    no_traceback(ray)
+    assert (dd.folder("driver", "ray") / "closed_loop.csv").read_text() == \
+        (dd.folder("driver") / "closed_loop.csv").read_text()
