@@ -141,3 +141,22 @@ def test_closed_cells_on_ray_planner_actors_give_the_local_closed_loop_csv(dd):
     no_traceback(ray)
     assert (dd.folder("driver", "ray") / "closed_loop.csv").read_text() == \
         (dd.folder("driver") / "closed_loop.csv").read_text()
+
+
+def test_both_loops_put_the_closed_section_beside_the_open_cells_with_their_agreement(dd):
+    write(dd)
+    result = dd.run("--drivedegrade-loop", "both", "--drivedegrade-closed-cells", "clean,blackout-s5",
+                    "--drivedegrade-closed-steps", "4", "--drivedegrade-closed-seeds", "1", "-p", "no:randomly",
+                    "-p", "no:xdist", "--junitxml=j.xml", planner="driver.py", families="blackout", severities="5")
+    assert result.ret == 0 and result.parseoutcomes()["passed"] >= 6  # the open cells and the two closed ones
+    folder = dd.folder("driver")
+    cert = load_json(folder / "certificate.json")
+    assert {c["cell"] for c in cert["cells"]} >= {"clean", "blackout-s5", "null"}
+    section = cert["closed_loop"]
+    assert section["loop"] == "both" and section["open_loop"]["label"] == cert["verdict"]["label"]
+    assert [c["cell"] for c in section["cells"]] == ["closed-clean", "closed-blackout-s5"]
+    assert check_consistency(cert) == []
+    assert "id='closed-loop'" in (folder / "report.html").read_text()
+    assert len(read_csv(folder / "closed_loop.csv")) == 2 and (folder / "cells.csv").is_file()
+    junit = (dd.pytester.path / "j.xml").read_text()  # the closed items' figures as testcase properties
+    assert 'name="closed_ds_mean"' in junit and 'name="closed_cell" value="closed-blackout-s5"' in junit
