@@ -4,6 +4,7 @@ RunContext, the planner built once, cells run on spans of frames and returned as
 
 from __future__ import annotations
 
+import importlib
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -83,6 +84,15 @@ class PlannerActor:
         record = self.context.run_cell(self.planner, family, severity, unread=tuple(unread), seed=seed,
                                        span=(start, stop))
         return record.to_builtins()
+
+    def job(self, target: str, kwargs: dict[str, Builtin]) -> object:
+        """``module:function`` called with this actor's RunContext, its planner and `kwargs`: work of a later
+        stage (the closed loop's runs, `closedloop.remote`) that this module does not import."""
+        if self.context is None or self.planner is None:
+            raise DriveDegradeError("the planner actor was not started")
+        module, _, name = target.partition(":")
+        function: Callable[..., object] = getattr(importlib.import_module(module), name)
+        return function(self.context, self.planner, **kwargs)
 
     def stop(self) -> list[str]:
         """Tear the planner's fixtures down (generator fixtures past their ``yield``); one line per problem."""

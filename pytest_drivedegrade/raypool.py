@@ -30,6 +30,7 @@ from .errors import DriveDegradeError, InvalidInput
 from .planning import CallStyle
 from .rayactor import ActorRun, Builder, PlannerActor
 from .run import PlannerElsewhere, PlannerInfo, RunContext, Span
+from .settings import Builtin
 from .shards import partition, scene_runs
 
 #: How to install Ray: the package's `ray` extra.
@@ -373,3 +374,13 @@ class RayPlanner(PlannerElsewhere):
 
     def prefetch(self, context: RunContext, family: str, severity: int, *, unread: tuple[str, ...], seed: int) -> None:
         self.pool.submit(family, severity, unread, seed, (0, len(context.frames)))
+
+    def jobs(self, target: str, kwargs: list[dict[str, Builtin]]) -> list[object]:
+        """`PlannerActor.job` for each of `kwargs`, spread over the actors in turn; the results in order (the
+        closed loop's runs: each is independent, its planner reset per route)."""
+        pool = self.pool
+        refs = [pool.slots[i % len(pool.slots)].actor.job.remote(target, kw) for i, kw in enumerate(kwargs)]
+        try:
+            return list(pool.ray.get(refs))
+        except pool.ray.exceptions.RayError as exc:
+            raise DriveDegradeError(f"closed-loop runs on {pool.where} failed: {exc}") from None

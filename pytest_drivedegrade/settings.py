@@ -71,6 +71,13 @@ class RunSettings:
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
+    # The closed loop (SPEC section 13): held in the certificate's closed_loop section and the closed cells' key.
+    loop: str = "open"  #: --drivedegrade-loop: open (the replayed frames), closed (the simulator), both
+    closed_cells: str = "slice"  #: --drivedegrade-closed-cells: slice, all or a list of cells
+    closed_seeds: int = 2  #: corruption seeds each route runs under
+    closed_hz: int = 2  #: planner calls per simulated second
+    closed_routes: int | None = None  #: the first N routes only (None: every route)
+    closed_steps: int | None = None  #: at most N planner calls per run (None: to the route's end)
 
     @property
     def data_source(self) -> str:
@@ -95,6 +102,11 @@ class RunSettings:
         """The settings the certificate's ``settings`` section records, by their key there."""
         return {row.where[0][1]: _encode(self.value(row.name)) for row in TABLE
                 if row.where and row.where[0][0] == "settings"}
+
+    def closed_loop_settings(self) -> dict[str, Builtin]:
+        """The settings the certificate's ``closed_loop`` section records (SPEC section 13), by their key there."""
+        return {row.where[0][1]: _encode(self.value(row.name)) for row in TABLE
+                if row.where and row.where[0][0] == "closed_loop"}
 
     @classmethod
     def from_certificate(cls, cert: Mapping[str, object]) -> RunSettings:
@@ -243,6 +255,13 @@ TABLE: tuple[Setting, ...] = (
     Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "
             "corrupted and scored, never what: every output is the serial path's bit for bit", rerun="never",
             per_shard=True),
+    *(Setting(name, label, flag, (("closed_loop", name),), _F, "the closed loop is certified in its own section, "
+              "beside the open-loop cells the gate compares") for name, label, flag in (
+        ("loop", "loop", "--drivedegrade-loop"), ("closed_cells", "closed-loop cells", "--drivedegrade-closed-cells"),
+        ("closed_seeds", "closed-loop seeds", "--drivedegrade-closed-seeds"),
+        ("closed_hz", "closed-loop plan rate", "--drivedegrade-closed-hz"),
+        ("closed_routes", "closed-loop routes", "--drivedegrade-closed-routes"),
+        ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 
@@ -284,7 +303,8 @@ def _decode(name: str, raw: object) -> object:
             return raw
         if isinstance(default, float):
             return float(raw)
-        return int(raw) if name in ("frames", "prefetch") or isinstance(default, int) else str(raw)
+        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps") or \
+            isinstance(default, int) else str(raw)
     except (ValueError, DriveDegradeError) as exc:
         raise InvalidInput(f"setting {name!r}: {exc}") from None
 

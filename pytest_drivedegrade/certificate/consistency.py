@@ -268,7 +268,9 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
         problems += check_axes(cert["axes"], cells, "retention", "axes", groups)
     if isinstance(cert.get("axes_pdms"), Mapping) and any("pdms_retention" in c for c in cells):
         problems += check_axes(cert["axes_pdms"], cells, "pdms_retention", "axes_pdms", groups)
-    return problems + check_verdict(cert, cells)
+    from .closed import check_closed_loop  # the closed loop's section (SPEC 13), recomputed from its run rows
+
+    return problems + check_verdict(cert, cells) + check_closed_loop(cert)
 
 
 def incompleteness(cert: Mapping[str, Any]) -> str | None:

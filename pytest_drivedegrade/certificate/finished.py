@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from ..scoring.records import finite_mean
 from ..scoring.retention import retention
 from ..settings import RunSettings
 from .seal import Provenance
+
+if TYPE_CHECKING:
+    from .closed import ClosedRun
 
 
 @dataclass(frozen=True)
@@ -60,3 +64,4 @@ class FinishedRun:
     missing_advice: str = ""  #: what to do about the missing cells (a merge: which shard to rerun); "" the default
     resumed_cells: tuple[str, ...] | None = None
     notes: tuple[str, ...] = ()
+    closed: ClosedRun | None = None  #: the closed-loop cells (SPEC section 13), when the run drove any

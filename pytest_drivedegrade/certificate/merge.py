@@ -21,6 +21,7 @@ import numpy as np
 from ..cells import CellPayload, CellRecord, RecordDigestMismatch
 from ..errors import DriveDegradeError
 from ..settings import RunSettings
+from .closed import ClosedRun
 from .finished import FinishedRun, FloorFigures
 from .seal import CertificateError, Provenance, read_strict_json, run_provenance
 
@@ -145,18 +146,21 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
     records = _records(shards, cells)
-    if "clean" not in records:
+    closed = closed_of_shards(shards, settings)
+    if "clean" not in records and (cells or closed is None):
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
                                 "shard (finished cells are reused)")
     floor = FloorFigures.of(_joined([s.manifest.get("floor_l2") for s in shards]),
                             _joined([s.manifest.get("floor_ego_blind_l2") for s in shards]))
     prov = run_provenance(settings, planner_name=first["planner"], key=first["key"],
-                          frames=len(records["clean"].frames), frames_unscored=first.get("frames_unscored"),
+                          frames=len(records["clean"].frames) if "clean" in records else 0,
+                          frames_unscored=first.get("frames_unscored"),
                           command=command, planner_file=str(first.get("planner_file", "")), recorded=first)
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
-                       missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells))
+                       missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells),
+                       closed=closed)
 
 
 def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
@@ -172,6 +176,38 @@ def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
         return ""
     return ("; ".join(parts) + ": rerun each such shard with its own command (--drivedegrade-shard I/N; its "
             "finished cells are reused), then run this merge again")
+
+
+
+def closed_of_shards(shards: Sequence[ShardResult], settings: RunSettings) -> ClosedRun | None:
+    """The closed-loop cells (SPEC 13) of the shards: each cell's runs joined in shard order (each shard drove
+    its contiguous share of the (route, seed) runs); a cell some shard lacks is missing. None without any."""
+    from ..closedloop.cells import ClosedPayload, ClosedRecord
+    from ..errors import InvalidInput
+    expected = list(shards[0].manifest.get("closed_cells") or [])
+    if not expected:
+        return None
+    found: dict[str, list[ClosedPayload]] = {}
+    for s in shards:
+        for cell in expected:
+            file = s.folder / "cells" / f"{cell}.json"
+            if not file.is_file():
+                continue  # a cell this shard did not finish: reported as missing
+            try:
+                payload = ClosedPayload.from_builtins(read_strict_json(file, constants=True))
+            except InvalidInput as exc:
+                raise DriveDegradeError(f"{file}: {exc}; rerun that shard (its other cells are reused)") from None
+            except CertificateError as exc:  # an overflowing number, a duplicate key: named, never skipped
+                raise DriveDegradeError(f"{exc}; rerun that shard (its other cells are reused)") from None
+            except (OSError, ValueError):
+                continue
+            if payload.cell == cell and all(payload.key.get(k) == v for k, v in s.manifest["key"].items()
+                                            if k in payload.key and k != "frames_key"):
+                found.setdefault(cell, []).append(payload)
+    joined = {c: ClosedPayload(ps[0].key, ps[0].planner, ClosedRecord.concat([p.record for p in ps]))
+              for c, ps in found.items() if len(ps) == len(shards)}
+    return ClosedRun({c: joined[c] for c in expected if c in joined}, settings,
+                     tuple(c for c in expected if c not in joined)) if joined else None
 
 
 def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, Any], provenance: Provenance,

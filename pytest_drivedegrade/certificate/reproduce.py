@@ -119,6 +119,8 @@ def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], rep
         argv += ["--drivedegrade-families", ",".join(dict.fromkeys(families))]
     if severities:
         argv += ["--drivedegrade-severities", ",".join(map(str, severities))]
+    if RunSettings.from_certificate(cert).loop != "open":  # the rerun compares open-loop cells only (-k clean
+        argv += ["--drivedegrade-loop", "open"]  # would also select closed-clean, minutes of driving)
     return [*argv, "-k", " or ".join(cells)]
 
 

@@ -6,11 +6,11 @@ corruption, its plan executed at 10 Hz by NAVSIM's LQR tracker and kinematic bic
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..corruptions.api import corrupt_sample
 from ..data.world.agents import DT
 from ..metrics.tracking import InitialState, interpolate_plan, track
 from ..planning import Planner, call_style, planner_cameras, validate_output
@@ -30,6 +30,7 @@ from .results import (
     RunResult,
 )
 from .routes import Route, lane_progress
+from .view import StepImages
 
 #: 10 Hz sim steps per planner call (2 Hz) and executed per plan: the first 0.5 s of each tracked plan.
 PLAN_EVERY = 5
@@ -136,7 +137,7 @@ def _judge_step(run: _Run, k: int, t: int) -> str | None:
     return None
 
 
-def _plan(planner: Planner, run: _Run, k: int, images: dict[str, np.ndarray], takes_context: bool,
+def _plan(planner: Planner, run: _Run, k: int, images: Mapping[str, np.ndarray], takes_context: bool,
           timings: Timings) -> np.ndarray:
     """The planner's validated plan at route step `k` (raises what the planner raises, or PlannerOutputError)."""
     route = run.route
@@ -156,8 +157,10 @@ def _plan(planner: Planner, run: _Run, k: int, images: dict[str, np.ndarray], ta
     return validate_output(raw, token)
 
 
-def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings) -> str | None:
-    """Track the plan from the simulated state and drive its first 0.5 s, judging every 0.1 s step."""
+def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings, plan_every: int = PLAN_EVERY) \
+        -> str | None:
+    """Track the plan from the simulated state and drive its first `plan_every` 0.1 s steps (0.5 s at 2 Hz),
+    judging every step."""
     t0 = time.perf_counter()
     start = InitialState(run.pose.speed, 0.0, run.pose.accel, 0.0, run.yaw_rate, run.steering)
     states = track(interpolate_plan(plan), start)
@@ -166,7 +169,7 @@ def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings) -> s
     c, s = np.cos(yaw0), np.sin(yaw0)
     t1 = time.perf_counter()
     try:
-        for i in range(1, PLAN_EVERY + 1):
+        for i in range(1, plan_every + 1):
             if run.world is not None:  # the agents move to t + i from where the ego was at t + i - 1
                 run.world.advance(t + i, run.pose)
             lx, ly = float(states.x[0, i]), float(states.y[0, i])
@@ -190,37 +193,33 @@ def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
 
 
 def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
-              timings: Timings | None = None, *, agents: str = "log") -> RunResult:
+              timings: Timings | None = None, *, plan_every: int = PLAN_EVERY,
+              max_steps: int | None = None, agents: str = "log") -> RunResult:
     """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>"),
+    calling it every `plan_every` 0.1 s steps, at most `max_steps` times (then the run ends as at the scene's end),
     the other agents replayed (`agents="log"`) or reactive (`"reactive"`). A planner that raises, times out or
     returns a bad plan leaves the run unscored (ds None, `error` set)."""
     timings = timings if timings is not None else Timings()
     route, world = run_world(route, agents)
     style = call_style(planner)
     t0 = time.perf_counter()
-    cameras = RouteCameras(route, planner_cameras(planner))
+    stream = StepImages(RouteCameras(route, planner_cameras(planner)), corruption, seed, timings)
     timings.render += time.perf_counter() - t0
     if style.resets:
         planner.reset(route.name)  # type: ignore[attr-defined]
-    run, previous = _start(route), None
+    run = _start(route)
     run.world = world
     k, t = 0, route.start_step
-    while t + PLAN_EVERY <= route.end_step:
-        t0 = time.perf_counter()
-        images = cameras.images(run.xyyaw, t)
-        if images and (corruption.family != "clean"):
-            images = corrupt_sample(images, corruption.family, corruption.severity, seed=seed,
-                                    frame=f"{route.name}/{k}", previous=previous)
-        previous = images
-        timings.render += time.perf_counter() - t0
+    while t + plan_every <= route.end_step and (max_steps is None or k < max_steps):
+        images = stream.at(run.xyyaw, t, k)
         try:
             plan = _plan(planner, run, k, images, style.takes_context, timings)
         except Exception as exc:  # noqa: BLE001 - any failure of the planner leaves the run unscored
             return RunResult(route.name, seed, None, None, END_UNSCORED, tuple(run.infractions),
                              np.array(run.trace), f"step {k}: {type(exc).__name__}: {exc}", k)
         run.history.append(run.xyyaw)
-        end = _execute(run, plan, k, t, timings)
-        k, t = k + 1, t + PLAN_EVERY
+        end = _execute(run, plan, k, t, timings, plan_every)
+        k, t = k + 1, t + plan_every
         if end is not None:
             return _result(run, seed, end, k)
     return _result(run, seed, END_SCENE, k)

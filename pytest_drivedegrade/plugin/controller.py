@@ -19,11 +19,14 @@ from ..certificate.seal import Provenance, run_provenance
 from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
+from .closed import ClosedInput, closed_run
 from .context import cache_root
 from .options import RunOptions
 
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+
+    from ..certificate.closed import ClosedRun
 
 
 @dataclass
@@ -148,21 +151,31 @@ def coverage_lines(path: Path | None) -> list[str]:
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
                baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
-               signing_key: Ed25519PrivateKey | None = None) -> Outcome | None:
+               signing_key: Ed25519PrivateKey | None = None, closed: ClosedInput | None = None) -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
     the run never opened its data. `planner_file` goes into the certificate (see `planner_file`), which is
-    signed with `signing_key` when given."""
+    signed with `signing_key` when given. `closed`: the closed-loop cells received and expected (SPEC 13)."""
     if context is None:
         return None
     out = Outcome()
     store = store or ResultStore(options.report_dir, resume=options.resume)
     run = gather(received, expected, store)
+    closed_cells = closed_run(options.settings, store, closed)
+    if run is None and closed_cells is not None:  # --drivedegrade-loop closed: the closed cells alone
+        first = next(iter(closed_cells.payloads.values()))
+        run = Gathered(first.planner, first.key, {}, [])
     if run is None:
         out.lines.append("no cell finished: nothing to analyse")
         return out
     out.lines += reuse_lines(received, run, store) + coverage_lines(options.planner_path)
     if options.settings.shard is not None:
-        return finish_shard(config, options, context, run, store, out, expected, planner_file)
+        return finish_shard(config, options, context, run, store, out, expected, planner_file, closed)
+    if closed_cells is not None and not run.payloads:
+        finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells)
+        from ..report.publish import publish
+
+        out.lines = publish(finished, options.report_dir, signing_key=signing_key).lines
+        return out
     if "clean" not in run.payloads:  # not a failure: the cells that ran are stored, and a later run completes them
         out.lines.append("no clean cell result, so no report written: retention is relative to clean (was it "
                          "deselected with -k?); the cells that ran are stored and reused by a run that includes "
@@ -170,7 +183,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     from ..report.publish import publish
 
-    finished = finished_run(config, options, context, run, out.lines, planner_file)
+    finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells)
     published = publish(finished, options.report_dir, signing_key=signing_key)
     from .compat import junit_xml
 
@@ -178,7 +191,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
     if xml is not None:
         from ..report.junit import suite_properties
 
-        for prop, value in suite_properties(published.analysis):
+        for prop, value in suite_properties(published.analysis) if published.analysis else ():
             xml.add_global_property(prop, value)
     gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
                                   partial=options.baseline_partial, any_planner=options.baseline_any_planner)
@@ -187,15 +200,18 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
 
 def finished_run(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
-                 notes: list[str], planner_file: str = "") -> FinishedRun:
-    """This session's run as `report.publish` takes it (the floor is run here; its notes join `notes`)."""
-    floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego))
+                 notes: list[str], planner_file: str = "", closed: ClosedRun | None = None) -> FinishedRun:
+    """This session's run as `report.publish` takes it (the floor is run here, for open cells; its notes join
+    `notes`); with its closed-loop cells."""
+    floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego)) if run.payloads \
+        else None
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
                        settings=options.settings, floor=FloorFigures() if floor is None else floor.figures(),
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
                        missing_cells=tuple(run.missing),
-                       resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes))
+                       resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes),
+                       closed=closed)
 
 
 def _command(config: pytest.Config) -> str:
@@ -217,14 +233,15 @@ def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
                  store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]],
-                 planner_file: str = "") -> Outcome:
+                 planner_file: str = "", closed: ClosedInput | None = None) -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
     from ..certificate.merge import MANIFEST, shard_manifest
 
     shard = options.settings.shard
     assert shard is not None
-    floor = floor_frames(config, context, options.settings.split, out.lines, bool(options.ego))
+    floor = floor_frames(config, context, options.settings.split, out.lines, bool(options.ego)) if expected \
+        else None
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=provenance(config, options, context, run, planner_file),
                               settings=options.settings, frames_total=context.frames_total,
@@ -233,6 +250,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
                               floor_ego_blind_l2=None if floor is None else floor.blind_list(),
                               gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),
                               front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
+    if closed is not None and closed[1]:  # the closed cells this shard drove its share of runs of (SPEC 13)
+        manifest["closed_cells"] = list(closed[1])
     path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     scenes = len({f.scene_token for f in context.frames})
     out.lines.append(f"shard {shard}: {len(context.frames)} of {context.frames_total} frames ({scenes} scene(s)), "

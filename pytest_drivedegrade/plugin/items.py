@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -76,6 +76,12 @@ class CellItem(pytest.Function):
         return self.path, None, self.name
 
 
+class ClosedItem(CellItem):
+    """One closed-loop cell's test item (`closed-clean`, `closed-blackout-s5`, ...; SPEC section 13)."""
+
+    drivedegrade_closed: tuple[str, int]
+
+
 class CellCollector(pytest.File):
     """Collects one item per cell, in run order, from the planner file (or the conftest that provides it).
 
@@ -86,6 +92,8 @@ class CellCollector(pytest.File):
     module: ModuleType | None
     cells: list[tuple[str, int]]
     call: Any
+    closed: list[tuple[str, int]] = []  #: the closed-loop cells, after the open ones
+    closed_call: Callable[..., None] | None = None
 
     def collect(self) -> Iterator[CellItem]:
         if self.module is not None:
@@ -94,6 +102,12 @@ class CellCollector(pytest.File):
             item = CellItem.from_parent(self, name=cell_id(family, severity), callobj=self.call)
             item.drivedegrade_cell = (family, severity)
             yield item
+        for family, severity in self.closed:
+            from ..closedloop.cells import closed_id
+
+            closed = ClosedItem.from_parent(self, name=closed_id(family, severity), callobj=self.closed_call)
+            closed.drivedegrade_cell = closed.drivedegrade_closed = (family, severity)
+            yield closed
 
 
 class NothingCollector(pytest.File):

@@ -7,7 +7,7 @@ names the option, never a traceback later in the run. Light: no heavy imports at
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -104,6 +104,20 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "one frame after the other; every output is the same either way). Default: 2 where this machine "
                "has a core to spare (more cores than xdist workers or local Ray actors + 1), else 0, so that "
                "the threads never slow the -n workers", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-loop", "drivedegrade_loop", "open (default): the planner on the data's replayed frames; "
+               "closed: it drives the embedded world through the degraded cameras (cells closed-clean, "
+               "closed-blackout-s5, ...); both", {"metavar": "open|closed|both"}),
+    OptionSpec("--drivedegrade-closed-cells", "drivedegrade_closed_cells", "closed-loop cells: slice (default: "
+               "clean, gaussian_blur and motion_blur S3/S5, blackout S3 (the null control) and S5), all (the slice "
+               "and every other family at S3 and S5), or a list such as clean,blackout-s5", {"metavar": "CELLS"}),
+    OptionSpec("--drivedegrade-closed-seeds", "drivedegrade_closed_seeds", "corruption seeds every closed-loop "
+               "route runs under (default 2)", {"metavar": "K"}),
+    OptionSpec("--drivedegrade-closed-hz", "drivedegrade_closed_hz", "closed-loop planner calls per second: 1, 2 "
+               "(default), 5 or 10; the plan is tracked at 10 Hz", {"metavar": "HZ"}),
+    OptionSpec("--drivedegrade-closed-routes", "drivedegrade_closed_routes", "drive only the first N routes "
+               "(default: every val scene of the world)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
+               "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
                "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
                "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
@@ -265,7 +279,7 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
     if metric not in ("l2", "pdms"):
         raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
-    return RunSettings(
+    return _closed(config, RunSettings(
         data=(here / data).resolve() if data else None,
         split=split,
         frames=_number(config, "drivedegrade_frames", int, DEFAULTS.frames, 1, None),
@@ -279,7 +293,33 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
         prefetch=_prefetch(config),
-    )
+    ))
+
+
+def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
+    """The closed-loop settings (SPEC section 13), each checked."""
+    from ..closedloop.cells import HZ_CHOICES, selection
+
+    loop = str(value(config, "drivedegrade_loop") or DEFAULTS.loop).strip().lower()
+    if loop not in ("open", "closed", "both"):
+        raise _fail("drivedegrade_loop", f"expected open, closed or both, got {loop!r}")
+    cells = str(value(config, "drivedegrade_closed_cells") or DEFAULTS.closed_cells).strip()
+    try:
+        chosen = selection(cells)
+    except DriveDegradeError as exc:
+        raise _fail("drivedegrade_closed_cells", str(exc)) from None
+    if cells not in ("slice", "all"):
+        from ..closedloop.cells import closed_id
+
+        cells = ",".join(closed_id(f, s)[len("closed-"):] for f, s in chosen)
+    hz = _number(config, "drivedegrade_closed_hz", int, DEFAULTS.closed_hz, 1, 10)
+    if hz not in HZ_CHOICES:
+        raise _fail("drivedegrade_closed_hz", f"must be one of {', '.join(map(str, HZ_CHOICES))} (a whole number of "
+                    f"10 Hz steps per call), got {hz}")
+    return replace(settings, loop=loop, closed_cells=cells, closed_hz=hz,
+                   closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
+                   closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
+                   closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None))
 
 
 #: The deepest --drivedegrade-prefetch: each frame ahead holds up to six decoded and corrupted images.

@@ -17,13 +17,16 @@ from typing import TYPE_CHECKING
 import pytest
 
 from ..cells import CellPayload, run_order
+from ..closedloop.cells import ClosedPayload, closed_id
+from ..closedloop.cells import selection as closed_selection
 from ..errors import DriveDegradeError
-from ..run import RunContext
+from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
 from . import SESSION_KEY, preflight
+from .closed import CLOSED_ATTR, ClosedState, write_stored
 from .context import build_run_context
 from .controller import Outcome, planner_file
-from .items import CellCollector, CellItem, NothingCollector, conftest_with_planner, import_planner_file
+from .items import CellCollector, CellItem, ClosedItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
 
 if TYPE_CHECKING:
@@ -47,6 +50,22 @@ def _certify_cell(planner: object, request: pytest.FixtureRequest) -> None:
     session.run_item(item, planner)
 
 
+def _certify_closed(planner: AnyPlanner, request: pytest.FixtureRequest) -> None:
+    """One closed-loop cell (SPEC section 13): the planner drives the world's routes through the cell's cameras."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    assert isinstance(item, ClosedItem)
+    session.run_closed_item(item, planner)
+
+
+def _certify_closed_in_actors(request: pytest.FixtureRequest) -> None:
+    """One closed-loop cell under --drivedegrade-ray: its runs are jobs of the planner actors."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    assert isinstance(item, ClosedItem) and session.remote is not None
+    session.run_closed_item(item, session.remote)
+
+
 def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
     """One cell under --drivedegrade-ray: the planner is the actors' (the controller never builds it)."""
     session = request.config.stash[SESSION_KEY]
@@ -66,7 +85,11 @@ class DriveDegradeSession:
         self.config, self.options, self.collect_path = config, options, collect_path
         self.planner_module = planner_module  # the imported planner file; None in conftest mode
         self.baseline = baseline
-        self.cells = run_order(options.families, options.severities, ego=options.ego)
+        loop = options.settings.loop
+        self.cells = run_order(options.families, options.severities, ego=options.ego) if loop != "closed" else []
+        self.closed = closed_selection(options.settings.closed_cells) if loop != "open" else []
+        self.closed_state = ClosedState()  # the closed loop's routes and clean cell, once per process
+        self.closed_received: dict[str, ClosedPayload] = {}  # controller: closed cell -> payload
         shard = options.settings.shard
         self.store = ResultStore(options.report_dir, shard.label if shard else None, resume=options.resume)
         self.context: RunContext | None = None  # opened lazily, once per process
@@ -105,6 +128,8 @@ class DriveDegradeSession:
         collector = CellCollector.from_parent(parent, path=file_path)
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
         collector.module, collector.cells, collector.call = self.planner_module, self.cells, call
+        collector.closed = self.closed
+        collector.closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
         return collector
 
     @pytest.hookimpl(tryfirst=True)
@@ -163,13 +188,31 @@ class DriveDegradeSession:
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
 
+    def run_closed_item(self, item: ClosedItem, planner: AnyPlanner) -> None:
+        """One closed-loop cell: drive (or resume) its runs and check the null control (`plugin.closed`)."""
+        from .closed import certify_closed
+
+        self._check_name(item, planner)
+        try:
+            payload, failures = certify_closed(self.run_context(), self.closed_state, planner,
+                                               *item.drivedegrade_closed, store=self.store)
+        except DriveDegradeError as exc:
+            pytest.fail(f"cell {item.name}: {exc}", pytrace=False)
+        from .closed import properties
+
+        item.stash[CLOSED_KEY] = payload
+        item.user_properties.extend(properties(payload.record, payload.resumed))
+        if failures:
+            pytest.fail("\n".join(failures), pytrace=False)
+
     def _next_cell(self, item: CellItem) -> tuple[str, int] | None:
         """The cell of the item that runs after `item` (None for the last one, or without planner actors)."""
         if self.remote is None:
             return None
         items = item.session.items
         at = next((i for i, it in enumerate(items) if it is item), len(items))
-        return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)), None)
+        return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)
+                     and not isinstance(it, ClosedItem)), None)
 
     def _check_name(self, item: CellItem, planner: object) -> None:
         """The planner's name, checked once when the planner first exists (the first cell): a bad one, or one
@@ -189,12 +232,22 @@ class DriveDegradeSession:
         payload = item.stash.get(PAYLOAD_KEY, None)
         if report.when == "call" and payload is not None:
             setattr(report, PAYLOAD_ATTR, payload.to_builtins())
+        closed = item.stash.get(CLOSED_KEY, None)
+        if report.when == "call" and closed is not None:
+            setattr(report, CLOSED_ATTR, closed.to_builtins())
         return report
 
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         """Controller: write each finished cell to disk at once, so a crash or Ctrl-C loses nothing."""
+        if _is_worker(self.config):
+            return
+        closed = getattr(report, CLOSED_ATTR, None)
+        if closed is not None:
+            got = ClosedPayload.from_builtins(closed)
+            self.closed_received[got.cell] = got
+            write_stored(self.store, got)
         data = getattr(report, PAYLOAD_ATTR, None)
-        if data is None or _is_worker(self.config):
+        if data is None:
             return
         payload = CellPayload.from_builtins(data)
         self.received[payload.cell] = payload
@@ -209,7 +262,8 @@ class DriveDegradeSession:
         actors = self._close_actors()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
-                                  signing_key=preflight.signing_key(self.options))
+                                  signing_key=preflight.signing_key(self.options),
+                                  closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]))
         if self.outcome is not None:
             self.outcome.lines += actors
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
@@ -230,3 +284,4 @@ class DriveDegradeSession:
 
 
 PAYLOAD_KEY = pytest.StashKey[CellPayload]()
+CLOSED_KEY = pytest.StashKey[ClosedPayload]()

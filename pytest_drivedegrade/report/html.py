@@ -169,7 +169,7 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
                   trajectories: Sequence[TrajectoryExample | Mapping[str, Any]] = (),
                   floor_point: tuple[float, float] = (1.0, 1.0), families: Mapping[str, Any] | None = None,
                   created: str = "", digest: str = "", cost: Mapping[str, Any] | None = None,
-                  signed_by: str = "") -> str:
+                  signed_by: str = "", closed_html: str = "") -> str:
     """The page as a string. `montage`: the S4 montage of one front frame (RGB uint8), optional; `cost`: the
     certificate's cost ledger, shown as a panel; `signed_by`: the signing key's fingerprint ("" unsigned), so the
     page says what the seal proves."""
@@ -190,7 +190,7 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     }
     env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
-    extra = {"created": created, "digest": digest, "signed_by": signed_by,
+    extra = {"created": created, "digest": digest, "signed_by": signed_by, "closed_html": closed_html,
              "traj_cells": [c for t in traj[:1] for c in t["plans"]], "cost": _cost_rows(cost),
              **pdms_ego_context(analysis)}
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))

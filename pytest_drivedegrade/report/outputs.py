@@ -15,11 +15,14 @@ from ..scoring.records import RunAnalysis
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
+    from ..certificate.closed import ClosedRun
+
 
 def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
                   missing: Sequence[str], *, gt: Mapping[str, np.ndarray], montage: np.ndarray | None,
                   completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
-                  signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, Any], str]:
+                  signing_key: Ed25519PrivateKey | None = None,
+                  closed: ClosedRun | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files and return (the sealed certificate, a line saying what was written). `missing`
     cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
     `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
@@ -33,6 +36,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     if cost is not None:
         cert["cost"] = dict(cost)
+    if closed is not None:  # the closed loop's section (SPEC section 13), signed and sealed with the rest
+        cert["closed_loop"] = closed.section(analysis.verdict.label, analysis.verdict.flat)
     if signing_key is not None:
         from ..certificate.signing import sign
 
@@ -43,5 +48,18 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     write_report(folder / "report.html", analysis, prov, montage=montage,
                  trajectories=trajectory_examples(records, gt, analysis.summaries),
                  created=cert.get("created", ""), digest=cert["digest"], cost=cost,
-                 signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")))
-    return cert, f"wrote {folder / 'report.html'}, cells.csv and certificate.json"
+                 signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")),
+                 **_closed_report(folder, prov.planner_name, closed, analysis))
+    return cert, f"wrote {folder / 'report.html'}, cells.csv" + (", closed_loop.csv" if closed else "") + \
+        " and certificate.json"
+
+
+def _closed_report(folder: Path, planner: str, closed: ClosedRun | None, analysis: RunAnalysis) -> dict[str, str]:
+    """closed_loop.csv written; the report's closed-loop section as a keyword of `write_report` (none without)."""
+    if closed is None:
+        return {}
+    from .closed_html import closed_fragment
+    from .closed_outputs import write_closed_csv
+
+    write_closed_csv(folder, planner, closed)
+    return {"closed_html": closed_fragment(closed.analysis(analysis.verdict.label, analysis.verdict.flat), closed)}

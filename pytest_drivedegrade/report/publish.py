@@ -27,7 +27,7 @@ class Published:
     JUnit suite properties) and the terminal summary's lines."""
 
     certificate: dict[str, Any]
-    analysis: RunAnalysis
+    analysis: RunAnalysis | None  #: None for a run of closed-loop cells only
     lines: list[str]
 
 
@@ -96,14 +96,30 @@ def publish(run: FinishedRun, report_dir: Path, *, signing_key: Ed25519PrivateKe
     from .outputs import write_outputs
     from .terminal import summary_lines
 
+    if not run.records and run.closed is not None:  # --drivedegrade-loop closed: the closed cells alone
+        return publish_closed(run, report_dir, signing_key)
     analysis = analyse(run)
     cost = cost_of(run)
     completeness = {"complete": False, "missing_shards": list(run.missing_shards)} if run.missing_shards else {}
     cert, written = write_outputs(report_dir, run.provenance, run.records, analysis, run.missing_cells,
                                   gt=run.gt, montage=front_montage(run), completeness=completeness, cost=cost,
-                                  signing_key=signing_key)
+                                  signing_key=signing_key, closed=run.closed)
     lines = [*summary_lines(analysis, run.missing_cells, run.missing_advice), *run.notes]
+    if run.closed is not None:
+        from .closed_outputs import closed_lines
+
+        lines += closed_lines(run.closed.analysis(analysis.verdict.label, run.settings.flat), run.closed)
     if run.missing_shards:
         lines.append(f"INCOMPLETE: shard(s) {', '.join(map(str, run.missing_shards))} missing; the certificate "
                      "says completeness: false")
     return Published(cert, analysis, [*lines, cost_line(cost), written])
+
+
+def publish_closed(run: FinishedRun, report_dir: Path, signing_key: Ed25519PrivateKey | None) -> Published:
+    """A run of closed-loop cells only: its certificate, closed_loop.csv and report (`closed_outputs`)."""
+    from .closed_outputs import publish_closed_only
+
+    assert run.closed is not None
+    cert, lines = publish_closed_only(report_dir, run.provenance, run.closed, run.settings.flat,
+                                      signing_key=signing_key)
+    return Published(cert, None, [*lines, *run.notes])

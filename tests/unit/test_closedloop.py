@@ -161,10 +161,14 @@ def test_the_same_run_twice_is_bit_identical(routes: dict[int, Route]) -> None:
     assert other.trace.tobytes() != first.trace.tobytes()  # the seed reaches the images, hence the path
 
 
-def test_the_planner_gets_only_its_cameras_and_the_route_steps_context(routes: dict[int, Route]) -> None:
+def test_the_planner_gets_the_six_cameras_view_and_the_route_steps_context(routes: dict[int, Route]) -> None:
+    """As in the open loop, `images` names all six cameras; only the declared one is rendered up front (the
+    others on a read: `closedloop.view`)."""
+    from pytest_drivedegrade.constants import CAMERAS
+
     planner = FrontReader()
     run = run_route(planner, routes[0])
-    assert [s[0] for s in planner.seen] == [("CAM_FRONT",)] * run.steps
+    assert [s[0] for s in planner.seen] == [CAMERAS] * run.steps
     assert [s[1] for s in planner.seen] == list(range(run.steps))
     for k, ctx in enumerate(planner.contexts):
         x, y, _ = run.trace[5 * k]  # the pose the planner was called at: every fifth 10 Hz state

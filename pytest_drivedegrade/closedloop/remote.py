@@ -1,0 +1,29 @@
+"""One closed-loop run in a Ray planner actor (`rayactor.PlannerActor.job`): the routes built once per actor,
+the run returned as builtins (`cells.run_to_builtins`) with its seconds, so the controller's record is the one a
+local run writes, bit for bit."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..planning import Planner
+from ..run import RunContext
+from .cells import run_to_builtins
+from .routes import Route, load_routes
+from .simulate import Corruption, Timings, run_route
+
+#: The routes of each data root this actor drives (one in practice), built on its first run.
+_ROUTES: dict[str, dict[str, Route]] = {}
+
+
+def drive_one(context: RunContext, planner: Planner, *, family: str, severity: int, route: str, seed: int,
+              plan_every: int, max_steps: int | None) -> dict[str, Any]:
+    """Run (route, seed) of a cell with this actor's planner: {"run": builtins, "seconds": {...}}."""
+    root = str(context.reader.root)
+    if root not in _ROUTES:
+        _ROUTES[root] = {r.name: r for r in load_routes(context.reader.root)}
+    timings = Timings()
+    result = run_route(planner, _ROUTES[root][route], Corruption(family, severity), seed, timings,
+                       plan_every=plan_every, max_steps=max_steps)
+    return {"run": run_to_builtins(result), "seconds": {"render": timings.render, "plan": timings.plan,
+                                                         "track": timings.track, "score": timings.score}}
