@@ -1,0 +1,210 @@
+"""Issue 20, part B (unit level): bad data is a data error naming file and row (M9), an image is refused by its
+header before decoding (L5), and the content fingerprint covers the CAN bus and map expansion files."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pytest_drivedegrade.data import content
+from pytest_drivedegrade.data.images import MAX_PIXELS, declared_size, decode_rgb
+from pytest_drivedegrade.data.nuscenes import NuScenesReader
+from pytest_drivedegrade.errors import DataError
+
+
+@pytest.fixture(scope="module")
+def tables_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """3 scenes, tables, CAN bus and maps only (no images: nothing here decodes one)."""
+    from pytest_drivedegrade.data.world import write_world
+
+    return write_world(tmp_path_factory.mktemp("w20b"), scenes=3, seed=1, val_images=False)
+
+
+@pytest.fixture()
+def world(tables_world: Path, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(tables_world, tmp_path / "world", copy_function=shutil.copy2))
+
+
+def _table(root: Path, name: str) -> Path:
+    return next(root.glob(f"v1.0-*/{name}.json"))
+
+
+def _edit(root: Path, name: str, change: Callable[[list[dict]], None]) -> Path:
+    path = _table(root, name)
+    rows = json.loads(path.read_text())
+    change(rows)
+    path.write_text(json.dumps(rows))
+    return path
+
+
+def _read(root: Path) -> list:
+    return NuScenesReader(root, split="all").scorable_frames()
+
+
+def _first_camera_row(rows: list[dict]) -> dict:
+    return next(r for r in rows if "/CAM_FRONT/" in r["filename"])
+
+
+def _set_filename(suffix: str) -> Callable[[list[dict]], None]:
+    def change(rows: list[dict]) -> None:
+        row = _first_camera_row(rows)
+        row["filename"] += suffix
+    return change
+
+
+# -- M9: seven kinds of bad data, each a data error naming the file and the row --------------------------------
+
+def test_m9_a_nul_in_a_file_name_is_a_data_error_naming_the_row(world: Path) -> None:
+    token = _first_camera_row(json.loads(_table(world, "sample_data").read_text()))["token"]
+    _edit(world, "sample_data", _set_filename("\x00.jpg"))
+    with pytest.raises(DataError, match=rf"sample_data\.json: the record with token '{token}': .*NUL"):
+        _read(world)
+
+
+def test_m9_a_file_name_that_is_not_utf8_is_a_data_error_naming_the_row(world: Path) -> None:
+    """A lone surrogate: how Python carries a name's bytes that are not UTF-8 (JSON's \\udcff escape)."""
+    token = _first_camera_row(json.loads(_table(world, "sample_data").read_text()))["token"]
+    _edit(world, "sample_data", _set_filename("\udcff"))
+    with pytest.raises(DataError, match=rf"sample_data\.json: the record with token '{token}': .*not UTF-8"):
+        _read(world)
+
+
+@pytest.mark.parametrize(("table", "text"), [("sample", "[" * 50_000 + "]" * 50_000),
+                                              ("scene", '[{"a":' * 50_000 + "1" + "}" * 50_000 + "]")],
+                         ids=["arrays", "objects"])
+def test_m9_deeply_nested_json_in_a_table_is_a_data_error(world: Path, table: str, text: str) -> None:
+    _table(world, table).write_text(text)
+    with pytest.raises(DataError, match=rf"unreadable nuScenes table .*{table}\.json: JSON nested too deeply"):
+        _read(world)
+
+
+@pytest.mark.parametrize(("table", "field", "value", "expected"), [
+    ("sample_annotation", "size", [1.0], "3 numbers"),
+    ("ego_pose", "translation", ["a", 1.0, 2.0], "3 numbers"),
+    ("ego_pose", "rotation", [1.0, 0.0, 0.0], "4 numbers"),
+    ("calibrated_sensor", "camera_intrinsic", [[1.0, 0.0], [0.0, 1.0]], "3 lists of 3 numbers"),
+])
+def test_m9_malformed_json_in_a_table_is_a_data_error_naming_file_and_row(world: Path, table: str, field: str,
+                                                                           value: list, expected: str) -> None:
+    """A pose, a size or an intrinsic matrix of the wrong shape (an IndexError or a ValueError deep in the reader
+    before): the table file, the record's token and the field are named."""
+    rows = json.loads(_table(world, table).read_text())
+    row = next(r for r in rows if r.get(field))
+    _edit(world, table, lambda rs: next(r for r in rs if r["token"] == row["token"]).__setitem__(field, value))
+    with pytest.raises(DataError, match=rf"{table}\.json: the record with token '{row['token']}' has {field}=.*"
+                                        rf"expected {expected}"):
+        _read(world)
+
+
+def test_m9_a_lidar_without_intrinsics_is_not_malformed(world: Path) -> None:
+    """nuScenes gives its lidar and radars an empty camera_intrinsic: that is the format, not a fault."""
+    assert any(r["camera_intrinsic"] == [] for r in json.loads(_table(world, "calibrated_sensor").read_text()))
+    assert _read(world)
+
+
+@pytest.mark.parametrize(("data", "what"), [
+    (b'{"utime": 1}', r"is a JSON dict, not a list of records"),
+    (b"[\xff]", r"unreadable CAN bus file .*: 'utf-8' codec"),
+    (b"[" * 50_000, r"unreadable CAN bus file .*: JSON nested too deeply"),
+    (b"[1, 2]", r"record 0 \(1\) is not an object"),
+    (b'[{"utime": 1, "vel": [1.0], "accel": [0, 0, 0], "rotation_rate": [0, 0, 0]}]', r"record 0 .* is not"),
+    (b'[{"utime": 1, "vel": [0, 0, 0], "accel": [0, 0, 0]}]', r"three numbers in each of vel, accel, rotation"),
+], ids=["object", "not-utf8", "nested", "numbers", "short-vel", "no-rotation-rate"])
+def test_m9_a_malformed_can_bus_file_is_a_data_error_naming_file_and_record(world: Path, data: bytes,
+                                                                             what: str) -> None:
+    can = world / "can_bus" / "scene-0002_pose.json"
+    can.write_bytes(data)
+    with pytest.raises(DataError, match=what) as info:
+        _read(world)
+    assert "scene-0002_pose.json" in str(info.value)
+    assert "delete the file" in str(info.value)  # what to do
+
+
+@pytest.mark.parametrize("data", [b"{nope", b"[1]", b'{"\xff": 1}', b'{"fingerprint": "x", "splits": 3}',
+                                  b'{"splits": {"val": ["scene-0003"]}}'])
+def test_m9_a_malformed_world_manifest_is_a_data_error(world: Path, data: bytes) -> None:
+    (world / "drivedegrade_world.json").write_bytes(data)
+    with pytest.raises(DataError, match=r"(unreadable|malformed) world manifest .*drivedegrade_world\.json.*"
+                                        r"regenerate the world"):
+        _read(world)
+
+
+def test_m9_a_malformed_map_expansion_nested_too_deeply_is_a_data_error(world: Path) -> None:
+    reader = NuScenesReader(world, split="all")
+    location = reader.scorable_frames()[0].location
+    (world / "maps" / "expansion" / f"{location}.json").write_text("[" * 50_000)
+    with pytest.raises(DataError, match=r"unreadable map expansion .*: JSON nested too deeply"):
+        reader.drivable_area(location)
+
+
+# -- L5: a decompression bomb is refused by its header -----------------------------------------------------------
+
+def _encoded(ext: str, width: int, height: int, **params: int) -> bytes:
+    flags = [cv2.IMWRITE_JPEG_PROGRESSIVE, params.get("progressive", 0)] if ext == ".jpg" else []
+    ok, buf = cv2.imencode(ext, np.zeros((height, width, 3), np.uint8), flags)
+    assert ok
+    return buf.tobytes()
+
+
+@pytest.mark.parametrize(("ext", "progressive"), [(".jpg", 0), (".jpg", 1), (".png", 0)])
+def test_l5_the_declared_size_is_read_from_the_header(ext: str, progressive: int) -> None:
+    assert declared_size(_encoded(ext, 53, 37, progressive=progressive)) == (53, 37)
+    assert declared_size(b"BM" + bytes(60)) is None  # another format: left to the decoder
+
+
+def _bomb(ext: str, width: int, height: int) -> bytes:
+    """A small image whose header declares width x height (a decompression bomb)."""
+    data = bytearray(_encoded(ext, 16, 16))
+    if ext == ".png":
+        data[16:24] = width.to_bytes(4, "big") + height.to_bytes(4, "big")
+        return bytes(data)
+    at = 2
+    while data[at + 1] not in (0xC0, 0xC2):
+        at += 2 + int.from_bytes(data[at + 2:at + 4], "big")
+    data[at + 5:at + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    return bytes(data)
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_l5_a_decompression_bomb_is_refused_by_its_header_before_decoding(ext: str, tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / f"bomb{ext}"
+    path.write_bytes(_bomb(ext, 60_000, 60_000))
+    assert declared_size(path.read_bytes()) == (60_000, 60_000)
+    decoded: list[int] = []
+    monkeypatch.setattr(cv2, "imdecode", lambda *a: decoded.append(1))  # never reached
+    with pytest.raises(DataError, match=r"declares 60000 x 60000 pixels, more than .*refused by its header"):
+        decode_rgb(path, "f1")
+    with pytest.raises(DataError, match=r"wrong-size image .*\(frame f1\): 60000 x 60000 pixels.*say 1600 x 900.*"
+                                        r"refused by its header"):
+        decode_rgb(path, "f1", (1600, 900))
+    assert decoded == []
+    assert 60_000 * 60_000 > MAX_PIXELS > 1600 * 900 * 10
+
+
+# -- the content fingerprint covers the CAN bus and map expansion files of the scored scenes --------------------
+
+@pytest.mark.parametrize("folder", ["can_bus", "maps/expansion"])
+def test_the_content_fingerprint_covers_can_bus_and_map_expansion_files(world: Path, folder: str) -> None:
+    """Mutations 'CAN bus files skipped' and 'map expansion files skipped' (issue 20): one byte more in the scored
+    scene's file changes the fingerprint; the same change in a scene the run does not score does not."""
+    reader = NuScenesReader(world, split="val")
+    frames = reader.scorable_frames()
+    scene, location = frames[0].scene_name, frames[0].location
+    assert location and {f.scene_name for f in frames} == {scene}
+    before = content.content_fingerprint(reader, frames)
+    name = f"{scene}_pose.json" if folder == "can_bus" else f"{location}.json"
+    others = [p for p in (world / folder).glob("*.json") if p.name != name]
+    assert len(others) == 2
+    for other in others:  # unscored scenes' files
+        other.write_bytes(other.read_bytes() + b" ")
+    assert content.content_fingerprint(reader, frames) == before
+    scored = world / folder / name
+    scored.write_bytes(scored.read_bytes() + b" ")  # still valid JSON: only its content changed
+    assert content.content_fingerprint(reader, frames) != before
