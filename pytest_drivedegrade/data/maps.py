@@ -138,4 +138,7 @@ def load_drivable_area(root: str | os.PathLike[str], location: str) -> DrivableA
     if not location or not path.is_file():
         return None
     data = read_json(path, "map expansion", "re-extract or regenerate the map")
+    if not isinstance(data, dict):
+        raise DataError(f"map expansion {path} is a JSON {type(data).__name__}, not an object; re-extract or "
+                        "regenerate the map")
     return parse_drivable_area(data, location, str(path))
