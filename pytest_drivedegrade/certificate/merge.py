@@ -31,6 +31,10 @@ MANIFEST = "shard.json"
 #: Manifest fields besides the settings (`RunSettings.same_run`) that every shard of one run shares.
 SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "spec_version", "count", "frames_total", "cells")
 
+#: The manifest fields the merge reads, with their JSON types (checked before any is used).
+MANIFEST_TYPES: dict[str, type] = {"index": int, "count": int, "frames_total": int, "cells": list, "key": dict,
+                                   "planner": str, "settings": dict}
+
 
 @dataclass(frozen=True)
 class ShardResult:
@@ -67,6 +71,11 @@ def load_shard(folder: Path) -> ShardResult:
                                                f"version reads {SHARD_SCHEMA}): rerun the shard with this version "
                                                "(its finished cells are reused)" if older else
                                                f"not a drivedegrade shard manifest (schema {SHARD_SCHEMA})"))
+    bad = [k for k, kind in MANIFEST_TYPES.items() if not isinstance(manifest.get(k), kind)
+           or isinstance(manifest.get(k), bool)]
+    if bad or not all(isinstance(c, str) for c in manifest["cells"]):
+        raise DriveDegradeError(f"{path}: a malformed shard manifest ({', '.join(bad or ['cells'])} missing or of "
+                                "the wrong type): rerun that shard (its finished cells are reused)")
     try:
         settings = RunSettings.from_builtins(manifest["settings"])
     except (KeyError, TypeError, DriveDegradeError) as exc:
@@ -94,6 +103,33 @@ def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, C
         if parts and len(parts) == len(shards):
             records[cell] = CellRecord.concat(parts)
     return records
+
+
+def shard_frames(shard: ShardResult) -> list[str]:
+    """The frame tokens a shard scored (every cell of it has the same), as its cell records say."""
+    seen = {tuple(p.record.frames) for p in shard.payloads.values()}
+    if len(seen) > 1:
+        raise DriveDegradeError(f"{shard.folder}: its cells hold different frames; rerun that shard "
+                                "(--drivedegrade-no-resume)")
+    return list(seen.pop()) if seen else []
+
+
+def check_frames(shards: Sequence[ShardResult], *, complete: bool) -> None:
+    """The shards' frames are disjoint and, when every shard is there, are the run's `frames_total` (issue 20
+    M5: a copy of one shard relabelled as another would otherwise count its frames twice and merge as complete)."""
+    owner: dict[str, int] = {}
+    for s in shards:
+        index = s.manifest["index"]
+        for token in shard_frames(s):
+            if token in owner:
+                raise DriveDegradeError(f"shards {owner[token]} and {index} both hold frame {token} (is one a copy "
+                                        f"of the other, relabelled?): shards of one run are disjoint; rerun shard "
+                                        f"{index} (--drivedegrade-shard {index}/{s.manifest['count']})")
+            owner[token] = index
+    total = shards[0].manifest["frames_total"]
+    if complete and len(owner) != total:
+        raise DriveDegradeError(f"the shards hold {len(owner)} frame(s) but the run scores {total}: a shard is "
+                                "truncated or not of this run; rerun the shards and merge again")
 
 
 def _joined(parts: Sequence[Any]) -> np.ndarray | None:
@@ -141,6 +177,7 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
+    check_frames(shards, complete=not missing_shards)
     records = _records(shards, cells)
     if "clean" not in records:
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
