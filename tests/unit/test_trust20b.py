@@ -208,3 +208,63 @@ def test_the_content_fingerprint_covers_can_bus_and_map_expansion_files(world: P
     scored = world / folder / name
     scored.write_bytes(scored.read_bytes() + b" ")  # still valid JSON: only its content changed
     assert content.content_fingerprint(reader, frames) != before
+
+
+# -- L1: the three outputs are published as a set ---------------------------------------------------------------
+
+def _outputs(folder: Path) -> dict[str, bytes]:
+    return {name: (folder / name).read_bytes() for name in ("certificate.json", "cells.csv", "report.html")}
+
+
+@pytest.mark.parametrize("fail_at", [1, 2, 3])
+def test_l1_a_crash_between_the_outputs_leaves_the_previous_set_whole(tmp_path: Path, fail_at: int,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The run is published once; a second publish of another run dies while writing its `fail_at`-th file
+    (the disk fills, the process is killed): every output is still the first run's, and no temporary is left."""
+    import os
+
+    from test_publish import KEY, finished
+
+    from pytest_drivedegrade.certificate.seal import run_provenance
+    from pytest_drivedegrade.report.publish import publish
+    from pytest_drivedegrade.settings import RunSettings
+
+    publish(finished(), tmp_path)
+    folder = tmp_path / "demo"
+    before = _outputs(folder)
+    other = RunSettings(frames=8, seed=4, flat=0.95, batch=4, reuse=False)
+    second = finished(settings=other, provenance=run_provenance(other, planner_name="demo", key=KEY, frames=8,
+                                                                frames_unscored=0, command="pytest"))
+    calls = {"n": 0}
+    real = os.fsync
+
+    def dying(fd: int) -> None:
+        calls["n"] += 1
+        if calls["n"] == fail_at:
+            raise OSError(28, "No space left on device")
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", dying)
+    with pytest.raises(OSError, match="No space left"):
+        publish(second, tmp_path)
+    assert _outputs(folder) == before
+    assert sorted(p.name for p in folder.iterdir()) == ["cells.csv", "certificate.json", "report.html"]
+    monkeypatch.setattr(os, "fsync", real)
+    publish(second, tmp_path)  # and without the crash the whole new set replaces it
+    after = _outputs(folder)
+    assert all(after[name] != before[name] for name in before)
+
+
+def test_l1_a_set_is_renamed_in_order_after_every_file_is_written(tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from pytest_drivedegrade.atomic import atomic_write_set
+
+    events: list[str] = []
+    real_replace, real_fsync = os.replace, os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (events.append("write"), real_fsync(fd))[1])
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(Path(b).name), real_replace(a, b))[1])
+    atomic_write_set({tmp_path / "a.csv": b"1", tmp_path / "sub" / "b.json": b"2"})
+    assert events == ["write", "write", "a.csv", "b.json"]
+    assert (tmp_path / "a.csv").read_bytes() == b"1" and (tmp_path / "sub" / "b.json").read_bytes() == b"2"
