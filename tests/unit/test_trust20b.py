@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -268,3 +269,37 @@ def test_l1_a_set_is_renamed_in_order_after_every_file_is_written(tmp_path: Path
     atomic_write_set({tmp_path / "a.csv": b"1", tmp_path / "sub" / "b.json": b"2"})
     assert events == ["write", "write", "a.csv", "b.json"]
     assert (tmp_path / "a.csv").read_bytes() == b"1" and (tmp_path / "sub" / "b.json").read_bytes() == b"2"
+
+
+# -- L3: the signature covers the values as stored, not as rounded again -----------------------------------------
+
+def test_l3_a_value_edited_below_the_rounding_no_longer_verifies_its_signature() -> None:
+    """A signed certificate whose clean L2 is edited by 4e-7 (below the 6-decimal rounding) and resealed (the digest
+    is no secret): the digest verifies, the signature must not. The stored values are the rounded ones, so an
+    untouched certificate verifies, and signing did not change a single stored value."""
+    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+    from test_publish import finished
+
+    from pytest_drivedegrade.certificate.seal import compute_digest, seal, verify_data
+    from pytest_drivedegrade.certificate.signing import SignatureFailure, sign, verify_signature
+    from pytest_drivedegrade.report.outputs import write_outputs
+    from pytest_drivedegrade.report.publish import analyse
+
+    run, key = finished(), Ed25519PrivateKey.generate()
+    with tempfile.TemporaryDirectory() as tmp:
+        unsigned, _ = write_outputs(Path(tmp), run.provenance, run.records, analyse(run), (), gt=run.gt,
+                                    montage=None)
+    signed = seal(sign(unsigned, key))
+    assert {k: v for k, v in signed.items() if k not in ("signature", "digest", "section_digests")} == \
+        {k: v for k, v in unsigned.items() if k not in ("digest", "section_digests")}
+    assert verify_signature(verify_data(signed), key.public_key())
+
+    forged = json.loads(json.dumps(signed))
+    cell = forged["cells"][0]
+    l2 = cell["l2_avg"]
+    assert isinstance(l2, float) and round(l2, 6) == l2
+    cell["l2_avg"] = l2 + 4e-7
+    forged["digest"] = compute_digest(forged)
+    assert verify_data(forged)  # the digest is recomputed by anyone
+    with pytest.raises(SignatureFailure, match="changed after signing"):
+        verify_signature(forged, key.public_key())
