@@ -303,3 +303,19 @@ def test_l3_a_value_edited_below_the_rounding_no_longer_verifies_its_signature()
     assert verify_data(forged)  # the digest is recomputed by anyone
     with pytest.raises(SignatureFailure, match="changed after signing"):
         verify_signature(forged, key.public_key())
+
+
+# -- new-user (c): the negative-gap sentence only when the gap's interval excludes 0 ----------------------------
+
+@pytest.mark.parametrize(("interval", "said"), [((-0.012, 0.009), False), ((-0.02, -0.0001), True), (None, True)])
+def test_new_user_c_the_negative_gap_is_said_only_when_its_interval_excludes_zero(interval, said: bool) -> None:
+    """A gap of -0.0008 whose 95 % interval holds 0 is not a planner misled by corrupted pixels: no flag, no
+    sentence. Without an interval (no bootstrap) the gap alone decides, as before."""
+    from pytest_drivedegrade.scoring.records import Axes, AxisIntervals
+    from pytest_drivedegrade.scoring.verdict import verdict
+
+    axes = Axes(0.9712, 0.972, -0.0008, 0.9716,
+                intervals=None if interval is None else AxisIntervals(gap=interval))
+    v = verdict(axes, 0.95)
+    assert v.label == "not-shown-to-use-cameras"
+    assert v.negative_gap is said and ("Negative gap (-0.001)" in v.text) is said
