@@ -319,3 +319,46 @@ def test_new_user_c_the_negative_gap_is_said_only_when_its_interval_excludes_zer
     v = verdict(axes, 0.95)
     assert v.label == "not-shown-to-use-cameras"
     assert v.negative_gap is said and ("Negative gap (-0.001)" in v.text) is said
+
+
+# -- new-user (a): a planner far worse than the ego-only floor gets a loud warning -------------------------------
+
+@pytest.mark.parametrize(("floor", "warned"), [([0.1, 0.2], True), ([0.25, 0.3], False), ([3.0, 3.0], False),
+                                               ([0.01, 0.02], True)])
+def test_new_user_a_a_planner_far_worse_than_the_floor_is_warned_loudly(tmp_path: Path, floor: list[float],
+                                                                       warned: bool) -> None:
+    """Clean L2 0.393 m: against a floor of 0.15 m (2.6x, 0.24 m above) or 0.015 m the terminal summary (right
+    under the verdict) and the report say so; against 0.275 m (1.4x) or 3.0 m they do not. The certificate is
+    unchanged: it is a warning, not a figure."""
+    from test_publish import finished
+
+    from pytest_drivedegrade.certificate.finished import FloorFigures
+    from pytest_drivedegrade.report.publish import publish
+
+    out = publish(finished(floor=FloorFigures.of(floor)), tmp_path)
+    clean = next(s.l2_avg for s in out.analysis.summaries if s.cell == "clean")
+    ratio, above = clean / np.mean(floor), clean - np.mean(floor)
+    assert warned is bool(ratio > 2.0 and above > 0.1)
+    warning = [line for line in out.lines if line.startswith("WARNING: the planner is far worse than the ego-only")]
+    assert bool(warning) is warned
+    html = (tmp_path / "demo" / "report.html").read_text()
+    assert ("far worse than the ego-only floor" in html) is warned
+    if warned:
+        assert out.lines.index(warning[0]) == 1 and "miswired adapter" in warning[0]
+        assert f"clean L2 {clean:.3f} m, floor {np.mean(floor):.3f} m" in warning[0]
+    assert "WARNING" not in json.dumps(out.certificate)  # a warning, not a recorded figure
+
+
+def test_new_user_a_a_tiny_difference_is_not_warned_however_large_the_ratio() -> None:
+    """Floor 0.01 m, clean 0.05 m: 5x, but 4 cm is no sign of a miswired adapter (the 0.1 m margin)."""
+    from types import SimpleNamespace
+
+    from pytest_drivedegrade.report.terminal import floor_warning
+
+    def analysis(clean: float, floor: float) -> SimpleNamespace:
+        return SimpleNamespace(summaries=[SimpleNamespace(cell="clean", l2_avg=clean)],
+                               floor=SimpleNamespace(l2_avg=floor))
+
+    assert floor_warning(analysis(0.05, 0.01)) is None  # type: ignore[arg-type]
+    assert floor_warning(analysis(3.30, 0.34)).startswith("WARNING")  # type: ignore[arg-type, union-attr]
+    assert floor_warning(analysis(float("nan"), 0.34)) is None  # type: ignore[arg-type]
