@@ -76,7 +76,9 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
         if p.stale and not p.resumed:
             stale.setdefault(p.stale, []).append(c)
     for fields, cells in sorted(stale.items()):
-        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else ""
+        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else \
+            " (they took the clean plan on some frames; this run has --drivedegrade-no-reuse)" if fields == "reuse" \
+            else ""
         lines.append(f"not reused: {len(cells)} stored cell(s) recomputed because their run key differs in "
                      f"{fields}{why}: {', '.join(sorted(cells))}")
     return lines

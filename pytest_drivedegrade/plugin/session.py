@@ -68,7 +68,8 @@ class DriveDegradeSession:
         self.baseline = baseline
         self.cells = run_order(options.families, options.severities, ego=options.ego)
         shard = options.settings.shard
-        self.store = ResultStore(options.report_dir, shard.label if shard else None, resume=options.resume)
+        self.store = ResultStore(options.report_dir, shard.label if shard else None, resume=options.resume,
+                                 reuse=options.settings.reuse)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run

@@ -147,3 +147,25 @@ def test_m6_a_baseline_under_a_shard_is_refused(dd, two_scene_world: Path, tmp_p
     err = result.stderr.str()
     assert "--drivedegrade-baseline: a shard cannot be gated" in err and "drivedegrade merge" in err
     assert "Traceback" not in err
+
+
+PLANNERS = Path(__file__).resolve().parents[2] / "planners"
+
+
+def test_new_user_b_settings_reuse_and_cost_reused_agree_on_a_resumed_run(dd) -> None:
+    """camera_cnn takes the clean plan on frame_dropout frames whose inputs equal clean's. Rerun with
+    --drivedegrade-no-reuse, the stored frame_dropout cell (which reused) is computed again, every frame
+    predicted, so the certificate does not say reuse: false beside reused > 0; clean (nothing reused) resumes."""
+    kw = {"planner": str(PLANNERS / "camera_cnn.py"), "families": "frame_dropout", "severities": "1"}
+    dd.run("-p", "no:xdist", **kw).assert_outcomes(passed=4)
+    first = load_json(dd.folder("camera_cnn") / "certificate.json")
+    assert first["settings"]["reuse"] is True and first["cost"]["reused"] > 0
+    result = dd.run("-p", "no:xdist", "--drivedegrade-no-reuse", **kw)
+    result.assert_outcomes(passed=4)
+    cert = load_json(dd.folder("camera_cnn") / "certificate.json")
+    assert cert["settings"]["reuse"] is False and cert["cost"]["reused"] == 0
+    assert cert["cost"]["cells"]["frame_dropout-s1"]["predictions"] == cert["dataset"]["frames"]
+    assert "frame_dropout-s1" not in cert["cost"]["resumed_cells"] and "clean" in cert["cost"]["resumed_cells"]
+    result.stdout.fnmatch_lines(["*recomputed because their run key differs in reuse (they took the clean plan on "
+                                 "some frames; this run has --drivedegrade-no-reuse): frame_dropout-s1*"])
+    assert [c["plans_digest"] for c in cert["cells"]] == [c["plans_digest"] for c in first["cells"]]
