@@ -152,9 +152,11 @@ def _front_image(front: Sequence[str] | None) -> tuple[str, np.ndarray] | None:
         return None
 
 
-def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> FinishedRun:
+def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "",
+                 root: Path | None = None) -> FinishedRun:
     """Join shard folders into one finished run (`report.publish.publish` writes its outputs); DriveDegradeError
-    when they are not one run or a shard is missing (unless `allow_incomplete`)."""
+    when they are not one run or a shard is missing (unless `allow_incomplete`). With `root`, the data set's
+    path is recorded relative to it."""
     if not folders:
         raise DriveDegradeError("no shard folders given")
     shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
@@ -186,7 +188,8 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
                             _joined([s.manifest.get("floor_ego_blind_l2") for s in shards]))
     prov = run_provenance(settings, planner_name=first["planner"], key=first["key"],
                           frames=len(records["clean"].frames), frames_unscored=first.get("frames_unscored"),
-                          command=command, planner_file=str(first.get("planner_file", "")), recorded=first)
+                          command=command, planner_file=str(first.get("planner_file", "")), recorded=first,
+                          root=root)
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),

@@ -169,3 +169,29 @@ def test_new_user_b_settings_reuse_and_cost_reused_agree_on_a_resumed_run(dd) ->
     result.stdout.fnmatch_lines(["*recomputed because their run key differs in reuse (they took the clean plan on "
                                  "some frames; this run has --drivedegrade-no-reuse): frame_dropout-s1*"])
     assert [c["plans_digest"] for c in cert["cells"]] == [c["plans_digest"] for c in first["cells"]]
+
+
+def test_new_user_d_no_output_holds_an_absolute_path(dd, tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Planner, report folder and data set given as absolute paths: the certificate, report, CSV and cell files
+    record them relative to rootdir (pytester's rootdir is the folder above its test folder, which holds the
+    world too); no output holds the absolute path of any of them."""
+    dd.write_planner()
+    root = dd.pytester.path
+    report = root / "out"
+    result = dd.run("-p", "no:xdist", "--drivedegrade-report", str(report), planner=str(root / "myplanner.py"))
+    result.assert_outcomes(passed=9)
+    folder = report / "testplanner"
+    cert = load_json(folder / "certificate.json")
+    rootdir = Path(result.stdout.str().split("rootdir: ", 1)[1].split()[0].rstrip(","))
+    inside = root.relative_to(rootdir).as_posix()
+    assert cert["planner"]["file"] == f"{inside}/myplanner.py"
+    assert cert["dataset"]["source"] == dd.world.relative_to(rootdir).as_posix()
+    command = cert["tool"]["command"]
+    assert f"pytest --drivedegrade {inside}/myplanner.py " in command and f" --drivedegrade-report {inside}/out" in \
+        command
+    outputs = [folder / "certificate.json", folder / "report.html", folder / "cells.csv",
+               *sorted((folder / "cells").glob("*.json"))]
+    for path in outputs:
+        text = path.read_text()
+        for secret in (str(rootdir), str(Path.home())):
+            assert secret not in text, (path.name, secret)

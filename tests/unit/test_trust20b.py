@@ -362,3 +362,21 @@ def test_new_user_a_a_tiny_difference_is_not_warned_however_large_the_ratio() ->
     assert floor_warning(analysis(0.05, 0.01)) is None  # type: ignore[arg-type]
     assert floor_warning(analysis(3.30, 0.34)).startswith("WARNING")  # type: ignore[arg-type, union-attr]
     assert floor_warning(analysis(float("nan"), 0.34)) is None  # type: ignore[arg-type]
+
+
+# -- new-user (d): paths relative to rootdir -----------------------------------------------------------------------
+
+def test_new_user_d_paths_are_shown_relative_to_rootdir_or_by_name(tmp_path: Path) -> None:
+    from pytest_drivedegrade.settings import RunSettings, shown_arg, shown_path
+
+    root = tmp_path / "repo"
+    (root / "planners").mkdir(parents=True)
+    assert shown_path(root / "planners" / "p.py", root) == "planners/p.py"
+    assert shown_path("/home/alice/data/nuscenes", root) == ".../nuscenes"
+    assert shown_path("planners/p.py", root) == "planners/p.py"  # relative: as given
+    assert shown_arg(f"--drivedegrade-report={root}/out", root) == "--drivedegrade-report=out"
+    assert shown_arg("/srv/ci.key", root) == ".../ci.key" and shown_arg("-k", root) == "-k"
+    assert shown_arg("--drivedegrade-families=jpeg", root) == "--drivedegrade-families=jpeg"
+    settings = RunSettings(data=Path("/data/sets/nuscenes"))
+    assert settings.shown_source(root) == ".../nuscenes" and settings.data_source == "/data/sets/nuscenes"
+    assert RunSettings().shown_source(root) == "embedded world"
