@@ -195,3 +195,61 @@ def test_new_user_d_no_output_holds_an_absolute_path(dd, tmp_path_factory: pytes
         text = path.read_text()
         for secret in (str(rootdir), str(Path.home())):
             assert secret not in text, (path.name, secret)
+
+
+CHANGING = '''
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+MARKER, VERSION = {marker!r}, Path({version!r})
+CALLS = 0
+
+
+class Changing:
+    """Declares its weights' version (read when built) as its fingerprint; with MARKER present, its 7th
+    prediction installs new weights (the version file changes) and kills its process, so Ray replaces it."""
+
+    cameras = ("CAM_FRONT",)
+    name = "changing"
+
+    def __init__(self):
+        self.fingerprint = VERSION.read_text()
+
+    def predict(self, images, ego, cmd):
+        global CALLS
+        CALLS += 1
+        if CALLS == 7 and os.path.exists(MARKER):
+            os.remove(MARKER)
+            VERSION.write_text("weights-v2")
+            os._exit(1)
+        plan = np.arange(1, 7)[:, None] * 0.5 * np.array(ego.velocity, dtype=float)
+        plan[:, 1] += float(images["CAM_FRONT"][::8, ::8].mean()) / 255.0
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return Changing()
+'''
+
+
+@pytest.mark.xdist_group("ray")
+def test_l6_a_replacement_ray_actor_with_another_fingerprint_fails_loudly(dd, two_scene_world: Path) -> None:
+    """An actor dies after the planner's weights changed on disk: its replacement builds a planner with another
+    fingerprint, and the run stops naming it, rather than mixing cells of two planners under one certificate."""
+    pytest.importorskip("ray")
+    marker, version = dd.pytester.path / "kill-once", dd.pytester.path / "version.txt"
+    version.write_text("weights-v1")
+    marker.write_text("")
+    dd.pytester.makepyfile(changing=CHANGING.format(marker=str(marker), version=str(version)))
+    result = dd.run("--drivedegrade-ray", "local", "--drivedegrade-frames", "8", planner="changing.py",
+                    data=two_scene_world, families="jpeg,blackout", severities="5", report="ray", subprocess=True)
+    assert not marker.exists()  # an actor did die mid-run
+    out = result.stdout.str() + result.stderr.str()
+    assert "the replacement of Ray actor" in out and "built a planner with another fingerprint than the run's" in out
+    assert result.ret != 0
+    cert = dd.pytester.path / "ray" / "changing" / "certificate.json"
+    assert not cert.exists() or load_json(cert)["completeness"]["complete"] is False

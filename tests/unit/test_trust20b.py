@@ -380,3 +380,55 @@ def test_new_user_d_paths_are_shown_relative_to_rootdir_or_by_name(tmp_path: Pat
     settings = RunSettings(data=Path("/data/sets/nuscenes"))
     assert settings.shown_source(root) == ".../nuscenes" and settings.data_source == "/data/sets/nuscenes"
     assert RunSettings().shown_source(root) == "embedded world"
+
+
+# -- the contract: known answers for the 1 km bound and a data fault the planner caught ---------------------------
+
+@pytest.mark.parametrize(("waypoint", "distance"), [((3.0, 1000.5), "1000.5 m"), ((-800.0, 800.0), "1131.37 m"),
+                                                    ((0.0, -1200.0), "1200 m")])
+def test_the_contract_bounds_the_distance_not_each_coordinate(waypoint: tuple[float, float], distance: str) -> None:
+    """Mutation 'the 1 km bound checks |x| only': a waypoint 1 km sideways, or 800 m along both axes (1131 m
+    away, each coordinate inside 1 km), breaks the contract; (700, 700) at 990 m does not."""
+    from pytest_drivedegrade.errors import PlannerOutputError
+    from pytest_drivedegrade.planning import validate_output
+
+    plan = np.cumsum(np.full((6, 2), 0.5), axis=0)
+    plan[3] = waypoint
+    with pytest.raises(PlannerOutputError, match=f"waypoint {distance} from the ego at step 3"):
+        validate_output(plan, "tok")
+    plan[3] = (700.0, 700.0)
+    assert validate_output(plan, "tok")[3].tolist() == [700.0, 700.0]
+
+
+class _CatchesDataFaults:
+    """Reads the front camera, and when the image cannot be produced (a data fault) catches the error and plans
+    from ego status alone: the plan is a good one, the frame is still the data's fault."""
+
+    cameras = ("CAM_FRONT",)
+    name = "catcher"
+
+    def __init__(self) -> None:
+        self.caught = 0
+
+    def predict(self, images: dict, ego: object, cmd: object) -> np.ndarray:
+        try:
+            images["CAM_FRONT"]
+        except DataError:
+            self.caught += 1
+        return np.cumsum(np.full((6, 2), 0.5), axis=0)
+
+
+def test_a_data_fault_the_planner_caught_and_planned_around_is_not_a_good_frame(world: Path) -> None:
+    """Mutation 'a data fault the planner caught is scored as a good frame': the world without its images; the
+    planner catches every missing-image error and returns a valid plan, yet every frame is a data error (NaN,
+    named), none a scored frame."""
+    from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
+
+    context = RunContext.open(RunSettings(data=world, split="all", frames=4, timeout=0.0))
+    planner = _CatchesDataFaults()
+    record = context.run_cell(planner, "clean", 0)
+    assert planner.caught == len(record.frames) == 4
+    assert len(record.data_errors) == 4 and not record.errors
+    assert all("missing image" in e and "CAM_FRONT" in e for e in record.data_errors)
+    assert np.isnan(record.l2).all()
