@@ -190,6 +190,8 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
                           frames=len(records["clean"].frames), frames_unscored=first.get("frames_unscored"),
                           command=command, planner_file=str(first.get("planner_file", "")), recorded=first,
                           root=root)
+    if isinstance(first.get("data_source"), str):  # as the shard's run recorded it, relative to its rootdir
+        prov = replace(prov, data_source=first["data_source"])
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
@@ -209,7 +211,8 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "settings": settings.to_builtins(),
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "tool_version": provenance.tool_version, "versions": dict(provenance.versions),
-            "planner_file": provenance.planner_file, "cells": list(cells), "missing_cells": list(missing),
+            "planner_file": provenance.planner_file, "data_source": provenance.data_source, "cells": list(cells),
+            "missing_cells": list(missing),
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
             "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],
             "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,
