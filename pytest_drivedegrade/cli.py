@@ -133,11 +133,13 @@ def _merge(args: argparse.Namespace) -> int:
     """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
     from .certificate.merge import merge_shards
     from .report.publish import publish
+    from .settings import shown_arg
 
-    command = "drivedegrade merge " + " ".join(args.shards) + f" --out {args.out}"
+    here = Path.cwd()
+    command = "drivedegrade merge " + " ".join(shown_arg(a, here) for a in [*args.shards, "--out", args.out])
     key = _merge_signing_key(args)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
-                          command=command + (" --allow-incomplete" if args.allow_incomplete else ""))
+                          command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here)
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
     return 0

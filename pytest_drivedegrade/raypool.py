@@ -321,6 +321,13 @@ class RayPool:
             if "error" in info or info["frames_key"] != self.described["frames_key"]:
                 raise DriveDegradeError(f"the replacement of Ray actor {slot.number} could not build the planner: "
                                         f"{info.get('error', 'it reads other frames')}")
+            if info.get("fingerprint") != self.described.get("fingerprint") or \
+                    info.get("dataset_fingerprint") != self.described.get("dataset_fingerprint"):
+                what = "planner" if info.get("fingerprint") != self.described.get("fingerprint") else "data set"
+                raise DriveDegradeError(f"the replacement of Ray actor {slot.number} (pid {info.get('pid')}) built a "
+                                        f"{what} with another fingerprint than the run's: its cells would mix two "
+                                        f"{what}s, so the run stops (was the planner's file, weights or data changed "
+                                        "during the run?); rerun once they are settled")
         except DriveDegradeError as exc:
             self.broken = str(exc)
             return

@@ -22,6 +22,25 @@ from .errors import DriveDegradeError, InvalidInput
 EMBEDDED_WORLD = "embedded world"
 _SHARD = re.compile(r"^\s*(\d+)\s*/\s*(\d+)\s*$")
 
+def shown_path(path: str | Path, root: Path) -> str:
+    """A path as a published output records it (issue 20): relative to `root` (pytest's rootdir, or the folder
+    `drivedegrade merge` runs in) when inside it, else ``.../<its name>``, so a certificate or report never
+    reveals the user's file system. A relative path is kept as given."""
+    given = Path(path)
+    if not given.is_absolute():
+        return given.as_posix()
+    try:
+        return given.resolve().relative_to(Path(root).resolve()).as_posix()
+    except (ValueError, OSError):
+        return f".../{given.name}"
+
+
+def shown_arg(arg: str, root: Path) -> str:
+    """A command-line argument with an absolute path in it (``/p`` or ``--option=/p``) shown by `shown_path`."""
+    head, sep, tail = arg.partition("=") if arg.startswith("-") else ("", "", arg)
+    return head + sep + shown_path(tail, root) if tail.startswith("/") else arg
+
+
 #: A setting's value as builtins: what JSON, xdist and Ray carry.
 Builtin = str | int | float | bool | None
 
@@ -83,6 +102,10 @@ class RunSettings:
     def data_source(self) -> str:
         """The data set as the certificate's ``dataset.source`` names it."""
         return EMBEDDED_WORLD if self.data is None else str(self.data)
+
+    def shown_source(self, root: Path | None) -> str:
+        """`data_source` as a published output records it: by `shown_path` under `root` (None: as is)."""
+        return self.data_source if self.data is None or root is None else shown_path(self.data, root)
 
     def value(self, name: str) -> object:
         return getattr(self, name)

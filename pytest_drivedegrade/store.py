@@ -22,10 +22,14 @@ from .errors import InvalidInput
 class ResultStore:
     """`<report>/<planner>/cells/`, or `<report>/<planner>/<shard label>/cells/` for one shard of a run."""
 
-    def __init__(self, report_dir: Path, shard: str | None = None, *, resume: bool = True) -> None:
+    def __init__(self, report_dir: Path, shard: str | None = None, *, resume: bool = True,
+                 reuse: bool = True) -> None:
         self.report_dir, self.shard = Path(report_dir), shard
         #: False (--drivedegrade-no-resume): every read finds nothing, so every cell is computed again
         self.resume = resume
+        #: False (--drivedegrade-no-reuse): a stored cell that took the clean plan on a frame is computed again,
+        #: so the certificate's settings.reuse false and cost.reused agree (issue 20)
+        self.reuse = reuse
         #: cell -> why its stored record was not reused although present: its content digest failed
         self.digest_failures: dict[str, str] = {}
         #: cell -> the run-key fields in which its stored result differed (so it was not reused), comma-separated
@@ -61,6 +65,9 @@ class ResultStore:
             return None
         if dict(payload.key) != dict(key):
             self.stale[cell] = ", ".join(sorted(k for k in {*payload.key, *key} if payload.key.get(k) != key.get(k)))
+            return None
+        if not self.reuse and any(int(getattr(r, "reused", 0)) for r in payload.record.runs()):
+            self.stale[cell] = "reuse"
             return None
         return payload
 

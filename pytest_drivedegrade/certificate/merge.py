@@ -31,6 +31,10 @@ MANIFEST = "shard.json"
 #: Manifest fields besides the settings (`RunSettings.same_run`) that every shard of one run shares.
 SAME_RUN = ("planner", "planner_fingerprint", "dataset_fingerprint", "spec_version", "count", "frames_total", "cells")
 
+#: The manifest fields the merge reads, with their JSON types (checked before any is used).
+MANIFEST_TYPES: dict[str, type] = {"index": int, "count": int, "frames_total": int, "cells": list, "key": dict,
+                                   "planner": str, "settings": dict}
+
 
 @dataclass(frozen=True)
 class ShardResult:
@@ -67,6 +71,11 @@ def load_shard(folder: Path) -> ShardResult:
                                                f"version reads {SHARD_SCHEMA}): rerun the shard with this version "
                                                "(its finished cells are reused)" if older else
                                                f"not a drivedegrade shard manifest (schema {SHARD_SCHEMA})"))
+    bad = [k for k, kind in MANIFEST_TYPES.items() if not isinstance(manifest.get(k), kind)
+           or isinstance(manifest.get(k), bool)]
+    if bad or not all(isinstance(c, str) for c in manifest["cells"]):
+        raise DriveDegradeError(f"{path}: a malformed shard manifest ({', '.join(bad or ['cells'])} missing or of "
+                                "the wrong type): rerun that shard (its finished cells are reused)")
     try:
         settings = RunSettings.from_builtins(manifest["settings"])
     except (KeyError, TypeError, DriveDegradeError) as exc:
@@ -100,6 +109,33 @@ def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, C
     return records
 
 
+def shard_frames(shard: ShardResult) -> list[str]:
+    """The frame tokens a shard scored (every cell of it has the same), as its cell records say."""
+    seen = {tuple(p.record.frames) for p in shard.payloads.values()}
+    if len(seen) > 1:
+        raise DriveDegradeError(f"{shard.folder}: its cells hold different frames; rerun that shard "
+                                "(--drivedegrade-no-resume)")
+    return list(seen.pop()) if seen else []
+
+
+def check_frames(shards: Sequence[ShardResult], *, complete: bool) -> None:
+    """The shards' frames are disjoint and, when every shard is there, are the run's `frames_total` (issue 20
+    M5: a copy of one shard relabelled as another would otherwise count its frames twice and merge as complete)."""
+    owner: dict[str, int] = {}
+    for s in shards:
+        index = s.manifest["index"]
+        for token in shard_frames(s):
+            if token in owner:
+                raise DriveDegradeError(f"shards {owner[token]} and {index} both hold frame {token} (is one a copy "
+                                        f"of the other, relabelled?): shards of one run are disjoint; rerun shard "
+                                        f"{index} (--drivedegrade-shard {index}/{s.manifest['count']})")
+            owner[token] = index
+    total = shards[0].manifest["frames_total"]
+    if complete and len(owner) != total:
+        raise DriveDegradeError(f"the shards hold {len(owner)} frame(s) but the run scores {total}: a shard is "
+                                "truncated or not of this run; rerun the shards and merge again")
+
+
 def _joined(parts: Sequence[Any]) -> np.ndarray | None:
     """The shards' per-frame values joined in order (None when a shard has none)."""
     if not parts or any(p is None for p in parts):
@@ -120,9 +156,11 @@ def _front_image(front: Sequence[str] | None) -> tuple[str, np.ndarray] | None:
         return None
 
 
-def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "") -> FinishedRun:
+def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "",
+                 root: Path | None = None) -> FinishedRun:
     """Join shard folders into one finished run (`report.publish.publish` writes its outputs); DriveDegradeError
-    when they are not one run or a shard is missing (unless `allow_incomplete`)."""
+    when they are not one run or a shard is missing (unless `allow_incomplete`). With `root`, the data set's
+    path is recorded relative to it."""
     if not folders:
         raise DriveDegradeError("no shard folders given")
     shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
@@ -145,6 +183,7 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
+    check_frames(shards, complete=not missing_shards)
     records = _records(shards, cells)
     closed = closed_of_shards(shards, settings)
     if "clean" not in records and (cells or closed is None):
@@ -155,7 +194,10 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     prov = run_provenance(settings, planner_name=first["planner"], key=first["key"],
                           frames=len(records["clean"].frames) if "clean" in records else 0,
                           frames_unscored=first.get("frames_unscored"),
-                          command=command, planner_file=str(first.get("planner_file", "")), recorded=first)
+                          command=command, planner_file=str(first.get("planner_file", "")), recorded=first,
+                          root=root)
+    if isinstance(first.get("data_source"), str):  # as the shard's run recorded it, relative to its rootdir
+        prov = replace(prov, data_source=first["data_source"])
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
@@ -223,7 +265,8 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "settings": settings.to_builtins(),
             "frames": provenance.frames, "frames_total": frames_total, "frames_unscored": provenance.frames_unscored,
             "tool_version": provenance.tool_version, "versions": dict(provenance.versions),
-            "planner_file": provenance.planner_file, "cells": list(cells), "missing_cells": list(missing),
+            "planner_file": provenance.planner_file, "data_source": provenance.data_source, "cells": list(cells),
+            "missing_cells": list(missing),
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
             "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],
             "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,

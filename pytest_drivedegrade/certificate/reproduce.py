@@ -97,10 +97,12 @@ def data_root(cert: Mapping[str, Any], data: str | None, cwd: Path) -> Path | No
     source = str(cert["dataset"].get("source") or "embedded world")
     if source == "embedded world":
         return find_default_world(cwd)
-    if not Path(source).is_dir():
-        raise DriveDegradeError(f"the certificate was made on the data set {source}, which is not on this machine: "
-                                "pass its root with --data PATH")
-    return Path(source)
+    # recorded relative to the run's rootdir (or by name only, outside it): this folder or one above it
+    found = next((d / source for d in (Path(cwd), *Path(cwd).parents) if (d / source).is_dir()), Path(source))
+    if not found.is_dir():
+        raise DriveDegradeError(f"the certificate was made on the data set {source} (recorded relative to its run's "
+                                "rootdir), which is not on this machine: pass its root with --data PATH")
+    return found.resolve()
 
 
 def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], report_dir: Path,

@@ -91,11 +91,12 @@ def runtime_versions() -> dict[str, str | None]:
 
 def run_provenance(settings: RunSettings, *, planner_name: str, key: Mapping[str, object], frames: int,
                    frames_unscored: int | None, command: str, planner_file: str = "",
-                   recorded: Mapping[str, Any] | None = None) -> Provenance:
+                   recorded: Mapping[str, Any] | None = None, root: Path | None = None) -> Provenance:
     """The one way a run's `Provenance` is built: from its settings (split, seed, data source, frames asked
     for, timeout), its run key (the planner's and the data's fingerprints) and
     the frames it scored. The ladder's, the tool's and the libraries' versions are this process's, or, with
-    `recorded` (a shard manifest), those the cells were computed with."""
+    `recorded` (a shard manifest), those the cells were computed with. With `root`, the data set's path is
+    recorded relative to it (`RunSettings.shown_source`)."""
     if recorded is None:
         from .. import __version__
         from ..corruptions.ladder import SPEC_VERSION
@@ -104,7 +105,7 @@ def run_provenance(settings: RunSettings, *, planner_name: str, key: Mapping[str
     return Provenance(planner_name=planner_name, planner_fingerprint=str(key["planner_fingerprint"]),
                       dataset_fingerprint=str(key["dataset_fingerprint"]), split=settings.split,
                       spec_version=str(recorded["spec_version"]), seed=settings.seed, frames=frames,
-                      frames_unscored=frames_unscored, data_source=settings.data_source,
+                      frames_unscored=frames_unscored, data_source=settings.shown_source(root),
                       command=command, tool_version=str(recorded.get("tool_version", "")),
                       frames_requested=settings.frames, timeout=settings.timeout,
                       versions=recorded.get("versions") or {}, planner_file=planner_file)

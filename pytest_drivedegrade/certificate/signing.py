@@ -54,8 +54,11 @@ def _crypto() -> ModuleType:
 
 
 def signed_body(cert: Mapping[str, object]) -> bytes:
-    """The exact bytes a signature is taken over: the canonical body of `cert`."""
-    return canonical_json(canonicalize({k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}))
+    """The exact bytes a signature is taken over: the body of `cert` as stored, in canonical JSON. Not rounded
+    again here (issue 20 L3): `sign` rounds the values to the stored form (`canonicalize`, 6 decimals, the form
+    the verdict is decided on) before it signs, so a stored value edited below that rounding (0.919 ->
+    0.9190004) no longer verifies."""
+    return canonical_json({k: v for k, v in cert.items() if k not in UNSIGNED_KEYS})
 
 
 def fingerprint(public_key: Ed25519PublicKey) -> str:
@@ -191,7 +194,7 @@ def load_public_key(path: str | os.PathLike[str]) -> Ed25519PublicKey:
 
 def sign(cert: Mapping[str, object], private_key: Ed25519PrivateKey) -> dict[str, Any]:
     """`cert` with its ``signature`` section (seal it afterwards: the digest then covers the signature)."""
-    body = {k: v for k, v in cert.items() if k not in UNSIGNED_KEYS}
+    body = canonicalize({k: v for k, v in cert.items() if k not in UNSIGNED_KEYS})  # the stored form
     sig = private_key.sign(signed_body(body))
     return {**body, "signature": {"algorithm": ALGORITHM, "public_key_fingerprint": fingerprint(
         private_key.public_key()), "signature": base64.b64encode(sig).decode("ascii")}}

@@ -14,7 +14,6 @@ polygon's holes (even-odd rule per ring); polygons may overlap, the area is thei
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import DataError
+from .tables import read_json
 
 #: Where a data root keeps the map expansion, one JSON file per location (the log table's `location`).
 EXPANSION_DIR = ("maps", "expansion")
@@ -137,10 +137,10 @@ def load_drivable_area(root: str | os.PathLike[str], location: str) -> DrivableA
     path = expansion_path(root, location)
     if not location or not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"unreadable map expansion {path}: {exc}; re-extract or regenerate the map") from exc
+    data = read_json(path, "map expansion", "re-extract or regenerate the map")
+    if not isinstance(data, dict):
+        raise DataError(f"map expansion {path} is a JSON {type(data).__name__}, not an object; re-extract or "
+                        "regenerate the map")
     return parse_drivable_area(data, location, str(path))
 
 
@@ -293,8 +293,7 @@ def load_lane_map(root: str | os.PathLike[str], location: str) -> LaneMap | None
     path = expansion_path(root, location)
     if not location or not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DataError(f"unreadable map expansion {path}: {exc}; re-extract or regenerate the map") from exc
+    data = read_json(path, "map expansion", "re-extract or regenerate the map")
+    if not isinstance(data, dict):
+        raise DataError(f"map expansion {path} is not a JSON object; re-extract or regenerate the map")
     return parse_lane_map(data, location, str(path))

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import json
 import os
 from collections import Counter, defaultdict
 from collections.abc import Iterator, Sequence
@@ -27,7 +26,7 @@ from ..errors import DataError
 from . import geometry as geo
 from .frame import AgentBoxes, CameraInfo, Command, EgoStatus, Frame, command_from_future
 from .maps import DrivableArea, load_drivable_area
-from .tables import REQUIRED_TABLES, confined, load_table
+from .tables import REQUIRED_TABLES, confined, load_can_bus, load_manifest, load_table
 
 WORLD_MANIFEST = "drivedegrade_world.json"
 #: The `skipped` reason of keyframes that are read but not scored (fewer than six future keyframes).
@@ -80,8 +79,7 @@ class NuScenesReader:
         self.split, self.strict = split, strict
         self.skipped: Counter[str] = Counter()
         self.problems: list[str] = []
-        manifest = self.root / WORLD_MANIFEST
-        self.manifest = json.loads(manifest.read_text()) if manifest.is_file() else None
+        self.manifest = load_manifest(self.root / WORLD_MANIFEST)
         self._index()
 
     def _detect_version(self) -> str:
@@ -236,12 +234,7 @@ class NuScenesReader:
         path = self.root / "can_bus" / f"{scene_name}_pose.json"
         if not path.is_file():
             return None
-        try:
-            records = json.loads(path.read_text())
-        except json.JSONDecodeError:
-            self.problems.append(f"unreadable CAN bus file {path}; using ego_pose differences")
-            return None
-        return records or None
+        return load_can_bus(path) or None
 
     def _frame(self, scene: dict, tokens: list[str], poses: Sequence[np.ndarray], k: int,
                can: list[dict] | None) -> Frame | None:

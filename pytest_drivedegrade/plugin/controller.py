@@ -79,7 +79,9 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
         if p.stale and not p.resumed:
             stale.setdefault(p.stale, []).append(c)
     for fields, cells in sorted(stale.items()):
-        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else ""
+        why = " (the scored frames' files changed)" if "dataset_fingerprint" in fields else \
+            " (they took the clean plan on some frames; this run has --drivedegrade-no-reuse)" if fields == "reuse" \
+            else ""
         lines.append(f"not reused: {len(cells)} stored cell(s) recomputed because their run key differs in "
                      f"{fields}{why}: {', '.join(sorted(cells))}")
     return lines
@@ -121,11 +123,10 @@ def floor_frames(config: pytest.Config, context: RunContext, split: str, lines: 
 
 def planner_file(config: pytest.Config, path: Path) -> str:
     """The planner file (or conftest.py) as the certificate records it: relative to rootdir when inside it, so
-    a moved checkout keeps it."""
-    try:
-        return path.resolve().relative_to(Path(config.rootpath).resolve()).as_posix()
-    except ValueError:
-        return path.resolve().as_posix()
+    a moved checkout keeps it; else only its name (`shown_path`: no absolute path is published)."""
+    from ..settings import shown_path
+
+    return shown_path(path.resolve(), Path(config.rootpath))
 
 
 def provenance(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
@@ -133,7 +134,7 @@ def provenance(config: pytest.Config, options: RunOptions, context: RunContext, 
     """What makes the run traceable, for the certificate, cells.csv and a shard's manifest."""
     return run_provenance(options.settings, planner_name=run.planner, key=run.key, frames=len(context.frames),
                           frames_unscored=context.frames_unscored, command=_command(config),
-                          planner_file=planner_file)
+                          planner_file=planner_file, root=Path(config.rootpath))
 
 
 def coverage_lines(path: Path | None) -> list[str]:
@@ -215,10 +216,13 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
 
 
 def _command(config: pytest.Config) -> str:
-    """The command line as recorded: a signing key option's value redacted (`keys.recorded_args`)."""
+    """The command line as recorded: a signing key option's value redacted (`keys.recorded_args`), absolute paths
+    relative to rootdir (`shown_arg`)."""
+    from ..settings import shown_arg
     from .keys import recorded_args
 
-    return "pytest " + " ".join(recorded_args(config.invocation_params.args, Path(config.invocation_params.dir)))
+    here, root = Path(config.invocation_params.dir), Path(config.rootpath)
+    return "pytest " + " ".join(shown_arg(a, root) for a in recorded_args(config.invocation_params.args, here))
 
 
 def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:

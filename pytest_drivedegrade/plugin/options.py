@@ -364,9 +364,14 @@ def parse(config: pytest.Config) -> RunOptions:
     if public_key and not baseline:
         raise _fail("drivedegrade_baseline_public_key", "a public key to check the baseline with, but no "
                     "--drivedegrade-baseline: pass the baseline certificate too, or drop the key")
+    settings = _settings(config, here)
+    if baseline and settings.shard is not None:  # issue 20 M6: a shard's frames are not the baseline's run
+        raise _fail("drivedegrade_baseline", "a shard cannot be gated: the baseline covers the whole run, a shard "
+                    f"only its part of the frames ({settings.shard}). Run the shards without "
+                    "--drivedegrade-baseline and merge them (drivedegrade merge), or gate the whole run unsharded")
     return RunOptions(
         planner_path=planner_path,
-        settings=_settings(config, here),
+        settings=settings,
         families=tuple(f for f in FAMILIES if f in families),
         severities=tuple(sorted(set(severities))),
         report_dir=(here / str(value(config, "drivedegrade_report") or "reports")).resolve(),

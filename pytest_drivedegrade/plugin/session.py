@@ -91,7 +91,8 @@ class DriveDegradeSession:
         self.closed_state = ClosedState()  # the closed loop's routes and clean cell, once per process
         self.closed_received: dict[str, ClosedPayload] = {}  # controller: closed cell -> payload
         shard = options.settings.shard
-        self.store = ResultStore(options.report_dir, shard.label if shard else None, resume=options.resume)
+        self.store = ResultStore(options.report_dir, shard.label if shard else None, resume=options.resume,
+                                 reuse=options.settings.reuse)
         self.context: RunContext | None = None  # opened lazily, once per process
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run

@@ -29,6 +29,7 @@ from ..scoring.records import (
     RunAnalysis,
     format_value,
 )
+from .terminal import floor_warning
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
@@ -124,7 +125,8 @@ def _context(analysis: RunAnalysis, provenance: Provenance, charts: dict[str, st
             "axes": axes, "ranges": ranges, "confidence": verdict.confidence,
             "borderline": verdict.borderline, "missing": list(ax.missing), "null": analysis.null_control,
             "floor": {k: _fmt(v) for k, v in analysis.floor.to_builtins().items()}, "settings": analysis.settings,
-            "thresholds": thresholds, "cells": cells, "charts": charts, **extra}
+            "thresholds": thresholds, "cells": cells, "charts": charts, "floor_warning": floor_warning(analysis),
+            **extra}
 
 
 def _threshold_cells(t: FamilyThresholds) -> dict[str, str]:

@@ -23,13 +23,16 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
                   completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
                   signing_key: Ed25519PrivateKey | None = None,
                   closed: ClosedRun | None = None) -> tuple[dict[str, Any], str]:
-    """Write the three files and return (the sealed certificate, a line saying what was written). `missing`
+    """Write the three files (four with closed-loop cells) as one set (`atomic_write_set`: all rendered and
+    written to temporaries first, the certificate renamed last, so a crash on the way leaves the previous set
+    whole, issue 20 L1) and return (the sealed certificate, a line saying what was written). `missing`
     cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
     `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
     before it is sealed, so its digest covers the signature."""
-    from ..certificate.seal import build_certificate, seal, write_certificate
-    from .cells_csv import write_cells_csv
-    from .html import trajectory_examples, write_report
+    from ..atomic import atomic_write_set
+    from ..certificate.seal import build_certificate, certificate_text, seal
+    from .cells_csv import cells_csv_text
+    from .html import render_report, trajectory_examples
 
     folder = Path(report_dir) / prov.planner_name
     cert = build_certificate(analysis, prov, records=records)
@@ -43,23 +46,28 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
 
         cert = sign(cert, signing_key)
     cert = seal(cert)
-    write_certificate(folder / "certificate.json", cert)
-    write_cells_csv(folder / "cells.csv", analysis, prov)
-    write_report(folder / "report.html", analysis, prov, montage=montage,
-                 trajectories=trajectory_examples(records, gt, analysis.summaries),
-                 created=cert.get("created", ""), digest=cert["digest"], cost=cost,
-                 signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")),
-                 **_closed_report(folder, prov.planner_name, closed, analysis))
+    extra, closed_html = _closed_report(prov.planner_name, closed, analysis)
+    html = render_report(analysis, prov, montage=montage,
+                         trajectories=trajectory_examples(records, gt, analysis.summaries),
+                         created=cert.get("created", ""), digest=cert["digest"], cost=cost,
+                         signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")),
+                         closed_html=closed_html)
+    atomic_write_set({folder / "cells.csv": cells_csv_text(analysis, prov).encode("utf-8"),
+                      **{folder / name: text.encode("utf-8") for name, text in extra.items()},
+                      folder / "report.html": html.encode("utf-8"),
+                      folder / "certificate.json": certificate_text(cert).encode("utf-8")})
     return cert, f"wrote {folder / 'report.html'}, cells.csv" + (", closed_loop.csv" if closed else "") + \
         " and certificate.json"
 
 
-def _closed_report(folder: Path, planner: str, closed: ClosedRun | None, analysis: RunAnalysis) -> dict[str, str]:
-    """closed_loop.csv written; the report's closed-loop section as a keyword of `write_report` (none without)."""
+def _closed_report(planner: str, closed: ClosedRun | None,
+                   analysis: RunAnalysis) -> tuple[dict[str, str], str]:
+    """(closed_loop.csv's text by its file name, the report's closed-loop section); both empty without
+    closed-loop cells."""
     if closed is None:
-        return {}
+        return {}, ""
     from .closed_html import closed_fragment
-    from .closed_outputs import write_closed_csv
+    from .closed_outputs import closed_csv_text
 
-    write_closed_csv(folder, planner, closed)
-    return {"closed_html": closed_fragment(closed.analysis(analysis.verdict.label, analysis.verdict.flat), closed)}
+    return ({"closed_loop.csv": closed_csv_text(planner, closed)},
+            closed_fragment(closed.analysis(analysis.verdict.label, analysis.verdict.flat), closed))

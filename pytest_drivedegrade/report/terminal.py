@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 from ..scoring.records import AXES, Axes, RunAnalysis, format_value
@@ -72,6 +73,27 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
     return lines
 
 
+#: A planner whose clean L2 is above this many times the ego-only floor's, and above it by `WORSE_MARGIN` m, is
+#: warned about: a floor that reads no camera plans far better, which points to a miswired adapter.
+WORSE_FACTOR = 2.0
+WORSE_MARGIN = 0.1
+
+
+def floor_warning(analysis: RunAnalysis) -> str | None:
+    """The loud warning for a planner far worse than the ego-only floor on clean frames (issue 20, new user:
+    3.30 m against the floor's 0.34 m), or None. Not a verdict: the figures stay as measured."""
+    clean = next((s.l2_avg for s in analysis.summaries if s.cell == "clean"), None)
+    floor = analysis.floor.l2_avg
+    if clean is None or floor is None or not (math.isfinite(clean) and math.isfinite(floor)) or floor <= 0:
+        return None
+    if clean <= WORSE_FACTOR * floor or clean - floor <= WORSE_MARGIN:
+        return None
+    return (f"WARNING: the planner is far worse than the ego-only floor on clean frames (clean L2 {clean:.3f} m, "
+            f"floor {floor:.3f} m, {clean / floor:.1f}x): a planner that reads no camera does better. This usually "
+            "means a miswired adapter: camera order, RGB/BGR colour order, units (metres, pixels), the ego frame's "
+            "axes or the trajectory's time steps. Retention measured on a planner that does not plan says little.")
+
+
 def summary_lines(analysis: RunAnalysis, missing: Sequence[str], advice: str = "") -> list[str]:
     """The terminal summary's head: verdict, axes, controls, floor, the retention table, missing cells (with
     `advice`, what to do about them; by default rerunning the same command)."""
@@ -90,6 +112,9 @@ def summary_lines(analysis: RunAnalysis, missing: Sequence[str], advice: str = "
     if clean is not None:
         lines.append(f"clean l2_avg {format_value(clean.l2_avg)} m; ego-only floor l2_avg "
                      f"{format_value(analysis.floor.l2_avg)} m")
+    warning = floor_warning(analysis)
+    if warning:
+        lines.insert(1, warning)  # beside the verdict, not lost below the table
     lines += retention_table(analysis)
     lines += interval_lines(analysis)
     if missing:

@@ -76,7 +76,7 @@ def verdict(axes: Axes, flat: float = DEFAULT_FLAT) -> Verdict:
 
     quality >= flat and removal >= flat -> not-shown-to-use-cameras; quality >= flat > removal ->
     quality-insensitive; quality < flat -> camera-reliant (case "both-below" or "quality-only").
-    "undetermined" when a missing axis leaves the label open. A negative gap is flagged.
+    "undetermined" when a missing axis leaves the label open. A negative gap is flagged (`negative_gap`).
     """
     # Compared at the certificate's precision (6 decimals), so a reader of the certificate reaches the same label.
     q, r, gap = (None if v is None else round(v, 6) for v in (axes.quality, axes.removal, axes.gap))
@@ -99,12 +99,22 @@ def verdict(axes: Axes, flat: float = DEFAULT_FLAT) -> Verdict:
     else:
         label, case = "undetermined", "axis-missing"
         text = f"Undetermined: an axis could not be computed from the cells run ({nums}); run every family at S5."
-    negative = gap is not None and gap < 0
+    negative = negative_gap(gap, axes.interval("gap"))
     if negative:
         text += (f" Negative gap ({gap:.3f}): degraded images hurt more than removed cameras, which usually means "
                  "the planner is misled by corrupted pixels rather than helped by missing ones.")
     return Verdict(label=label, case=case, flat=float(flat), text=text, negative_gap=bool(negative),
                    computed_label=label)
+
+
+def negative_gap(gap: float | None, interval: tuple[float | None, float | None] | None) -> bool:
+    """A negative gap worth a sentence (issue 20): below 0 and, where the bootstrap gave the gap an interval, that
+    interval below 0 too (a gap of -0.0008 whose interval holds 0 is noise, not a planner misled by pixels).
+    Without an interval (no resamples, or axes on PDMS) the gap itself decides, as before."""
+    if gap is None or gap >= 0:
+        return False
+    high = interval[1] if interval is not None else None
+    return high is None or round(high, 6) < 0
 
 
 #: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default) or PDMS retention.
