@@ -76,15 +76,16 @@ def layout(request: pytest.FixtureRequest) -> tuple[str, ...]:
     return request.param
 
 
-@pytest.mark.parametrize("kind", sorted(MEMOISERS))
-def test_m12_a_memoising_planner_is_never_certified_not_shown_to_use_cameras(dd, layout, kind):
+@pytest.mark.parametrize(("kind", "workers"), [*((k, "0") for k in sorted(MEMOISERS)), ("token", "2"),
+                                              ("ego-reset", "2")])
+def test_m12_a_memoising_planner_is_never_certified_not_shown_to_use_cameras(dd, kind, workers):
     """M12: the planner memoising its plan per frame (by ego status or context.token, with or without a reset
     that keeps the memo) was certified not-shown-to-use-cameras with every axis 1.000 under -n 0 (and under -n 2
     its label hung on which cell a worker ran first). Clean is now planned first in every process, so its blind
     cell equals clean bit for bit wherever it runs while beating the ego-only floor: undetermined, with that
     reason, the axes' label kept as computed_label, and verify agrees."""
     dd.pytester.makepyfile(memo=memo_source(kind))
-    result = dd.run(*layout, planner="memo.py", families=AXIS_FAMILIES, severities="5")
+    result = dd.run("-n", workers, planner="memo.py", families=AXIS_FAMILIES, severities="5")
     no_traceback(result)
     cert = load_json(dd.folder("memo") / "certificate.json")
     v = cert["verdict"]
@@ -95,3 +96,17 @@ def test_m12_a_memoising_planner_is_never_certified_not_shown_to_use_cameras(dd,
     assert cert["floor"]["blind_l2_avg"] < cert["floor"]["l2_avg"]
     result.stdout.fnmatch_lines(["verdict: undetermined - Undetermined: with every camera off (blind)*"])
     assert verify_cli(dd.folder("memo") / "certificate.json").returncode == 0
+
+
+def test_rear_null_control_names_a_secretly_read_rear_camera_end_to_end(dd, layout):
+    """"The rear null-control rule is caught only by a unit test with fakes": a planner that declares CAM_FRONT
+    and reads CAM_BACK, run without the null cell (``-k "clean or jpeg or blackout or blind"``), so that blackout
+    S3 (which blacks out exactly the rear cameras it says it does not read) is the only control: that cell fails,
+    naming CAM_BACK, and no other cell fails."""
+    dd.write_planner(read_back=True)
+    result = dd.run(*layout, "-k", "clean or jpeg or blackout or blind", families="jpeg,blackout", severities="3")
+    no_traceback(result)
+    result.assert_outcomes(passed=3, failed=1)  # clean, jpeg-s3, blind pass; no null cell ran
+    result.stdout.fnmatch_lines(["null control failed in cell blackout-s3: plans are not bit-identical to clean*",
+                                 "*declared-unread camera(s) that change the plan: CAM_BACK; add them to "
+                                 "planner.cameras"], consecutive=True)
