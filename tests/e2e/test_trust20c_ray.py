@@ -22,7 +22,13 @@ no_stray_ray = test_ray.no_stray_ray  # the fixture: no Ray daemon outlives the 
 def test_m12_a_memoising_planner_is_never_certified_not_shown_to_use_cameras_on_ray(dd, no_stray_ray):
     """M12 with the cells' frame groups spread over two actors by a shared queue: without the actors' own clean
     first, a frame first seen by an actor in a later cell would memoise that cell's plan."""
-    dd.pytester.makepyfile(memo=memo_source("token"))
+    source = memo_source("token").replace(  # an actor builds the planner from its RunContext, not from `request`
+        "def planner(request):\n    return Memo(request.config.getoption(\"drivedegrade_data\"), "
+        "request.config.getoption(\"drivedegrade_split\") or \"val\")",
+        "def planner(drivedegrade_context):\n    return Memo(drivedegrade_context.reader.root, "
+        "drivedegrade_context.settings.split)")
+    assert "drivedegrade_context" in source
+    dd.pytester.makepyfile(memo=source)
     result = dd.run(*test_ray.RAY, planner="memo.py", families=AXIS_FAMILIES, severities="5", subprocess=True)
     no_traceback(result)
     result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster*"], consecutive=False)
