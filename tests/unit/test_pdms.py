@@ -177,10 +177,11 @@ def test_being_run_into_from_behind_is_not_the_egos_fault():
 
 
 def test_ttc_projects_the_ego_at_constant_velocity():
-    # the ego brakes at 2 m/s^2 behind a slower lead and keeps 0.3 m: no collision, but at 1.1 s, projected on
-    # for 0.9 s at its speed then, it would have hit the lead
+    # the ego brakes at 2 m/s^2 behind a slower lead and keeps 0.6 m: no collision, but at 1.1 s, projected on
+    # for 0.9 s at its speed then, it would have hit the lead (a projection over d seconds overshoots by d^2 m:
+    # 0.81 m at 0.9 s reaches the lead, 0.36 m at 0.6 s does not, so TTC fails on the 0.9 s projection alone)
     plan = path(10.0 * T - T**2)
-    lead = moving(8.59, 0.0, 6.0)
+    lead = moving(8.89, 0.0, 6.0)
     r = score(plan, plan, agents(lead))
     assert r.nc == 1.0 and r.ttc == 0.0
     far = moving(9.59, 0.0, 6.0)  # 1 m more: the projection falls short
