@@ -81,6 +81,7 @@ class PlannerActor:
         """The cell on frames ``[start, stop)`` of the run, as `CellRecord.to_builtins`."""
         if self.context is None or self.planner is None:
             raise DriveDegradeError("the planner actor was not started")
+        self.context.prime_clean(self.planner)  # clean planned first in this actor too (M12)
         record = self.context.run_cell(self.planner, family, severity, unread=tuple(unread), seed=seed,
                                        span=(start, stop))
         return record.to_builtins()

@@ -110,6 +110,7 @@ class RunContext:
     #: the prefetch thread (`loader.ahead`) and the planner's thread may decode at once: one fills the cache
     _decode_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _clean: dict[int, CellRecord] = field(default_factory=dict)
+    _primed: set[int] = field(default_factory=set)  #: the planners that planned clean in this process
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
 
@@ -227,8 +228,26 @@ class RunContext:
         the baseline gate. `stored` is asked first (a reusable stored result), then it is computed."""
         key = id(planner)
         if key not in self._clean:
-            self._clean[key] = stored() or self.run_cell(planner, "clean", 0)
+            found = stored()
+            if found is None:
+                found = self.run_cell(planner, "clean", 0)
+                self._primed.add(key)
+            self._clean[key] = found
         return self._clean[key]
+
+    def prime_clean(self, planner: AnyPlanner) -> None:
+        """Have the planner plan the clean cell in this process before any other cell (M12): a planner that keeps
+        a plan per frame across calls (a memo) then holds clean's plans in every process (each xdist worker, each
+        Ray actor), so its blind cell equals clean wherever it runs and `scoring.verdict.blind_equals_clean` finds
+        it; a planner that plans each call from its inputs plans the same either way. The clean cell computed here
+        is this process's (`clean_record`) unless it has one. Nothing for a planner that runs elsewhere (each
+        actor primes its own) or one that already planned clean here."""
+        key = id(planner)
+        if isinstance(planner, PlannerElsewhere) or key in self._primed:
+            return
+        self._primed.add(key)
+        record = self.run_cell(planner, "clean", 0)
+        self._clean.setdefault(key, record)
 
     def context_of(self, frame: Frame) -> FrameContext:
         """The frame's read-only context, built once per process (it is the same in every cell)."""

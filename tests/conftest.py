@@ -19,6 +19,25 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 @pytest.fixture(scope="session")
+def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """2 train scenes and 1 val scene with rendered val images (a few seconds, once per test process): the one
+    small world the plugin's end-to-end runs (`plugin_support`) and the content fingerprint tests share. Read
+    only: a test that edits files copies it first."""
+    from pytest_drivedegrade.data.world import write_world
+
+    return write_world(tmp_path_factory.mktemp("w"), scenes=3, seed=1)
+
+
+@pytest.fixture(scope="session")
+def eleven_scene_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """11 scenes (9 train, tables only; 2 val with rendered images), once per test process: shared by the shard
+    runs (tests/e2e/test_shards.py) and the scale tests (tests/unit/test_scale.py). Read only."""
+    from pytest_drivedegrade.data.world import write_world
+
+    return write_world(tmp_path_factory.mktemp("w11"), scenes=11, seed=2)
+
+
+@pytest.fixture(scope="session")
 def nuscenes_frames():
     """camera name -> (path, RGB uint8 1600x900 image) for the one real keyframe."""
     from pytest_drivedegrade.corruptions.preview import camera_of, read_rgb

@@ -27,7 +27,7 @@ from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..corruptions.ladder import FAMILIES
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds, Threshold
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
-from ..scoring.verdict import FamilyGroups, compute_axes, ego_label, verdict
+from ..scoring.verdict import BLIND_EQUALS_CLEAN, FamilyGroups, compute_axes, ego_label, verdict
 from .seal import DIGITS
 
 HALF_UNIT = 0.5 * 10.0 ** -DIGITS  #: the rounding error of one stored number
@@ -239,6 +239,8 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
         if "computed_label" in v and v.get("computed_label") != label:
             problems.append(f"verdict.computed_label: certificate says {v.get('computed_label')!r}, its axes and "
                             f"flat line {flat:g} give {label!r}")
+    elif v.get("case") == BLIND_EQUALS_CLEAN:
+        problems += check_blind_equals_clean(cert, cells, label)
     elif v.get("label") != label:
         problems.append(f"verdict.label: certificate says {v.get('label')!r}, its axes and flat line {flat:g} "
                         f"give {label!r}")
@@ -247,11 +249,33 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
         problems.append(f"verdict.failed_cells: certificate names {shown!r}, but none of its cells has failed "
                         "frames")
     if "ego_label" in v and "ego_removal" in axes:
-        nc_failed = _section(cert, "null_control").get("passed") is False
+        nc_failed = _section(cert, "null_control").get("passed") is False or v.get("case") == BLIND_EQUALS_CLEAN
         expected = "undetermined" if failed or nc_failed else ego_label(_number(axes.get("ego_removal")), flat)
         if v.get("ego_label") != expected:
             problems.append(f"verdict.ego_label: certificate says {v.get('ego_label')!r}, its ego axis gives "
                             f"{expected!r}")
+    return problems
+
+
+def check_blind_equals_clean(cert: Mapping[str, object], cells: Sequence[Cell], label: str) -> list[str]:
+    """M12's case (`scoring.verdict.blind_equals_clean`), as far as the certificate shows it: the label is
+    undetermined, blind's plans digest is clean's, and blind's L2 is below the floor's (the bootstrap interval
+    over per-frame floor errors is not in the certificate, so its bound is taken as recorded)."""
+    v = _section(cert, "verdict")
+    digests = {c.get("cell"): c.get("plans_digest") for c in cells if c.get("cell") in ("clean", "blind")}
+    problems = []
+    if v.get("label") != "undetermined":
+        problems.append(f"verdict.label: certificate says {v.get('label')!r} with case {BLIND_EQUALS_CLEAN!r}, "
+                        "which makes it 'undetermined'")
+    if len(digests) != 2 or digests["clean"] != digests["blind"] or not digests["clean"]:
+        problems.append(f"verdict.case: certificate says {BLIND_EQUALS_CLEAN!r}, but its blind and clean cells do "
+                        "not have the same plans digest")
+    if _section(cert, "floor").get("blind_below_floor") is not True:
+        problems.append(f"verdict.case: certificate says {BLIND_EQUALS_CLEAN!r}, but floor.blind_below_floor is not "
+                        "true")
+    if "computed_label" in v and v.get("computed_label") != label:
+        problems.append(f"verdict.computed_label: certificate says {v.get('computed_label')!r}, its axes give "
+                        f"{label!r}")
     return problems
 
 

@@ -26,10 +26,12 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class FloorFigures:
     """The ego-only floor as the analysis takes it: its clean mean L2 (None when no floor ran) and, when the
-    ego cells ran, its ego_blind retention (``{"ego_removal": ...}``, for the reliance chart)."""
+    ego cells ran, its ego_blind retention (``{"ego_removal": ...}``, for the reliance chart); its clean L2 per
+    frame for the blind-equals-clean check (M12)."""
 
     l2: float | None = None
     extra: Mapping[str, float] = field(default_factory=dict)
+    per_frame: tuple[float, ...] | None = None  #: the clean L2 per scored frame, in the run's frame order
 
     @classmethod
     def of(cls, clean: Sequence[float] | np.ndarray | None,
@@ -38,9 +40,11 @@ class FloorFigures:
         if clean is None:
             return cls()
         l2 = finite_mean(np.asarray(clean, dtype=float))
+        per_frame = tuple(float(v) for v in clean)
         if ego_blind is None:
-            return cls(l2)
-        return cls(l2, {"ego_removal": float(retention(l2, finite_mean(np.asarray(ego_blind, dtype=float))))})
+            return cls(l2, per_frame=per_frame)
+        return cls(l2, {"ego_removal": float(retention(l2, finite_mean(np.asarray(ego_blind, dtype=float))))},
+                   per_frame)
 
 
 @dataclass(frozen=True)

@@ -194,6 +194,7 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
     elif stored is not None:
         record = stored
     else:  # frames whose inputs equal clean's take its plans: the clean cell of this process, computed or stored
+        context.prime_clean(planner)  # clean planned first in every process: a memo holds clean's plans (M12)
         clean = context.clean_record(planner, lambda: stored_record("clean")) \
             if context.reuses_clean(planner, family, severity) else None
         record = context.run_seeded_cell(planner, family, severity, clean=clean)

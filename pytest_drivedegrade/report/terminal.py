@@ -101,7 +101,8 @@ def summary_lines(analysis: RunAnalysis, missing: Sequence[str], advice: str = "
     lines = [f"verdict: {verdict.label} - {verdict.text}", f"axes: {_axes_line(analysis.axes)}"]
     lines += pdms_ego_lines(analysis)
     if verdict.reason:
-        lines.append(f"UNDETERMINED by failed frames: {verdict.reason}")
+        by = {"null-control-failed": "the null control", "blind-equals-clean": "the memo check (blind equals clean)"}
+        lines.append(f"UNDETERMINED by {by.get(verdict.case, 'failed frames')}: {verdict.reason}")
     nc = analysis.null_control
     if nc is not None and nc.passed is None:
         lines.append("null control: not run (no frame produced a plan in both clean and null)")

@@ -20,6 +20,7 @@ from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thre
 from .verdict import (
     VERDICT_METRICS,
     FamilyGroups,
+    blind_equals_clean,
     ego_label,
     failed_cells,
     floor_comparison,
@@ -27,6 +28,7 @@ from .verdict import (
     run_axes,
     separable_from_null,
     undetermined_by_failures,
+    undetermined_by_memo,
     undetermined_by_null_control,
     verdict,
 )
@@ -35,7 +37,8 @@ from .verdict import (
 def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: FamilyGroups | None = None,
                 convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
                 n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
-                intervals: bool = True, metric: str = "l2", floor_ego_removal: float | None = None) -> RunAnalysis:
+                intervals: bool = True, metric: str = "l2", floor_ego_removal: float | None = None,
+                floor_frames: Sequence[float] | None = None) -> RunAnalysis:
     """Every figure of a run from its cell records (in any order; the result does not depend on it).
 
     Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
@@ -71,8 +74,10 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
     ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
     v = run_verdict(ax_pdms if metric == "pdms" else ax, per, metric=metric, flat=flat)
-    return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax,
-                       undetermined_by_null_control(undetermined_by_failures(v, failed), nc), nc,
+    memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
+                              n_resamples=n_resamples if intervals else 0)
+    v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
+    return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms)

@@ -258,3 +258,69 @@ def floor_comparison(floor_l2: float | None, summaries: Sequence[CellSummary], r
 
     return Floor(l2_avg=floor_l2, blackout_s5_l2_avg=at_removal, blackout_s5_below_floor=below(at_removal),
                  blind_l2_avg=blind, blind_below_floor=below(blind), ego_removal=ego_removal)
+
+
+#: The verdict's case when blind equals clean while beating the ego-only floor (M12): a memo, not the cameras.
+BLIND_EQUALS_CLEAN = "blind-equals-clean"
+
+
+@dataclass(frozen=True)
+class BlindEqualsClean:
+    """M12's finding: blind's plans (every camera off) are clean's bit for bit over `frames` frames, while blind's
+    L2 beats the ego-only floor's by `gap` m (floor minus blind, mean over the frames) with the paired bootstrap's
+    95 % interval (`low`, `high`; None without resamples, when the point gap decides alone)."""
+
+    frames: int
+    gap: float
+    low: float | None
+    high: float | None
+
+    def reason(self) -> str:
+        spread = "" if self.low is None else f", 95 % interval {self.low:.3g} .. {self.high:.3g} m"
+        return (f"with every camera off (blind) the plans equal clean's bit for bit on {self.frames} frames, while "
+                f"they beat the ego-only floor by {self.gap:.3g} m L2{spread}")
+
+
+def blind_equals_clean(clean: CellRecord, blind: CellRecord | None, floor_frames: Sequence[float] | None, *,
+                       convention: str = "stp3", n_resamples: int = 0, seed: int = 0) -> BlindEqualsClean | None:
+    """M12: a planner that memoises its plan per frame (keyed by ego status or the frame's token) returns clean's
+    plans in every later cell, so all its axes read 1.000. Blind is where that cannot be the cameras' doing: with
+    no image at all it plans exactly as with clean images, yet better than a planner of ego status alone (the
+    ego-only floor, per frame in `floor_frames`) beyond the paired bootstrap's interval (the lower 2.5 % bound of
+    the mean gap above 0; the point gap when `n_resamples` is 0). The finding, or None when either fails, when
+    blind did not run, or when the floor's frames do not line up with clean's."""
+    if blind is None or floor_frames is None or len(floor_frames) != len(clean.frames):
+        return None
+    both = planned_in_both(clean.plans, blind.plans)
+    if not both.any() or not identical_plans(clean.plans[both], blind.plans[both]):
+        return None
+    gap = np.asarray(floor_frames, dtype=np.float64) - blind.l2_avg_per_frame(convention)
+    gap = gap[both & np.isfinite(gap)]
+    if not gap.size or not float(gap.mean()) > 0:
+        return None
+    if n_resamples <= 0:
+        return BlindEqualsClean(int(both.sum()), float(gap.mean()), None, None)
+    rng = np.random.default_rng(seed)
+    means = gap[rng.integers(0, gap.size, size=(n_resamples, gap.size))].mean(axis=1)
+    low, high = (float(v) for v in np.percentile(means, [2.5, 97.5]))
+    return BlindEqualsClean(int(both.sum()), float(gap.mean()), low, high) if low > 0 else None
+
+
+def undetermined_by_memo(v: Verdict, found: BlindEqualsClean | None) -> Verdict:
+    """The verdict of a run whose blind cell planned as clean while beating the ego-only floor (M12):
+    ``undetermined`` (case `BLIND_EQUALS_CLEAN`), since flat axes then say nothing of the cameras: the planner
+    plans without images better than ego status allows, so its plans come from elsewhere (a plan memoised per frame
+    on first sight, kept across cells). The label the axes give stays as ``computed_label``. Otherwise `v`."""
+    if found is None:
+        return v
+    reason = found.reason()
+    if v.label == "undetermined" and v.case in ("failed-frames", "null-control-failed"):
+        return replace(v, text=f"{v.text} Also {reason}.", reason=f"{v.reason}; {reason}" if v.reason else reason)
+    text = (f"Undetermined: {reason}. Plans that do not move when every camera is removed yet beat a planner of "
+            f"ego status alone did not come from the images of the cell: the planner may remember plans across "
+            f"calls (memoised per frame), which hides any effect of the cameras; the axes give {v.computed_label}, "
+            "but a verdict is not sealed on them. Plan each call from its inputs (state only within a scene, "
+            "cleared by reset()) and rerun; a planner that truly plans from ego status better than the floor gets "
+            "this too.")
+    return replace(v, label="undetermined", case=BLIND_EQUALS_CLEAN, text=text, reason=reason,
+                   ego_label="undetermined", borderline=False)

@@ -217,14 +217,6 @@ _warm_up_matplotlib()
 
 
 @pytest.fixture(scope="session")
-def small_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """2 train scenes and 1 val scene with rendered val images (a few seconds, once)."""
-    from pytest_drivedegrade.data.world import write_world
-
-    return write_world(tmp_path_factory.mktemp("w"), scenes=3, seed=1)
-
-
-@pytest.fixture(scope="session")
 def shared_cache(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One pytest cache folder for every run, so the ego-only floor is trained on the small world once; kept in
     this test session's own cache when it has one (the world is deterministic, so later sessions reuse it)."""

@@ -23,11 +23,9 @@ SAME = ("cells", "thresholds", "axes", "verdict", "floor", "null_control", "spec
 
 
 @pytest.fixture(scope="session")
-def two_scene_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """11 scenes: 9 train (tables only) and 2 val scenes with rendered images."""
-    from pytest_drivedegrade.data.world import write_world
-
-    return write_world(tmp_path_factory.mktemp("w2"), scenes=11, seed=2)
+def two_scene_world(eleven_scene_world: Path) -> Path:
+    """11 scenes: 9 train (tables only) and 2 val scenes with rendered images (`conftest.eleven_scene_world`)."""
+    return eleven_scene_world
 
 
 def run(dd, world, *extra, report):

@@ -14,16 +14,10 @@ from pytest_drivedegrade.run import RunContext
 from pytest_drivedegrade.settings import RunSettings
 
 
-@pytest.fixture(scope="module")
-def world_master(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from pytest_drivedegrade.data.world import write_world
-
-    return write_world(tmp_path_factory.mktemp("w"), scenes=3, seed=1)
-
-
 @pytest.fixture()
-def world(world_master: Path, tmp_path: Path) -> Path:
-    return Path(shutil.copytree(world_master, tmp_path / "world", copy_function=shutil.copy2))
+def world(small_world: Path, tmp_path: Path) -> Path:
+    """A private copy of the shared small world (`conftest.small_world`), which these tests edit."""
+    return Path(shutil.copytree(small_world, tmp_path / "world", copy_function=shutil.copy2))
 
 
 def _open(root: Path, cache: Path | None, frames: int | None = 4) -> RunContext:

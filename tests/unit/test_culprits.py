@@ -64,6 +64,10 @@ class FakeContext:
             self._clean = self.run_cell(planner, "clean", 0)
         return self._clean
 
+    def prime_clean(self, planner: Any) -> None:
+        """Clean first in this process, as `RunContext.prime_clean` (M12)."""
+        self.clean_record(planner)
+
     def run_cell(self, planner: Any, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
                  span: tuple[int, int] | None = None) -> CellRecord:
         unread = unread_cameras(planner.cameras) if unread is None else unread

@@ -19,10 +19,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from pytest_drivedegrade.data.world import write_world
-
-    return write_world(tmp_path_factory.mktemp("wb"), scenes=11, seed=4)
+def world(eleven_scene_world: Path) -> Path:
+    """The shared 11-scene world (`conftest.eleven_scene_world`), read only."""
+    return eleven_scene_world
 
 
 @pytest.fixture(scope="module")

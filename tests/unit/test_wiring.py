@@ -243,6 +243,9 @@ class FakeContext:
             self._clean = stored() or self.run_cell(planner, "clean", 0)
         return self._clean
 
+    def prime_clean(self, planner: Any) -> None:
+        """Nothing: the fake's cells are records, not calls, so there is no planner memo to prime (M12)."""
+
 
 def test_certify_runs_a_cell_once_and_reports_its_properties(tmp_path):
     context = FakeContext({"clean": record("clean", _plans()), "jpeg-s1": record("jpeg-s1", _plans() + 1)})
