@@ -25,7 +25,7 @@ from .data.context import FrameContext
 from .data.frame import EgoStatus, Frame
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
-from .metrics.pdms import PreparedFrame
+from .metrics.pdms import PreparedFrame, score_plans
 from .metrics.trajectory import bit1_density, frame_metrics
 from .pacing import Scorer, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
@@ -303,40 +303,49 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
     per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
     (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice.
-    With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call."""
+    With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call; the PDMS
+    of the cell's plans is scored at its end, their tracking in one batch (`score_plans`)."""
     rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
     clock = _Clock()
+    pending: list[tuple[int, Frame, np.ndarray]] = []
     with Scorer(prefetch_depth(source.settings) > 0) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean)):
             clock.delivered(sample)
-            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock))
+            scorer.submit(partial(_record, rows, i, sample, result, clean, clock, pending))
+    _score_pdms(source, rows, pending, clock)
     return rows.build(clock.total())
 
 
-def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str,
-            clean: CellRecord | None, clock: _Clock) -> None:
-    """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores."""
+def _record(rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str, clean: CellRecord | None,
+            clock: _Clock, pending: list[tuple[int, Frame, np.ndarray]]) -> None:
+    """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores (its PDMS left `pending`)."""
     if isinstance(result, str):
         rows.fail(str(result), data=isinstance(result, DataFault))
     elif sample.reused_from is not None and clean is not None:
         rows.copy_row(i, clean, sample.reused_from)
     else:
-        _score(source, rows, i, sample, result, clock)
+        _score(rows, i, sample, result, clock)
+        pending.append((i, sample.frame, result))
 
 
-def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray,
-           clock: _Clock) -> None:
-    """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read, PDMS."""
+def _score(rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:
+    """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read."""
     start = time.perf_counter()
     m = frame_metrics(plan, sample.frame)
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
-    middle = time.perf_counter()
-    scored = source.pdms_frame(sample.frame).score(plan)
-    rows.put(i, map_scored=float(scored.map_scored), **{k: getattr(scored, k) for k in PDMS_FIELDS})
-    clock.scoring["metrics"] += middle - start
-    clock.scoring["pdms"] += time.perf_counter() - middle
+    clock.scoring["metrics"] += time.perf_counter() - start
+
+
+def _score_pdms(source: Source, rows: RecordBuilder, pending: list[tuple[int, Frame, np.ndarray]],
+                clock: _Clock) -> None:
+    """The PDMS of the cell's scored plans, tracked together (a plan's score does not depend on its batch)."""
+    start = time.perf_counter()
+    scored = score_plans([source.pdms_frame(frame) for _, frame, _ in pending], [plan for *_, plan in pending])
+    for (i, _, _), result in zip(pending, scored):
+        rows.put(i, map_scored=float(result.map_scored), **{k: getattr(result, k) for k in PDMS_FIELDS})
+    clock.spent["pdms"] += time.perf_counter() - start
 
 
 @contextlib.contextmanager
