@@ -28,8 +28,8 @@ DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
 EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
 #: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
-#: (`data_errors`) kept apart from the planner's contract failures (`errors`).
-RECORD_VERSION = 3
+#: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
+RECORD_VERSION = 4
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 
