@@ -8,6 +8,10 @@ t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Three att
 - ``deterministic``: False for a planner whose plan may differ on identical inputs (default True); only then
   does the suite call it on frames whose inputs equal the clean cell's instead of reusing the clean plan.
 
+A planner whose ``predict`` takes ``context`` gets the keyframe's `FrameContext`; a LiDAR or fusion planner
+reads the keyframe's LIDAR_TOP points from it (``context.lidar_points()``, never corrupted: the suite certifies
+the camera path, with clean LiDAR).
+
 A planner file (or the user's ``conftest.py``) provides it through a pytest fixture named ``planner``. Loading
 that file as a plugin module is the pytest plugin's job; this module only judges the object it yields.
 """

@@ -60,7 +60,7 @@ from torch.nn import functional as F  # noqa: N812 - the name every torch code b
 from pytest_drivedegrade.constants import HORIZON_STEPS, STEP_SECONDS
 from pytest_drivedegrade.data import geometry as geo
 from pytest_drivedegrade.data.context import FrameContext
-from pytest_drivedegrade.planning import Command, EgoStatus
+from pytest_drivedegrade.planning import Command, EgoStatus, deterministic_cuda, planner_device
 
 #: The camera order of mmdet3d's nuScenes infos (``nuscenes_converter``), which UniAD and VAD keep.
 CAMERA_ORDER: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
@@ -249,14 +249,20 @@ class Mmdet3dStylePlanner:
     name = "mmdet3d_style"
     cameras: tuple[str, ...] = CAMERA_ORDER  # UniAD and VAD read all six
 
-    def __init__(self, *, input_width: int = 640, norm: Mapping[str, Any] = NORM_VAD, seed: int = 0) -> None:
+    def __init__(self, *, input_width: int = 640, norm: Mapping[str, Any] = NORM_VAD, seed: int = 0,
+                 device: str = "cpu") -> None:
         """`input_width`: the width the model runs at (VAD: 640, 0.4 of nuScenes' 1600; UniAD: 1600); the
-        scale follows from the delivered image width, so the geometry holds on any data set."""
+        scale follows from the delivered image width, so the geometry holds on any data set. `device`: where the
+        model and its `prev_bev` live (``cpu``, ``cuda``, ``cuda:N``; the fixture passes --drivedegrade-device);
+        the weights are made on the CPU with the seed, then moved."""
         self.input_width, self.norm = input_width, dict(norm)
+        self.device = torch.device(device)
+        if self.device.type == "cuda":
+            deterministic_cuda()
         torch.manual_seed(seed)
         # caffe-style (std 1) pixels are about 58 times larger than torchvision-style ones
         self.model = TinyBEVPlanner(pixel_scale=1.0 if max(norm["std"]) > 1 else 58.0)
-        self.model.eval()
+        self.model.eval().to(self.device)
         self.prev_frame_info: dict[str, Any] = {}
         self.last_img_metas: dict[str, Any] = {}  # what the model got last, CAN-bus delta applied (debugging)
         self.reset(None)
@@ -303,17 +309,16 @@ class Mmdet3dStylePlanner:
         metas["prev_bev_exists"] = info["prev_bev"] is not None
         self._write(f"predict {metas['scene_token']} {metas['frame_idx']} {int(metas['prev_bev_exists'])}")
         lidar2ego = geo.transform(metas["lidar2ego_rotation"], metas["lidar2ego_translation"])
+        inputs = (torch.from_numpy(img), torch.from_numpy(np.stack(metas["lidar2img"]).astype(np.float32)),
+                  torch.tensor([s[:2] for s in metas["img_shape"]], dtype=torch.float32),
+                  torch.from_numpy(can_bus.astype(np.float32)), F.one_hot(torch.tensor(int(cmd)), 3).float())
         with torch.inference_mode():
-            residual, bev = self.model(
-                torch.from_numpy(img), torch.from_numpy(np.stack(metas["lidar2img"]).astype(np.float32)),
-                torch.tensor([s[:2] for s in metas["img_shape"]], dtype=torch.float32),
-                torch.from_numpy(can_bus.astype(np.float32)), F.one_hot(torch.tensor(int(cmd)), 3).float(),
-                info["prev_bev"])
+            residual, bev = self.model(*(x.to(self.device) for x in inputs), info["prev_bev"])
         info.update(prev_bev=bev, prev_pos=pos, prev_angle=angle)
         # the plan: constant velocity (the CAN bus velocity, ego frame, turned into the lidar frame) + residual
         vel_lidar = lidar2ego[:3, :3].T @ can_bus[13:16]
         t = STEP_SECONDS * np.arange(1, HORIZON_STEPS + 1)[:, None]
-        return t * vel_lidar[None, :2] + residual.numpy().astype(np.float64)
+        return t * vel_lidar[None, :2] + residual.cpu().numpy().astype(np.float64)
 
     def _write(self, line: str) -> None:
         if self._log:
@@ -326,10 +331,11 @@ def planner() -> Iterator[Mmdet3dStylePlanner]:
     """Built once per worker, on one torch thread: the CPU kernels this model uses (convolution, pooling,
     grid_sample, linear) are deterministic given the thread count, so every layout gives the same bits. (A
     model with kernels that are not, e.g. on CUDA, also wants ``torch.use_deterministic_algorithms(True)``;
-    on CPU it only costs importing torch's compiler stack into every worker.)"""
+    on CPU it only costs importing torch's compiler stack into every worker.) The model runs on the run's
+    --drivedegrade-device (``planner_device()``)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield Mmdet3dStylePlanner()
+        yield Mmdet3dStylePlanner(device=planner_device())
     finally:
         torch.set_num_threads(threads)

@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from pytest_drivedegrade.constants import HORIZON_STEPS, STEP_SECONDS
-from pytest_drivedegrade.planning import Command, EgoStatus
+from pytest_drivedegrade.planning import Command, EgoStatus, deterministic_cuda, planner_device
 
 #: NAVSIM's cameras, in stitching order: cam_l0, cam_f0, cam_r0.
 FRONT_CAMERAS: tuple[str, ...] = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT")
@@ -104,31 +104,38 @@ class TinyTransfuser(nn.Module):
         """camera (B, 3, 256, 1024) in 0..1, status (B, 8) -> trajectory (B, NUM_POSES, 3)."""
         feats = torch.cat([self.image((camera - self.mean) / self.std), self.status(status)], dim=1)
         residual = torch.tanh(self.head(feats)).view(-1, NUM_POSES, 3)
-        t = STEP_SECONDS * torch.arange(1, NUM_POSES + 1, dtype=torch.float32).view(1, -1, 1)
+        t = STEP_SECONDS * torch.arange(1, NUM_POSES + 1, dtype=torch.float32, device=status.device).view(1, -1, 1)
         vx, vy, ax = status[:, None, 4:5], status[:, None, 5:6], status[:, None, 6:7]
         # longitudinal: constant acceleration, stopping where the speed reaches zero; lateral: constant velocity
         stop = torch.where(ax < -1e-3, -vx / ax.clamp(max=-1e-3), torch.full_like(vx, float("inf")))
         t_x = torch.minimum(t, stop)
         xy = torch.cat([vx * t_x + 0.5 * ax * t_x**2, vy * t], dim=2)
         heading = torch.zeros_like(t)
-        return torch.cat([xy, heading], dim=2) + residual * torch.tensor([1.0, 1.0, 0.1])
+        return torch.cat([xy, heading], dim=2) + residual * torch.tensor([1.0, 1.0, 0.1], device=status.device)
 
 
 class NavsimStyleAgent:
-    """The suite's contract around a NAVSIM-style agent: reads the three front cameras only."""
+    """The suite's contract around a NAVSIM-style agent: reads the three front cameras only.
+
+    `device` is where the model runs (``cpu``, ``cuda``, ``cuda:N``): the fixture passes the run's
+    ``--drivedegrade-device``. The weights are made on the CPU with the seed, then moved, so every device starts
+    from the same weights; features go to the device, the plan comes back to the CPU."""
 
     name = "navsim_style"
     cameras: tuple[str, ...] = FRONT_CAMERAS
 
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, seed: int = 0, device: str = "cpu") -> None:
+        self.device = torch.device(device)
+        if self.device.type == "cuda":
+            deterministic_cuda()
         torch.manual_seed(seed)
-        self.model = TinyTransfuser().eval()
+        self.model = TinyTransfuser().eval().to(self.device)
 
     def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
         features = {"camera_feature": camera_feature(images)[None], "status_feature": status_feature(ego, cmd)[None]}
         with torch.inference_mode():
-            trajectory = self.model(features["camera_feature"], features["status_feature"])[0]
-        return trajectory[:HORIZON_STEPS, :2].numpy().astype(np.float64)  # NAVSIM's 4 s -> the suite's 3 s
+            trajectory = self.model(*(features[k].to(self.device) for k in ("camera_feature", "status_feature")))[0]
+        return trajectory[:HORIZON_STEPS, :2].cpu().numpy().astype(np.float64)  # NAVSIM's 4 s -> the suite's 3 s
 
 
 @pytest.fixture(scope="session")
@@ -136,10 +143,11 @@ def planner() -> Iterator[NavsimStyleAgent]:
     """Built once per worker, on one torch thread: the CPU kernels this model uses (convolution, pooling,
     linear) are deterministic given the thread count, so every layout gives the same bits. (A
     model with kernels that are not, e.g. on CUDA, also wants ``torch.use_deterministic_algorithms(True)``;
-    on CPU it only costs importing torch's compiler stack into every worker.)"""
+    on CPU it only costs importing torch's compiler stack into every worker.) The model runs on the run's
+    --drivedegrade-device (``planner_device()``)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield NavsimStyleAgent()
+        yield NavsimStyleAgent(device=planner_device())
     finally:
         torch.set_num_threads(threads)

@@ -2,7 +2,9 @@
 besides its images, as UniAD / VAD / BEVFormer build it in their `img_metas`.
 
 Everything is read-only and never names the corruption applied. A planner receives it as the `context` argument
-of ``predict(images, ego, cmd, context)`` when its `predict` declares that parameter.
+of ``predict(images, ego, cmd, context)`` when its `predict` declares that parameter. A LiDAR or fusion planner
+asks for the keyframe's LIDAR_TOP sweep with ``context.lidar_points()``: the file as recorded, never corrupted
+(the ladder corrupts cameras only), read only when asked.
 """
 
 from __future__ import annotations
@@ -13,11 +15,30 @@ from types import MappingProxyType
 
 import numpy as np
 
+from ..errors import DataError
 from . import geometry as geo
 from .frame import Frame
 
 #: Length of the BEVFormer / UniAD CAN-bus vector.
 CAN_BUS_SIZE = 18
+#: Values per point of a nuScenes LIDAR_TOP ``.pcd.bin``: x, y, z (m, sensor frame), intensity, ring index.
+LIDAR_POINT_SIZE = 5
+
+
+def load_points(path: str) -> np.ndarray:
+    """A nuScenes ``.pcd.bin`` sweep as a read-only (N, 5) float32 array (x, y, z, intensity, ring), as the
+    devkit's ``LidarPointCloud.from_file`` reads it; a missing or truncated file is a DataError."""
+    try:
+        raw = np.fromfile(path, dtype=np.float32)
+    except OSError as exc:
+        raise DataError(f"cannot read the LIDAR_TOP sweep {path}: {exc}; restore the file or re-extract the "
+                        f"data set") from exc
+    if raw.size % LIDAR_POINT_SIZE:
+        raise DataError(f"LIDAR_TOP sweep {path} holds {raw.size} float32 values, not a multiple of "
+                        f"{LIDAR_POINT_SIZE} (x, y, z, intensity, ring): the file is truncated; restore it")
+    points = raw.reshape(-1, LIDAR_POINT_SIZE)
+    points.setflags(write=False)
+    return points
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -50,6 +71,8 @@ class FrameContext:
     - `can_bus`: BEVFormer's 18 values: ego2global translation (3), rotation quaternion (4), acceleration (3),
       rotation rate (3), velocity (3), then the heading in radians and in degrees (0..360). From the CAN bus
       expansion when present, else from the ego status the reader derived from `ego_pose`.
+    - `lidar2ego`: 4x4, LIDAR_TOP -> ego; None when the data set has no LIDAR_TOP.
+    - `lidar_file`: the keyframe's LIDAR_TOP sweep ("" without one); read it with `lidar_points()`.
     """
 
     token: str
@@ -61,6 +84,15 @@ class FrameContext:
     calibration: Mapping[str, CameraCalibration]
     lidar2img: Mapping[str, np.ndarray] | None
     can_bus: np.ndarray | None
+    lidar2ego: np.ndarray | None = None
+    lidar_file: str = ""
+
+    def lidar_points(self) -> np.ndarray | None:
+        """The keyframe's LIDAR_TOP points, (N, 5) float32 read-only in the sensor frame (`lidar2ego` maps them
+        to the ego frame), as recorded: the same in every cell, blackout included. None when there is no sweep
+        (a data set without LIDAR_TOP, a closed-loop step at a simulated pose). Each call reads the file anew,
+        so the array is the caller's own."""
+        return load_points(self.lidar_file) if self.lidar_file else None
 
     @classmethod
     def of(cls, frame: Frame) -> FrameContext:
@@ -70,7 +102,7 @@ class FrameContext:
                                                                                               cam.translation)),
                                                (int(cam.width), int(cam.height)))
                        for name, cam in frame.cameras.items()}
-        lidar2img = None
+        lidar2img, lidar2ego = None, None
         if frame.lidar is not None:
             lidar2ego = geo.transform(*frame.lidar)
             lidar2img = {}
@@ -80,7 +112,8 @@ class FrameContext:
                 lidar2img[name] = _frozen(viewpad @ geo.invert(cal.sensor2ego) @ lidar2ego)
         return cls(frame.token, frame.scene_token, frame.scene_name, int(frame.index), int(frame.timestamp),
                    _frozen(geo.transform(rotation, translation)), MappingProxyType(calibration),
-                   None if lidar2img is None else MappingProxyType(lidar2img), _frozen(can_bus(frame)))
+                   None if lidar2img is None else MappingProxyType(lidar2img), _frozen(can_bus(frame)),
+                   None if lidar2ego is None else _frozen(lidar2ego), frame.lidar_file)
 
     def private(self) -> FrameContext:
         """A copy whose every array is new and read-only: what one ``predict`` call gets, so a planner that
@@ -91,7 +124,8 @@ class FrameContext:
         lidar2img = None if self.lidar2img is None else {k: _frozen(v) for k, v in self.lidar2img.items()}
         return replace(self, ego2global=_frozen(self.ego2global), calibration=MappingProxyType(calibration),
                        lidar2img=None if lidar2img is None else MappingProxyType(lidar2img),
-                       can_bus=None if self.can_bus is None else _frozen(self.can_bus))
+                       can_bus=None if self.can_bus is None else _frozen(self.can_bus),
+                       lidar2ego=None if self.lidar2ego is None else _frozen(self.lidar2ego))
 
 
 def can_bus(frame: Frame) -> np.ndarray:

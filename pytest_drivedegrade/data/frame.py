@@ -113,6 +113,7 @@ class Frame:
     can: dict[str, tuple[float, ...]] | None = None
     location: str = ""  # the log's location, which names its map ("" when the data has no log table)
     pose: tuple[float, float, float] | None = None  # global (x, y, yaw) of the ego at this keyframe
+    lidar_file: str = ""  # the keyframe's LIDAR_TOP sweep (.pcd.bin), "" when the data set has none
 
     def to_global(self, xy: np.ndarray) -> np.ndarray:
         """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""

@@ -142,3 +142,159 @@ def load_drivable_area(root: str | os.PathLike[str], location: str) -> DrivableA
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DataError(f"unreadable map expansion {path}: {exc}; re-extract or regenerate the map") from exc
     return parse_drivable_area(data, location, str(path))
+
+
+# --- the lane-level layers (lanes, connectors, dividers, crossings, road segments) -------------------------------
+
+#: (first, middle, last) segment turn signs of an arcline path's shape: +1 left, -1 right, 0 straight (the
+#: devkit's `compute_segment_sign`).
+ARC_SIGNS = {"LSL": (1, 0, 1), "LSR": (1, 0, -1), "RSL": (-1, 0, 1), "RSR": (-1, 0, -1), "LRL": (1, -1, 1),
+             "RLR": (-1, 1, -1)}
+CENTRELINE_STEP = 0.5  # m between the centreline poses the reader samples
+
+
+def _advance(x: float, y: float, h: float, curvature: float, t: np.ndarray) -> np.ndarray:
+    """Poses (len(t), 3) `t` metres along a circle of `curvature` (a line at 0) from pose (x, y, h)."""
+    if abs(curvature) < 1e-12:
+        return np.stack([x + t * np.cos(h), y + t * np.sin(h), np.full(len(t), h)], axis=1)
+    return np.stack([x + (np.sin(h + curvature * t) - np.sin(h)) / curvature,
+                     y + (np.cos(h) - np.cos(h + curvature * t)) / curvature, h + curvature * t], axis=1)
+
+
+def arcline_poses(path: dict, step: float = CENTRELINE_STEP) -> np.ndarray:
+    """Poses (M, 3) (x, y, yaw) every ~`step` m along one arcline path record, both ends included: three
+    segments of constant curvature (sign / radius) from `start_pose`, as nuScenes map expansion 1.3 writes them."""
+    x, y, h = (float(v) for v in path["start_pose"][:3])
+    lengths = [float(v) for v in path["segment_length"]]
+    s = np.linspace(0.0, sum(lengths), max(int(np.ceil(sum(lengths) / step)) + 1, 2))
+    out = np.empty((len(s), 3))
+    done = 0.0
+    for k, (sign, length) in enumerate(zip(ARC_SIGNS[str(path["shape"])], lengths)):
+        curvature = sign / float(path["radius"])
+        pick = (s >= done) & ((s <= done + length) if k == 2 else (s < done + length))
+        out[pick] = _advance(x, y, h, curvature, s[pick] - done)
+        x, y, h = (float(v) for v in _advance(x, y, h, curvature, np.array([length]))[0])
+        done += length
+    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return out
+
+
+@dataclass(frozen=True)
+class Lane:
+    """A lane or lane connector: its polygon, its centreline poses (N, 3) (x, y, yaw) in the direction of travel,
+    and the lanes before and after it (`connectivity`)."""
+
+    token: str
+    polygon: MapPolygon | None
+    centreline: np.ndarray
+    connector: bool = False
+    incoming: tuple[str, ...] = ()
+    outgoing: tuple[str, ...] = ()
+
+    def distance(self, xy: npt.ArrayLike) -> np.ndarray:
+        """Distance (m) of points (..., 2) to the nearest centreline pose."""
+        xy = np.asarray(xy, dtype=np.float64)
+        flat = xy.reshape(-1, 2)
+        d = np.sqrt(((flat[:, None, :] - self.centreline[None, :, :2]) ** 2).sum(-1)).min(1)
+        return d.reshape(xy.shape[:-1])
+
+
+@dataclass(frozen=True)
+class MapLine:
+    """A road or lane divider: its polyline (N, 2), global metres."""
+
+    token: str
+    xy: np.ndarray
+
+
+@dataclass(frozen=True)
+class MapArea:
+    """A pedestrian crossing or a road segment: its polygon; road segments say whether they are a junction."""
+
+    token: str
+    polygon: MapPolygon
+    is_intersection: bool = False
+
+
+@dataclass(frozen=True)
+class LaneMap:
+    """The lane-level layers of one location (map expansion 1.3), with its drivable area."""
+
+    location: str
+    lanes: tuple[Lane, ...]
+    road_dividers: tuple[MapLine, ...]
+    lane_dividers: tuple[MapLine, ...]
+    ped_crossings: tuple[MapArea, ...]
+    road_segments: tuple[MapArea, ...]
+    drivable: DrivableArea
+
+    def closest_lane(self, x: float, y: float, radius: float = 5.0) -> Lane | None:
+        """The lane or connector whose centreline passes closest to (x, y), if within `radius` m (the devkit's
+        `get_closest_lane`, on the centrelines sampled every `CENTRELINE_STEP`)."""
+        best, found = radius, None
+        for lane in self.lanes:
+            c = lane.centreline
+            if not len(c):
+                continue
+            lo, hi = c[:, :2].min(0) - radius, c[:, :2].max(0) + radius
+            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1]:
+                d = float(lane.distance([x, y]))
+                if d <= best:
+                    best, found = d, lane
+        return found
+
+
+def _polygon_of(token: str, polygons: dict, nodes: dict) -> MapPolygon:
+    poly = polygons[token]
+    exterior = np.array([nodes[n] for n in poly["exterior_node_tokens"]], dtype=np.float64).reshape(-1, 2)
+    holes = tuple(np.array([nodes[n] for n in h["node_tokens"]], dtype=np.float64)
+                  for h in poly.get("holes", []) if len(h.get("node_tokens", [])) >= 3)
+    return MapPolygon(exterior, holes)
+
+
+def parse_lane_map(data: dict, location: str, source: str = "") -> LaneMap:
+    """The lane-level layers of a parsed map expansion JSON object (real nuScenes or the world's): centrelines
+    from `arcline_path_3` (a lane without one gets an empty (0, 3) centreline), lines from `line`."""
+    try:
+        nodes = {n["token"]: (float(n["x"]), float(n["y"])) for n in data.get("node", [])}
+        polygons = {p["token"]: p for p in data.get("polygon", [])}
+        lines = {ln["token"]: ln for ln in data.get("line", [])}
+        arcs, links = data.get("arcline_path_3", {}), data.get("connectivity", {})
+        lanes = []
+        for layer in ("lane", "lane_connector"):
+            for rec in data.get(layer, []):
+                paths = [arcline_poses(p) for p in arcs.get(rec["token"], [])]
+                centre = np.concatenate(paths) if paths else np.zeros((0, 3))
+                poly = _polygon_of(rec["polygon_token"], polygons, nodes) if rec.get("polygon_token") else None
+                link = links.get(rec["token"], {})
+                lanes.append(Lane(rec["token"], poly, centre, layer == "lane_connector",
+                                  tuple(link.get("incoming", ())), tuple(link.get("outgoing", ()))))
+
+        def line_layer(name: str) -> tuple[MapLine, ...]:
+            return tuple(MapLine(r["token"], np.array([nodes[n] for n in lines[r["line_token"]]["node_tokens"]],
+                                                      dtype=np.float64).reshape(-1, 2))
+                         for r in data.get(name, []))
+
+        def area_layer(name: str) -> tuple[MapArea, ...]:
+            return tuple(MapArea(r["token"], _polygon_of(r["polygon_token"], polygons, nodes),
+                                 bool(r.get("is_intersection", False))) for r in data.get(name, []))
+
+        out = LaneMap(location, tuple(lanes), line_layer("road_divider"), line_layer("lane_divider"),
+                      area_layer("ped_crossing"), area_layer("road_segment"),
+                      parse_drivable_area(data, location, source))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"map expansion {source or location} is malformed ({type(exc).__name__}: {exc}); "
+                        f"re-extract or regenerate the map") from exc
+    return out
+
+
+def load_lane_map(root: str | os.PathLike[str], location: str) -> LaneMap | None:
+    """The lane-level map of `location` under data root `root`, or None when the root has no map file for it."""
+    path = expansion_path(root, location)
+    if not location or not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DataError(f"unreadable map expansion {path}: {exc}; re-extract or regenerate the map") from exc
+    return parse_lane_map(data, location, str(path))

@@ -271,7 +271,7 @@ class NuScenesReader:
         return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
                      future, valid, tuple(agents), scene["name"], index=k, ego_pose=pose,
                      lidar=self._lidar(token), can=can_record, location=self.locations.get(scene["token"], ""),
-                     pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])))
+                     pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])), lidar_file=self._lidar_file(token))
 
     def _lidar(self, token: str) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
         """LIDAR_TOP's calibrated_sensor (rotation, translation) at keyframe `token`, or None without one."""
@@ -280,6 +280,14 @@ class NuScenesReader:
         if cal is None:
             return None
         return tuple(float(v) for v in cal["rotation"]), tuple(float(v) for v in cal["translation"])
+
+    def _lidar_file(self, token: str) -> str:
+        """The path of keyframe `token`'s LIDAR_TOP sweep, or "" without one (read only when a planner asks)."""
+        rec = self.key_data.get(token, {}).get("LIDAR_TOP")
+        if rec is None or not rec.get("filename"):
+            return ""
+        where = f"{self.table_dir / 'sample_data.json'}: the record with token {rec['token']!r}"
+        return str(confined(self.root, rec["filename"], where))
 
     def _cameras(self, token: str) -> tuple[dict[str, CameraInfo], str]:
         data = self.key_data.get(token, {})

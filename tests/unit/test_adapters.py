@@ -303,3 +303,40 @@ def test_navsim_agent_reads_only_the_front_and_is_deterministic(nav, one_thread)
     np.testing.assert_array_equal(nav.NavsimStyleAgent().predict(rear_black, EGO, Command.STRAIGHT), plan)
     front_black = {k: (np.zeros_like(v) if k == "CAM_FRONT" else v) for k, v in imgs.items()}
     assert not np.array_equal(agent.predict(front_black, EGO, Command.STRAIGHT), plan)
+
+
+# -- both: the run's device -----------------------------------------------------------------------------------
+
+def _example_plans(module: ModuleType, agent) -> list[np.ndarray]:
+    imgs = images((800, 450))
+    if hasattr(agent, "reset"):
+        agent.reset("scene-a")
+        ctxs = [context(f"a{i}", index=i, size=(800, 450), xy=(100.0 + 2 * i, 50.0)) for i in range(2)]
+        return [agent.predict(imgs, EGO, Command.LEFT, c) for c in ctxs]
+    return [agent.predict(imgs, EGO, cmd) for cmd in (Command.LEFT, Command.STRAIGHT)]
+
+
+@pytest.mark.parametrize("name", ["navsim_style", "mmdet3d_style"])
+def test_the_example_fixtures_build_the_model_on_the_run_device(name, monkeypatch, one_thread):
+    """The `planner` fixture puts the model on --drivedegrade-device ($DRIVEDEGRADE_DEVICE): every parameter and
+    buffer on torch's `meta` device when asked for it; on `cpu` the plans are the default-built adapter's, bit for
+    bit; on CUDA (where present) within float rounding of them."""
+    module = load(name)
+    cls = module.NavsimStyleAgent if name == "navsim_style" else module.Mmdet3dStylePlanner
+
+    def built(device: str):
+        monkeypatch.setenv("DRIVEDEGRADE_DEVICE", device)
+        fixture = module.planner.__wrapped__()  # the fixture's own generator, as pytest runs it
+        agent = next(fixture)
+        fixture.close()
+        return agent
+
+    meta = built("meta")
+    tensors = [*meta.model.parameters(), *meta.model.buffers()]
+    assert tensors and {t.device.type for t in tensors} == {"meta"}
+    reference = _example_plans(module, cls())
+    for got, want in zip(_example_plans(module, built("cpu")), reference):
+        np.testing.assert_array_equal(got, want)
+    if torch.cuda.is_available():
+        for got, want in zip(_example_plans(module, built("cuda")), reference):
+            np.testing.assert_allclose(got, want, atol=1e-4)

@@ -21,7 +21,7 @@ from .rig import Rig
 from .scene import KEYFRAMES
 from .tasks import SceneTask
 
-GENERATOR_VERSION = "3.0.0"
+GENERATOR_VERSION = "3.1.0"  # 3.1: the lane-level map layers
 #: The version folder: the name the converters of planner code bases accept (mmdet3d, UniAD, VAD).
 WORLD_VERSION = "v1.0-trainval"
 MANIFEST = WORLD_MANIFEST  # the file the reader looks for

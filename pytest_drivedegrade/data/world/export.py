@@ -19,6 +19,7 @@ from ..maps import EXPANSION_VERSION
 from . import models, render, sensing, texture
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
+from .lanemap import lane_layers
 from .rig import Rig
 from .roads import drivable_polygons
 from .scene import KEYFRAMES, Scene
@@ -34,9 +35,9 @@ LIDAR = "LIDAR_TOP"
 CATEGORY_INDEX = {"human.pedestrian.adult": 2, "vehicle.bicycle": 14, "vehicle.bus.rigid": 16, "vehicle.car": 17,
                   "vehicle.truck": 23}
 MAP_TOLERANCE = 0.01  # m: the map's polygons stay this close to the painted carriageway edges
-#: Map expansion layers written empty (the world maps only its drivable area), so the file has the full schema.
-EMPTY_MAP_LAYERS = ("line", "road_segment", "road_block", "lane", "ped_crossing", "walkway", "stop_line",
-                    "carpark_area", "road_divider", "lane_divider", "traffic_light", "lane_connector")
+#: Map expansion layers written empty (the world has no road blocks, walkways, stop lines, car parks or traffic
+#: lights in its map), so the file has the full schema `NuScenesMap` loads.
+EMPTY_MAP_LAYERS = ("road_block", "walkway", "stop_line", "carpark_area", "traffic_light")
 
 
 def token(seed: int, *parts) -> str:
@@ -157,11 +158,13 @@ def _link_instances(scene, seed, t, ann_tokens) -> None:
 
 
 def map_expansion(scene: Scene, seed: int) -> dict:
-    """The scene's map in nuScenes map-expansion form: its carriageways and junctions as `drivable_area`.
+    """The scene's map in nuScenes map-expansion form: its carriageways and junctions as `drivable_area`, and the
+    lane-level layers of `lanemap.lane_layers` (lanes, connectors, dividers, crossings, road segments).
 
-    Polygons come from `roads.drivable_polygons` (what the renderer paints as asphalt), simplified by
+    Drivable polygons come from `roads.drivable_polygons` (what the renderer paints as asphalt), simplified by
     Douglas-Peucker within `MAP_TOLERANCE`, counter-clockwise, without holes; coordinates in the scene's world
-    frame (the frame of ego_pose and sample_annotation), rounded to 0.1 mm.
+    frame (the frame of ego_pose and sample_annotation), rounded to 0.1 mm. `canvas_edge` (the devkit's bitmap
+    extent) covers the nodes' largest coordinates.
     """
     nodes, polygons = [], []
     for i, ring in enumerate(drivable_polygons(scene.net)):
@@ -172,10 +175,16 @@ def map_expansion(scene: Scene, seed: int) -> dict:
         nodes += [{"token": t, "x": round(x, 4), "y": round(y, 4)} for t, (x, y) in zip(toks, ring.tolist())]
         polygons.append({"token": token(seed, "map-polygon", scene.index, i), "exterior_node_tokens": toks,
                          "holes": []})
+    lanes = lane_layers(scene.net, scene.crosswalks, token, seed, scene.index, scene.style.yellow_centre)
     out: dict = {name: [] for name in EMPTY_MAP_LAYERS}
-    out.update({"version": EXPANSION_VERSION, "node": nodes, "polygon": polygons, "arcline_path_3": {},
-                "connectivity": {}, "drivable_area": [{"token": token(seed, "map-drivable", scene.index),
-                                                       "polygon_tokens": [p["token"] for p in polygons]}]})
+    out.update(lanes.layers)
+    out["node"] = nodes + out["node"]
+    out["polygon"] = polygons + out["polygon"]
+    far = np.array([[n["x"], n["y"]] for n in out["node"]]).max(0)
+    out.update({"version": EXPANSION_VERSION, "canvas_edge": [float(np.ceil(far[0])), float(np.ceil(far[1]))],
+                "arcline_path_3": lanes.arcline_path_3, "connectivity": lanes.connectivity,
+                "drivable_area": [{"token": token(seed, "map-drivable", scene.index),
+                                   "polygon_tokens": [p["token"] for p in polygons]}]})
     return out
 
 
