@@ -15,7 +15,7 @@ import numpy.typing as npt
 
 from ...constants import HORIZON_STEPS
 from ...data.frame import AgentBoxes, EgoStatus, Frame
-from ...data.maps import DrivableArea
+from ...data.maps import DrivableArea, LaneMap
 from ..trajectory import FlatAgents, overlap_pairs
 from .agents import agent_steps, agent_tracks, first_seen
 from .constants import (
@@ -29,6 +29,8 @@ from .constants import (
     DrivableQuery,
     PDMSResult,
 )
+from .extended import ExtendedTerms, driving_direction, ep_v2, history, history_comfort, lane_keeping
+from .lanes import LaneView
 from .local_map import LocalDrivable
 from .motion import (
     EgoPose,
@@ -40,7 +42,7 @@ from .motion import (
     progress_along,
     waypoints,
 )
-from .reference import no_at_fault_collisions
+from .reference import no_at_fault_collisions, time_to_collision_within_bound
 from .rules import Contact, collision_score, pdms_result, ttc_score
 from .tracked import initial_state, tracked_states
 
@@ -76,15 +78,19 @@ class PreparedFrame:
     boxes: FlatAgents  # every agent box of the six waypoint times, flat, in (time, index) order
     index: np.ndarray  # (M,) index of each box within its time's AgentBoxes
     reach: np.ndarray  # (M,) its half diagonal + the ego's + margin: farther centres cannot touch
+    lanes: LaneView | None = None  # the lanes around the ego (EPDMS's ddc and lk; None: not scored)
+    past: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the ego's last 1.5 s (`extended.history`)
+    human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
 
     @classmethod
     def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
                 ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
-                ego_pose: EgoPose | None = None, *,
-                static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+                ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
+                lanes: LaneView | None = None) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
         polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
-        and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress)."""
+        and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
+        terms for the human filter (`lanes`: the lanes around the ego, in its frame)."""
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents)
         ids, velocities = agent_tracks(steps)
@@ -95,21 +101,27 @@ class PreparedFrame:
         es = tracked_states(expert_arr[None], [start])[0]
         expert_off = off_road(es, drivable, ego_pose)
         path = expert_path(expert_arr, float(es.heading[-1]))
-        expert_nc = no_at_fault_collisions(es, steps, ids, seen, expert_off | out_of_lane(es, path),
-                                           static_categories=static_categories)
+        expert_astray = expert_off | out_of_lane(es, path)
+        expert_nc = no_at_fault_collisions(es, steps, ids, seen, expert_astray, static_categories=static_categories)
         boxes = FlatAgents.of(steps)
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
+        past = history(ego.past_xy, ego.velocity) if isinstance(ego, EgoStatus) else None
+        dac = 0.0 if expert_off.any() else 1.0
+        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes), float("nan"), 1.0,
+                              time_to_collision_within_bound(es, steps, ids, expert_astray),
+                              lane_keeping(es, lanes), history_comfort(es, past))
         return cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
-                   tuple(static_categories), path, progress_along(path, es.xy[-1]),
-                   expert_nc * (0.0 if expert_off.any() else 1.0), boxes, index, reach)
+                   tuple(static_categories), path, progress_along(path, es.xy[-1]), expert_nc * dac, boxes, index,
+                   reach, lanes, past, human)
 
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
-           static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
-        """Prepare a reader frame, as `frame_pdms` scores it."""
+           static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None) -> PreparedFrame:
+        """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS)."""
+        lanes = LaneView.of_map(lane_map, frame.pose) if lane_map is not None and frame.pose is not None else None
         return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
-                           static_categories=static_categories)
+                           static_categories=static_categories, lanes=lanes)
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -163,6 +175,19 @@ class PreparedFrame:
         dac = 0.0 if plan_off.any() else 1.0
         return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, ps.xy[-1]),
                            self.expert_m, self.expert_multiplier, self.drivable is not None)
+
+
+    def extended(self, ps: EgoStates, result: PDMSResult) -> ExtendedTerms:
+        """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
+        ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
+        now with ddc), history comfort; tlc is not scored (no traffic lights in the data)."""
+        ddc = driving_direction(ps, self.lanes)
+        expert_ddc = self.human.ddc if self.human is not None else float("nan")
+        plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
+        expert_mult = self.expert_multiplier * (1.0 if np.isnan(expert_ddc) else expert_ddc)
+        ep = ep_v2(result.progress_m, plan_mult, self.expert_m, expert_mult)
+        return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lane_keeping(ps, self.lanes),
+                             history_comfort(ps, self.past))
 
 
 def score_plans(frames: Sequence[PreparedFrame], plans: npt.ArrayLike) -> list[PDMSResult]:
