@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ...constants import PAST_STEPS, STEP_SECONDS
-from .constants import COMFORT_BOUNDS, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
+from .constants import COMFORT_BOUNDS, HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
 from .lanes import LaneView
 from .motion import EgoStates, savgol
 
@@ -125,25 +125,26 @@ def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> flo
                      for k, v in terms.items() for lo, hi in [COMFORT_BOUNDS[k]]))
 
 
-def history(past_xy: npt.ArrayLike, velocity: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def history(past_xy: npt.ArrayLike, velocity: npt.ArrayLike,
+            acceleration: npt.ArrayLike = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ego's last HISTORY_S at 10 Hz (t = -1.5 .. -0.1 s) from its past keyframe positions (PAST_STEPS,
-    oldest first, 0.5 s apart) and the origin: a cubic Hermite curve through them, tangents the central
-    differences and the current velocity at t = 0. Returns heading (unwrapped to end near 0), longitudinal and
-    lateral acceleration (H,) each."""
-    knots = np.vstack([np.asarray(past_xy, dtype=np.float64).reshape(PAST_STEPS, 2), np.zeros((1, 2))])
-    h = STEP_SECONDS
-    tangents = np.empty_like(knots)
-    tangents[1:-1] = (knots[2:] - knots[:-2]) / (2 * h)
-    tangents[0] = (knots[1] - knots[0]) / h
-    tangents[-1] = np.asarray(velocity, dtype=np.float64).reshape(2)
-    t = -np.arange(round(HISTORY_S / SIM_DT), 0, -1) * SIM_DT  # -1.5 .. -0.1
-    seg = np.clip(((t + PAST_STEPS * h) / h + 1e-9).astype(int), 0, PAST_STEPS - 1)
-    u = ((t + PAST_STEPS * h) - seg * h)[:, None] / h
-    p0, p1, m0, m1 = knots[seg], knots[seg + 1], tangents[seg] * h, tangents[seg + 1] * h
-    vel = ((6 * u**2 - 6 * u) * p0 + (3 * u**2 - 4 * u + 1) * m0 + (-6 * u**2 + 6 * u) * p1
-           + (3 * u**2 - 2 * u) * m1) / h
-    acc = ((12 * u - 6) * p0 + (6 * u - 4) * m0 + (-12 * u + 6) * p1 + (6 * u - 2) * m1) / h**2
-    heading = np.unwrap(np.arctan2(vel[:, 1], vel[:, 0]))
+    oldest first, 0.5 s apart): the cubic through the origin with the current velocity and acceleration
+    (continuous with the plan's t = 0 state) whose constant jerk fits the past positions best (least squares).
+    NAVSIM has the logged 10 Hz states; from 2 Hz positions a curve through each knot would invent jerks between
+    them. Returns heading (held at 0 below HEADING_MIN_SPEED), longitudinal and lateral acceleration (H,)."""
+    knots = np.asarray(past_xy, dtype=np.float64).reshape(PAST_STEPS, 2)
+    v0 = np.asarray(velocity, dtype=np.float64).reshape(2)
+    a0 = np.asarray(acceleration, dtype=np.float64).reshape(2)
+    tk = -np.arange(PAST_STEPS, 0, -1) * STEP_SECONDS
+    basis = tk**3 / 6.0
+    rest = knots - tk[:, None] * v0 - 0.5 * tk[:, None] ** 2 * a0
+    jerk = (basis[:, None] * rest).sum(0) / (basis**2).sum()
+    t = -np.arange(round(HISTORY_S / SIM_DT), 0, -1)[:, None] * SIM_DT  # -1.5 .. -0.1
+    vel = v0 + a0 * t + 0.5 * jerk * t**2
+    acc = a0 + jerk * t
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    heading = np.where(speed >= HEADING_MIN_SPEED, np.arctan2(vel[:, 1], vel[:, 0]), 0.0)
+    heading = np.unwrap(heading)
     heading -= 2 * np.pi * np.round(heading[-1] / (2 * np.pi))
     c, s = np.cos(heading), np.sin(heading)
     return heading, c * acc[:, 0] + s * acc[:, 1], -s * acc[:, 0] + c * acc[:, 1]

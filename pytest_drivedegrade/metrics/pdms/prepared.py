@@ -106,7 +106,7 @@ class PreparedFrame:
         boxes = FlatAgents.of(steps)
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
-        past = history(ego.past_xy, ego.velocity) if isinstance(ego, EgoStatus) else None
+        past = history(ego.past_xy, ego.velocity, ego.acceleration) if isinstance(ego, EgoStatus) else None
         dac = 0.0 if expert_off.any() else 1.0
         human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes), float("nan"), 1.0,
                               time_to_collision_within_bound(es, steps, ids, expert_astray),
