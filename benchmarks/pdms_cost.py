@@ -4,7 +4,8 @@ the suite's own CPU per prediction).
 The world's scorable frames (2 scenes, seed 7: 68 frames) are prepared once (`PreparedFrame.of`, as the run
 caches them per process), then `--cells` cells' worth of plans (the expert plus N(0, 0.3^2) noise, one draw per
 cell) are scored: one plan at a time (`PreparedFrame.score`) and, where the code has it, a cell's plans together
-(`pdms.score_plans`, what `stream.run_cell` calls since spec 4.1). Prints CPU ms (process time, which a loaded
+(`pdms.score_plans`), and the PDMS with the EPDMS's terms as `stream.score_cell_pdms` scores a cell (spec 4.1).
+Prints CPU ms (process time, which a loaded
 machine disturbs less than wall time) per plan for each.
 Run it on another checkout with that checkout on PYTHONPATH to compare (a checkout without `score_plans` prints
 the one-at-a-time figure only).
@@ -33,7 +34,7 @@ def main() -> None:
                             split="all")
     frames = reader.scorable_frames()
     start = time.process_time()
-    prepared = [pdms.PreparedFrame.of(f, reader.drivable_area(f)) for f in frames]
+    prepared = [pdms.PreparedFrame.of(f, reader.drivable_area(f), lane_map=reader.lane_map(f)) for f in frames]
     prepare_ms = (time.process_time() - start) * 1e3 / len(frames)
     cells = [np.stack([f.gt_future + np.random.default_rng(c).normal(0.0, 0.3, (6, 2)) for f in frames])
              for c in range(args.cells)]
@@ -50,6 +51,16 @@ def main() -> None:
         for plans in cells:
             pdms.score_plans(prepared, plans)
         print(f"a cell's plans together (score_plans): {(time.process_time() - start) * 1e3 / n:.2f} ms per plan")
+    if hasattr(pdms.PreparedFrame, "extended"):  # spec 4.1: the EPDMS terms too, as stream.score_cell_pdms does
+        from pytest_drivedegrade.metrics.pdms.extended import epdms_score, extended_comfort
+
+        start = time.process_time()
+        for plans in cells:
+            states = pdms.tracked_states(plans, [p.initial for p in prepared])
+            for k, (p, plan, st) in enumerate(zip(prepared, plans, states)):
+                terms = p.extended(st, p.score_tracked(plan, st))
+                epdms_score(terms, extended_comfort(st, states[k - 1] if k else None))
+        print(f"PDMS and EPDMS of a cell's plans: {(time.process_time() - start) * 1e3 / n:.2f} ms per plan")
 
 
 if __name__ == "__main__":

@@ -90,13 +90,13 @@ def driving_direction(states: EgoStates, lanes: LaneView | None) -> float:
 
 
 def lane_keeping(states: EgoStates, lanes: LaneView | None) -> float:
-    """LK in {0, 1}: 0 when the ego centre stays more than 0.5 m from the nearest centreline running its way for
-    2 s of consecutive states (intersections, and states with no such lane, skipped without resetting the
-    count, as NAVSIM skips intersections). NaN without lanes."""
+    """LK in {0, 1}: 0 when the ego centre stays more than 0.5 m from the nearest centreline running its way (none
+    within `lanes.NEAR_M`: off) for 2 s of consecutive states (intersections skipped without resetting the
+    count, as NAVSIM skips them). NaN without lanes."""
     if lanes is None or not len(lanes.start):
         return math.nan
     deviation = lanes.deviation(states.xy, states.heading)
-    skip = lanes.in_intersection(states.xy) | ~np.isfinite(deviation)
+    skip = lanes.in_intersection(states.xy)
     needed, run = math.ceil(LK_WINDOW_S / SIM_DT - 1e-9), 0
     for far, skipped in zip((deviation > LK_DEVIATION_M).tolist(), skip.tolist()):
         if skipped:

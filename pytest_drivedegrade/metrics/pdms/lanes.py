@@ -17,6 +17,10 @@ from ...data.maps import LaneMap, points_in_ring
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
+#: A state's lanes are looked for among the centreline segments within this of the states' bounding box (m): a
+#: lane whose centreline is farther away cannot hold the ego (lanes are narrower), and lane keeping counts a state
+#: with no same-way centreline that near as off its lane either way.
+NEAR_M: float = 10.0
 
 
 def _wrap(angle: np.ndarray) -> np.ndarray:
@@ -83,26 +87,33 @@ class LaneView:
             out |= points_in_ring(pts, ring)
         return out
 
-    def _nearest(self, pts: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Distance (N,) of each point to its nearest centreline segment (among `mask` (N, S) where given; inf
-        where none) and that segment's index (N,)."""
-        if not len(self.start):
+    def _near(self, pts: np.ndarray, margin: float) -> np.ndarray:
+        """Indices of the centreline segments with an end inside the points' bounding box grown by `margin`."""
+        lo, hi = pts.min(0) - margin, pts.max(0) + margin
+        near = ((self.start >= lo) & (self.start <= hi)).all(1) | ((self.end >= lo) & (self.end <= hi)).all(1)
+        return np.flatnonzero(near)
+
+    def _nearest(self, pts: np.ndarray, segments: np.ndarray,
+                 along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (N,) of each point to its nearest segment among `segments` (those `along` (N, len) allows;
+        inf where none) and that segment's index (N,)."""
+        if not len(segments):
             return np.full(len(pts), np.inf), np.zeros(len(pts), dtype=np.int64)
-        ab = self.end - self.start
-        t = np.clip(((pts[:, None] - self.start[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12),
-                    0.0, 1.0)
-        dist = np.linalg.norm(self.start[None] + t[..., None] * ab[None] - pts[:, None], axis=-1)
-        if mask is not None:
-            dist = np.where(mask, dist, np.inf)
+        a, ab = self.start[segments], self.end[segments] - self.start[segments]
+        t = np.clip(((pts[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None], axis=-1)
+        if along is not None:
+            dist = np.where(along, dist, np.inf)
         k = dist.argmin(axis=1)
-        return dist[np.arange(len(pts)), k], k
+        return dist[np.arange(len(pts)), k], segments[k]
 
     def deviation(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """(N,) distance of each point to the nearest centreline segment running its way (within 90 degrees of
-        `heading`); inf where no lane runs that way."""
+        `heading`); inf where no lane runs that way within NEAR_M of the points."""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        along = np.abs(_wrap(self.yaw[None, :] - np.asarray(heading, dtype=np.float64).reshape(-1, 1))) < np.pi / 2
-        return self._nearest(pts, along)[0]
+        segments = self._near(pts, NEAR_M)
+        head = np.asarray(heading, dtype=np.float64).reshape(-1, 1)
+        return self._nearest(pts, segments, np.abs(_wrap(self.yaw[segments][None, :] - head)) < np.pi / 2)[0]
 
     def oncoming(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
         """(N,) bool: the point lies in some lane polygon and every lane it lies in runs against `heading` (more
@@ -111,13 +122,15 @@ class LaneView:
         head = np.asarray(heading, dtype=np.float64).reshape(-1)
         inside_any = np.zeros(len(pts), dtype=bool)
         along_any = np.zeros(len(pts), dtype=bool)
-        for k, ring in enumerate(self.polygons):
-            if ring is None or not (self.lane == k).any():
+        near = self._near(pts, NEAR_M)
+        for k in np.unique(self.lane[near]).tolist():
+            ring = self.polygons[k]
+            if ring is None:
                 continue
             inside = points_in_ring(pts, ring)
             if not inside.any():
                 continue
-            _, seg = self._nearest(pts, np.broadcast_to(self.lane[None, :] == k, (len(pts), len(self.lane))))
+            _, seg = self._nearest(pts, near[self.lane[near] == k])
             along = np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2
             inside_any |= inside
             along_any |= inside & along
