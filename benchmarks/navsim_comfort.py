@@ -1,11 +1,12 @@
-"""Comfort as the suite scores it today vs on NAVSIM's tracked states (issue 24): noisy expert plans and three cases.
+"""Comfort on raw waypoints (spec 3's method) vs the PDMS's comfort on NAVSIM's tracked states (issue 24, spec 4.1).
 
 1. The world's expert plans (every scorable frame of the world) with Gaussian noise of sigma 0, 0.1, 0.3, 1.0 m
    added to each waypoint coordinate (`--draws` noise draws per sigma, seeded 0, 1, ..): the comfort mean on the
-   raw splined waypoints (`pdms.interpolate`, today's suite method) and on the tracked states
-   (`tracking.track_plans`, NAVSIM's LQR and bicycle model), next to NAVSIM's published tracked figures.
+   raw splined waypoints (`pdms.interpolate`, the method before spec 4.1) and the PDMS's own comfort term (the
+   plans scored by `pdms.score_plans`: tracked by NAVSIM's LQR and bicycle model from the frame's logged state),
+   next to NAVSIM's tracked figures.
 2. A 10 m/s turn at 0.5 rad/s, a 3.5 m lane change in 2 s at 10 m/s (both comfortable in NAVSIM) and a hard
-   stop from 10 m/s at 6 m/s^2 (uncomfortable): each verdict, raw and tracked.
+   stop from 10 m/s at 6 m/s^2 (uncomfortable): each verdict, raw and the PDMS's (`pdms.pdm_score`).
 
     python benchmarks/navsim_comfort.py [--scenes 2 --seed 7 --split all] [--draws 10]
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from pytest_drivedegrade.constants import HORIZON_STEPS, STEP_SECONDS
 from pytest_drivedegrade.data.frame import EgoStatus, Frame
-from pytest_drivedegrade.metrics import pdms, tracking
+from pytest_drivedegrade.metrics import pdms
 
 SIGMAS: tuple[float, ...] = (0.0, 0.1, 0.3, 1.0)
 #: NAVSIM's tracked pipeline on the world's expert plans with that noise (issue 24's table).
@@ -58,21 +59,22 @@ def cases(speed: float = 10.0) -> list[Case]:
 
 
 def verdicts(plan: np.ndarray, ego: EgoStatus) -> tuple[bool, bool]:
-    """(raw, tracked) comfort of one plan: today's spline through the waypoints, and NAVSIM's tracked states."""
+    """(raw, PDMS) comfort of one plan: the spline through the waypoints, and the PDMS's comfort term (the plan
+    scored as its own expert on an empty road: tracked from `ego`)."""
     raw = pdms.is_comfortable(pdms.interpolate(plan, ego.velocity))
-    return bool(raw), bool(tracking.tracked_comfort(tracking.track_plans(plan, ego))[0])
+    return bool(raw), bool(pdms.pdm_score(plan, plan, [], ego).comfort)
 
 
 def noise_study(frames: list[Frame], sigma: float, draws: int) -> tuple[float, float]:
-    """Mean (raw, tracked) comfort of the frames' expert plans with N(0, sigma^2) added to every coordinate,
-    over `draws` noise draws (draw d seeded d)."""
+    """Mean (raw, PDMS) comfort of the frames' expert plans with N(0, sigma^2) added to every coordinate, over
+    `draws` noise draws (draw d seeded d); the PDMS's comfort as the suite scores a cell (`score_plans`)."""
     raw, tracked = [], []
-    egos = [frame.ego for frame in frames]
+    prepared = [pdms.PreparedFrame.of(frame) for frame in frames]
     for d in range(draws):
         rng = np.random.default_rng(d)
         plans = np.stack([frame.gt_future + rng.normal(0.0, sigma, frame.gt_future.shape) for frame in frames])
-        raw += [pdms.is_comfortable(pdms.interpolate(plan, ego.velocity)) for plan, ego in zip(plans, egos)]
-        tracked += list(tracking.tracked_comfort(tracking.track_plans(plans, egos)))
+        raw += [pdms.is_comfortable(pdms.interpolate(plan, f.ego.velocity)) for plan, f in zip(plans, frames)]
+        tracked += [r.comfort for r in pdms.score_plans(prepared, plans)]
     return float(np.mean(raw)), float(np.mean(tracked))
 
 
@@ -95,7 +97,7 @@ def main() -> None:
     frames = world_frames(args.scenes, args.seed, args.split)
     print(f"world: {args.scenes} scenes, seed {args.seed}, split {args.split}: {len(frames)} expert plans, "
           f"{args.draws} noise draws per sigma")
-    print("| noise sigma | comfort, raw waypoints | comfort, tracked | NAVSIM tracked | tracked - NAVSIM |")
+    print("| noise sigma | comfort, raw waypoints | PDMS comfort (tracked) | NAVSIM tracked | PDMS - NAVSIM |")
     print("|---|---|---|---|---|")
     start = time.perf_counter()
     for sigma in SIGMAS:
@@ -104,7 +106,7 @@ def main() -> None:
         print(f"| {sigma:g} m | {raw:.3f} | {tracked:.3f} | {navsim:.2f} | {tracked - navsim:+.3f} |")
     seconds = time.perf_counter() - start
     print(f"({seconds:.1f} s for {len(SIGMAS) * args.draws * len(frames)} plans, raw and tracked)")
-    print("| case | raw waypoints | tracked | NAVSIM |")
+    print("| case | raw waypoints | PDMS (tracked) | NAVSIM |")
     print("|---|---|---|---|")
     word = {True: "comfortable", False: "uncomfortable"}
     for case in cases():

@@ -28,10 +28,13 @@ DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
 EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
 #: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
-#: (`data_errors`) kept apart from the planner's contract failures (`errors`).
-RECORD_VERSION = 3
+#: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
+RECORD_VERSION = 4
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
+#: The per-frame EPDMS arrays (spec 4.1, NAVSIM v2): its own terms (before the human filter) and the score; NaN
+#: where not scored (no lanes: ddc, lk; no traffic lights: tlc; no previous plan of the scene: ec).
+EPDMS_FIELDS: tuple[str, ...] = ("ddc", "tlc", "lk", "hc", "ec", "epdms")
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,7 @@ class FrameArray:
 FRAME_ARRAYS: tuple[FrameArray, ...] = (
     FrameArray("plans", (HORIZON_STEPS, 2)), FrameArray("l2", (HORIZON_STEPS,)), FrameArray("jerk", ()),
     FrameArray("bit1", ()), *(FrameArray(k, (), since=2) for k in PDMS_FIELDS), FrameArray("map_scored", (), since=2),
+    *(FrameArray(k, (), since=4) for k in EPDMS_FIELDS),
     FrameArray("collision", (HORIZON_STEPS,), flags=True), FrameArray("collision_vru", (HORIZON_STEPS,), flags=True),
 )
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
@@ -217,6 +221,12 @@ class CellRecord:
     comfort: np.ndarray = field(default_factory=_absent)
     pdms: np.ndarray = field(default_factory=_absent)
     map_scored: np.ndarray = field(default_factory=_absent)
+    ddc: np.ndarray = field(default_factory=_absent)  #: the EPDMS arrays (`EPDMS_FIELDS`, record version 4)
+    tlc: np.ndarray = field(default_factory=_absent)
+    lk: np.ndarray = field(default_factory=_absent)
+    hc: np.ndarray = field(default_factory=_absent)
+    ec: np.ndarray = field(default_factory=_absent)
+    epdms: np.ndarray = field(default_factory=_absent)
     data_errors: list[str] = field(default_factory=list)
     reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
 

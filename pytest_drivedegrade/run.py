@@ -261,7 +261,8 @@ class RunContext:
         process and shared by every cell: a cell then pays only for its own plans."""
         found = self._pdms.get(frame.token)
         if found is None:
-            found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame))
+            found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
+                                                               lane_map=self.reader.lane_map(frame))
         return found
 
     def run_cell(self, planner: AnyPlanner, family: str, severity: int, *, unread: tuple[str, ...] | None = None,

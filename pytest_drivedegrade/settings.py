@@ -86,7 +86,7 @@ class RunSettings:
     reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
     device: str = "cpu"  #: where a planner that supports it runs (`planning.planner_device`)
     timeout: float = 60.0  #: seconds one predict() may take (0: no limit)
-    metric: str = "l2"  #: the retention the verdict is put on (l2 or pdms)
+    metric: str = "l2"  #: the retention the verdict is put on (l2, pdms or epdms)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)

@@ -215,7 +215,7 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
     if "flat" in settings:
         _compare(problems, "settings.flat", settings.get("flat"), flat, 0.0)
     metric = v.get("metric", "l2")
-    axes = _section(cert, "axes_pdms" if metric == "pdms" else "axes")
+    axes = _section(cert, {"pdms": "axes_pdms", "epdms": "axes_epdms"}.get(str(metric), "axes"))
     # the label from the certificate's own axes (checked against its cells by `check_axes`)
     quality, removal, gap, mean = (_number(axes.get(k)) for k in AXES)
     label = verdict(Axes(quality, removal, gap, mean), flat).label
@@ -294,6 +294,8 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
         problems += check_axes(cert["axes_pdms"], cells, "pdms_retention", "axes_pdms", groups)
     from .closed import check_closed_loop  # the closed loop's section (SPEC 13), recomputed from its run rows
 
+    if isinstance(cert.get("axes_epdms"), Mapping) and any("epdms_retention" in c for c in cells):
+        problems += check_axes(cert["axes_epdms"], cells, "epdms_retention", "axes_epdms", groups)
     return problems + check_verdict(cert, cells) + check_closed_loop(cert)
 
 

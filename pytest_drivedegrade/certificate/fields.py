@@ -27,6 +27,10 @@ EXTRA: tuple[str, ...] = ("jerk", "endpoint_shift", "energy", "separable_from_nu
 #: with its paired bootstrap CI; all in [0, 1] (retention may exceed 1), empty where not scored.
 PDMS: tuple[str, ...] = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_retention", "pdms_retention_ci_low",
                          "pdms_retention_ci_high")
+#: The EPDMS (spec 4.1, NAVSIM v2), mean per cell, its own terms (ddc, tlc, lk, hc, ec; nc, dac, ep, ttc are the
+#: PDMS's), and EPDMS retention with its paired bootstrap CI; empty where not scored (tlc: no traffic lights).
+EPDMS: tuple[str, ...] = ("epdms", "ddc", "tlc", "lk", "hc", "ec", "epdms_retention", "epdms_retention_ci_low",
+                          "epdms_retention_ci_high")
 #: The certificate's per-cell fields (cells.csv carries every metric; key order is irrelevant in sealed JSON).
 CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"),
-                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored")
+                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored", *EPDMS)

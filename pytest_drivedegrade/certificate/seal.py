@@ -143,6 +143,22 @@ def compute_digest(cert: Mapping[str, object]) -> str:
     return _sha256({k: v for k, v in cert.items() if k != "digest"})
 
 
+#: Why an EPDMS term may go unscored, as the certificate says it (`epdms_unscored`).
+EPDMS_UNSCORED_REASONS: dict[str, str] = {
+    "tlc": "the data have no traffic lights",
+    "ddc": "the map has no lane layers", "lk": "the map has no lane layers",
+    "ec": "no frame has its scene's previous keyframe in the run"}
+
+
+def epdms_unscored(analysis: RunAnalysis) -> dict[str, str]:
+    """The EPDMS terms the clean cell scored on no frame, each with the reason: they are left out of the score
+    (a multiplier of 1 is not claimed, the weights renormalised), not counted as met."""
+    clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
+    metrics = clean.metrics if clean is not None else {}
+    return {k: why for k, why in EPDMS_UNSCORED_REASONS.items()
+            if not math.isfinite(float(metrics.get(k, math.nan)))}
+
+
 def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None,
                       records: Mapping[str, CellRecord] | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
@@ -166,6 +182,8 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "thresholds": {fam: t.to_builtins() for fam, t in analysis.thresholds.items()},
         "axes": analysis.axes.to_builtins(),
         "axes_pdms": analysis.axes_pdms.to_builtins(),
+        **({} if analysis.axes_epdms is None else {"axes_epdms": analysis.axes_epdms.to_builtins(),
+                                                   "epdms_unscored": epdms_unscored(analysis)}),
         "floor": analysis.floor.to_builtins(),
         "null_control": null_control_section(analysis.null_control),
         "verdict": analysis.verdict.to_builtins(),

@@ -11,8 +11,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-#: Version of the ladder (operators and values). A new value is a minor bump; a changed operator is major.
-SPEC_VERSION = "4.0.0"
+#: Version of the ladder (operators and values) and of the scores certified on it. A new value is a minor bump; a
+#: changed operator is major; a changed score with the ladder unchanged is minor (4.1.0: PDMS on tracked states).
+SPEC_VERSION = "4.1.0"
 
 #: Order of SPEC section 3: the twelve core families first, then the four contamination families.
 ORDER: tuple[str, ...] = (

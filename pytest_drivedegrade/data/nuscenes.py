@@ -25,7 +25,7 @@ from ..constants import CAMERAS, HORIZON_STEPS, PAST_STEPS, STEP_SECONDS
 from ..errors import DataError
 from . import geometry as geo
 from .frame import AgentBoxes, CameraInfo, Command, EgoStatus, Frame, command_from_future
-from .maps import DrivableArea, load_drivable_area
+from .maps import DrivableArea, LaneMap, load_drivable_area, load_lane_map
 from .tables import REQUIRED_TABLES, confined, load_can_bus, load_manifest, load_table
 
 WORLD_MANIFEST = "drivedegrade_world.json"
@@ -109,6 +109,7 @@ class NuScenesReader:
             logs = {r["token"]: r.get("location", "") for r in load_table(self.table_dir / "log.json")}
         self.locations = {s["token"]: logs.get(s.get("log_token", ""), "") for s in self.scenes}
         self._maps: dict[str, DrivableArea | None] = {}
+        self._lane_maps: dict[str, LaneMap | None] = {}
         self.annotations: dict[str, list[tuple]] = defaultdict(list)
         for r in t["sample_annotation"]:
             self.annotations[r["sample_token"]].append(
@@ -179,6 +180,15 @@ class NuScenesReader:
         if location not in self._maps:
             self._maps[location] = load_drivable_area(self.root, location) if location else None
         return self._maps[location]
+
+    def lane_map(self, where: Frame | str) -> LaneMap | None:
+        """The lane-level map of a frame's location (or of a location by name), or None when the map expansion
+        has no lane layers there (then the EPDMS's ddc and lk are not scored). Read once per location."""
+        location = where if isinstance(where, str) else where.location
+        if location not in self._lane_maps:
+            found = load_lane_map(self.root, location) if location else None
+            self._lane_maps[location] = found if found is not None and found.lanes else None
+        return self._lane_maps[location]
 
     @staticmethod
     def load_image(camera: CameraInfo) -> np.ndarray:

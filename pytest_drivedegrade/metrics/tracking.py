@@ -23,7 +23,8 @@ import numpy as np
 
 from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import EgoStatus
-from .pdms import N_STATES, SIM_DT, EgoStates, is_comfortable
+from .pdms.constants import N_STATES, SIM_DT
+from .pdms.motion import EgoStates, is_comfortable
 
 #: nuPlan's get_pacifica_parameters().wheel_base (m): NAVSIM's vehicle for both the tracker and the model.
 WHEEL_BASE: float = 3.089
@@ -168,9 +169,14 @@ def interpolate_plan(plans: np.ndarray, headings: np.ndarray | None = None) -> n
 # -- the velocity and curvature profiles (batch_lqr_utils) -----------------------------------------------------
 
 def _solve(a: np.ndarray, reg: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Regularised least squares per batch: argmin ||y - a x||^2 + x' reg x."""
-    at = np.transpose(a, (0, 2, 1))
-    return np.einsum("bij,bj->bi", np.linalg.pinv(at @ a + reg) @ at, y)
+    """Regularised least squares per batch: argmin ||y - a x||^2 + x' reg x. One plan at a time, in 2-D
+    products: a stacked product's rounding can depend on the batch's size, a plan's profile must not (the score
+    is the same whichever plans share its batch)."""
+    out = []
+    for ai, ri, yi in zip(a, reg, y):
+        ai, yi = np.ascontiguousarray(ai), np.ascontiguousarray(yi)  # a strided row takes another BLAS kernel
+        out.append(np.linalg.solve(ai.T @ ai + ri, ai.T @ yi))  # positive definite: reg > 0
+    return np.stack(out)
 
 
 def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.ndarray, np.ndarray]:
@@ -206,22 +212,26 @@ def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.
 def _lateral_command(error: np.ndarray, velocity: np.ndarray, curvature: np.ndarray,
                      params: LQRParams) -> np.ndarray:
     """Steering rate (B,) that, held over the look-ahead, minimises the weighted lateral state (lateral error,
-    heading error, steering angle) at its end; dynamics linearised per step (small angles, Euler, dt):
-    e' = v h_e, h_e' = v (delta / L - kappa), delta' = rate."""
-    b, dt = len(error), SIM_DT
-    a = np.broadcast_to(np.eye(3), (b, 3, 3)).copy()
-    gain, offset = np.zeros((b, 3)), np.zeros((b, 3))
-    for j in range(params.horizon):
-        step = np.broadcast_to(np.eye(3), (b, 3, 3)).copy()
-        step[:, 0, 1] = velocity[:, j] * dt
-        step[:, 1, 2] = velocity[:, j] * dt / WHEEL_BASE
-        a = step @ a
-        gain = np.einsum("bij,bj->bi", step, gain)
-        gain[:, 2] += dt
-        offset = np.einsum("bij,bj->bi", step, offset)
-        offset[:, 1] -= velocity[:, j] * curvature[:, j] * dt
-    free = np.einsum("bij,bj->bi", a, error) + offset  # the lateral state at the end with no steering rate
-    free[:, 1:] = _wrap(free[:, 1:])
+    heading error, steering angle) at its end; dynamics linearised per step j (small angles, Euler, dt):
+    e' = v h_e, h_e' = v (delta / L - kappa), delta' = rate.
+
+    Each step's matrix is I + a_j E01 + b_j E12 (a_j = v_j dt, b_j = v_j dt / L), so their product over steps k..
+    is I + (sum a) E01 + (sum b) E12 + (sum over i > j of a_i b_j) E02: the end state comes from suffix sums
+    over the look-ahead, (B, H) arrays, rather than H matrix products."""
+    dt = SIM_DT
+    a, b = velocity * dt, velocity * dt / WHEEL_BASE
+    c = -velocity * curvature * dt  # the heading error each step's reference curvature adds
+
+    def suffix(x: np.ndarray) -> np.ndarray:  # (B, H + 1): sum over steps >= k, 0 after the last
+        return np.concatenate([np.cumsum(x[:, ::-1], axis=1)[:, ::-1], np.zeros((len(x), 1))], axis=1)
+
+    sa, sb = suffix(a), suffix(b)
+    sab = suffix(b * sa[:, 1:])  # sum over i > j >= k of a_i b_j
+    e, h, delta = error[:, 0], error[:, 1], error[:, 2]
+    free = np.stack([e + sa[:, 0] * h + sab[:, 0] * delta + (c * sa[:, 1:]).sum(axis=1),
+                     _wrap(h + sb[:, 0] * delta + c.sum(axis=1)), _wrap(delta)], axis=1)
+    gain = dt * np.stack([sab[:, 1:].sum(axis=1), sb[:, 1:].sum(axis=1),
+                          np.full(len(error), float(velocity.shape[1]))], axis=1)
     q = np.asarray(params.q_lateral)
     return -((gain * q) * free).sum(axis=1) / ((gain * q * gain).sum(axis=1) + params.r_lateral)
 

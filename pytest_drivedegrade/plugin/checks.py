@@ -167,10 +167,11 @@ def prefetch(context: RunContext, planner: Any, family: str, severity: int, *, s
 
 def gated_retention(clean: CellRecord, record: CellRecord, metric: str) -> float:
     """The cell's retention on the verdict's metric, as its certificate row holds it: L2 (`record_retention`) or
-    PDMS (M(cell) / M(clean) over the frames scored in both, averaged over seed runs), which the gate compares."""
-    if metric != "pdms":
+    PDMS or EPDMS (M(cell) / M(clean) over the frames scored in both, averaged over seed runs), which the gate
+    compares."""
+    if metric not in ("pdms", "epdms"):
         return record_retention(clean, record)
-    values = [paired_retention(clean.pdms, run.pdms, "reward") for run in record.runs()]
+    values = [paired_retention(getattr(clean, metric), getattr(run, metric), "reward") for run in record.runs()]
     return values[0] if len(values) == 1 else finite_mean(values)
 
 

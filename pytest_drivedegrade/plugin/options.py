@@ -95,7 +95,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-ray-gpus", "drivedegrade_ray_gpus", "GPUs each planner actor asks for (default 0; "
                "fractional allowed, e.g. 0.5 puts two actors on one GPU)", {"metavar": "G"}),
     OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
-               "M = mean L2) or pdms (the PDMS-like score); both are always computed and reported",
+               "M = mean L2), pdms (the PDMS-like score) or epdms (NAVSIM v2's extended score); all are always "
+               "computed and reported",
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
@@ -277,8 +278,8 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
     except DriveDegradeError as exc:
         raise _fail("drivedegrade_shard", str(exc)) from None
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
-    if metric not in ("l2", "pdms"):
-        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms")
+    if metric not in ("l2", "pdms", "epdms"):
+        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms, epdms")
     return _closed(config, RunSettings(
         data=(here / data).resolve() if data else None,
         split=split,

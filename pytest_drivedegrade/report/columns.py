@@ -7,10 +7,10 @@ cells.csv, the certificate's cells and the JUnit testcase properties all select 
 
 from __future__ import annotations
 
-from ..certificate.fields import EXTRA, IDENTITY, PDMS, STABLE, per_horizon
+from ..certificate.fields import EPDMS, EXTRA, IDENTITY, PDMS, STABLE, per_horizon
 from ..metrics.trajectory import CONVENTIONS
 
-__all__ = ["CSV", "EXTRA", "HORIZONS", "IDENTITY", "L2_AVG", "PDMS", "PROVENANCE", "STABLE",
+__all__ = ["CSV", "EPDMS", "EXTRA", "HORIZONS", "IDENTITY", "L2_AVG", "PDMS", "PROVENANCE", "STABLE",
            "TESTCASE", "per_horizon"]
 
 #: Mean L2 over the three horizons in each convention (``l2_avg`` is the stp3 one).
@@ -23,7 +23,7 @@ PROVENANCE: tuple[str, ...] = ("planner", "planner_fingerprint", "dataset_finger
                                "seed", "convention")
 
 #: cells.csv, in this order.
-CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *PROVENANCE)
+CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *EPDMS, *PROVENANCE)
 #: JUnit testcase properties of a cell item, known as soon as the cell ran (no retention yet: clean may run on
 #: another worker).
 TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "data_errors", "l2_avg", *per_horizon("l2", "stp3"),

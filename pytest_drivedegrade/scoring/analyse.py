@@ -73,14 +73,16 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     per = axis_resamples(summaries, res, groups)
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
     ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
-    v = run_verdict(ax_pdms if metric == "pdms" else ax, per, metric=metric, flat=flat)
+    ax_epdms = replace(run_axes(summaries, groups, "epdms"), partial=partial)
+    v = run_verdict({"pdms": ax_pdms, "epdms": ax_epdms}.get(metric, ax), per, metric=metric, flat=flat)
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
-                                         n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms)
+                                         n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms,
+                       axes_epdms=ax_epdms)
 
 
 def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:
@@ -157,7 +159,7 @@ def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float) ->
     """The label from the axes the verdict is put on (`on`), with the ego label and, on L2, its confidence
     (the resamples are of L2 retention) and a borderline flag."""
     v = verdict(on, flat)
-    text = ("On PDMS retention: " + v.text) if metric == "pdms" else v.text
+    text = {"pdms": "On PDMS retention: ", "epdms": "On EPDMS retention: "}.get(metric, "") + v.text
     confidence = iv.verdict_confidence(v.label, per.quality, per.removal, flat) \
         if per.quality is not None and metric == "l2" else None
     borderline = confidence is not None and confidence < iv.BORDERLINE

@@ -306,6 +306,7 @@ class RunAnalysis:
     floor: Floor
     settings: dict[str, Any]
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
+    axes_epdms: Axes | None = None  #: the axes on EPDMS retention (spec 4.1)
 
     def to_builtins(self) -> Builtins:
         return {"summaries": [s.flat() for s in self.summaries],
@@ -313,7 +314,8 @@ class RunAnalysis:
                 "axes": self.axes.to_builtins(), "verdict": self.verdict.to_builtins(),
                 "null_control": None if self.null_control is None else self.null_control.to_builtins(),
                 "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
-                "axes_pdms": self.axes_pdms.to_builtins()}
+                "axes_pdms": self.axes_pdms.to_builtins(),
+                **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()})}
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""

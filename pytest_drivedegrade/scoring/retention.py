@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..cells import PDMS_FIELDS, CellRecord, is_camera_ladder
+from ..cells import EPDMS_FIELDS, PDMS_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
 from .records import CellSummary, finite_mean, horizon_metrics
 
@@ -127,15 +127,18 @@ def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DE
                  seed: int = 0) -> dict[str, float]:
     """A cell's mean PDMS-like score and sub-scores (spec 3), the share of frames scored with a map
     (``map_scored``), and PDMS retention M(cell) / M(clean) (a reward) with its paired bootstrap CI
-    (``pdms_retention``, ``pdms_retention_ci_low``, ``pdms_retention_ci_high``); NaN where not scored."""
-    out = {k: finite_mean(getattr(record, k)) for k in PDMS_FIELDS}
+    (``pdms_retention``, ``pdms_retention_ci_low``, ``pdms_retention_ci_high``); the same for the EPDMS (spec
+    4.1: its terms' means, ``epdms_retention`` and its CI); NaN where not scored."""
+    out = {k: finite_mean(getattr(record, k)) for k in (*PDMS_FIELDS, *EPDMS_FIELDS)}
     out["map_scored"] = finite_mean(record.map_scored)
-    if record.cell == clean.cell:
-        r, ci = (1.0, (1.0, 1.0)) if np.isfinite(clean.pdms).any() else (math.nan, (math.nan, math.nan))
-    else:
-        r = paired_retention(clean.pdms, record.pdms, "reward")
-        ci = bootstrap_retention_ci(clean.pdms, record.pdms, kind="reward", n_resamples=n_resamples, seed=seed)
-    out.update(pdms_retention=r, pdms_retention_ci_low=ci[0], pdms_retention_ci_high=ci[1])
+    for name in ("pdms", "epdms"):
+        mine, theirs = getattr(record, name), getattr(clean, name)
+        if record.cell == clean.cell:
+            r, ci = (1.0, (1.0, 1.0)) if np.isfinite(theirs).any() else (math.nan, (math.nan, math.nan))
+        else:
+            r = paired_retention(theirs, mine, "reward")
+            ci = bootstrap_retention_ci(theirs, mine, kind="reward", n_resamples=n_resamples, seed=seed)
+        out.update({f"{name}_retention": r, f"{name}_retention_ci_low": ci[0], f"{name}_retention_ci_high": ci[1]})
     return out
 
 

@@ -117,15 +117,16 @@ def negative_gap(gap: float | None, interval: tuple[float | None, float | None] 
     return high is None or round(high, 6) < 0
 
 
-#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default) or PDMS retention.
-VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms")
+#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default), PDMS or EPDMS retention.
+VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms", "epdms")
 EGO_LABELS: tuple[str, ...] = ("ego-reliant", "ego-insensitive", "undetermined")
 
 
 def retention_of(summary: CellSummary, metric: str = "l2") -> float:
-    """A summary's retention on `metric`: L2 (``retention``) or PDMS (``pdms_retention``; NaN when unscored)."""
-    if metric == "pdms":
-        return float(summary.metrics.get("pdms_retention", math.nan))
+    """A summary's retention on `metric`: L2 (``retention``), PDMS or EPDMS (``pdms_retention``,
+    ``epdms_retention``; NaN when unscored)."""
+    if metric in ("pdms", "epdms"):
+        return float(summary.metrics.get(f"{metric}_retention", math.nan))
     return summary.retention
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import AXIS_FAMILIES, load_json, no_traceback, read_csv  # noqa: E402
+from plugin_support import AXIS_FAMILIES, load_json, no_traceback, read_csv, verify_cli  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -59,6 +59,32 @@ def test_pdms_columns_and_the_verdict_on_pdms(dd):
     assert all("pdms_retention" in c for c in cert["cells"])
     html = (folder / "report.html").read_text()
     assert "PDMS" in html
+
+
+EPDMS_COLUMNS = ("epdms", "ddc", "tlc", "lk", "hc", "ec", "epdms_retention", "epdms_retention_ci_low",
+                 "epdms_retention_ci_high")
+
+
+def test_epdms_columns_axes_and_the_verdict_on_epdms(dd):
+    """Spec 4.1: the EPDMS terms in cells.csv (tlc empty: the world has no traffic lights, and the certificate
+    says so), axes_epdms that verify recomputes, and the verdict put on EPDMS retention."""
+    dd.write_planner()
+    result = dd.run("--drivedegrade-metric", "epdms", "-n", "2", families="gaussian_blur,blackout", severities="1,5")
+    no_traceback(result)
+    folder = dd.folder()
+    rows = read_csv(folder / "cells.csv")
+    for row in rows:
+        for col in ("epdms", "ddc", "lk", "hc", "ec"):  # the world has lanes, a past, consecutive frames
+            assert 0.0 <= float(row[col]) <= 1.0, (row["cell"], col, row[col])
+        assert row["tlc"] == ""
+        assert float(row["epdms_retention_ci_low"]) <= float(row["epdms_retention"]) <= \
+            float(row["epdms_retention_ci_high"]) + 1e-9
+    assert float(next(r for r in rows if r["cell"] == "clean")["epdms_retention"]) == 1.0
+    cert = load_json(folder / "certificate.json")
+    assert cert["verdict"]["metric"] == "epdms" and cert["verdict"]["text"].startswith("On EPDMS retention")
+    assert set(cert["axes_epdms"]) >= {"quality", "removal", "gap", "mean"}
+    assert cert["epdms_unscored"] == {"tlc": "the data have no traffic lights"}
+    assert verify_cli(folder / "certificate.json").returncode == 0
 
 
 def test_an_unknown_metric_is_a_usage_error(dd):

@@ -39,7 +39,7 @@ prepared once, contacts found vectorised, judged by the same rules).
 """
 
 
-from .agents import agent_steps, agent_tracks, expert_contacts, hits
+from .agents import agent_steps, agent_tracks, first_seen, hits
 from .constants import (
     AHEAD_DEG,
     BEHIND_DEG,
@@ -82,7 +82,7 @@ from .motion import (
     savgol,
     waypoints,
 )
-from .prepared import PreparedFrame
+from .prepared import PreparedFrame, score_plans
 from .reference import (
     collisions,
     frame_pdms,
@@ -101,6 +101,7 @@ from .rules import (
     ttc_fails,
     ttc_score,
 )
+from .tracked import initial_state, tracked_states
 
 __all__ = [
     "AHEAD_DEG", "BEHIND_DEG", "COMFORT_BOUNDS", "COMFORT_WEIGHT", "EP_WEIGHT", "HALF_LANE_M", "HEADING_MIN_SPEED",
@@ -108,8 +109,8 @@ __all__ = [
     "SIZE_MATCH_M", "STATIC_CATEGORIES", "STOPPED_SPEED", "SUBSTEPS", "TIMES", "TTC_PROJECTIONS_S", "TTC_SCHEDULE",
     "TTC_STOPPED_SPEED", "TTC_WEIGHT", "Contact", "DrivableQuery", "EgoPose", "EgoStates", "LocalDrivable",
     "PDMSResult", "PreparedFrame", "agent_steps", "agent_tracks", "at_fault", "box_corners", "collision_score",
-    "collisions", "comfort_terms", "ego_progress", "expert_contacts", "expert_path", "frame_pdms", "hits",
+    "collisions", "comfort_terms", "ego_progress", "expert_path", "first_seen", "frame_pdms", "hits", "initial_state",
     "interpolate", "is_comfortable", "no_at_fault_collisions", "off_road", "out_of_lane", "path_distance",
     "pdm_score", "pdms_result", "progress_along", "projections", "relative_angle", "savgol",
-    "time_to_collision_within_bound", "ttc_fails", "ttc_score", "waypoints",
+    "score_plans", "time_to_collision_within_bound", "tracked_states", "ttc_fails", "ttc_score", "waypoints",
 ]

@@ -10,8 +10,7 @@ import numpy as np
 from ...constants import HORIZON_STEPS, STEP_SECONDS
 from ...data.frame import AgentBoxes
 from ..trajectory import overlap_pairs
-from .constants import EGO_SIZE, KEY_STATES, MAX_AGENT_SPEED, SIZE_MATCH_M
-from .motion import EgoStates
+from .constants import EGO_SIZE, MAX_AGENT_SPEED, SIZE_MATCH_M
 
 
 def agent_steps(agents: Sequence[AgentBoxes]) -> list[AgentBoxes]:
@@ -96,11 +95,12 @@ def hits(center: np.ndarray, heading: float, boxes: AgentBoxes, size: np.ndarray
     return np.flatnonzero(over)
 
 
-def expert_contacts(expert: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray]) -> set[int]:
-    """Tracks the expert's own box touches at some waypoint time: annotation artefacts (or the expert's own
-    contacts), ignored for every plan, as NAVSIM ignores tracks that collide with the ego at the start."""
-    steps = agent_steps(agents)
-    out: set[int] = set()
-    for k, i in enumerate(KEY_STATES):
-        out.update(int(ids[k][j]) for j in hits(expert.xy[i], float(expert.heading[i]), steps[k]))
-    return out
+def first_seen(ids: list[np.ndarray], velocities: list[np.ndarray]) -> list[np.ndarray]:
+    """Per step the velocity (N, 2) of each box's track where the track is first seen: NAVSIM judges whether an
+    agent stands still by its track's first-seen object (`unique_objects`), not by its speed at the collision."""
+    first: dict[int, np.ndarray] = {}
+    for step_ids, step_velocities in zip(ids, velocities):
+        for track, velocity in zip(step_ids.tolist(), step_velocities):
+            first.setdefault(int(track), velocity)
+    return [np.array([first[int(t)] for t in step_ids.tolist()], dtype=np.float64).reshape(-1, 2)
+            for step_ids in ids]

@@ -1,21 +1,23 @@
-"""The fast path: one frame prepared once (expert states and path, agent tracks, the expert's contacts and
-progress, the map around the ego) and shared by every cell, its contacts found for all waypoint times and all
-TTC projections in one vectorised separating-axis call. It judges them with the same `rules` as the reference
-form, and the tests hold it to `reference.pdm_score` exactly."""
+"""The fast path: one frame prepared once (the expert's tracked states, path, multiplier and progress, agent
+tracks, the map around the ego) and shared by every cell, its contacts found for all waypoint times and all
+TTC projections in one vectorised separating-axis call, and the plans of many frames tracked in one batch
+(`score_plans`). It judges them with the same `rules` as the reference form, and the tests hold it to
+`reference.pdm_score` exactly."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from ...constants import HORIZON_STEPS
-from ...data.frame import AgentBoxes, Frame
-from ...data.maps import DrivableArea
+from ...data.frame import AgentBoxes, EgoStatus, Frame
+from ...data.maps import DrivableArea, LaneMap
 from ..trajectory import FlatAgents, overlap_pairs
-from .agents import agent_steps, agent_tracks, expert_contacts
+from .agents import agent_steps, agent_tracks, first_seen
 from .constants import (
     EGO_RADIUS,
     EGO_SIZE,
@@ -27,19 +29,25 @@ from .constants import (
     DrivableQuery,
     PDMSResult,
 )
+from .extended import ExtendedTerms, driving_direction, ep_v2, history, history_comfort, lane_keeping
+from .lanes import LaneView
 from .local_map import LocalDrivable
 from .motion import (
     EgoPose,
     EgoStates,
     expert_path,
-    interpolate,
     is_comfortable,
     off_road,
     out_of_lane,
     progress_along,
     waypoints,
 )
+from .reference import no_at_fault_collisions, time_to_collision_within_bound
 from .rules import Contact, collision_score, pdms_result, ttc_score
+from .tracked import initial_state, tracked_states
+
+if TYPE_CHECKING:  # `tracking` imports this package: its names are read through `tracked` at run time
+    from ..tracking import InitialState
 
 #: TTC_SCHEDULE as arrays: the state each check projects from, the projection (s), the waypoint time it meets.
 _TTC_STATE = np.array([s[0] for s in TTC_SCHEDULE], dtype=np.int64)
@@ -59,47 +67,61 @@ class PreparedFrame:
     expert: np.ndarray
     steps: tuple[AgentBoxes, ...]
     ids: tuple[np.ndarray, ...]
-    velocities: tuple[np.ndarray, ...]
-    ego_velocity: np.ndarray
+    velocities: tuple[np.ndarray, ...]  # per step, each box's track's first-seen velocity (`agents.first_seen`)
+    initial: InitialState
     drivable: DrivableQuery | None
     ego_pose: EgoPose | None
     static_categories: tuple[str, ...]
-    ignore: frozenset[int]
     path: np.ndarray
     expert_m: float
     expert_multiplier: float
     boxes: FlatAgents  # every agent box of the six waypoint times, flat, in (time, index) order
     index: np.ndarray  # (M,) index of each box within its time's AgentBoxes
     reach: np.ndarray  # (M,) its half diagonal + the ego's + margin: farther centres cannot touch
+    lanes: LaneView | None = None  # the lanes around the ego (EPDMS's ddc and lk; None: not scored)
+    past: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the ego's last 1.5 s (`extended.history`)
+    human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
 
     @classmethod
-    def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes], ego_velocity: npt.ArrayLike = (0.0, 0.0),
-                drivable: DrivableQuery | None = None, ego_pose: EgoPose | None = None, *,
-                static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
+    def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
+                ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
+                ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
+                lanes: LaneView | None = None) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
-        polygons around the ego (`LocalDrivable`)."""
+        polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
+        and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
+        terms for the human filter (`lanes`: the lanes around the ego, in its frame)."""
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents)
         ids, velocities = agent_tracks(steps)
-        velocity = np.asarray(ego_velocity, dtype=np.float64).reshape(2)
+        seen = first_seen(ids, velocities)
+        start = initial_state(ego)
         if isinstance(drivable, DrivableArea) and ego_pose is not None:
             drivable = LocalDrivable(drivable, [float(ego_pose[0]), float(ego_pose[1])])
-        es = interpolate(expert_arr, velocity)
+        es = tracked_states(expert_arr[None], [start])[0]
         expert_off = off_road(es, drivable, ego_pose)
         path = expert_path(expert_arr, float(es.heading[-1]))
+        expert_astray = expert_off | out_of_lane(es, path)
+        expert_nc = no_at_fault_collisions(es, steps, ids, seen, expert_astray, static_categories=static_categories)
         boxes = FlatAgents.of(steps)
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
-        return cls(expert_arr, tuple(steps), tuple(ids), tuple(velocities), velocity, drivable, ego_pose,
-                   tuple(static_categories), frozenset(expert_contacts(es, steps, ids)), path,
-                   progress_along(path, expert_arr[-1]), 0.0 if expert_off.any() else 1.0, boxes, index, reach)
+        past = history(ego.past_xy, ego.velocity, ego.acceleration) if isinstance(ego, EgoStatus) else None
+        dac = 0.0 if expert_off.any() else 1.0
+        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes), float("nan"), 1.0,
+                              time_to_collision_within_bound(es, steps, ids, expert_astray),
+                              lane_keeping(es, lanes), history_comfort(es, past))
+        return cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
+                   tuple(static_categories), path, progress_along(path, es.xy[-1]), expert_nc * dac, boxes, index,
+                   reach, lanes, past, human)
 
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
-           static_categories: Sequence[str] = STATIC_CATEGORIES) -> PreparedFrame:
-        """Prepare a reader frame, as `frame_pdms` scores it."""
-        return cls.prepare(frame.gt_future, frame.agents, frame.ego.velocity, drivable, frame.pose,
-                           static_categories=static_categories)
+           static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None) -> PreparedFrame:
+        """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS)."""
+        lanes = LaneView.of_map(lane_map, frame.pose) if lane_map is not None and frame.pose is not None else None
+        return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
+                           static_categories=static_categories, lanes=lanes)
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -140,13 +162,42 @@ class PreparedFrame:
             yield self._contact(int(i_arr[q]), flat, tracked=False)
 
     def score(self, plan: npt.ArrayLike) -> PDMSResult:
-        """The PDMS-like score of one plan on this frame (equal to `pdm_score`)."""
+        """The PDMS of one plan on this frame (equal to `pdm_score`)."""
         plan_arr = waypoints(plan, "plan")
-        ps = interpolate(plan_arr, self.ego_velocity)
+        return self.score_tracked(plan_arr, tracked_states(plan_arr[None], [self.initial])[0])
+
+    def score_tracked(self, plan: np.ndarray, ps: EgoStates) -> PDMSResult:
+        """The PDMS of a plan (6, 2) whose tracked states `ps` are already simulated from `initial`."""
         plan_off = off_road(ps, self.drivable, self.ego_pose)
         astray = plan_off | out_of_lane(ps, self.path)
-        nc = collision_score(ps, self.collisions(ps), astray, self.ignore, self.static_categories)
-        ttc = ttc_score(ps, self.projections(ps), astray, self.ignore)
+        nc = collision_score(ps, self.collisions(ps), astray, static_categories=self.static_categories)
+        ttc = ttc_score(ps, self.projections(ps), astray)
         dac = 0.0 if plan_off.any() else 1.0
-        return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, plan_arr[-1]),
+        return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, ps.xy[-1]),
                            self.expert_m, self.expert_multiplier, self.drivable is not None)
+
+
+    def extended(self, ps: EgoStates, result: PDMSResult) -> ExtendedTerms:
+        """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
+        ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
+        now with ddc), history comfort; tlc is not scored (no traffic lights in the data)."""
+        ddc = driving_direction(ps, self.lanes)
+        expert_ddc = self.human.ddc if self.human is not None else float("nan")
+        plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
+        expert_mult = self.expert_multiplier * (1.0 if np.isnan(expert_ddc) else expert_ddc)
+        ep = ep_v2(result.progress_m, plan_mult, self.expert_m, expert_mult)
+        return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lane_keeping(ps, self.lanes),
+                             history_comfort(ps, self.past))
+
+
+def score_plans(frames: Sequence[PreparedFrame], plans: npt.ArrayLike) -> list[PDMSResult]:
+    """The PDMS of plans (B, 6, 2) on their prepared frames (B of them, any frames), the plans tracked in one
+    batch: the tracker's cost is its 30 steps, nearly the same for one plan as for a cell's worth."""
+    arr = np.asarray(plans, dtype=np.float64)
+    if len(frames) != len(arr):
+        raise ValueError(f"{len(arr)} plans for {len(frames)} prepared frames")
+    if not len(arr):
+        return []
+    checked = np.stack([waypoints(p, "plan") for p in arr])
+    states = tracked_states(checked, [f.initial for f in frames])
+    return [f.score_tracked(p, s) for f, p, s in zip(frames, checked, states)]

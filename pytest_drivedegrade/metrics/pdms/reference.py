@@ -5,18 +5,18 @@ to it; both judge their contacts with the same `rules`."""
 from __future__ import annotations
 
 from collections.abc import Collection, Iterator, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from ...data.frame import AgentBoxes, Frame
-from .agents import agent_steps, agent_tracks, expert_contacts, hits
+from ...data.frame import AgentBoxes, EgoStatus, Frame
+from .agents import agent_steps, agent_tracks, first_seen, hits
 from .constants import KEY_STATES, STATIC_CATEGORIES, TTC_SCHEDULE, TTC_STOPPED_SPEED, DrivableQuery, PDMSResult
 from .motion import (
     EgoPose,
     EgoStates,
     expert_path,
-    interpolate,
     is_comfortable,
     off_road,
     out_of_lane,
@@ -24,6 +24,10 @@ from .motion import (
     waypoints,
 )
 from .rules import Contact, collision_score, pdms_result, ttc_score
+from .tracked import initial_state, tracked_states
+
+if TYPE_CHECKING:  # `tracking` imports this package: its names are read through `tracked` at run time
+    from ..tracking import InitialState
 
 
 def collisions(states: EgoStates, agents: Sequence[AgentBoxes], ids: list[np.ndarray],
@@ -64,35 +68,39 @@ def time_to_collision_within_bound(states: EgoStates, agents: Sequence[AgentBoxe
 
 
 def pdm_score(plan: npt.ArrayLike, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
-              ego_velocity: npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
+              ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
               ego_pose: EgoPose | None = None, *,
               static_categories: Sequence[str] = STATIC_CATEGORIES) -> PDMSResult:
-    """The PDMS-like score of one plan (see the package docstring and spec/README.md, spec 3).
+    """The PDMS of one plan (see the package docstring and spec/README.md) on its tracked states.
 
-    plan, expert: (6, 2) waypoints in the ego frame; agents: one AgentBoxes per waypoint time (missing steps
-    are empty); ego_velocity: (vx, vy) m/s at t = 0 in the ego frame; drivable: a vectorised query points (K, 2)
-    -> bool in the map's frame, or None (no map: dac 1, `map_scored` False); ego_pose: the ego's (x, y, yaw) in
-    the map's frame (None: the query takes ego-frame points).
+    plan, expert: (6, 2) waypoints in the ego frame, each tracked alone from `ego` (the frame's `EgoStatus`,
+    an `InitialState`, or a bare (vx, vy) m/s at t = 0); agents: one AgentBoxes per waypoint time (missing
+    steps are empty); drivable: a vectorised query points (K, 2) -> bool in the map's frame, or None (no map:
+    dac 1, `map_scored` False); ego_pose: the ego's (x, y, yaw) in the map's frame (None: the query takes
+    ego-frame points).
     """
     plan_arr, expert_arr = waypoints(plan, "plan"), waypoints(expert, "expert")
     steps = agent_steps(agents)
     ids, velocities = agent_tracks(steps)
-    ps, es = interpolate(plan_arr, ego_velocity), interpolate(expert_arr, ego_velocity)
-    plan_off, expert_off = off_road(ps, drivable, ego_pose), off_road(es, drivable, ego_pose)
-    ignore = expert_contacts(es, steps, ids)
+    seen = first_seen(ids, velocities)
+    start = initial_state(ego)
+    ps, es = tracked_states(plan_arr[None], [start])[0], tracked_states(expert_arr[None], [start])[0]
     path = expert_path(expert_arr, float(es.heading[-1]))
+    plan_off, expert_off = off_road(ps, drivable, ego_pose), off_road(es, drivable, ego_pose)
     astray = plan_off | out_of_lane(ps, path)  # off the road or across a lane line: side contacts count
-    nc = no_at_fault_collisions(ps, steps, ids, velocities, astray, ignore, static_categories)
-    ttc = time_to_collision_within_bound(ps, steps, ids, astray, ignore)
+    nc = no_at_fault_collisions(ps, steps, ids, seen, astray, static_categories=static_categories)
+    ttc = time_to_collision_within_bound(ps, steps, ids, astray)
     dac = 0.0 if plan_off.any() else 1.0
-    # the expert's own collisions are ignored (expert_contacts), so its multiplier is its DAC
-    return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(path, plan_arr[-1]),
-                       progress_along(path, expert_arr[-1]), 0.0 if expert_off.any() else 1.0, drivable is not None)
+    expert_nc = no_at_fault_collisions(es, steps, ids, seen, expert_off | out_of_lane(es, path),
+                                       static_categories=static_categories)
+    return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(path, ps.xy[-1]),
+                       progress_along(path, es.xy[-1]), expert_nc * (0.0 if expert_off.any() else 1.0),
+                       drivable is not None)
 
 
 def frame_pdms(plan: npt.ArrayLike, frame: Frame, drivable: DrivableQuery | None = None, *,
                static_categories: Sequence[str] = STATIC_CATEGORIES) -> PDMSResult:
-    """`pdm_score` of a plan on a reader frame: its ground truth, agents, ego velocity and global pose; pass the
+    """`pdm_score` of a plan on a reader frame: its ground truth, agents, ego status and global pose; pass the
     frame's `reader.drivable_area(frame)` (or None) as `drivable`."""
-    return pdm_score(plan, frame.gt_future, frame.agents, frame.ego.velocity, drivable,
-                     frame.pose, static_categories=static_categories)
+    return pdm_score(plan, frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
+                     static_categories=static_categories)

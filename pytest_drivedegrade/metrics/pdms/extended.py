@@ -1,0 +1,183 @@
+"""EPDMS, NAVSIM v2's extended PDM score, on the tracked states (spec 4.1.0; NAVSIM v2 `PDMScorer`,
+`pdm_comfort_metrics`, `scene_aggregator`, `evaluate/pdm_score.py`):
+
+    epdms = nc * dac * ddc * tlc * (5 ep + 5 ttc + 2 lk + 2 hc + 2 ec) / 16
+
+with a term that is not scored (NaN: no lanes for ddc and lk, no traffic lights for tlc, no previous plan of the
+scene for ec) left out of the product or the weighted mean. The human filter: a term the expert's own plan
+scores 0 on is set to 1 for the plan (a rule the human driver also broke is not counted).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from ...constants import PAST_STEPS, STEP_SECONDS
+from .constants import COMFORT_BOUNDS, HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
+from .lanes import LaneView
+from .motion import EgoStates, savgol
+
+#: PDMScorerConfig (v2): driving direction over a 1 s window, compliant below 2 m, violated from 6 m; lane keeping
+#: fails after 2 s continuously more than 0.5 m off the centreline.
+DDC_HORIZON_S, DDC_COMPLIANT_M, DDC_VIOLATION_M = 1.0, 2.0, 6.0
+LK_DEVIATION_M, LK_WINDOW_S = 0.5, 2.0
+#: Weights of the averaged terms (EP 5, TTC 5, LK 2, HC 2, EC 2) and the multiplied terms.
+EPDMS_WEIGHTS: dict[str, float] = {"ep": 5.0, "ttc": 5.0, "lk": 2.0, "hc": 2.0, "ec": 2.0}
+EPDMS_MULTIPLIERS: tuple[str, ...] = ("nc", "dac", "ddc", "tlc")
+#: The terms the human filter looks at (not ec: NAVSIM scores the human on one frame).
+FILTERED: tuple[str, ...] = ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc")
+#: Two-frame extended comfort: RMS of the difference of consecutive plans' features, at most these
+#: (acceleration m/s^2, jerk m/s^3, yaw rate rad/s, yaw acceleration rad/s^2), over their overlap.
+EC_THRESHOLDS: tuple[float, float, float, float] = (0.7, 0.5, 0.1, 0.1)
+#: History comfort pads the plan with the ego's last 1.5 s at 10 Hz (NAVSIM's past human trajectory).
+HISTORY_S: float = 1.5
+#: Consecutive frames at most this far apart (s) are "the previous frame" for EC (NAVSIM asserts < 0.55 s).
+EC_MAX_INTERVAL_S: float = 0.55
+
+
+@dataclass(frozen=True)
+class ExtendedTerms:
+    """A plan's EPDMS terms before the human filter (NaN: not scored)."""
+
+    nc: float
+    dac: float
+    ddc: float
+    tlc: float
+    ep: float
+    ttc: float
+    lk: float
+    hc: float
+
+    def filtered(self, human: ExtendedTerms) -> ExtendedTerms:
+        """The human filter: each term the human's plan scores exactly 0 on becomes 1."""
+        return ExtendedTerms(**{k: 1.0 if getattr(human, k) == 0.0 else getattr(self, k) for k in FILTERED})
+
+
+def epdms_score(terms: ExtendedTerms, ec: float) -> float:
+    """The product of the scored multipliers times the weighted mean of the scored averaged terms."""
+    values: Mapping[str, float] = {**{k: getattr(terms, k) for k in FILTERED}, "ec": ec}
+    mult = math.prod(values[k] for k in EPDMS_MULTIPLIERS if math.isfinite(values[k]))
+    scored = [k for k in EPDMS_WEIGHTS if math.isfinite(values[k])]
+    total = sum(EPDMS_WEIGHTS[k] for k in scored)
+    return mult * sum(EPDMS_WEIGHTS[k] * values[k] for k in scored) / total if total else math.nan
+
+
+def ep_v2(plan_m: float, plan_multiplier: float, expert_m: float, expert_multiplier: float) -> float:
+    """NAVSIM v2's progress: raw progress over the larger multiplied progress of plan and reference, clipped to
+    [0, 1]; 1 when that larger value is at most the 5 m threshold (v1 gave 0 to a plan multiplied by 0)."""
+    top = max(max(plan_m, 0.0) * plan_multiplier, max(expert_m, 0.0) * expert_multiplier)
+    return min(max(max(plan_m, 0.0) / top, 0.0), 1.0) if top > PROGRESS_DISTANCE_THRESHOLD else 1.0
+
+
+def driving_direction(states: EgoStates, lanes: LaneView | None) -> float:
+    """DDC in {0, 1/2, 1}: the distance driven in oncoming lanes (outside intersections) within any 1 s window:
+    below 2 m 1, below 6 m 1/2, else 0. NaN without lanes."""
+    if lanes is None or not len(lanes.start):
+        return math.nan
+    oncoming = lanes.oncoming(states.xy, states.heading) & ~lanes.in_intersection(states.xy)
+    step = np.zeros(len(states.xy))
+    step[1:] = np.linalg.norm(np.diff(states.xy, axis=0), axis=1)
+    step[~oncoming] = 0.0
+    horizon = round(DDC_HORIZON_S / SIM_DT)
+    windowed = np.convolve(step, np.ones(horizon + 1))[:len(step)]  # the sum over steps t - horizon .. t
+    worst = float(windowed.max())
+    return 1.0 if worst < DDC_COMPLIANT_M else 0.5 if worst < DDC_VIOLATION_M else 0.0
+
+
+def lane_keeping(states: EgoStates, lanes: LaneView | None) -> float:
+    """LK in {0, 1}: 0 when the ego centre stays more than 0.5 m from the nearest centreline running its way (none
+    within `lanes.NEAR_M`: off) for 2 s of consecutive states (intersections skipped without resetting the
+    count, as NAVSIM skips them). NaN without lanes."""
+    if lanes is None or not len(lanes.start):
+        return math.nan
+    deviation = lanes.deviation(states.xy, states.heading)
+    skip = lanes.in_intersection(states.xy)
+    needed, run = math.ceil(LK_WINDOW_S / SIM_DT - 1e-9), 0
+    for far, skipped in zip((deviation > LK_DEVIATION_M).tolist(), skip.tolist()):
+        if skipped:
+            continue
+        run = run + 1 if far else 0
+        if run >= needed:
+            return 0.0
+    return 1.0
+
+
+def _body_accel(states: EgoStates) -> tuple[np.ndarray, np.ndarray]:
+    return states.lon_accel, states.lat_accel
+
+
+def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> float:
+    """NAVSIM v2's comfort verdict over any number of 10 Hz states: accelerations smoothed over 8 states, jerks
+    their derivative over 15, yaw rate and yaw acceleration from the heading over 5 (orders 2, 3), within
+    COMFORT_BOUNDS (strict), values rounded to 1e-8."""
+    n = len(heading)
+    lon_s, lat_s = savgol(lon, min(8, n), 2), savgol(lat, min(8, n), 2)
+    mag = savgol(np.hypot(lon, lat), min(8, n), 2)
+    terms = {"lon_accel": lon_s, "lat_accel": lat_s, "jerk": savgol(np.round(mag, 8), min(15, n), 2, 1),
+             "lon_jerk": savgol(np.round(lon_s, 8), min(15, n), 2, 1),
+             "yaw_rate": savgol(heading, min(5, n), 2, 1), "yaw_accel": savgol(heading, min(5, n), 3, 2)}
+    return float(all(((np.round(v, 8) > lo) & (np.round(v, 8) < hi)).all()
+                     for k, v in terms.items() for lo, hi in [COMFORT_BOUNDS[k]]))
+
+
+def history(past_xy: npt.ArrayLike, velocity: npt.ArrayLike,
+            acceleration: npt.ArrayLike = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ego's last HISTORY_S at 10 Hz (t = -1.5 .. -0.1 s) from its past keyframe positions (PAST_STEPS,
+    oldest first, 0.5 s apart): the cubic through the origin with the current velocity and acceleration
+    (continuous with the plan's t = 0 state) whose constant jerk fits the past positions best (least squares).
+    NAVSIM has the logged 10 Hz states; from 2 Hz positions a curve through each knot would invent jerks between
+    them. Returns heading (held at 0 below HEADING_MIN_SPEED), longitudinal and lateral acceleration (H,)."""
+    knots = np.asarray(past_xy, dtype=np.float64).reshape(PAST_STEPS, 2)
+    v0 = np.asarray(velocity, dtype=np.float64).reshape(2)
+    a0 = np.asarray(acceleration, dtype=np.float64).reshape(2)
+    tk = -np.arange(PAST_STEPS, 0, -1) * STEP_SECONDS
+    basis = tk**3 / 6.0
+    rest = knots - tk[:, None] * v0 - 0.5 * tk[:, None] ** 2 * a0
+    jerk = (basis[:, None] * rest).sum(0) / (basis**2).sum()
+    t = -np.arange(round(HISTORY_S / SIM_DT), 0, -1)[:, None] * SIM_DT  # -1.5 .. -0.1
+    vel = v0 + a0 * t + 0.5 * jerk * t**2
+    acc = a0 + jerk * t
+    speed = np.hypot(vel[:, 0], vel[:, 1])
+    heading = np.where(speed >= HEADING_MIN_SPEED, np.arctan2(vel[:, 1], vel[:, 0]), 0.0)
+    heading = np.unwrap(heading)
+    heading -= 2 * np.pi * np.round(heading[-1] / (2 * np.pi))
+    c, s = np.cos(heading), np.sin(heading)
+    return heading, c * acc[:, 0] + s * acc[:, 1], -s * acc[:, 0] + c * acc[:, 1]
+
+
+def history_comfort(states: EgoStates, past: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> float:
+    """HC in {0, 1}: NAVSIM v2's comfort over the ego's past 1.5 s followed by the plan's tracked states; without
+    a past (NAVSIM then gives 1) the plan's own states are judged."""
+    lon, lat = _body_accel(states)
+    if past is None:
+        return comfortable_v2(states.heading, lon, lat)
+    return comfortable_v2(np.concatenate([past[0], states.heading]), np.concatenate([past[1], lon]),
+                          np.concatenate([past[2], lat]))
+
+
+def _features(states: EgoStates) -> tuple[np.ndarray, ...]:
+    """NAVSIM v2's extended-comfort features: the acceleration magnitude (over 8), its derivative (over 15),
+    yaw rate and yaw acceleration (over 5, order 2), each rounded to 1e-8."""
+    n = len(states.heading)
+    acc = np.round(savgol(np.hypot(states.accel[:, 0], states.accel[:, 1]), min(8, n), 2), 8)
+    return (acc, np.round(savgol(acc, min(15, n), 2, 1), 8), np.round(savgol(states.heading, min(5, n), 2, 1), 8),
+            np.round(savgol(states.heading, min(5, n), 2, 2), 8))
+
+
+def extended_comfort(current: EgoStates, previous: EgoStates | None, interval_s: float = STEP_SECONDS) -> float:
+    """EC in {0, 1}: the previous frame's plan from `interval_s` on against this frame's plan over their overlap,
+    each feature's RMS difference within EC_THRESHOLDS. NaN without a previous plan."""
+    if previous is None:
+        return math.nan
+    shift = round(interval_s / SIM_DT)
+    cur = EgoStates(current.xy[:-shift], current.velocity[:-shift], current.accel[:-shift],
+                    current.heading[:-shift], current.speed[:-shift])
+    prev = EgoStates(previous.xy[shift:], previous.velocity[shift:], previous.accel[shift:],
+                     previous.heading[shift:], previous.speed[shift:])
+    return float(all(float(np.sqrt(np.mean((a - b) ** 2))) <= limit
+                     for a, b, limit in zip(_features(cur), _features(prev), EC_THRESHOLDS)))

@@ -1,0 +1,137 @@
+"""The lanes around the ego, in the ego frame, for the lane-based terms of the EPDMS (NAVSIM v2): which lane
+direction a point drives in (DDC), how far it lies from a lane centreline running its way (LK), and whether it
+is inside an intersection (both terms skip those states, as NAVSIM does).
+
+A small interface on purpose: centreline segments with their direction, lane polygons and intersection
+polygons as numpy arrays, built from the map expansion's lane layers (`data.maps.LaneMap`) or directly (tests).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...data.maps import LaneMap, points_in_ring
+
+#: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
+LANE_RADIUS_M: float = 80.0
+#: A state's lanes are looked for among the centreline segments within this of the states' bounding box (m): a
+#: lane whose centreline is farther away cannot hold the ego (lanes are narrower), and lane keeping counts a state
+#: with no same-way centreline that near as off its lane either way.
+NEAR_M: float = 10.0
+
+
+def _wrap(angle: np.ndarray) -> np.ndarray:
+    return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class LaneView:
+    """Lanes in the ego frame: centreline segments `start`/`end` (S, 2) with their direction `yaw` (S,) and lane
+    index `lane` (S,); each lane's polygon ring (`polygons`, one per lane, None for a lane without one); and the
+    intersections' rings."""
+
+    start: np.ndarray
+    end: np.ndarray
+    yaw: np.ndarray
+    lane: np.ndarray
+    polygons: tuple[np.ndarray | None, ...]
+    intersections: tuple[np.ndarray, ...]
+
+    @classmethod
+    def of_centrelines(cls, centrelines: Sequence[np.ndarray], polygons: Sequence[np.ndarray | None] = (),
+                       intersections: Sequence[np.ndarray] = ()) -> LaneView:
+        """From ego-frame centrelines (N, 2) in travel order (one per lane), their polygons and intersections."""
+        starts, ends, lanes = [], [], []
+        for k, c in enumerate(centrelines):
+            c = np.asarray(c, dtype=np.float64).reshape(-1, 2)
+            if len(c) >= 2:
+                starts.append(c[:-1])
+                ends.append(c[1:])
+                lanes.append(np.full(len(c) - 1, k))
+        start = np.concatenate(starts) if starts else np.zeros((0, 2))
+        end = np.concatenate(ends) if ends else np.zeros((0, 2))
+        d = end - start
+        rings = tuple(None if p is None else np.asarray(p, dtype=np.float64) for p in polygons)
+        return cls(start, end, np.arctan2(d[:, 1], d[:, 0]), np.concatenate(lanes) if lanes else np.zeros(0, int),
+                   rings + (None,) * (len(centrelines) - len(rings)),
+                   tuple(np.asarray(r, dtype=np.float64) for r in intersections))
+
+    @classmethod
+    def of_map(cls, lane_map: LaneMap, pose: Sequence[float], radius: float = LANE_RADIUS_M) -> LaneView:
+        """The lanes of `lane_map` near the ego at global `pose` (x, y, yaw), moved into its frame."""
+        x, y, yaw = (float(v) for v in pose)
+        c, s = np.cos(yaw), np.sin(yaw)
+
+        def local(xy: np.ndarray) -> np.ndarray:
+            d = np.asarray(xy, dtype=np.float64)[:, :2] - [x, y]
+            return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+        def near(xy: np.ndarray) -> bool:
+            return bool(len(xy)) and bool(((xy.min(0) <= radius) & (xy.max(0) >= -radius)).all())
+
+        lanes = [(local(lane.centreline), None if lane.polygon is None else local(lane.polygon.exterior))
+                 for lane in lane_map.lanes if len(lane.centreline)]
+        lanes = [(cl, poly) for cl, poly in lanes if near(cl)]
+        junctions = [local(a.polygon.exterior) for a in lane_map.road_segments if a.is_intersection]
+        return cls.of_centrelines([cl for cl, _ in lanes], [p for _, p in lanes],
+                                  [j for j in junctions if near(j)])
+
+    def in_intersection(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) bool: the points lie in an intersection."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        out = np.zeros(len(pts), dtype=bool)
+        for ring in self.intersections:
+            out |= points_in_ring(pts, ring)
+        return out
+
+    def _near(self, pts: np.ndarray, margin: float) -> np.ndarray:
+        """Indices of the centreline segments with an end inside the points' bounding box grown by `margin`."""
+        lo, hi = pts.min(0) - margin, pts.max(0) + margin
+        near = ((self.start >= lo) & (self.start <= hi)).all(1) | ((self.end >= lo) & (self.end <= hi)).all(1)
+        return np.flatnonzero(near)
+
+    def _nearest(self, pts: np.ndarray, segments: np.ndarray,
+                 along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (N,) of each point to its nearest segment among `segments` (those `along` (N, len) allows;
+        inf where none) and that segment's index (N,)."""
+        if not len(segments):
+            return np.full(len(pts), np.inf), np.zeros(len(pts), dtype=np.int64)
+        a, ab = self.start[segments], self.end[segments] - self.start[segments]
+        t = np.clip(((pts[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
+        dist = np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None], axis=-1)
+        if along is not None:
+            dist = np.where(along, dist, np.inf)
+        k = dist.argmin(axis=1)
+        return dist[np.arange(len(pts)), k], segments[k]
+
+    def deviation(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """(N,) distance of each point to the nearest centreline segment running its way (within 90 degrees of
+        `heading`); inf where no lane runs that way within NEAR_M of the points."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        segments = self._near(pts, NEAR_M)
+        head = np.asarray(heading, dtype=np.float64).reshape(-1, 1)
+        return self._nearest(pts, segments, np.abs(_wrap(self.yaw[segments][None, :] - head)) < np.pi / 2)[0]
+
+    def oncoming(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """(N,) bool: the point lies in some lane polygon and every lane it lies in runs against `heading` (more
+        than 90 degrees off, measured at that lane's centreline segment nearest the point)."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        head = np.asarray(heading, dtype=np.float64).reshape(-1)
+        inside_any = np.zeros(len(pts), dtype=bool)
+        along_any = np.zeros(len(pts), dtype=bool)
+        near = self._near(pts, NEAR_M)
+        for k in np.unique(self.lane[near]).tolist():
+            ring = self.polygons[k]
+            if ring is None:
+                continue
+            inside = points_in_ring(pts, ring)
+            if not inside.any():
+                continue
+            _, seg = self._nearest(pts, near[self.lane[near] == k])
+            along = np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2
+            inside_any |= inside
+            along_any |= inside & along
+        return inside_any & ~along_any
