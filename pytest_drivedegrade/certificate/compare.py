@@ -82,7 +82,7 @@ COMPARABLE: tuple[tuple[str, str, str], ...] = (
     ("numpy version", "versions", "numpy"))
 
 
-def _value(cert: Mapping[str, Any], section: str, key: str) -> object:
+def _value(cert: Mapping[str, object], section: str, key: str) -> object:
     if not section:
         return cert.get(key)
     part = _section(_section(cert, "tool"), "versions") if section == "versions" else _section(cert, section)

@@ -17,7 +17,7 @@ _ROUTES: dict[str, dict[str, Route]] = {}
 
 
 def drive_one(context: RunContext, planner: Planner, *, family: str, severity: int, route: str, seed: int,
-              plan_every: int, max_steps: int | None) -> dict[str, Any]:
+              plan_every: int, max_steps: int | None) -> dict[str, object]:
     """Run (route, seed) of a cell with this actor's planner: {"run": builtins, "seconds": {...}}."""
     root = str(context.reader.root)
     if root not in _ROUTES:
