@@ -4,8 +4,6 @@ local run writes, bit for bit."""
 
 from __future__ import annotations
 
-from typing import Any
-
 from ..planning import Planner
 from ..run import RunContext
 from .cells import run_to_builtins
