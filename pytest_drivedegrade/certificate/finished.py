@@ -47,6 +47,7 @@ class FinishedRun:
     `front`: (token, image) of the first scored frame's front camera, the report's figure (None when unreadable).
     `resumed_cells`: the stored cells this run took instead of computing them (None where the run cannot tell,
     a merge). `notes`: lines the assembly said (cells reused, a skipped floor), printed after the summary.
+    `adaptive`: --drivedegrade-adaptive's section (`scoring.sequential.adaptive_section`), else None.
     """
 
     records: Mapping[str, CellRecord]
@@ -59,3 +60,4 @@ class FinishedRun:
     missing_shards: tuple[int, ...] = ()
     resumed_cells: tuple[str, ...] | None = None
     notes: tuple[str, ...] = ()
+    adaptive: Mapping[str, object] | None = None  #: the certificate's ``adaptive`` section (adaptive runs only)

@@ -190,12 +190,34 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
                  notes: list[str], planner_file: str = "") -> FinishedRun:
     """This session's run as `report.publish` takes it (the floor is run here; its notes join `notes`)."""
     floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego))
+    adaptive = adaptive_section(options, context, run, notes)
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
                        settings=options.settings, floor=FloorFigures() if floor is None else floor.figures(),
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
                        missing_cells=tuple(run.missing),
-                       resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes))
+                       resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes),
+                       adaptive=adaptive)
+
+
+def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
+                     notes: list[str]) -> dict[str, object] | None:
+    """--drivedegrade-adaptive: the certificate's ``adaptive`` section from the run's records, and a line saying
+    what the run spent against a full run (None for a full run)."""
+    if not options.settings.adaptive:
+        return None
+    from ..cells import run_order
+    from ..scoring import sequential
+    from ..scoring.verdict import FamilyGroups
+
+    groups = FamilyGroups.from_registry()
+    records = {c: p.record for c, p in run.payloads.items()}
+    section = sequential.adaptive_section(
+        records, sequential.UnitPlan.of(context.frames, context.seed),
+        run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
+        flat=options.settings.flat, quality=groups.quality, removal=groups.removal)
+    notes.append(sequential.summary_line(section))
+    return section
 
 
 def _command(config: pytest.Config) -> str:

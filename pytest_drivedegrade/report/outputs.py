@@ -19,7 +19,8 @@ if TYPE_CHECKING:
 def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, CellRecord], analysis: RunAnalysis,
                   missing: Sequence[str], *, gt: Mapping[str, np.ndarray], montage: np.ndarray | None,
                   completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
-                  signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, Any], str]:
+                  signing_key: Ed25519PrivateKey | None = None,
+                  adaptive: Mapping[str, object] | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files and return (the sealed certificate, a line saying what was written). `missing`
     cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
     `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
@@ -33,6 +34,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     if cost is not None:
         cert["cost"] = dict(cost)
+    if adaptive is not None:
+        cert["adaptive"] = dict(adaptive)
     if signing_key is not None:
         from ..certificate.signing import sign
 
