@@ -47,8 +47,8 @@ class AdaptiveRunner:
     def __init__(self, context: RunContext, planner: AnyPlanner, cells: list[tuple[str, int]],
                  severities: tuple[int, ...], stored: Stored) -> None:
         self.context, self.planner, self.stored = context, planner, stored
-        self.plan = UnitPlan.of(context.frames, context.seed)
-        self.warm = style_of(planner).resets  # a planner without reset keeps no scene state: no warm-up needed
+        self.warm = style_of(planner).resets  # a planner without reset keeps no scene state: single frames
+        self.plan = UnitPlan.of(context.frames, context.seed, temporal=self.warm)
         self.alpha = alpha_side(context.settings.alpha, cells)
         groups = FamilyGroups.from_registry()
         self.axis_families = (*groups.quality, groups.removal)
@@ -139,7 +139,7 @@ class AdaptiveRunner:
             part = self._run_unit(family, severity, unit, clean if reuse else None)
             parts.append(part)
             n = len(unit.scored)
-            x, y = unit_figure(clean.l2_avg_per_frame()[-n:], part.l2_avg_per_frame()[-n:])
+            x, y = unit_figure(clean.l2_avg_per_frame()[-n:], part.l2_avg_per_frame()[-n:], self.plan.window)
             a.append(x)
             b.append(y)
             if stop_at(np.asarray(a), np.asarray(b), levels, population=self.plan.population,

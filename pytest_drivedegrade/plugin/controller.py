@@ -213,7 +213,7 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
     groups = FamilyGroups.from_registry()
     records = {c: p.record for c, p in run.payloads.items()}
     section = sequential.adaptive_section(
-        records, sequential.UnitPlan.of(context.frames, context.seed),
+        records, sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0)),
         run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
         flat=options.settings.flat, quality=groups.quality, removal=groups.removal)
     notes.append(sequential.summary_line(section))

@@ -39,8 +39,10 @@ from .adaptive import (
 )
 from .retention import THRESHOLD_LEVELS, tolerance_threshold
 
-#: Units: windows of WINDOW consecutive scored frames, each after up to WARMUP unscored frames of its scene with
-#: `reset` at the warm-up's start (run only for a planner that has `reset`: one without keeps no scene state).
+#: Units of a planner with `reset` (a temporal one): windows of WINDOW consecutive scored frames, each after up
+#: to WARMUP unscored frames of its scene with `reset` at the warm-up's start, so a planner that remembers at most
+#: WARMUP frames sees the history a full run gives it. A planner without `reset` keeps no scene state: its units
+#: are single frames (eight times the units, so its cells stop far sooner), with no warm-up.
 WINDOW, WARMUP = 8, 2
 #: The confidence sequence the plugin stops on (`scoring.adaptive.settle_mean`): asymptotic, valid as the units
 #: grow; "betting" is nonasymptotic but needs about twice the units (`benchmarks/adaptive.py`).
@@ -57,10 +59,19 @@ class UnitPlan:
 
     units: tuple[Unit, ...]
     seed: int
+    window: int = WINDOW
 
     @classmethod
-    def of(cls, frames: Sequence[Frame], seed: int) -> UnitPlan:
-        return cls(tuple(cut_units(frames, window=WINDOW, warmup=WARMUP, seed=seed)), int(seed))
+    def of(cls, frames: Sequence[Frame], seed: int, temporal: bool = True) -> UnitPlan:
+        """The plan of a planner with `reset` (`temporal`: windows after a warm-up) or without (single frames)."""
+        window, warmup = (WINDOW, WARMUP) if temporal else (1, 0)
+        return cls(tuple(cut_units(frames, window=window, warmup=warmup, seed=seed)), int(seed), window)
+
+    @classmethod
+    def matching(cls, frames: Sequence[Frame], seed: int, units: int) -> UnitPlan:
+        """The plan a run used, read off its clean cell's unit count (single frames, or windows)."""
+        single = cls.of(frames, seed, temporal=False)
+        return single if single.population == units else cls.of(frames, seed)
 
     @property
     def population(self) -> int:
@@ -69,18 +80,19 @@ class UnitPlan:
     def to_builtins(self) -> dict[str, object]:
         """The cut as the certificate records it: [first scored frame, warm-up frames, scored frames] per unit,
         in draw order (frame indices into the cells' frame lists)."""
-        return {"window": WINDOW, "warmup": WARMUP, "seed": self.seed,
+        return {"window": self.window, "warmup": max((len(u.warmup) for u in self.units), default=0),
+                "seed": self.seed,
                 "units": [[u.scored[0], len(u.warmup), len(u.scored)] for u in self.units]}
 
     @classmethod
     def from_builtins(cls, data: Mapping[str, object]) -> UnitPlan:
-        rows = data.get("units")
-        seed = data.get("seed")
-        if not isinstance(rows, list) or not isinstance(seed, int):
-            raise ValueError("the adaptive section's unit plan needs `units` (a list) and `seed` (an integer)")
+        rows, seed, window = data.get("units"), data.get("seed"), data.get("window")
+        if not isinstance(rows, list) or not isinstance(seed, int) or not isinstance(window, int) or window < 1:
+            raise ValueError("the adaptive section's unit plan needs `units` (a list), `seed` and `window` "
+                             "(integers)")
         units = tuple(Unit("", tuple(range(int(a) - int(w), int(a))), tuple(range(int(a), int(a) + int(n))))
                       for a, w, n in rows)
-        return cls(units, seed)
+        return cls(units, seed, window)
 
     def draw_order_problem(self) -> str | None:
         """Whether the units are the seeded permutation of themselves in frame order (None: they are)."""
@@ -97,19 +109,19 @@ class UnitPlan:
 
 def unit_sums(plan: UnitPlan, clean: np.ndarray, cell: np.ndarray, units: int) -> tuple[np.ndarray, np.ndarray]:
     """Per unit (the first `units` in draw order), the summed per-frame L2 of clean and of the cell over the
-    scored frames finite in both, divided by WINDOW: their ratio over units is the frame-level retention, and a
+    scored frames finite in both, divided by the window: their ratio over units is the frame-level retention, and a
     short unit (a scene's end) weighs what its frames weigh."""
     a, b = np.zeros(units), np.zeros(units)
     for k, u in enumerate(plan.units[:units]):
         idx = np.asarray(u.scored)
-        a[k], b[k] = unit_figure(clean[idx], cell[idx])
+        a[k], b[k] = unit_figure(clean[idx], cell[idx], plan.window)
     return a, b
 
 
-def unit_figure(clean: np.ndarray, cell: np.ndarray) -> tuple[float, float]:
+def unit_figure(clean: np.ndarray, cell: np.ndarray, window: int) -> tuple[float, float]:
     """One unit's (clean, cell) figure from its scored frames' per-frame L2 (see `unit_sums`)."""
     ok = np.isfinite(clean) & np.isfinite(cell)
-    return float(np.sum(clean[ok])) / WINDOW, float(np.sum(cell[ok])) / WINDOW
+    return float(np.sum(clean[ok])) / window, float(np.sum(cell[ok])) / window
 
 
 def levels_of(family: str, severity: int, axis_families: Sequence[str], flat: float) -> tuple[float, ...]:
@@ -271,7 +283,7 @@ def axis_entries(outcomes: Mapping[str, Outcome], records: Mapping[str, CellReco
 
 
 def guarantee(alpha: float, a_side: float, cells: int, axes: Mapping[str, Mapping[str, object]],
-              families: Mapping[str, Mapping[str, object]], clipped: int) -> str:
+              families: Mapping[str, Mapping[str, object]], clipped: int, window: int) -> str:
     """The sentence the certificate states about its label."""
     skipped = sorted(f for f, e in families.items() if e.get("skipped"))
     seen = sorted(f for f, e in families.items() if e.get("violations"))
@@ -283,9 +295,10 @@ def guarantee(alpha: float, a_side: float, cells: int, axes: Mapping[str, Mappin
              "covered. " if open_axes else "the axes settled against the flat line, so the label is wrong with "
              f"probability at most {alpha:g}. ")
     text += (f"Assumptions: the {METHOD} sequences are valid as the units grow (finite variance; not for a "
-             f"handful of units); per-unit mean L2 in [0, {DEFAULT_BOUND:g} m] ({clipped} unit figure(s) clipped); "
-             f"windows of {WINDOW} scored frames after {WARMUP} warm-up frames with reset stand for the full "
-             "stream (a planner that remembers at most 2 frames)")
+             f"handful of units); per-unit mean L2 in [0, {DEFAULT_BOUND:g} m] ({clipped} unit figure(s) clipped); ")
+    text += (f"windows of {WINDOW} scored frames after {WARMUP} warm-up frames with reset stand for the full stream "
+             f"(a planner that remembers at most {WARMUP} frames)" if window > 1 else "single frames as units (a "
+             "planner without reset keeps no scene state)")
     if skipped:
         text += f"; retention non-increasing in severity where severities were skipped ({', '.join(skipped)})"
     if seen:
@@ -307,7 +320,7 @@ def adaptive_section(records: Mapping[str, CellRecord], plan: UnitPlan, cells: S
             "cells": {c: cell_entry(records[c], o, plan.population) for c, o in sorted(outcomes.items())},
             "families": fams, "axes": axes, "passes": passes,
             "full_passes": len(records) * sum(len(u.scored) for u in plan.units),
-            "guarantee": guarantee(alpha, a_side, stopping_cells(cells), axes, fams, clipped)}
+            "guarantee": guarantee(alpha, a_side, stopping_cells(cells), axes, fams, clipped, plan.window)}
 
 
 def summary_line(section: Mapping[str, object]) -> str:

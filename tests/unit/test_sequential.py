@@ -37,6 +37,11 @@ def test_the_unit_plan_round_trips_and_its_draw_order_is_checked() -> None:
     assert "not drawn in the order seed 4 gives" in (swapped.draw_order_problem() or "")
     assert plan.passes(plan.population, warm=False) == 32
     assert plan.passes(plan.population, warm=True) == 32 + 2 * 3  # three windows start after a warm-up
+    single = sq.UnitPlan.of(frames([20, 9, 3]), seed=4, temporal=False)
+    assert single.population == 32 and single.window == 1 and all(not u.warmup for u in single.units)
+    assert sq.UnitPlan.matching(frames([20, 9, 3]), 4, 32).window == 1
+    assert sq.UnitPlan.matching(frames([20, 9, 3]), 4, 6).window == 8
+    assert sq.UnitPlan.from_builtins(single.to_builtins()).window == 1
 
 
 def test_a_cell_equal_to_clean_settles_above_both_thresholds_at_ten_units() -> None:
