@@ -12,14 +12,16 @@ already finished is taken from the store (the controller writes each cell as it 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
 from ..cells import FRAME_ARRAYS, CellRecord, cell_id, is_camera_ladder
 from ..run import AnyPlanner, RunContext, style_of
-from ..scoring.adaptive import SEVERITIES, Unit
+from ..scoring.adaptive import SEVERITIES, GateBaseline, Unit, gate_cell
 from ..scoring.sequential import (
     FULL_CELLS,
+    METHOD,
     Outcome,
     UnitPlan,
     alpha_side,
@@ -28,6 +30,7 @@ from ..scoring.sequential import (
     levels_of,
     stop_at,
     unit_figure,
+    unit_sums,
 )
 from ..scoring.verdict import FamilyGroups
 
@@ -58,6 +61,10 @@ class AdaptiveRunner:
         self._clean_m = np.full(len(context.frames), np.nan)  #: clean's per-frame L2 on the units computed
         self._clean: CellRecord | None = None
         self._done: dict[str, CellRecord] = {}
+        #: --drivedegrade-baseline: the baseline's cells/ folder (its per-frame results) and its tolerance
+        self.baseline_cells: Path | None = None
+        self.tolerance = 0.0
+        self._baseline: dict[str, GateBaseline | None] = {}
 
     # --- units ---------------------------------------------------------------------------------------------------
 
@@ -143,9 +150,35 @@ class AdaptiveRunner:
             a.append(x)
             b.append(y)
             if stop_at(np.asarray(a), np.asarray(b), levels, population=self.plan.population,
-                       alpha=self.alpha) is not None:
+                       alpha=self.alpha) is not None and self.gate_settled(cell_id(family, severity), a, b):
                 break
         return self._assemble(family, severity, parts)
+
+    def gate_settled(self, cell: str, a: list[float], b: list[float]) -> bool:
+        """With a baseline: whether the sequential gate's test of the cell (`scoring.adaptive.gate_cell`, at
+        alpha / C) is settled on the units so far; True without a baseline, or one lacking the cell's units."""
+        ref = self.baseline(cell)
+        if ref is None:
+            return True
+        n, k = self.plan.population, len(a)
+        now = np.concatenate([a, np.zeros(n - k)]), np.concatenate([b, np.zeros(n - k)])
+        return gate_cell(*now, ref, list(range(k)), tolerance=self.tolerance, alpha=2 * self.alpha,
+                         method=METHOD).side != "open"
+
+    def baseline(self, cell: str) -> GateBaseline | None:
+        """The baseline's per-unit figures of `cell` (from the cells/ folder beside it), when it has them all."""
+        if self.baseline_cells is None:
+            return None
+        if cell not in self._baseline:
+            from ..certificate.adaptive_check import load_records
+
+            got, _ = load_records(self.baseline_cells, ["clean", cell], {})
+            clean, base = got.get("clean"), got.get(cell)
+            ok = clean is not None and base is not None and np.isfinite(base.l2_avg_per_frame()).all()
+            self._baseline[cell] = GateBaseline(*unit_sums(
+                self.plan, clean.l2_avg_per_frame(), base.l2_avg_per_frame(), self.plan.population)) \
+                if ok and clean is not None and base is not None else None
+        return self._baseline[cell]
 
     def skipped(self, family: str, severity: int) -> CellRecord:
         """A severity the schedule skipped: no unit run, every row NaN, ``units`` 0."""

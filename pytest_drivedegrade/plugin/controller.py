@@ -180,8 +180,11 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
         for prop, value in suite_properties(published.analysis):
             xml.add_global_property(prop, value)
-    gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
-                                  partial=options.baseline_partial, any_planner=options.baseline_any_planner)
+    if options.settings.adaptive and baseline is not None:
+        gate_lines, out.failed = sequential_gate(options, context, run, published.certificate, baseline)
+    else:
+        gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
+                                      partial=options.baseline_partial, any_planner=options.baseline_any_planner)
     out.lines = published.lines + gate_lines
     return out
 
@@ -300,3 +303,33 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     lines.append(f"baseline: {len(result['cells'])} cell and {len(result['axes'])} axis regression(s) beyond "
                  f"tolerance {tolerance:g}")
     return lines, failed
+
+
+def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, Any],
+                    baseline: Mapping[str, Any]) -> tuple[list[str], bool]:
+    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
+    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.baseline import BaselineError, check_baseline_compatible
+    from ..scoring.seqgate import gate_lines, sequential_gate
+    from ..scoring.sequential import UnitPlan
+    from ..settings import RunSettings
+
+    got = cert.get("dataset")
+    dataset: Mapping[str, Any] = got if isinstance(got, Mapping) else {}
+    try:
+        check_baseline_compatible(baseline, spec_version=cert.get("spec_version"),
+                                  dataset_fingerprint=dataset.get("fingerprint"),
+                                  settings=RunSettings.from_certificate(cert), frames_scored=dataset.get("frames"))
+    except BaselineError as exc:
+        return [f"baseline: {exc}"], True
+    assert options.baseline_path is not None
+    folder = options.baseline_path.parent / "cells"
+    records = {c: p.record for c, p in run.payloads.items()}
+    base, problems = load_records(folder, sorted(records), {})
+    if "clean" not in base:
+        return [f"baseline: FAILED: the sequential gate pairs with the baseline's per-frame results, and {folder} "
+                "has no clean cell of it; gate against a report folder with its cells/"], True
+    plan = UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    result = sequential_gate(records, base, plan, tolerance=options.tolerance, alpha=options.settings.alpha)
+    return gate_lines(result, options.tolerance, options.settings.alpha), result.failed

@@ -175,6 +175,9 @@ class DriveDegradeSession:
 
             self.runner = AdaptiveRunner(context, planner, self.cells, self.options.severities,  # type: ignore[arg-type]
                                          stored_reader(context, planner, self.store))
+            if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
+                self.runner.baseline_cells = self.options.baseline_path.parent / "cells"
+                self.runner.tolerance = self.options.tolerance
         return self.runner
 
     def _next_cell(self, item: CellItem) -> tuple[str, int] | None:

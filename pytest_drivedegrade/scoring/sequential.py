@@ -198,7 +198,9 @@ def cell_outcome(plan: UnitPlan, clean: np.ndarray, record: CellRecord, levels: 
     # settlements are first crossings that read only the units before them, so the rule checked after every
     # unit stops where this one call on the whole prefix says (fewer units than stored: it ran too far)
     got = stop_at(a, b, levels, population=plan.population, alpha=alpha, method=method) or CellStop(units, "open", ())
-    span = retention_span(a[:got.units], b[:got.units], population=plan.population, alpha=alpha, method=method)
+    # a cell may run past its own stop (the sequential gate's test had not settled): an anytime-valid interval
+    # holds at any unit, so it is taken over every unit the cell ran
+    span = retention_span(a, b, population=plan.population, alpha=alpha, method=method)
     clipped = int(np.sum(a > DEFAULT_BOUND) + np.sum(b > DEFAULT_BOUND))
     return Outcome(got.units, got.reason, got.decisions, span, clipped)
 

@@ -94,3 +94,27 @@ def test_adaptive_usage_errors(dd):
         result = dd.run("-p", "no:xdist", *extra)
         assert result.ret == pytest.ExitCode.USAGE_ERROR
         assert message in result.stderr.str(), json.dumps(extra)
+
+
+def test_the_sequential_gate_passes_an_unchanged_planner_and_fails_a_planted_regression(dd):
+    """A full run is the baseline (its cells/ beside its certificate); adaptive runs are gated against it."""
+    from plugin_support import FRAGILE
+
+    dd.write_planner()
+    families, severities, frames = "low_light,blackout", "5", ("--drivedegrade-frames", "12")
+    dd.run("-p", "no:xdist", *frames, families=families, severities=severities, report="base").assert_outcomes(
+        passed=5)
+    baseline = dd.folder(report="base") / "certificate.json"
+    gate = ("--drivedegrade-baseline", str(baseline), "--drivedegrade-adaptive")
+    same = dd.run("-p", "no:xdist", *frames, *gate, families=families, severities=severities)
+    same.assert_outcomes(passed=5)
+    assert same.ret == 0
+    same.stdout.fnmatch_lines(["*baseline (sequential, alpha 0.05): 0 regression(s) beyond tolerance 0.02, "
+                               "3 cell(s) settled as no regression*"])
+    dd.write_planner(scale=FRAGILE)
+    worse = dd.run("-p", "no:xdist", *frames, *gate, families=families, severities=severities, report="fragile")
+    assert worse.ret == 1
+    no_traceback(worse)
+    worse.stdout.fnmatch_lines(["*REGRESSION low_light-s5: retention 0.0* on the units tested, baseline 0.1*: "
+                                "dropped by more than 0.02, settled at level 0.05*",
+                                "*baseline (sequential, alpha 0.05): 1 regression(s) beyond tolerance 0.02*"])
