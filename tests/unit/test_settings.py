@@ -31,14 +31,17 @@ BASE = RunSettings(data=Path("/data/nuscenes"), split="val", frames=8, seed=0, b
 #: One other value per setting.
 CHANGED = {"data": Path("/elsewhere/nuscenes"), "split": "mini_val", "frames": 6, "seed": 3, "seeds": 2,
            "batch": 8, "reuse": False, "device": "cuda:1", "timeout": 5.0, "metric": "pdms", "flat": 0.9,
-           "shard": Shard(2, 3), "prefetch": 3}
+           "shard": Shard(2, 3), "prefetch": 3, "adaptive": True, "alpha": 0.1}
 #: Who sees that change, written out here rather than read off the table: (run key, merge, gate, rerun argv).
 SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, True),
            "frames": (False, True, False, True), "seed": (True, True, True, True), "seeds": (True, True, True, True),
            "batch": (True, True, True, True), "reuse": (True, True, True, True), "device": (True, True, True, True),
            "timeout": (False, True, False, True), "metric": (False, True, True, True),
            "flat": (False, True, False, True), "shard": (False, False, False, False),
-           "prefetch": (False, False, False, False)}
+           "prefetch": (False, False, False, False), "adaptive": (True, True, False, True),
+           # alpha alone in a full run: no run key holds it and no certificate records it (an option parse refuses
+           # --drivedegrade-alpha without --drivedegrade-adaptive); shards still compare it
+           "alpha": (False, True, False, False)}
 
 
 def test_every_field_has_one_row_in_field_order_and_a_reason() -> None:
@@ -75,7 +78,10 @@ def certificate(settings: RunSettings, recs: list, frames_scored: int = 8) -> di
     prov = cf.Provenance("demo", "sha256:planner", "sha256:data", settings.split, "2.0.0", seed=settings.seed,
                          frames=frames_scored, data_source=settings.data_source, frames_requested=settings.frames,
                          timeout=settings.timeout)
-    return json.loads(json.dumps(cf.seal(cf.build_certificate(analysis, prov))))
+    cert = cf.build_certificate(analysis, prov)
+    if settings.adaptive:  # as `report.outputs` writes it: the adaptive section records both settings
+        cert["adaptive"] = {"enabled": True, "alpha": settings.alpha}
+    return json.loads(json.dumps(cf.seal(cert)))
 
 
 @pytest.fixture(scope="module")
