@@ -149,17 +149,19 @@ class AdaptiveRunner:
             x, y = unit_figure(clean.l2_avg_per_frame()[-n:], part.l2_avg_per_frame()[-n:], self.plan.window)
             a.append(x)
             b.append(y)
-            if stop_at(np.asarray(a), np.asarray(b), levels, population=self.plan.population,
-                       alpha=self.alpha) is not None and self.gate_settled(cell_id(family, severity), a, b):
+            gate = self.gate_settled(cell_id(family, severity), a, b)
+            if gate or (gate is None and stop_at(np.asarray(a), np.asarray(b), levels,
+                                                 population=self.plan.population, alpha=self.alpha) is not None):
                 break
         return self._assemble(family, severity, parts)
 
-    def gate_settled(self, cell: str, a: list[float], b: list[float]) -> bool:
-        """With a baseline: whether the sequential gate's test of the cell (`scoring.adaptive.gate_cell`, at
-        alpha / C) is settled on the units so far; True without a baseline, or one lacking the cell's units."""
+    def gate_settled(self, cell: str, a: list[float], b: list[float]) -> bool | None:
+        """A gate run (with a baseline): whether the sequential gate's test of the cell (`scoring.adaptive.
+        gate_cell`, at alpha / C) is settled on the units so far, which is then the cell's whole stopping rule;
+        None without a baseline, or one lacking the cell's units (the cell stops on its own decisions)."""
         ref = self.baseline(cell)
         if ref is None:
-            return True
+            return None
         n, k = self.plan.population, len(a)
         now = np.concatenate([a, np.zeros(n - k)]), np.concatenate([b, np.zeros(n - k)])
         return gate_cell(*now, ref, list(range(k)), tolerance=self.tolerance, alpha=2 * self.alpha,
@@ -199,7 +201,7 @@ class AdaptiveRunner:
 
     def family(self, family: str) -> dict[int, CellRecord]:
         """Every severity of a camera family: visited as the schedule says, the others skipped."""
-        if not self.scheduled:
+        if not self.scheduled or self.baseline_cells is not None:  # a gate run gates every severity
             return {s: self._visit(family, s) for s in self.severities}
         outcomes: dict[int, Outcome] = {}
         while (nxt := family_plan(outcomes)[0]) is not None:

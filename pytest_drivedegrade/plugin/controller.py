@@ -218,7 +218,8 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
     section = sequential.adaptive_section(
         records, sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0)),
         run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
-        flat=options.settings.flat, quality=groups.quality, removal=groups.removal)
+        flat=options.settings.flat, quality=groups.quality, removal=groups.removal,
+        rule="certify" if options.baseline_path is None else "gate")
     notes.append(sequential.summary_line(section))
     return section
 

@@ -309,20 +309,25 @@ def guarantee(alpha: float, a_side: float, cells: int, axes: Mapping[str, Mappin
 
 
 def adaptive_section(records: Mapping[str, CellRecord], plan: UnitPlan, cells: Sequence[tuple[str, int]], *,
-                     alpha: float, flat: float, quality: Sequence[str], removal: str) -> dict[str, object]:
-    """The certificate's ``adaptive`` section, from the records alone (what `verify` recomputes)."""
+                     alpha: float, flat: float, quality: Sequence[str], removal: str,
+                     rule: str = "certify") -> dict[str, object]:
+    """The certificate's ``adaptive`` section, from the records alone (what `verify` recomputes). `rule`:
+    "certify" (cells stop when their decisions settle, severities scheduled) or "gate" (a gate run: every
+    severity visited, cells stop when the sequential gate's test settles, so decisions may stay open)."""
     a_side = alpha_side(alpha, cells)
     outcomes = ladder_outcomes(records, plan, alpha=a_side, flat=flat, axis_families=(*quality, removal))
     fams = family_entries(records, outcomes)
     axes = axis_entries(outcomes, records, quality, removal, flat)
     clipped = sum(o.clipped for o in outcomes.values())
     passes = sum(int(r.passes or 0) for r in records.values())
-    return {"enabled": True, "alpha": alpha, "method": METHOD, "alpha_side": a_side,
+    return {"enabled": True, "alpha": alpha, "method": METHOD, "alpha_side": a_side, "rule": rule,
             "cells_counted": stopping_cells(cells), "plan": plan.to_builtins(),
             "cells": {c: cell_entry(records[c], o, plan.population) for c, o in sorted(outcomes.items())},
             "families": fams, "axes": axes, "passes": passes,
             "full_passes": len(records) * sum(len(u.scored) for u in plan.units),
-            "guarantee": guarantee(alpha, a_side, stopping_cells(cells), axes, fams, clipped, plan.window)}
+            "guarantee": guarantee(alpha, a_side, stopping_cells(cells), axes, fams, clipped, plan.window)
+            + (" A gate run: each cell stopped when its test against the baseline settled, so its own decisions "
+               "may be open." if rule == "gate" else "")}
 
 
 def summary_line(section: Mapping[str, object]) -> str:

@@ -111,6 +111,9 @@ def test_the_sequential_gate_passes_an_unchanged_planner_and_fails_a_planted_reg
     assert same.ret == 0
     same.stdout.fnmatch_lines(["*baseline (sequential, alpha 0.05): 0 regression(s) beyond tolerance 0.02, "
                                "3 cell(s) settled as no regression*"])
+    assert section(dd.folder())["rule"] == "gate"
+    done = verify_cli(dd.folder() / "certificate.json")
+    assert done.returncode == 0, done.stderr
     dd.write_planner(scale=FRAGILE)
     worse = dd.run("-p", "no:xdist", *frames, *gate, families=families, severities=severities, report="fragile")
     assert worse.ret == 1
