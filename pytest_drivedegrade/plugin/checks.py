@@ -25,7 +25,7 @@ from ..cells import (
 from ..planning import planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain
-from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
+from ..run import MAX_MESSAGES, AnyPlanner, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
 from ..scoring.baseline import cell_regression
 from ..scoring.records import finite_mean, horizon_metrics
 from ..scoring.retention import record_retention
@@ -168,7 +168,8 @@ def prefetch(context: RunContext, planner: Any, family: str, severity: int, *, s
         planner.prefetch(context, family, severity, unread=unread, seed=seed)
 
 
-def stored_reader(context: RunContext, planner: Any, store: ResultStore) -> Callable[[str], CellRecord | None]:
+def stored_reader(context: RunContext, planner: AnyPlanner,
+                  store: ResultStore) -> Callable[[str], CellRecord | None]:
     """cell id -> this run's stored record of it that a rerun may reuse (`_reusable`), or None."""
     default = context.planner_path.stem if context.planner_path else "planner"
     name = planner_name(planner, default)

@@ -306,8 +306,8 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     return lines, failed
 
 
-def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, Any],
-                    baseline: Mapping[str, Any]) -> tuple[list[str], bool]:
+def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
+                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
     """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
     per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
     from ..certificate.adaptive_check import load_records
@@ -317,11 +317,13 @@ def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cer
     from ..settings import RunSettings
 
     got = cert.get("dataset")
-    dataset: Mapping[str, Any] = got if isinstance(got, Mapping) else {}
+    dataset: Mapping[str, object] = got if isinstance(got, Mapping) else {}
+    spec, fingerprint, frames = cert.get("spec_version"), dataset.get("fingerprint"), dataset.get("frames")
     try:
-        check_baseline_compatible(baseline, spec_version=cert.get("spec_version"),
-                                  dataset_fingerprint=dataset.get("fingerprint"),
-                                  settings=RunSettings.from_certificate(cert), frames_scored=dataset.get("frames"))
+        check_baseline_compatible(baseline, spec_version=spec if isinstance(spec, str) else None,
+                                  dataset_fingerprint=fingerprint if isinstance(fingerprint, str) else None,
+                                  settings=RunSettings.from_certificate(cert),
+                                  frames_scored=frames if isinstance(frames, int) else None)
     except BaselineError as exc:
         return [f"baseline: {exc}"], True
     assert options.baseline_path is not None

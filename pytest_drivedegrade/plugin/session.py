@@ -12,7 +12,7 @@ import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import pytest
 
@@ -28,6 +28,7 @@ from .options import RunOptions, parse
 
 if TYPE_CHECKING:
     from ..raypool import RayPlanner
+    from ..run import AnyPlanner
     from .adaptive import AdaptiveRunner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
@@ -173,8 +174,9 @@ class DriveDegradeSession:
             from .adaptive import AdaptiveRunner
             from .checks import stored_reader
 
-            self.runner = AdaptiveRunner(context, planner, self.cells, self.options.severities,  # type: ignore[arg-type]
-                                         stored_reader(context, planner, self.store))
+            chosen = cast("AnyPlanner", planner)  # the fixture's object, which `certify` calls the same way
+            self.runner = AdaptiveRunner(context, chosen, self.cells, self.options.severities,
+                                         stored_reader(context, chosen, self.store))
             if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
                 self.runner.baseline_cells = self.options.baseline_path.parent / "cells"
                 self.runner.tolerance = self.options.tolerance
