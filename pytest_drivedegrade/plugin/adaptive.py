@@ -217,4 +217,7 @@ class AdaptiveRunner:
             return self.full(family)
         if is_camera_ladder(family):
             return self.family(family)[severity]
+        undecided = not levels_of(family, severity, self.axis_families, self.context.settings.flat)
+        if undecided and self.baseline(cell_id(family, severity)) is None:  # nothing to settle: no unit run
+            return self.skipped(family, severity)
         return self._visit(family, severity)

@@ -125,11 +125,15 @@ def unit_figure(clean: np.ndarray, cell: np.ndarray, window: int) -> tuple[float
 
 
 def levels_of(family: str, severity: int, axis_families: Sequence[str], flat: float) -> tuple[float, ...]:
-    """The levels a stopping cell decides: the two thresholds, and the flat line where an axis (a camera axis
-    family's S5, ego_noise S5, ego_blind) reads it."""
+    """The levels the certificate decides from a cell: a camera family's two thresholds, and the flat line where
+    an axis reads it (an axis family's S5; ego_noise S5 and ego_blind, the ego axis, decide the flat line only).
+    None for blind and ego_noise S1-S4: the certificate takes no decision from them, so they run no unit."""
+    if family in (EGO_NOISE, EGO_BLIND):
+        return (flat,) if (family, severity) in ((EGO_NOISE, 5), (EGO_BLIND, 0)) else ()
+    if not is_camera_ladder(family):
+        return ()
     base = tuple(THRESHOLD_LEVELS.values())
-    on_axis = (family in axis_families and severity == 5) or (family, severity) in ((EGO_NOISE, 5), (EGO_BLIND, 0))
-    return base + (flat,) if on_axis else base
+    return base + (flat,) if family in axis_families and severity == 5 else base
 
 
 def stopping_cells(cells: Sequence[tuple[str, int]]) -> int:

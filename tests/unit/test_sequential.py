@@ -185,4 +185,6 @@ def test_the_union_bound_counts_stopping_cells() -> None:
     assert sq.alpha_side(0.05, cells) == pytest.approx(0.05 / 12)
     assert sq.levels_of("jpeg", 5, ("jpeg",), 0.95) == (0.9, 0.75, 0.95)
     assert sq.levels_of("jpeg", 4, ("jpeg",), 0.95) == (0.9, 0.75)
+    assert sq.levels_of("ego_noise", 5, ("jpeg",), 0.95) == (0.95,) and sq.levels_of("ego_blind", 0, (), 0.9) == (0.9,)
+    assert sq.levels_of("ego_noise", 3, ("jpeg",), 0.95) == () and sq.levels_of("blind", 0, ("jpeg",), 0.95) == ()
     assert FamilyGroups.from_registry().removal == "blackout"
