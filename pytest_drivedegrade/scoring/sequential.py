@@ -64,8 +64,8 @@ class UnitPlan:
     @classmethod
     def of(cls, frames: Sequence[Frame], seed: int, temporal: bool = True) -> UnitPlan:
         """The plan of a planner with `reset` (`temporal`: windows after a warm-up) or without (single frames)."""
-        window, warmup = (WINDOW, WARMUP) if temporal else (1, 0)
-        return cls(tuple(cut_units(frames, window=window, warmup=warmup, seed=seed)), int(seed), window)
+        window = WINDOW if temporal else 1  # single frames keep their warm-up for a temporal corruption's history
+        return cls(tuple(cut_units(frames, window=window, warmup=WARMUP, seed=seed)), int(seed), window)
 
     @classmethod
     def matching(cls, frames: Sequence[Frame], seed: int, units: int) -> UnitPlan:
@@ -223,8 +223,10 @@ def threshold_spans(outcomes: Mapping[int, Outcome]) -> dict[str, list[float | N
     retention (a skipped S's retention lies below the nearest visited lower severity's high end and above the
     nearest visited higher one's low end): [first crossing of the low curve, of the high curve]; None: never."""
     spans = {s: o.interval for s, o in outcomes.items() if o.interval is not None}
-    low = {s: max((spans[t][0] for t in spans if t >= s), default=0.0) for s in SEVERITIES}
-    high = {s: min((spans[t][1] for t in spans if t <= s), default=SPAN_TOP) for s in SEVERITIES}
+    low = {s: spans[s][0] if s in spans else max((spans[t][0] for t in spans if t > s), default=0.0)
+           for s in SEVERITIES}
+    high = {s: spans[s][1] if s in spans else min((spans[t][1] for t in spans if t < s), default=SPAN_TOP)
+            for s in SEVERITIES}
     return {k: [tolerance_threshold(low, c), tolerance_threshold(high, c)] for k, c in THRESHOLD_LEVELS.items()}
 
 
@@ -304,7 +306,8 @@ def guarantee(alpha: float, a_side: float, cells: int, axes: Mapping[str, Mappin
              f"handful of units); per-unit mean L2 in [0, {DEFAULT_BOUND:g} m] ({clipped} unit figure(s) clipped); ")
     text += (f"windows of {WINDOW} scored frames after {WARMUP} warm-up frames with reset stand for the full stream "
              f"(a planner that remembers at most {WARMUP} frames)" if window > 1 else "single frames as units (a "
-             "planner without reset keeps no scene state)")
+             f"planner without reset keeps no scene state; a temporal corruption gets {WARMUP} warm-up frames of "
+             "history)")
     if skipped:
         text += f"; retention non-increasing in severity where severities were skipped ({', '.join(skipped)})"
     if seen:
