@@ -11,12 +11,18 @@
    adaptive certification needs, and the share the sequential gate needs for an unchanged planner. Simulated: the
    per-unit noise (log-sd 0.3 of cell / clean per window) and the curves' shape are assumptions, not measurements.
 
-    python benchmarks/adaptive.py [--runs 1000] [--reps 10] [--seed 0]
+4. The plugin on the embedded world: each reference planner certified full and with --drivedegrade-adaptive (a
+   pytest subprocess each, -n 2), then the predictions each used, the labels, and whether every full-run
+   retention-threshold (s*10, s*25) and axis lies in the adaptive run's anytime-valid interval.
+
+    python benchmarks/adaptive.py [--runs 1000] [--reps 10] [--seed 0] [--plugin] [--planners a,b]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -38,6 +44,9 @@ FRAMES, SCENES, WINDOW, WARMUP, CELLS = 6019, 150, 8, 2, 89
 TOLERANCE = 0.02
 #: The lowest retention a curve is given (the paper: UniAD keeps about 0.52 under blur at S5).
 FLOOR = 0.45
+#: The retention the simulation gives the non-ladder cells that stop on their own (blind, the ego cells): far
+#: below both thresholds, as blind is for any camera planner (an assumption for the ego cells).
+OTHER_R = 0.6
 
 
 def study(runs: int, seed: int) -> None:
@@ -102,10 +111,11 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
     from test_adaptive import population
 
     from pytest_drivedegrade.corruptions.ladder import QUALITY_FAMILIES
-    from pytest_drivedegrade.scoring.adaptive import alpha_per_decision, run_cell, schedule_family
+    from pytest_drivedegrade.scoring.adaptive import run_cell, schedule_family
 
     n = len(passes)
-    alpha = alpha_per_decision(0.05, len(profile) * 5 * 2 + len(QUALITY_FAMILIES) + 1)
+    # the plugin's union bound: over the C stopping cells' two-sided sequences, alpha / (2 C) per side
+    alpha = 0.05 / (2 * (CELLS - 2))
     cum = np.concatenate([[0], np.cumsum(passes)])
     base = np.minimum(rng.lognormal(np.log(0.8), 0.45, n), 2.5)  # the same clean units in every cell
     used: dict[tuple[str, int], int] = {}
@@ -124,7 +134,12 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
     for axis in (QUALITY_FAMILIES, ("blackout",)):
         extend_axis(axis, s5, used, alpha, method)
     cost = sum(min(cum[u], FRAMES) for u in used.values())  # a cell needing every unit runs as the full stream
-    cost += (CELLS - 5 * len(profile)) * min(cum[max(used.values())], FRAMES)  # clean, null control, the rest
+    # the plugin's cost model: clean and the null control run every unit; the other 7 non-ladder cells (blind,
+    # ego_noise S1-S5, ego_blind) stop on their own levels, simulated here at retention OTHER_R (an assumption)
+    cost += 2 * FRAMES
+    for _ in range(CELLS - 5 * len(profile) - 2):
+        clean, cell = population(rng, n, OTHER_R, noise_for(OTHER_R, model), clean=base)
+        cost += min(cum[run_cell(clean, cell, (0.9, 0.75), alpha=alpha, method=method).units], FRAMES)
     return cost / (CELLS * FRAMES), len(used), flags
 
 
@@ -163,7 +178,7 @@ def gate_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.
             used = n if d.side != "above" else d.units
             cost += min(cum[used], FRAMES)
             most = max(most, used)
-    cost += (CELLS - 5 * len(profile)) * min(cum[most], FRAMES)
+    cost += 2 * FRAMES + (CELLS - 5 * len(profile) - 2) * min(cum[most], FRAMES)  # clean and null: every unit
     return cost / (CELLS * FRAMES)
 
 
@@ -202,13 +217,74 @@ def nonmonotone(seed: int) -> None:
               f"{bool(found)}, scheduled s10/s25 {got}, full {full}")
 
 
+#: The reference planners of the embedded-world targets (the ego-only floor is ego_mlp).
+PLANNERS = ("camera_cnn", "temporal_cnn", "ego_mlp", "constant_velocity")
+
+
+def certify(planner: str, out: Path, adaptive: bool, workers: str) -> dict:
+    """One certification of planners/<planner>.py into `out` (reused when already there); its certificate."""
+    cert = out / planner / "certificate.json"
+    if not cert.exists():
+        cmd = [sys.executable, "-m", "pytest", "--drivedegrade", f"planners/{planner}.py", "-n", workers, "-q",
+               "-p", "no:randomly", "--drivedegrade-report", str(out), "--drivedegrade-report-overwrite",
+               *(["--drivedegrade-adaptive"] if adaptive else [])]
+        subprocess.run(cmd, cwd=ROOT, check=False, capture_output=True)
+    return json.loads(cert.read_text())
+
+
+def inside(value: float | None, span: list) -> bool:
+    """Whether a full-run threshold (None: never) lies in an adaptive interval [low, high] (None: never)."""
+    low, high = span
+    if value is None:
+        return high is None
+    return (low is None or low <= value + 1e-6) and (high is None or value <= high + 1e-6)
+
+
+def plugin_table(planners: tuple[str, ...], folder: Path, workers: str) -> None:
+    print(f"\n4. the plugin on the embedded world, full vs --drivedegrade-adaptive (reports under {folder})")
+    print(f"{'planner':<18} {'full pred':>9} {'adapt pred':>10} {'share':>6} {'full label':<25} "
+          f"{'adaptive label':<25} {'in interval':>11} {'cells skipped/settled/data':>26}")
+    for name in planners:
+        full = certify(name, folder / "full", False, workers)
+        ada = certify(name, folder / "adaptive", True, workers)
+        sec = ada["adaptive"]
+        checks, misses = 0, []
+        for fam, t in full["thresholds"].items():
+            for key in ("s10", "s25"):
+                checks += 1
+                if fam in sec["families"] and not inside(t[key],
+                                                         sec["families"][fam][key]):
+                    misses.append(f"{fam} {key}")
+        for axis, entry in sec["axes"].items():
+            checks += 1
+            low, high = entry["interval"]
+            if not low - 1e-6 <= full["axes"][axis] <= high + 1e-6:
+                misses.append(f"axis {axis}")
+        stops = [c["stop"] for c in sec["cells"].values()]
+        how = "/".join(str(stops.count(s)) for s in ("skipped", "settled", "data"))
+        fp, ap = full["cost"]["predictions"], ada["cost"]["predictions"]
+        print(f"{name:<18} {fp:>9} {ap:>10} {ap / fp:>6.1%} {full['verdict']['label']:<25} "
+              f"{ada['verdict']['label']:<25} {checks - len(misses):>5}/{checks:<5} {how:>26}")
+        for miss in misses:
+            print(f"   not in the adaptive interval: {miss}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=1000)
     parser.add_argument("--reps", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--skip-study", action="store_true")
+    parser.add_argument("--plugin", action="store_true", help="also run section 4 (certifications, minutes each)")
+    parser.add_argument("--planners", default=",".join(PLANNERS))
+    parser.add_argument("--reports", default="/tmp/drivedegrade-adaptive-bench")
+    parser.add_argument("--workers", default="2")
+    parser.add_argument("--plugin-only", action="store_true")
     args = parser.parse_args()
+    if args.plugin or args.plugin_only:
+        plugin_table(tuple(args.planners.split(",")), Path(args.reports), args.workers)
+    if args.plugin_only:
+        return
     if not args.skip_study:
         study(args.runs, args.seed)
     nonmonotone(args.seed)

@@ -229,6 +229,10 @@ class CellRecord:
     epdms: np.ndarray = field(default_factory=_absent)
     data_errors: list[str] = field(default_factory=list)
     reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
+    #: --drivedegrade-adaptive: the units of the draw order this cell ran (a prefix; 0: a skipped severity) and
+    #: the forward passes they took (warm-up frames included); None in a full run, whose record keeps its form
+    units: int | None = None
+    passes: int | None = None
 
     def __post_init__(self) -> None:
         n = len(self.frames)
@@ -276,6 +280,8 @@ class CellRecord:
         out["data_errors"] = [str(e) for e in self.data_errors]
         if self.reused:  # only then: a record without reuse keeps its earlier form (and digest) byte for byte
             out["reused"] = self.reused
+        if self.units is not None:  # only in an adaptive run: a full run's record keeps its form byte for byte
+            out["units"], out["passes"] = int(self.units), int(self.passes or 0)
         if self.seed_runs:  # only then: a one-seed record keeps its pre-seeds form byte for byte
             out["seeds"] = list(self.seeds)
             out["seed_runs"] = [run.to_builtins() for run in self.seed_runs]
@@ -296,7 +302,8 @@ class CellRecord:
         runs = [cls.from_builtins(r) for r in data.get("seed_runs", [])]
         return cls(**kw, seconds=dict(data.get("seconds", {})), errors=list(data.get("errors", [])),
                    seed_runs=runs, seeds=list(data.get("seeds", [])), data_errors=list(data.get("data_errors", [])),
-                   reused=int(data.get("reused", 0)))
+                   reused=int(data.get("reused", 0)), units=_optional_int(data.get("units")),
+                   passes=_optional_int(data.get("passes")))
 
     @classmethod
     def concat(cls, parts: Sequence[CellRecord]) -> CellRecord:
@@ -337,6 +344,15 @@ class CellRecord:
     def l2_avg_per_frame(self, convention: str = "stp3") -> np.ndarray:
         """Per-frame mean of the 1/2/3 s L2 under `convention`: the M of retention, one value per frame."""
         return np.asarray(l2_avg(self.l2, convention))
+
+
+def _optional_int(value: object) -> int | None:
+    """An optional count of a stored record (`CellRecord.units`, ``passes``): None, or a non-negative int."""
+    if value is None:
+        return None
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise InvalidInput(f"a cell record's unit count must be a non-negative integer, found {value!r}")
+    return value
 
 
 class RecordBuilder:

@@ -52,6 +52,7 @@ def _verify(args: argparse.Namespace) -> int:
     """Exit 0 when the certificate is intact (and signed by --public-key's key when given) and its arithmetic
     adds up, 1 when it was edited, its signature fails or its thresholds / axes / verdict disagree with its
     cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
+    from .certificate.adaptive_check import check_adaptive
     from .certificate.consistency import check_consistency, incompleteness
     from .certificate.seal import CertificateMismatch, verify
     from .certificate.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
@@ -63,7 +64,7 @@ def _verify(args: argparse.Namespace) -> int:
     except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
-    inconsistent = check_consistency(cert)
+    inconsistent = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
     if inconsistent:
         print(f"drivedegrade: verify: FAILED: {args.file}: the digest verifies but the arithmetic does not add up "
               f"({len(inconsistent)} field(s)):", file=sys.stderr)

@@ -90,6 +90,8 @@ class RunSettings:
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
+    adaptive: bool = False  #: cells stop when their anytime-valid interval settles their decisions (spec 14)
+    alpha: float = 0.05  #: --drivedegrade-alpha: the adaptive run's error level (the whole certificate's)
     # The closed loop (SPEC section 13): held in the certificate's closed_loop section and the closed cells' key.
     loop: str = "open"  #: --drivedegrade-loop: open (the replayed frames), closed (the simulator), both
     closed_cells: str = "slice"  #: --drivedegrade-closed-cells: slice, all or a list of cells
@@ -278,6 +280,14 @@ TABLE: tuple[Setting, ...] = (
     Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "
             "corrupted and scored, never what: every output is the serial path's bit for bit", rerun="never",
             per_shard=True),
+    Setting("adaptive", "adaptive", "--drivedegrade-adaptive", (("adaptive", "enabled"),), _F, "the gate compares "
+            "retentions: an adaptive run estimates the same retention on the units it drew, and the sequential "
+            "gate pairs it unit by unit with a full baseline's frames (and a full run with an adaptive baseline's "
+            "frames it has); the run key holds it, so neither reuses the other's stored cells",
+            keyed=lambda s: s.adaptive),
+    Setting("alpha", "alpha", "--drivedegrade-alpha", (("adaptive", "alpha"),), _F, "it sets how sure an adaptive "
+            "cell is when it stops, not what it estimates; the run key holds it in an adaptive run",
+            keyed=lambda s: s.adaptive),
     *(Setting(name, label, flag, (("closed_loop", name),), _F, "the closed loop is certified in its own section, "
               "beside the open-loop cells the gate compares") for name, label, flag in (
         ("loop", "loop", "--drivedegrade-loop"), ("closed_cells", "closed-loop cells", "--drivedegrade-closed-cells"),

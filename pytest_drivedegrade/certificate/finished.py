@@ -55,6 +55,7 @@ class FinishedRun:
     `front`: (token, image) of the first scored frame's front camera, the report's figure (None when unreadable).
     `resumed_cells`: the stored cells this run took instead of computing them (None where the run cannot tell,
     a merge). `notes`: lines the assembly said (cells reused, a skipped floor), printed after the summary.
+    `adaptive`: --drivedegrade-adaptive's section (`scoring.sequential.adaptive_section`), else None.
     """
 
     records: Mapping[str, CellRecord]
@@ -69,3 +70,4 @@ class FinishedRun:
     resumed_cells: tuple[str, ...] | None = None
     notes: tuple[str, ...] = ()
     closed: ClosedRun | None = None  #: the closed-loop cells (SPEC section 13), when the run drove any
+    adaptive: Mapping[str, object] | None = None  #: the certificate's ``adaptive`` section (adaptive runs only)

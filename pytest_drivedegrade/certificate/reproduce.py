@@ -114,9 +114,11 @@ def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], rep
             "--drivedegrade-report", str(report_dir), *RunSettings.from_certificate(cert).rerun_argv()]
     if data is not None:
         argv += ["--drivedegrade-data", str(data)]
-    # collect only the sampled cells' families and severities, then select the cells themselves with -k
-    families = [by_id[c]["family"] for c in cells if by_id[c]["family"] not in DIAGNOSTIC]
-    severities = sorted({int(by_id[c]["severity"]) for c in cells if by_id[c]["family"] not in DIAGNOSTIC} - {0})
+    # collect only the sampled cells' families and severities, then select the cells themselves with -k; an
+    # adaptive run collects all of them (a cell's stop depends on the run's cells: the union bound, the schedule)
+    collected = list(by_id) if isinstance(cert.get("adaptive"), Mapping) else cells
+    families = [by_id[c]["family"] for c in collected if by_id[c]["family"] not in DIAGNOSTIC]
+    severities = sorted({int(by_id[c]["severity"]) for c in collected if by_id[c]["family"] not in DIAGNOSTIC} - {0})
     if families:
         argv += ["--drivedegrade-families", ",".join(dict.fromkeys(families))]
     if severities:

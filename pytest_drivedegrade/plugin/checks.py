@@ -7,8 +7,8 @@ reused instead of recomputed (resume).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,11 +25,14 @@ from ..cells import (
 from ..planning import planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain
-from ..run import MAX_MESSAGES, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
+from ..run import MAX_MESSAGES, AnyPlanner, PlannerElsewhere, RunContext, Span, style_of, unread_cameras
 from ..scoring.baseline import cell_regression
 from ..scoring.records import finite_mean, horizon_metrics
 from ..scoring.retention import paired_retention, record_retention
 from ..store import ResultStore
+
+if TYPE_CHECKING:
+    from .adaptive import AdaptiveRunner
 
 
 def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
@@ -175,22 +178,33 @@ def gated_retention(clean: CellRecord, record: CellRecord, metric: str) -> float
     return values[0] if len(values) == 1 else finite_mean(values)
 
 
+def stored_reader(context: RunContext, planner: AnyPlanner,
+                  store: ResultStore) -> Callable[[str], CellRecord | None]:
+    """cell id -> this run's stored record of it that a rerun may reuse (`_reusable`), or None."""
+    default = context.planner_path.stem if context.planner_path else "planner"
+    name = planner_name(planner, default)
+    key = context.run_key(planner)
+    return lambda which: _reusable(store.read(name, which, key))
+
+
 def certify(context: RunContext, planner: Any, family: str, severity: int, *, store: ResultStore,
-            baseline: Mapping[str, Any] | None, tolerance: float) -> tuple[CellPayload, list[str]]:
-    """Run (or resume) one cell and check it; returns (payload for the controller, failure messages)."""
+            baseline: Mapping[str, Any] | None, tolerance: float,
+            runner: AdaptiveRunner | None = None) -> tuple[CellPayload, list[str]]:
+    """Run (or resume) one cell and check it; returns (payload for the controller, failure messages). With
+    `runner` (--drivedegrade-adaptive) the cell stops as its rule says, on the runner's units."""
     default = context.planner_path.stem if context.planner_path else "planner"
     name = planner_name(planner, default)
     key = context.run_key(planner)
     cell = cell_id(family, severity)
-
-    def stored_record(which: str) -> CellRecord | None:
-        return _reusable(store.read(name, which, key))
+    stored_record = stored_reader(context, planner, store)
 
     stored = stored_record(cell)
     unread = context.planner_info(planner).unread
     rear = rear_cameras()
     rear_is_null = cell == cell_id("blackout", 3) and set(rear) <= set(unread)
-    if cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
+    if runner is not None:
+        record = stored or runner.record(family, severity)
+    elif cell == "clean":  # through the per-process clean cell, which the null control and the gate reuse
         record = context.clean_record(planner, lambda: stored)
     elif stored is not None:
         record = stored
@@ -201,10 +215,11 @@ def certify(context: RunContext, planner: Any, family: str, severity: int, *, st
         record = context.run_seeded_cell(planner, family, severity, clean=clean)
     failures = _conformance(record)
     if (cell == "null" or rear_is_null or baseline is not None) and cell != "clean":
-        clean = context.clean_record(planner, lambda: stored_record("clean"))
+        clean = runner.clean() if runner is not None else \
+            context.clean_record(planner, lambda: stored_record("clean"))
         if cell == "null" or rear_is_null:
             failures += _identity(context, planner, record, clean, unread if cell == "null" else rear)
-        if baseline is not None:
+        if baseline is not None and runner is None:  # an adaptive run is gated sequentially, at the end
             metric = context.settings.metric
             reg = cell_regression(cell, gated_retention(clean, record, metric), baseline, tolerance, metric)
             if reg:

@@ -194,8 +194,11 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
         for prop, value in suite_properties(published.analysis) if published.analysis else ():
             xml.add_global_property(prop, value)
-    gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
-                                  partial=options.baseline_partial, any_planner=options.baseline_any_planner)
+    if options.settings.adaptive and baseline is not None:
+        gate_lines, out.failed = sequential_gate(options, context, run, published.certificate, baseline)
+    else:
+        gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
+                                      partial=options.baseline_partial, any_planner=options.baseline_any_planner)
     out.lines = published.lines + gate_lines
     return out
 
@@ -206,13 +209,36 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
     `notes`); with its closed-loop cells."""
     floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego)) if run.payloads \
         else None
+    adaptive = adaptive_section(options, context, run, notes)
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
                        settings=options.settings, floor=FloorFigures() if floor is None else floor.figures(),
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
                        missing_cells=tuple(run.missing),
                        resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes),
-                       closed=closed)
+                       closed=closed, adaptive=adaptive)
+
+
+
+def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
+                     notes: list[str]) -> dict[str, object] | None:
+    """--drivedegrade-adaptive: the certificate's ``adaptive`` section from the run's records, and a line saying
+    what the run spent against a full run (None for a full run)."""
+    if not options.settings.adaptive or "clean" not in run.payloads:
+        return None
+    from ..cells import run_order
+    from ..scoring import sequential
+    from ..scoring.verdict import FamilyGroups
+
+    groups = FamilyGroups.from_registry()
+    records = {c: p.record for c, p in run.payloads.items()}
+    section = sequential.adaptive_section(
+        records, sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0)),
+        run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
+        flat=options.settings.flat, quality=groups.quality, removal=groups.removal,
+        rule="certify" if options.baseline_path is None else "gate")
+    notes.append(sequential.summary_line(section))
+    return section
 
 
 def _command(config: pytest.Config) -> str:
@@ -310,3 +336,35 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     lines.append(f"baseline: {len(result['cells'])} cell and {len(result['axes'])} axis regression(s) beyond "
                  f"tolerance {tolerance:g}")
     return lines, failed
+
+
+def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
+                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
+    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
+    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.baseline import BaselineError, check_baseline_compatible
+    from ..scoring.seqgate import gate_lines, sequential_gate
+    from ..scoring.sequential import UnitPlan
+    from ..settings import RunSettings
+
+    got = cert.get("dataset")
+    dataset: Mapping[str, object] = got if isinstance(got, Mapping) else {}
+    spec, fingerprint, frames = cert.get("spec_version"), dataset.get("fingerprint"), dataset.get("frames")
+    try:
+        check_baseline_compatible(baseline, spec_version=spec if isinstance(spec, str) else None,
+                                  dataset_fingerprint=fingerprint if isinstance(fingerprint, str) else None,
+                                  settings=RunSettings.from_certificate(cert),
+                                  frames_scored=frames if isinstance(frames, int) else None)
+    except BaselineError as exc:
+        return [f"baseline: {exc}"], True
+    assert options.baseline_path is not None
+    folder = options.baseline_path.parent / "cells"
+    records = {c: p.record for c, p in run.payloads.items()}
+    base, problems = load_records(folder, sorted(records), {})
+    if "clean" not in base:
+        return [f"baseline: FAILED: the sequential gate pairs with the baseline's per-frame results, and {folder} "
+                "has no clean cell of it; gate against a report folder with its cells/"], True
+    plan = UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    result = sequential_gate(records, base, plan, tolerance=options.tolerance, alpha=options.settings.alpha)
+    return gate_lines(result, options.tolerance, options.settings.alpha), result.failed

@@ -119,6 +119,14 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "(default: every val scene of the world)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
+               "draws windows of frames in a seeded order and stops once its anytime-valid interval settles every "
+               "decision the certificate takes from it; severities are scheduled (S5 first, then bisection); the "
+               "certificate's `adaptive` section states the guarantee (see README, Adaptive certification)",
+               {"action": "store_true"}),
+    OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
+               "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
+               {"metavar": "X"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
                "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
                "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
@@ -294,6 +302,8 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
         prefetch=_prefetch(config),
+        adaptive=_adaptive(config, shard),
+        alpha=_number(config, "drivedegrade_alpha", float, DEFAULTS.alpha, 1e-9, 0.5),
     ))
 
 
@@ -321,6 +331,24 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
                    closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None))
+
+
+def _adaptive(config: pytest.Config, shard: Shard | None) -> bool:
+    """--drivedegrade-adaptive (its --drivedegrade-alpha in (0, 0.5]), checked: not with a shard (a cell's
+    stopping rule reads units of every scene in one seeded order, and a shard sees only its own scenes) nor with
+    several seeds (the stopping rule pairs one run of a cell with clean)."""
+    if not _flag(config, "drivedegrade_adaptive"):
+        if value(config, "drivedegrade_alpha") is not None:
+            raise _fail("drivedegrade_alpha", "needs --drivedegrade-adaptive (a full run stops no cell early)")
+        return False
+    if shard is not None:
+        raise _fail("drivedegrade_adaptive", "cannot be combined with --drivedegrade-shard: a cell's stopping rule "
+                    "draws units from every scene in one seeded order and stops on what all of them gave, which "
+                    "no shard sees; run it unsharded (with -n or --drivedegrade-ray for parallelism)")
+    if (_number(config, "drivedegrade_seeds", int, DEFAULTS.seeds, 1, None) or 1) > 1:
+        raise _fail("drivedegrade_adaptive", "cannot be combined with --drivedegrade-seeds above 1: the stopping "
+                    "rule pairs one run of each cell with clean, unit by unit")
+    return True
 
 
 #: The deepest --drivedegrade-prefetch: each frame ahead holds up to six decoded and corrupted images.

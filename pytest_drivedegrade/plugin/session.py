@@ -12,7 +12,7 @@ import time
 from collections.abc import Generator, Mapping
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import pytest
 
@@ -31,6 +31,8 @@ from .options import RunOptions, parse
 
 if TYPE_CHECKING:
     from ..raypool import RayPlanner
+    from ..run import AnyPlanner
+    from .adaptive import AdaptiveRunner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
 
@@ -100,6 +102,7 @@ class DriveDegradeSession:
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
+        self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -181,7 +184,7 @@ class DriveDegradeSession:
                 prefetch(context, planner, *coming, store=self.store)
             payload, failures = certify(context, planner, family, severity,
                                         store=self.store, baseline=self.baseline,
-                                        tolerance=self.options.tolerance)
+                                        tolerance=self.options.tolerance, runner=self._runner(context, planner))
         except DriveDegradeError as exc:  # bad data, or planner.cameras / planner.name malformed: no traceback
             pytest.fail(f"cell {item.name}: {exc}", pytrace=False)
         item.stash[PAYLOAD_KEY] = payload
@@ -206,9 +209,25 @@ class DriveDegradeSession:
         if failures:
             pytest.fail("\n".join(failures), pytrace=False)
 
+    def _runner(self, context: RunContext, planner: object) -> AdaptiveRunner | None:
+        """--drivedegrade-adaptive: this process's runner of adaptive cells (built at its first cell)."""
+        if not self.options.settings.adaptive:
+            return None
+        if self.runner is None:
+            from .adaptive import AdaptiveRunner
+            from .checks import stored_reader
+
+            chosen = cast("AnyPlanner", planner)  # the fixture's object, which `certify` calls the same way
+            self.runner = AdaptiveRunner(context, chosen, self.cells, self.options.severities,
+                                         stored_reader(context, chosen, self.store))
+            if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
+                self.runner.baseline_cells = self.options.baseline_path.parent / "cells"
+                self.runner.tolerance = self.options.tolerance
+        return self.runner
+
     def _next_cell(self, item: CellItem) -> tuple[str, int] | None:
         """The cell of the item that runs after `item` (None for the last one, or without planner actors)."""
-        if self.remote is None:
+        if self.remote is None or self.options.settings.adaptive:  # an adaptive cell asks for one unit at a time
             return None
         items = item.session.items
         at = next((i for i, it in enumerate(items) if it is item), len(items))

@@ -22,7 +22,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
                   missing: Sequence[str], *, gt: Mapping[str, np.ndarray], montage: np.ndarray | None,
                   completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
                   signing_key: Ed25519PrivateKey | None = None,
-                  closed: ClosedRun | None = None) -> tuple[dict[str, Any], str]:
+                  closed: ClosedRun | None = None,
+                  adaptive: Mapping[str, object] | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files (four with closed-loop cells) as one set (`atomic_write_set`: all rendered and
     written to temporaries first, the certificate renamed last, so a crash on the way leaves the previous set
     whole, issue 20 L1) and return (the sealed certificate, a line saying what was written). `missing`
@@ -41,6 +42,8 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
         cert["cost"] = dict(cost)
     if closed is not None:  # the closed loop's section (SPEC section 13), signed and sealed with the rest
         cert["closed_loop"] = closed.section(analysis.verdict.label, analysis.verdict.flat)
+    if adaptive is not None:
+        cert["adaptive"] = dict(adaptive)
     if signing_key is not None:
         from ..certificate.signing import sign
 

@@ -345,7 +345,7 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     for record in records:
         runs = [record, *getattr(record, "seed_runs", [])]
         saved = sum(int(getattr(r, "reused", 0)) for r in runs)
-        made = sum(len(r.frames) for r in runs) - saved
+        made = sum(len(r.frames) if getattr(r, "passes", None) is None else r.passes for r in runs) - saved
         spent = {part: sum(float(r.seconds.get(part, 0.0)) for r in runs) for part in COST_PARTS}
         per_cell[record.cell] = {"predictions": made, "reused": saved, **spent,
                                  "wall": sum(float(r.seconds.get("total", 0.0)) for r in runs)}

@@ -1,0 +1,125 @@
+"""`drivedegrade verify` on an adaptive certificate: every stopping decision recomputed from the stored per-frame
+results (``cells/<cell>.json`` beside the certificate), with the rule the run stopped on
+(`scoring.sequential`), and the certificate's ``adaptive`` section compared with what its cells give.
+
+It fails a cell that stopped before its own figures settled it (running on, for the sequential gate, only
+tightens an anytime-valid interval), a family whose visited
+severities are not the ones the schedule visits, a unit plan that is not the seeded draw order, and any field of
+the section (intervals, decisions, stop reasons, the guarantee) that differs from the recomputation.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from ..cells import CellPayload, CellRecord, is_camera_ladder, record_digest
+from ..constants import DEFAULT_FLAT
+from ..errors import InvalidInput
+from ..scoring import sequential
+from ..scoring.verdict import FamilyGroups
+from .seal import canonicalize
+
+
+def load_records(folder: Path, cells: list[str],
+                 digests: Mapping[str, object]) -> tuple[dict[str, CellRecord], list[str]]:
+    """The stored records of `cells` in `folder` (``cells/<cell>.json``, each hashing to its own digest and to
+    the certificate's ``record_digests``) and what is wrong."""
+    records: dict[str, CellRecord] = {}
+    problems = []
+    for cell in cells:
+        path = folder / f"{cell}.json"
+        try:
+            records[cell] = CellPayload.from_builtins(json.loads(path.read_text())).record
+        except (OSError, ValueError, InvalidInput) as exc:
+            problems.append(f"adaptive: cell {cell}: its stored results {path} cannot be read ({exc})")
+            continue
+        if cell in digests and digests[cell] != record_digest(records[cell].to_builtins()):
+            problems.append(f"adaptive: cell {cell}: {path} is not the record the certificate sealed "
+                            "(record_digests differs)")
+    return records, problems
+
+
+def _differences(recorded: object, recomputed: object, where: str, out: list[str]) -> None:
+    """Every leaf where the two (canonical) trees differ, as ``where: certificate says X, its cells give Y``."""
+    if isinstance(recorded, Mapping) and isinstance(recomputed, Mapping):
+        for key in sorted({*recorded, *recomputed}, key=str):
+            _differences(recorded.get(key), recomputed.get(key), f"{where}.{key}", out)
+    elif recorded != recomputed:
+        out.append(f"{where}: certificate says {json.dumps(recorded)[:120]}, its cells give "
+                   f"{json.dumps(recomputed)[:120]}")
+
+
+def stop_problems(records: Mapping[str, CellRecord], plan: sequential.UnitPlan, *, alpha: float,
+                      flat: float, groups: FamilyGroups) -> list[str]:
+    """Families whose visited severities are not the schedule's (`sequential.family_plan` replayed on the
+    recomputed outcomes) and cells that did not stop where their figures settle them."""
+    axis = (*groups.quality, groups.removal)
+    outcomes = sequential.ladder_outcomes(records, plan, alpha=alpha, flat=flat, axis_families=axis)
+    problems = [f"adaptive: cell {c}: stopped after {o.units} of {plan.population} units with a decision open"
+                 for c, o in outcomes.items() if o.reason == "open"]
+    for c, r in records.items():  # no figure outside the units it ran
+        ran = {i for u in plan.units[:int(r.units or 0)] for i in u.scored}
+        outside = [i for i in range(len(r.frames)) if i not in ran and np.isfinite(r.l2[i]).any()]
+        if outside:
+            problems.append(f"adaptive: cell {c}: has figures on {len(outside)} frame(s) outside the "
+                            f"{r.units} unit(s) it ran")
+    fams: dict[str, dict[int, sequential.Outcome]] = {}
+    for c, r in records.items():
+        if is_camera_ladder(r.family):
+            fams.setdefault(r.family, {})[r.severity] = outcomes[c]
+    for fam, cells in sorted(fams.items()):
+        if sorted(cells) != [1, 2, 3, 4, 5]:
+            continue  # a run of some severities visits every one of them
+        seen: dict[int, sequential.Outcome] = {}
+        while (nxt := sequential.family_plan(seen)[0]) is not None and nxt not in seen:
+            seen[nxt] = cells[nxt]
+        visited = {s for s, o in cells.items() if o.reason != "skipped"}
+        if visited != set(seen):
+            problems.append(f"adaptive: family {fam}: visited S{sorted(visited)}, but its cells' decisions "
+                            f"schedule S{sorted(seen)}")
+    return problems
+
+
+def _number(value: object, default: float) -> float:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else default
+
+
+def check_adaptive(cert: Mapping[str, object], folder: Path | None, groups: FamilyGroups | None = None) -> list[str]:
+    """What is wrong with an adaptive certificate's stopping decisions (empty: they recompute, or the run was
+    not adaptive); `folder` holds the run's ``cells/`` (None: not found, which is itself reported); `groups`
+    defaults to the ladder's family groups."""
+    section = cert.get("adaptive")
+    if not isinstance(section, Mapping):
+        return []
+    if folder is None or not folder.is_dir():
+        return ["adaptive: no cells/ folder beside the certificate, so the stopping decisions cannot be "
+                "recomputed; verify the certificate in its report folder"]
+    try:
+        plan = sequential.UnitPlan.from_builtins(section.get("plan") or {})
+    except (TypeError, ValueError) as exc:
+        return [f"adaptive: plan: {exc}"]
+    problems = [f"adaptive: plan: {p}" for p in [plan.draw_order_problem()] if p]
+    rows = cert.get("cells")
+    cells = [(str(c.get("cell")), str(c.get("family")), int(c.get("severity") or 0))
+             for c in (rows if isinstance(rows, list) else []) if isinstance(c, Mapping)]
+    digests = cert.get("record_digests")
+    records, problems_read = load_records(folder, [c for c, _, _ in cells],
+                                          digests if isinstance(digests, Mapping) else {})
+    if problems_read or "clean" not in records:
+        return problems + (problems_read or ["adaptive: no clean cell among the stored results"])
+    alpha = _number(section.get("alpha"), 0.05)
+    settings = cert.get("settings")
+    flat = _number(settings.get("flat") if isinstance(settings, Mapping) else None, DEFAULT_FLAT)
+    groups = groups or FamilyGroups.from_registry()
+    rule = "gate" if section.get("rule") == "gate" else "certify"
+    recomputed = sequential.adaptive_section(records, plan, [(f, s) for _, f, s in cells], alpha=alpha, flat=flat,
+                                             quality=groups.quality, removal=groups.removal, rule=rule)
+    _differences(canonicalize(dict(section)), canonicalize(recomputed), "adaptive", problems)
+    if rule == "gate":  # cells stopped on the baseline's test, which needs the baseline: their open decisions show
+        return problems
+    a_side = sequential.alpha_side(alpha, [(f, s) for _, f, s in cells])
+    return problems + stop_problems(records, plan, alpha=a_side, flat=flat, groups=groups)

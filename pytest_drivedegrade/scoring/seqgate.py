@@ -1,0 +1,85 @@
+"""The sequential gate (spec 4 section 14): with --drivedegrade-baseline and --drivedegrade-adaptive, each cell
+tests "retention dropped by more than the tolerance" against the baseline's per-frame results, paired unit by unit
+(`scoring.adaptive.gate_cell`: the baseline's own difference is a control variate, so an unchanged planner
+settles "no regression" almost at once), on the units the cell ran.
+
+The run fails only on a regression settled at level alpha: each gated cell's test runs at alpha / G (G the cells
+gated, a union bound), so the chance that any "regression" is a false alarm is at most alpha. A cell whose test
+did not settle with the data it has is named, never failed; a severity the schedule skipped has no units to test.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..cells import CellRecord
+from .adaptive import GateBaseline, gate_cell
+from .sequential import FULL_CELLS, METHOD, UnitPlan, unit_sums
+
+
+@dataclass(frozen=True)
+class GateResult:
+    """Per cell: a settled regression (with the baseline's and this run's retention on the units tested), settled
+    "no regression", open, skipped, or not gateable (the baseline lacks the cell or some of its units)."""
+
+    regressions: list[tuple[str, float, float]] = field(default_factory=list)
+    passed: list[str] = field(default_factory=list)
+    open: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    ungated: list[str] = field(default_factory=list)
+
+    @property
+    def failed(self) -> bool:
+        return bool(self.regressions)
+
+
+def sequential_gate(current: Mapping[str, CellRecord], baseline: Mapping[str, CellRecord], plan: UnitPlan, *,
+                    tolerance: float, alpha: float) -> GateResult:
+    """Gate every stopping cell of `current` against the same cell of `baseline` (per-frame records over the same
+    frames, clean included in both)."""
+    out = GateResult()
+    gated = [c for c in sorted(current) if c not in FULL_CELLS]
+    level = alpha / max(1, len(gated))
+    clean, base_clean = current["clean"].l2_avg_per_frame(), baseline["clean"].l2_avg_per_frame()
+    n = plan.population
+    for cell in gated:
+        record, base = current[cell], baseline.get(cell)
+        units = int(record.units or 0)
+        if units == 0:
+            out.skipped.append(cell)
+            continue
+        if base is None or base.frames != record.frames or not np.isfinite(base.l2_avg_per_frame()).all():
+            out.ungated.append(cell)
+            continue
+        base_m = base.l2_avg_per_frame()
+        a, b = unit_sums(plan, clean, record.l2_avg_per_frame(), units)
+        bc, bx = unit_sums(plan, base_clean, base_m, n)
+        now = GateBaseline(np.concatenate([a, np.zeros(n - units)]), np.concatenate([b, np.zeros(n - units)]))
+        d = gate_cell(now.clean, now.cell, GateBaseline(bc, bx), list(range(units)), tolerance=tolerance,
+                      alpha=level, method=METHOD)
+        if d.side == "below":
+            out.regressions.append((cell, float(np.sum(bc) / np.sum(bx)), float(np.sum(a) / np.sum(b))))
+        elif d.side == "above":
+            out.passed.append(cell)
+        else:
+            out.open.append(cell)
+    return out
+
+
+def gate_lines(result: GateResult, tolerance: float, alpha: float) -> list[str]:
+    """The terminal's lines on the sequential gate."""
+    lines = [f"REGRESSION {cell}: retention {now:.3f} on the units tested, baseline {base:.3f}: dropped by more "
+             f"than {tolerance:g}, settled at level {alpha:g}" for cell, base, now in result.regressions]
+    if result.open:
+        lines.append(f"baseline (sequential): not settled with the data available ({len(result.open)} cell(s)): "
+                     f"{', '.join(result.open)}")
+    if result.ungated:
+        lines.append(f"baseline (sequential): not gated, the baseline lacks their per-frame results on every unit "
+                     f"({len(result.ungated)} cell(s)): {', '.join(result.ungated)}")
+    lines.append(f"baseline (sequential, alpha {alpha:g}): {len(result.regressions)} regression(s) beyond tolerance "
+                 f"{tolerance:g}, {len(result.passed)} cell(s) settled as no regression, {len(result.skipped)} "
+                 "skipped severities not gated (monotone retention between the visited ones)")
+    return lines

@@ -1,0 +1,123 @@
+"""--drivedegrade-adaptive end to end (SPEC section 14): the same adaptive cells serially and under -n 2, verify
+recomputing every stop from cells/*.json (and failing a tampered one), reproduce rerunning an adaptive run bit for
+bit, and the options' usage errors. Few frames and two families, so every run stays a few seconds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
+from test_shards import two_scene_world  # noqa: E402, F401 - 2 val scenes: the temporal planner resets between them
+
+from pytest_drivedegrade.certificate.seal import seal, write_certificate  # noqa: E402
+from pytest_drivedegrade.cli import main  # noqa: E402
+
+PLANNERS = Path(__file__).resolve().parents[2] / "planners"
+
+pytest_plugins = ["plugin_support"]
+
+
+def records(folder: Path) -> dict[str, dict]:
+    """Every stored cell record without its timings."""
+    out = {}
+    for path in sorted((folder / "cells").glob("*.json")):
+        record = load_json(path)["record"]
+        record.pop("seconds")
+        out[path.stem] = record
+    return out
+
+
+def section(folder: Path) -> dict:
+    return load_json(folder / "certificate.json")["adaptive"]
+
+
+@pytest.mark.parametrize("planner", ["camera_cnn.py", "temporal_cnn.py"])
+def test_adaptive_cells_are_the_same_serially_and_under_n2_and_verify(dd, two_scene_world, planner):  # noqa: F811
+    kw = {"planner": str(PLANNERS / planner), "data": two_scene_world, "families": "jpeg,blackout",
+          "severities": "1,2,3,4,5"}
+    name = planner.removesuffix(".py")
+    got = {}
+    for layout in ("-p no:xdist", "-n 2"):
+        report = f"r{layout[1]}"
+        result = dd.run(*layout.split(), "--drivedegrade-frames", "16", "--drivedegrade-adaptive", report=report,
+                        **kw)
+        result.assert_outcomes(passed=13)
+        no_traceback(result)
+        result.stdout.fnmatch_lines(["*adaptive (alpha 0.05, asymptotic): * forward passes against *"])
+        folder = dd.pytester.path / report / name
+        got[layout] = (records(folder), (folder / "cells.csv").read_text(), section(folder))
+        done = verify_cli(folder / "certificate.json")
+        assert done.returncode == 0, done.stderr
+    serial, parallel = got["-p no:xdist"], got["-n 2"]
+    assert parallel[0] == serial[0]
+    assert parallel[1] == serial[1]
+    assert parallel[2] == serial[2]
+    sec = serial[2]
+    assert sec["plan"]["window"] == (8 if name == "temporal_cnn" else 1)
+    assert sec["cells"]["clean"]["stop"] == "full" and sec["cells"]["clean"]["units"] == len(sec["plan"]["units"])
+    assert all(c["stop"] in ("full", "settled", "data", "skipped") for c in sec["cells"].values())
+    assert "Union bound over the 11 stopping cells" in sec["guarantee"]
+    for fam in ("jpeg", "blackout"):
+        entry = sec["families"][fam]
+        assert 5 in entry["visited"] and sorted(entry["visited"] + entry["skipped"]) == [1, 2, 3, 4, 5]
+
+
+def test_verify_fails_a_tampered_stopping_decision_and_reproduce_reruns_bit_for_bit(dd, capsys):
+    planner = dd.write_planner()
+    dd.run("-p", "no:xdist", "--drivedegrade-adaptive", families="jpeg", severities="1,2,3,4,5").assert_outcomes(
+        passed=8)
+    cert_path = dd.folder() / "certificate.json"
+    assert verify_cli(cert_path).returncode == 0
+    capsys.readouterr()
+    assert main(["reproduce", str(cert_path), str(planner), "--cells", "3", "--seed", "0"]) == 0
+    assert "identical" in capsys.readouterr().out
+    cert = load_json(cert_path)
+    cell = next(c for c, e in cert["adaptive"]["cells"].items() if e["stop"] in ("settled", "data"))
+    cert["adaptive"]["cells"][cell]["units"] -= 1  # claim the cell stopped a unit earlier, and reseal
+    write_certificate(cert_path, seal(cert))
+    done = verify_cli(cert_path)
+    assert done.returncode == 1
+    assert f"adaptive.cells.{cell}.units: certificate says" in done.stderr
+
+
+def test_adaptive_usage_errors(dd):
+    for extra, message in ((["--drivedegrade-alpha", "0.1"], "--drivedegrade-alpha: needs --drivedegrade-adaptive"),
+                           (["--drivedegrade-adaptive", "--drivedegrade-alpha", "0.9"], "must be between"),
+                           (["--drivedegrade-adaptive", "--drivedegrade-shard", "1/2"], "cannot be combined with "
+                            "--drivedegrade-shard"),
+                           (["--drivedegrade-adaptive", "--drivedegrade-seeds", "2"], "--drivedegrade-seeds above 1")):
+        dd.write_planner()
+        result = dd.run("-p", "no:xdist", *extra)
+        assert result.ret == pytest.ExitCode.USAGE_ERROR
+        assert message in result.stderr.str(), json.dumps(extra)
+
+
+def test_the_sequential_gate_passes_an_unchanged_planner_and_fails_a_planted_regression(dd):
+    """A full run is the baseline (its cells/ beside its certificate); adaptive runs are gated against it."""
+    from plugin_support import FRAGILE
+
+    dd.write_planner()
+    families, severities, frames = "low_light,blackout", "5", ("--drivedegrade-frames", "12")
+    dd.run("-p", "no:xdist", *frames, families=families, severities=severities, report="base").assert_outcomes(
+        passed=5)
+    baseline = dd.folder(report="base") / "certificate.json"
+    gate = ("--drivedegrade-baseline", str(baseline), "--drivedegrade-adaptive")
+    same = dd.run("-p", "no:xdist", *frames, *gate, families=families, severities=severities)
+    same.assert_outcomes(passed=5)
+    assert same.ret == 0
+    same.stdout.fnmatch_lines(["*baseline (sequential, alpha 0.05): 0 regression(s) beyond tolerance 0.02, "
+                               "3 cell(s) settled as no regression*"])
+    assert section(dd.folder())["rule"] == "gate"
+    done = verify_cli(dd.folder() / "certificate.json")
+    assert done.returncode == 0, done.stderr
+    dd.write_planner(scale=FRAGILE)
+    worse = dd.run("-p", "no:xdist", *frames, *gate, families=families, severities=severities, report="fragile")
+    assert worse.ret == 1
+    no_traceback(worse)
+    worse.stdout.fnmatch_lines(["*REGRESSION low_light-s5: retention 0.0* on the units tested, baseline 0.1*: "
+                                "dropped by more than 0.02, settled at level 0.05*",
+                                "*baseline (sequential, alpha 0.05): 1 regression(s) beyond tolerance 0.02*"])
