@@ -1,8 +1,8 @@
 """Which cells exist and what one cell yields: cell ids, the diagnostic cells, the run order, the per-cell
 record and the payload that carries it to the controller, and the one definition of bit-identical plans.
 
-One home for "which cells exist": the plugin collects items from `run_order`, the scoring orders its summaries
-with `report_order`, the store and the certificate key everything by `cell_id`.
+One home for "which cells exist": the plugin collects items from `run_order` (the scoring orders its summaries
+with `scoring.records.report_order`), the store and the certificate key everything by `cell_id`.
 """
 
 from __future__ import annotations
@@ -105,16 +105,6 @@ def run_order(families: Iterable[str], severities: Iterable[int], *,
     ego_cells = [*((EGO_NOISE, s) for s in sev if EGO_NOISE in wanted), *([(EGO_BLIND, 0)] if EGO_BLIND in wanted
                                                                             else [])]
     return [("clean", 0), *((f, s) for f in families for s in sev), *ego_cells, ("blind", 0), ("null", 0)]
-
-
-def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[int, int, str, int]:
-    """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
-    if family in DIAGNOSTIC:
-        return (0, DIAGNOSTIC.index(family), "", 0)
-    if family in EGO_FAMILIES:  # the ego cells after the camera ladder: ego_noise S1..S5, then ego_blind
-        return (2, EGO_FAMILIES.index(family), family, int(severity))
-    rank = families.index(family) if family in families else len(families)
-    return (1, rank, family, int(severity))
 
 
 def rear_cameras() -> tuple[str, ...]:

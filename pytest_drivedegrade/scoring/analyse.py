@@ -11,11 +11,11 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
-from ..cells import DIAGNOSTIC, CellRecord, is_camera_ladder, report_order
+from ..cells import DIAGNOSTIC, CellRecord, is_camera_ladder
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
 from ..errors import InvalidInput
 from . import intervals as iv
-from .records import Axes, CellSummary, FamilyThresholds, NullControl, RunAnalysis, Threshold, Verdict
+from .records import Axes, CellSummary, FamilyThresholds, NullControl, RunAnalysis, Threshold, Verdict, report_order
 from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
 from .verdict import (
     VERDICT_METRICS,

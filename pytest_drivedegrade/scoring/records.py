@@ -4,7 +4,7 @@ reduce per-frame arrays (NaN frames left out) and format numbers for people."""
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from copy import deepcopy
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, cast
@@ -12,7 +12,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..cells import CellRecord, is_camera_ladder
+from ..cells import DIAGNOSTIC, EGO_FAMILIES, CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
 from ..metrics.trajectory import CONVENTIONS, at_horizons
 
@@ -374,3 +374,13 @@ def _add_walls(walls: dict[str, list[float]], seconds: Mapping[str, float]) -> N
 
 def _share(part: float, whole: float) -> float | None:
     return min(1.0, part / whole) if whole > 0 else None
+
+
+def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[int, int, str, int]:
+    """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
+    if family in DIAGNOSTIC:
+        return (0, DIAGNOSTIC.index(family), "", 0)
+    if family in EGO_FAMILIES:  # the ego cells after the camera ladder: ego_noise S1..S5, then ego_blind
+        return (2, EGO_FAMILIES.index(family), family, int(severity))
+    rank = families.index(family) if family in families else len(families)
+    return (1, rank, family, int(severity))

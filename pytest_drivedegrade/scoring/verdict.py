@@ -13,10 +13,10 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, planned_in_both, report_order
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, planned_in_both
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
-from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value
+from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value, report_order
 
 VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
 

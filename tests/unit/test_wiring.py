@@ -19,13 +19,13 @@ from pytest_drivedegrade.cells import (
     differing_frames,
     identical_plans,
     rear_cameras,
-    report_order,
     run_order,
 )
 from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.plugin import checks
 from pytest_drivedegrade.plugin.controller import gate, gather
 from pytest_drivedegrade.plugin.options import parse
+from pytest_drivedegrade.scoring.records import report_order
 from pytest_drivedegrade.scoring.verdict import null_control
 from pytest_drivedegrade.settings import RunSettings
 from pytest_drivedegrade.store import ResultStore
