@@ -42,7 +42,9 @@ def test_false_accusation_a_stateful_planner_without_reset_is_never_blamed_for_a
     result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster*"], consecutive=False)
     lines = text.splitlines()
     failed = [i for i, line in enumerate(lines) if line.startswith("null control failed in cell")]
-    assert failed, text  # each actor's state crosses cells: the null control cannot pass bit for bit
+    # each actor's state crosses cells; since every actor plans clean first (the memo check, M12) the null control
+    # may pass bit for bit; where it fails, the failure names call history, never a camera
+    assert failed or "null control: passed" in text, text
     assert all(lines[i + 1].startswith("  plans depend on call history: give the planner a reset()")
                for i in failed), text
     calls = seen.read_text().splitlines()

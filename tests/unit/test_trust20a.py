@@ -380,9 +380,9 @@ def test_mutation_ego_label_is_recomputed_from_ego_removal(tmp_path: Path) -> No
                                                   "axis gives 'ego-reliant'"]
 
 
-SIGNED_SECTIONS = ("axes", "axes_pdms", "cells", "completeness", "cost", "created", "dataset", "floor",
-                   "null_control", "planner", "record_digests", "schema", "settings", "spec_version", "thresholds",
-                   "tool", "verdict")
+SIGNED_SECTIONS = ("axes", "axes_epdms", "axes_pdms", "cells", "completeness", "cost", "created", "dataset",
+                   "epdms_unscored", "floor", "null_control", "planner", "record_digests", "schema", "settings",
+                   "spec_version", "thresholds", "tool", "verdict")
 
 
 def _forge(value: object) -> tuple[object, bool]:
@@ -418,7 +418,12 @@ def test_mutation_the_signature_covers_every_section(tmp_path: Path, section: st
     assert set(SIGNED_SECTIONS) == set(json.loads(path.read_text())) - {"digest", "section_digests", "signature"}
     public = sg.load_public_key(tmp_path / "issuer.pub")
     sg.verify_signature(cf.verify(path), public)
-    reseal(path, lambda d: d.__setitem__(section, _forge(d[section])[0]))
+
+    def forge(d: dict) -> None:  # a section of only nulls (axes_epdms of a run without lanes) gains a key instead
+        value, changed = _forge(d[section])
+        d[section] = value if changed or not isinstance(value, dict) else {**value, "forged": 1}
+
+    reseal(path, forge)
     forged = cf.verify(path)  # the digest, recomputed by the forger, verifies
     with pytest.raises(sg.SignatureFailure, match="the signature does not verify"):
         sg.verify_signature(forged, public)
