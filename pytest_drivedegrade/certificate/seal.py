@@ -309,13 +309,17 @@ def read_strict_json(path: str | os.PathLike[str], *, constants: bool = False) -
     """A JSON file of the suite (a cell file, a shard manifest) read as strictly as a certificate
     (`parse_strict_json`; with `constants`, NaN / Infinity literals are read, as a cell file holds them); a
     ``CertificateError`` naming the file and the problem otherwise."""
+    return parse_strict_json(_read_text(path), os.fspath(path), constants=constants)
+
+
+def _read_text(path: str | os.PathLike[str]) -> str:
+    """A suite file's UTF-8 text; a ``CertificateError`` naming the file when it is missing or unreadable."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        return Path(path).read_text(encoding="utf-8")
     except FileNotFoundError:
         raise CertificateError(f"{path}: no such file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CertificateError(f"{path}: cannot read it ({exc})") from None
-    return parse_strict_json(text, os.fspath(path), constants=constants)
 
 
 def parse_strict_json(text: str, where: str, *, constants: bool = False) -> object:
@@ -352,13 +356,7 @@ def _plain(obj: object) -> Any:
 def load_certificate(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Read and parse a certificate file strictly (see ``parse_certificate_text``); ``CertificateError`` naming
     the file and the problem otherwise."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CertificateError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CertificateError(f"{path}: cannot read it ({exc})") from None
-    return parse_certificate_text(text, os.fspath(path))
+    return parse_certificate_text(_read_text(path), os.fspath(path))
 
 
 def _num(v: object) -> bool:
