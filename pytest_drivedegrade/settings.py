@@ -99,6 +99,7 @@ class RunSettings:
     closed_hz: int = 2  #: planner calls per simulated second
     closed_routes: int | None = None  #: the first N routes only (None: every route)
     closed_steps: int | None = None  #: at most N planner calls per run (None: to the route's end)
+    closed_agents: str = "log"  #: the other agents: log (replayed) or reactive (IDM along their paths)
 
     @property
     def data_source(self) -> str:
@@ -294,7 +295,8 @@ TABLE: tuple[Setting, ...] = (
         ("closed_seeds", "closed-loop seeds", "--drivedegrade-closed-seeds"),
         ("closed_hz", "closed-loop plan rate", "--drivedegrade-closed-hz"),
         ("closed_routes", "closed-loop routes", "--drivedegrade-closed-routes"),
-        ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"))),
+        ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"),
+        ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 

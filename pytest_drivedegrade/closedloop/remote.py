@@ -15,13 +15,13 @@ _ROUTES: dict[str, dict[str, Route]] = {}
 
 
 def drive_one(context: RunContext, planner: Planner, *, family: str, severity: int, route: str, seed: int,
-              plan_every: int, max_steps: int | None) -> dict[str, object]:
+              plan_every: int, max_steps: int | None, agents: str = "log") -> dict[str, object]:
     """Run (route, seed) of a cell with this actor's planner: {"run": builtins, "seconds": {...}}."""
     root = str(context.reader.root)
     if root not in _ROUTES:
         _ROUTES[root] = {r.name: r for r in load_routes(context.reader.root)}
     timings = Timings()
     result = run_route(planner, _ROUTES[root][route], Corruption(family, severity), seed, timings,
-                       plan_every=plan_every, max_steps=max_steps)
+                       plan_every=plan_every, max_steps=max_steps, agents=agents)
     return {"run": run_to_builtins(result), "seconds": {"render": timings.render, "plan": timings.plan,
                                                          "track": timings.track, "score": timings.score}}

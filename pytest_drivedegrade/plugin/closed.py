@@ -64,7 +64,7 @@ def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
     s = context.settings
     return {**context.run_key(planner), "closed_record_version": CLOSED_RECORD_VERSION,
             "closed_seeds": s.closed_seeds, "closed_hz": s.closed_hz, "closed_routes": s.closed_routes,
-            "closed_steps": s.closed_steps}
+            "closed_steps": s.closed_steps, **({"closed_agents": s.closed_agents} if s.closed_agents != "log" else {})}
 
 
 def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: str, severity: int) -> ClosedRecord:
@@ -75,17 +75,18 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
     if s.shard is not None:
         runs = shard_runs(runs, s.shard.index, s.shard.count)
     if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own
-        return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps)
+        return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps,
+                                s.closed_agents)
     timings, out = Timings(), []
     for route, seed in runs:
         out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
-                             plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps))
+                             plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents))
     seconds = {"render": timings.render, "plan": timings.plan, "track": timings.track, "score": timings.score}
     return ClosedRecord(closed_id(family, severity), family, severity, tuple(out), seconds=seconds)
 
 
 def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]], family: str, severity: int,
-                     plan_every: int, max_steps: int | None) -> ClosedRecord:
+                     plan_every: int, max_steps: int | None, agents: str = "log") -> ClosedRecord:
     """The cell's runs on Ray planner actors (`closedloop.remote.drive_one`), collected in run order."""
     from ..raypool import RayPlanner
 
@@ -93,7 +94,7 @@ def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]],
         raise DriveDegradeError("closed-loop cells run on Ray planner actors or in this process only")
     got = planner.jobs("pytest_drivedegrade.closedloop.remote:drive_one",
                        [{"family": family, "severity": severity, "route": route, "seed": seed,
-                         "plan_every": plan_every, "max_steps": max_steps} for route, seed in runs])
+                         "plan_every": plan_every, "max_steps": max_steps, "agents": agents} for route, seed in runs])
     seconds: dict[str, float] = {}
     out: list[RunResult] = []
     for item in got:

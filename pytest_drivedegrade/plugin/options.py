@@ -117,6 +117,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "(default), 5 or 10; the plan is tracked at 10 Hz", {"metavar": "HZ"}),
     OptionSpec("--drivedegrade-closed-routes", "drivedegrade_closed_routes", "drive only the first N routes "
                "(default: every val scene of the world)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-closed-agents", "drivedegrade_closed_agents", "the other road users of the closed "
+               "loop: log (default: they replay their logs) or reactive (they follow their logged paths and brake "
+               "for the ego by IDM)", {"metavar": "log|reactive"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
@@ -330,7 +333,18 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
     return replace(settings, loop=loop, closed_cells=cells, closed_hz=hz,
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
-                   closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None))
+                   closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None),
+                   closed_agents=_agents(config))
+
+
+def _agents(config: pytest.Config) -> str:
+    """--drivedegrade-closed-agents, checked: log or reactive."""
+    from ..closedloop.agents import AGENT_MODES
+
+    agents = str(value(config, "drivedegrade_closed_agents") or DEFAULTS.closed_agents).strip().lower()
+    if agents not in AGENT_MODES:
+        raise _fail("drivedegrade_closed_agents", f"expected {' or '.join(AGENT_MODES)}, got {agents!r}")
+    return agents
 
 
 def _adaptive(config: pytest.Config, shard: Shard | None) -> bool:

@@ -160,3 +160,20 @@ def test_both_loops_put_the_closed_section_beside_the_open_cells_with_their_agre
     assert len(read_csv(folder / "closed_loop.csv")) == 2 and (folder / "cells.csv").is_file()
     junit = (dd.pytester.path / "j.xml").read_text()  # the closed items' figures as testcase properties
     assert 'name="closed_ds_mean"' in junit and 'name="closed_cell" value="closed-blackout-s5"' in junit
+
+
+def test_reactive_agents_are_an_option_recorded_in_the_closed_loop_section(dd):
+    """--drivedegrade-closed-agents reactive drives the cells with IDM agents, says so in the certificate's
+    closed_loop section (and its cells' key, so a log-replay run's stored cells are not reused), and verifies; a
+    value other than log or reactive is a usage error naming both."""
+    write(dd)
+    closed(dd, "-p", "no:xdist", "--drivedegrade-closed-agents", "reactive").assert_outcomes(passed=3)
+    folder = dd.folder("driver")
+    cert = load_json(folder / "certificate.json")
+    assert cert["closed_loop"]["closed_agents"] == "reactive"
+    assert check_consistency(cert) == [] and main(["verify", str(folder / "certificate.json")]) == 0
+    stored = load_json(folder / "cells" / "closed-clean.json")
+    assert stored["key"]["closed_agents"] == "reactive"
+    bad = closed(dd, "-p", "no:xdist", "--drivedegrade-closed-agents", "idm", report="bad")
+    assert bad.ret == 4
+    bad.stderr.fnmatch_lines(["*--drivedegrade-closed-agents*expected log or reactive, got 'idm'*"])
