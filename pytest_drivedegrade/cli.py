@@ -185,8 +185,9 @@ def _estimate(args: argparse.Namespace) -> int:
 
 
 def _closed_loop_import(args: argparse.Namespace) -> int:
-    """CARLA leaderboard results files (one per cell) into closed_loop.csv and closed_loop_summary.json."""
-    from .closedloop.carla_import import import_results
+    """CARLA leaderboard results files (one per cell) through the closed-loop analysis into closed_loop.csv,
+    closed_loop_summary.json and report.html."""
+    from .report.closed_import import import_results
 
     for line in import_results(args.files, Path(args.out)):
         print(line)
@@ -197,8 +198,9 @@ def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
     """closed-loop import: runs of a real simulator into the closed-loop analysis."""
     p = sub.add_parser("closed-loop", help="closed-loop results from a simulator: import CARLA leaderboard runs")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
-    q = actions.add_parser("import", help="read CARLA leaderboard results files (one per cell) into closed_loop.csv "
-                                          "and closed_loop_summary.json")
+    q = actions.add_parser("import", help="read CARLA leaderboard results files (one per cell, clean among them) "
+                                          "into the closed-loop analysis: closed_loop.csv, closed_loop_summary.json "
+                                          "and report.html")
     q.add_argument("files", nargs="+", metavar="RESULTS.json",
                    help="the leaderboard's --checkpoint files, one per cell: CELL=FILE (e.g. blackout-s5=bo5.json), or "
                         "FILE named by its \"drivedegrade\": {\"cell\": ...} object or its file name")

@@ -1,7 +1,8 @@
 """`drivedegrade closed-loop import`: CARLA leaderboard results files (one per cell) into the closed loop's
-outputs: `closed_loop.csv` (one row per run) and `closed_loop_summary.json` (per cell: DS mean and standard
-deviation over the scored runs, the identification bounds with the unscored runs at 0 and at 100, mean completion,
-infractions by kind), the same numbers `results.CellResult` gives the embedded world's runs.
+cells: `closed_loop.csv` (one row per run) and the per-cell part of `closed_loop_summary.json` (DS mean and
+standard deviation over the scored runs, the identification bounds with the unscored runs at 0 and at 100, mean
+completion, infractions by kind), the same numbers `results.CellResult` gives the embedded world's runs; the
+cells' run lists (`run_lists`) go through the closed-loop analysis in `report.closed_import`.
 
 Files of one cell are that cell's seeds: a file's "drivedegrade".seed, else its place among the cell's files
 (0, 1, ...). The same (cell, route id, seed) twice is an error naming both files.
@@ -11,12 +12,9 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
-from ..atomic import atomic_write_text
 from ..errors import DataError
 from .carla_results import LeaderboardRun, ResultsFile, parse_source, read_results
 from .results import CellResult, RunResult
@@ -102,20 +100,3 @@ def summary(cells: Sequence[ImportedCell]) -> dict[str, object]:
                           "ds_mean": result.mean, "ds_std": result.std, "ds_bounds": [lo, hi],
                           "completion": result.completion, "infractions": result.infractions}
     return {"source": "carla-leaderboard", "cells": out}
-
-
-def import_results(sources: Sequence[str], out: Path) -> list[str]:
-    """Read the sources, write the CSV and the summary into `out`; the lines to print."""
-    cells = gather(sources)
-    out.mkdir(parents=True, exist_ok=True)
-    csv_path = atomic_write_text(out / CSV_NAME, csv_text(cells))
-    json_path = atomic_write_text(out / SUMMARY_NAME, json.dumps(summary(cells), indent=2, sort_keys=True) + "\n")
-    lines = []
-    for cell in cells:
-        r = cell.result
-        lo, hi = r.bounds
-        mean = "n/a" if r.mean is None else f"{r.mean:.1f}"
-        lines.append(f"{cell.cell}: DS {mean} over {len(r.scored)} scored of {len(r.runs)} runs, bounds "
-                     f"[{lo:.1f}, {hi:.1f}], from {len(cell.files)} file(s)")
-    lines.append(f"wrote {csv_path} and {json_path}")
-    return lines

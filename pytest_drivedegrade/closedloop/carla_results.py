@@ -80,12 +80,13 @@ class ResultsFile:
 
 
 def cell_name(name: str, where: str) -> str:
-    """A cell name ("clean", "blind" or "<family>-s<1..5>", "closed-" prefix allowed) or DataError naming it."""
+    """A cell name ("clean" or "<family>-s<1..5>", "closed-" prefix allowed: the plugin's closed cells) or
+    DataError naming it."""
     bare = name[len("closed-"):] if name.startswith("closed-") else name
     family, _, severity = bare.rpartition("-s")
-    if bare in ("clean", "blind") or (family in FAMILIES and severity in ("1", "2", "3", "4", "5")):
+    if bare == "clean" or (family in FAMILIES and severity in ("1", "2", "3", "4", "5")):
         return bare
-    raise DataError(f"{where}: {name!r} is not a cell name (clean, blind or FAMILY-sN, e.g. blackout-s5): name the "
+    raise DataError(f"{where}: {name!r} is not a cell name (clean or FAMILY-sN, e.g. blackout-s5): name the "
                     "cell as CELL=FILE on the command line or in the file's \"drivedegrade\": {\"cell\": ...}")
 
 

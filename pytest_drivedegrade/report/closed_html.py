@@ -90,8 +90,40 @@ def trace_panels(items: Sequence[tuple[str, RunResult, RunResult, float]]) -> st
     return to_data_uri(fig)
 
 
-def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun) -> str:
-    """The section's HTML (escaped text; charts as data URIs)."""
+#: The lead paragraph of runs imported from the CARLA leaderboard (`drivedegrade closed-loop import`).
+CARLA_LEAD = ("CARLA leaderboard runs, read from its results files (one leaderboard run per cell): DS is the "
+              "leaderboard's Driving Score; a route whose agent or simulator failed, or that never ran, is unscored "
+              "and bounded, never dropped: bounds put it at 0 and at 100.")
+
+
+def _lead(run: ClosedRun | None) -> str:
+    if run is None:
+        return CARLA_LEAD
+    return (f"The planner drives the embedded world ({run.settings.closed_hz} Hz plans, LQR tracker and bicycle "
+            "model at 10 Hz, other agents replaying their logs) through the degraded cameras. Driving Score = 100 x "
+            "route completion x the penalties of at-fault collisions; an unscored run (the planner raised, timed "
+            "out or returned a bad plan) is bounded, never dropped: bounds put it at 0 and at 100.")
+
+
+def _null_text(analysis: ClosedAnalysis, imported: bool) -> str:
+    null, e = analysis.null, html.escape
+    if null is None:
+        return "The null control's cells did not run."
+    if null.mode == "identical":
+        return ("Null control: blackout S3 (the rear cameras, which the planner does not read) reproduces clean "
+                "run for run, bit for bit." if null.passed else
+                f"Null control FAILED: route {e(str(null.first_route))} (seed {null.first_seed}) parts from clean "
+                f"at step {null.first_step}.")
+    why = ("The simulator is not deterministic, so the null control is blackout S3 (the rear views a front-camera "
+           "agent never reads) against clean:" if imported else
+           "The planner reads a rear camera, so the null is a clean rerun:")
+    return (f"{why} it wanders by {_f(null.wander, 3)} DS; cells whose bounds overlap [{_f(null.low)}, "
+            f"{_f(null.high)}] are not separable from the null.")
+
+
+def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None) -> str:
+    """The section's HTML (escaped text; charts as data URIs); `run` None for runs imported from CARLA (no
+    traces: the simulator keeps them)."""
     e = html.escape
     rows = []
     for c in analysis.cells:
@@ -103,30 +135,16 @@ def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun) -> str:
                     f"<td class='n'>{_f(c.completion, 3)}</td><td class='n'>{_f(c.retention, 3)} "
                     f"[{_f(c.retention_low, 3)}, {_f(c.retention_high, 3)}]</td><td>{e(kinds)}</td>"
                     f"<td>{e(sep)}</td></tr>")
-    null, separation = analysis.null, analysis.separation
-    if null is None:
-        null_text = "The null control's cells did not run."
-    elif null.mode == "identical":
-        null_text = ("Null control: blackout S3 (the rear cameras, which the planner does not read) reproduces clean "
-                     "run for run, bit for bit." if null.passed else
-                     f"Null control FAILED: route {e(str(null.first_route))} (seed {null.first_seed}) parts from clean "
-                     f"at step {null.first_step}.")
-    else:
-        null_text = (f"The planner reads a rear camera, so the null is a clean rerun: it wanders by "
-                     f"{_f(null.wander, 3)} DS; cells whose bounds overlap [{_f(null.low)}, {_f(null.high)}] are "
-                     "not separable from the null.")
-    traces = trace_panels(divergent(run))
+    separation = analysis.separation
+    traces = None if run is None else trace_panels(divergent(run))
     also = "" if analysis.robust else f" (the bounds also allow {', '.join(sorted(set(analysis.labels)))})"
     return (
         "<section id='closed-loop'><h2>Closed loop</h2>"
-        f"<p class='lead'>The planner drives the embedded world ({e(str(run.settings.closed_hz))} Hz plans, "
-        "LQR tracker and bicycle model at 10 Hz, other agents replaying their logs) through the degraded cameras. "
-        "Driving Score = 100 x route completion x the penalties of at-fault collisions; an unscored run (the planner "
-        "raised, timed out or returned a bad plan) is bounded, never dropped: bounds put it at 0 and at 100.</p>"
+        f"<p class='lead'>{e(_lead(run))}</p>"
         "<table><tr><th>cell</th><th>runs</th><th>unscored</th><th>DS mean (std)</th><th>bounds</th>"
         "<th>completion</th><th>retention [bounds]</th><th>infractions</th><th>separable</th></tr>"
         + "".join(rows) + "</table>"
-        f"<p>{null_text}</p>"
+        f"<p>{_null_text(analysis, run is None)}</p>"
         f"<p>Closed-loop verdict: <b>{e(analysis.label)}</b>{e(also)}"
         f". Availability-versus-quality separation: {e(str(separation.get('holds')))}; under every assignment of the "
         f"unscored runs: {e(str(separation.get('holds_under_every_assignment')))}. Agrees with the open-loop verdict: "
@@ -136,12 +154,27 @@ def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun) -> str:
         + "</section>")
 
 
+_STYLE = ("<style>body{font-family:sans-serif;margin:2em;color:#1f2933}td.n{text-align:right}"
+          "td,th{padding:2px 8px;border-bottom:1px solid #e4e7eb}</style>")
+
+
 def write_closed_report(path: str | os.PathLike[str], planner: str, analysis: ClosedAnalysis, run: ClosedRun, *,
                         digest: str = "") -> Path:
     """A page of its own for a run of closed cells only."""
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>DriveDegrade closed loop: {html.escape(planner)}"
-            "</title><style>body{font-family:sans-serif;margin:2em;color:#1f2933}td.n{text-align:right}"
-            "td,th{padding:2px 8px;border-bottom:1px solid #e4e7eb}</style></head><body>"
+            f"</title>{_STYLE}</head><body>"
             f"<h1>{html.escape(planner)}: closed loop</h1><p>certificate digest {html.escape(digest)}</p>"
             + closed_fragment(analysis, run) + "</body></html>\n")
+    return atomic_write_text(path, page)
+
+
+def write_imported_report(path: str | os.PathLike[str], analysis: ClosedAnalysis,
+                          sources: Sequence[tuple[str, str]]) -> Path:
+    """The page of `drivedegrade closed-loop import`: the closed-loop section of CARLA leaderboard runs and the
+    results files it read, as (cell, file) pairs."""
+    e = html.escape
+    files = "".join(f"<li>{e(cell)}: {e(path)}</li>" for cell, path in sources)
+    page = ("<!doctype html><html><head><meta charset='utf-8'><title>DriveDegrade closed loop: CARLA leaderboard"
+            f"</title>{_STYLE}</head><body><h1>CARLA leaderboard: closed loop</h1>"
+            + closed_fragment(analysis, None) + f"<h3>Results files</h3><ul>{files}</ul></body></html>\n")
     return atomic_write_text(path, page)

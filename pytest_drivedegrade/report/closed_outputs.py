@@ -49,8 +49,9 @@ def _fmt(value: float | None, digits: int = 1) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
 
-def closed_lines(analysis: ClosedAnalysis, run: ClosedRun) -> list[str]:
-    """The terminal summary of the closed cells: one line per cell, the null control, the verdict."""
+def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None) -> list[str]:
+    """The terminal summary of the closed cells: one line per cell, the null control, the verdict (`run` None:
+    runs imported from CARLA, whose null control is blackout S3 against clean)."""
     lines = ["closed loop: cell: DS mean (std) [bounds], completion, retention [bounds], infractions"]
     for c in analysis.cells:
         low, high = c.bounds
@@ -65,14 +66,16 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun) -> list[str]:
                      f"closed null control FAILED: route {null.first_route} (seed {null.first_seed}) parts from "
                      f"clean at step {null.first_step}")
     elif null is not None:
-        lines.append(f"closed null control: the planner reads a rear camera; a clean rerun wanders by "
-                     f"{_fmt(null.wander, 3)} DS (null bounds [{_fmt(null.low)}, {_fmt(null.high)}])")
+        what = "the planner reads a rear camera; a clean rerun" if run is not None else \
+            "the simulator is not deterministic; blackout S3 against clean"
+        lines.append(f"closed null control: {what} wanders by {_fmt(null.wander, 3)} DS (null bounds "
+                     f"[{_fmt(null.low)}, {_fmt(null.high)}])")
     sep = analysis.separation
     lines.append(f"closed-loop verdict: {analysis.label}" + ("" if analysis.robust else
                  f" (not robust: the bounds allow {', '.join(sorted(set(analysis.labels)))})") +
                  f"; availability-vs-quality separation {sep.get('holds')}, under every assignment of the unscored "
                  f"runs {sep.get('holds_under_every_assignment')}; agrees with the open loop: {analysis.agrees}")
-    if run.missing:
+    if run is not None and run.missing:
         lines.append(f"closed loop: missing cells ({len(run.missing)}): {', '.join(run.missing)}")
     return lines
 

@@ -15,6 +15,8 @@ from pytest_drivedegrade.closedloop.carla_import import CSV_NAME, SUMMARY_NAME, 
 from pytest_drivedegrade.closedloop.carla_results import read_results
 from pytest_drivedegrade.closedloop.results import END_BLOCKED, END_COMPLETE, END_OFF_ROAD, END_UNSCORED
 from pytest_drivedegrade.errors import DataError
+from pytest_drivedegrade.report.closed_import import REPORT_NAME, analyse_import
+from pytest_drivedegrade.scoring.closed_loop import check_section
 
 INFRACTION_KEYS_2X = ("collisions_layout", "collisions_pedestrian", "collisions_vehicle", "red_light",
                       "stop_infraction", "outside_route_lanes", "min_speed_infractions",
@@ -87,7 +89,8 @@ def test_the_cli_writes_one_csv_row_per_run_and_the_summary(tmp_path: Path, caps
     clean = write(tmp_path / "clean.json", results_2x(CLEAN))
     named = write(tmp_path / "run7.json", results_2x(BLACKOUT, drivedegrade={"cell": "closed-blackout-s5", "seed": 3}))
     assert main(["closed-loop", "import", clean, named, "--out", str(tmp_path / "out")]) == 0
-    assert "closed-blackout-s5: DS 40.0 over 2 scored of 3 runs, bounds [26.7, 60.0]" in capsys.readouterr().out
+    assert ("  closed-blackout-s5: DS 40.0 (10.0) [26.7, 60.0], completion 0.650, retention 0.600 [0.400, 0.900], "
+            "1 of 3 unscored; collision_pedestrian 1, route_dev 1") in capsys.readouterr().out
     rows = list(csv.DictReader((tmp_path / "out" / CSV_NAME).open()))
     assert len(rows) == 6 and {r["cell"] for r in rows} == {"closed-clean", "closed-blackout-s5"}
     crashed = next(r for r in rows if r["status"] == "Failed - Agent crashed")
@@ -131,3 +134,67 @@ def test_bad_input_is_one_error_naming_the_file(tmp_path: Path, capsys: pytest.C
     dup = write(tmp_path / "d.json", results_2x(CLEAN, drivedegrade={"cell": "clean", "seed": 0}))
     with pytest.raises(DataError, match="RouteScenario_0_rep0 of cell clean under seed 0 is also in"):
         gather([dup, dup])
+
+
+def cell_file(tmp_path: Path, cell: str, scores: list[float | None]) -> str:
+    """`cell=FILE` with one completed route per score (DS = completion x 100, penalty 1); None: the agent crashed."""
+    records = [record_2x(i, i, "Completed", ds, ds, 1.0) if ds is not None else
+               record_2x(i, i, "Failed - Agent crashed", 5.0, 10.0, 0.5) for i, ds in enumerate(scores)]
+    return f"{cell}={write(tmp_path / f'{cell}.json', results_2x(records))}"
+
+
+def test_the_import_runs_the_closed_loop_analysis_with_a_wandering_null(tmp_path: Path,
+                                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """Known answers: clean 90, blur S5 90 (retention 1), blackout S5 18 (retention 0.2), blackout S3 85 (the null:
+    CARLA is not deterministic, so it wanders by 5 and spans [85, 90]); quality-insensitive at every corner."""
+    sources = [cell_file(tmp_path, "clean", [100.0, 80.0]), cell_file(tmp_path, "gaussian_blur-s5", [100.0, 80.0]),
+               cell_file(tmp_path, "blackout-s5", [20.0, 16.0]), cell_file(tmp_path, "blackout-s3", [90.0, 80.0])]
+    out = tmp_path / "out"
+    assert main(["closed-loop", "import", *sources, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert ("closed null control: the simulator is not deterministic; blackout S3 against clean wanders by 5.000 DS "
+            "(null bounds [85.0, 90.0])") in printed
+    assert "closed-loop verdict: quality-insensitive; availability-vs-quality separation True, under every " \
+           "assignment of the unscored runs True; agrees with the open loop: None" in printed
+    section = json.loads((out / SUMMARY_NAME).read_text())["closed_loop"]
+    assert check_section(section, None) == []  # the figures follow from the run rows, as verify checks them
+    assert section["axes"]["quality"] == pytest.approx(1.0) and section["axes"]["removal"] == pytest.approx(0.2)
+    assert section["verdict"]["label"] == "quality-insensitive" and section["verdict"]["robust"] is True
+    assert section["separation"]["holds_under_every_assignment"] is True
+    null = section["null_control"]
+    assert (null["mode"], null["passed"]) == ("wander", None)
+    assert (null["wander"], null["low"], null["high"]) == pytest.approx((5.0, 85.0, 90.0))
+    separable = {c["cell"]: c["separable_from_null"] for c in section["cells"]}
+    assert separable == {"closed-clean": None, "closed-gaussian_blur-s5": False, "closed-blackout-s5": True,
+                         "closed-blackout-s3": False}
+    page = (out / REPORT_NAME).read_text()
+    assert "<h2>Closed loop</h2>" in page and "CARLA leaderboard" in page and "<th>DS mean (std)</th>" in page
+    assert "<tr><td>closed-blackout-s5</td><td class='n'>2</td><td class='n'>0</td><td class='n'>18.0 (2.0)</td>" \
+           "<td class='n'>[18.0, 18.0]</td>" in page
+    assert "wanders by 5.000 DS" in page and "<b>quality-insensitive</b>" in page
+    assert f"closed-blackout-s3: {tmp_path / 'blackout-s3.json'}</li>" in page
+
+
+def test_a_crashed_run_widens_the_bounds_and_the_verdict_at_their_corners(tmp_path: Path) -> None:
+    """Blur S5 [90, crashed] spans DS [45, 95], retention [0.5, 95/90]; blackout S5 [20, crashed] spans [10, 60]:
+    quality-insensitive on the scored runs, camera-reliant at a corner, and the separation fails where blackout
+    gets 100 and blur 0 (60 > 45)."""
+    cells = gather([cell_file(tmp_path, "clean", [100.0, 80.0]), cell_file(tmp_path, "gaussian_blur-s5", [90.0, None]),
+                    cell_file(tmp_path, "blackout-s5", [20.0, None])])
+    got = analyse_import(cells)
+    blur = next(c for c in got.cells if c.cell == "closed-gaussian_blur-s5")
+    assert (blur.mean, blur.unscored, blur.bounds) == (90.0, 1, (45.0, 95.0))
+    assert (blur.retention, blur.retention_low, blur.retention_high) == pytest.approx((1.0, 0.5, 95 / 90))
+    assert got.axes["removal_low"] == pytest.approx(10 / 90) and got.axes["removal_high"] == pytest.approx(60 / 90)
+    assert got.label == "quality-insensitive" and not got.robust
+    assert sorted(set(got.labels)) == ["camera-reliant", "quality-insensitive"]
+    assert got.separation["holds"] is True and got.separation["holds_under_every_assignment"] is False
+    assert got.null is None  # blackout S3 was not run: no null control
+
+
+def test_an_import_without_clean_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    source = cell_file(tmp_path, "blackout-s5", [20.0])
+    assert main(["closed-loop", "import", source, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "no clean cell among closed-blackout-s5" in err and "clean=FILE" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
