@@ -66,3 +66,28 @@ def key_material():
         return [pem.strip(), *body, raw.hex(), base64.b64encode(raw).decode()]
 
     return material
+
+
+@pytest.fixture(scope="session")
+def two_scene_world(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """11 scenes, the last two val (rendered): written once per cache, under a lock so xdist workers share it
+    (test_examples and test_trust20b_e2e)."""
+    import fcntl
+    import os
+    import shutil
+
+    from pytest_drivedegrade.data.world import write_world
+    from pytest_drivedegrade.data.world.build import GENERATOR_VERSION, MANIFEST
+
+    cache = getattr(request.config, "cache", None)
+    root = Path(cache.mkdir("drivedegrade-example-tests")) if cache is not None else tmp_path_factory.mktemp("ex")
+    target = root / f"world-{GENERATOR_VERSION}-11-seed1"
+    with open(root / ".lock", "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (target / MANIFEST).is_file():
+            tmp = root / f".tmp-{os.getpid()}"
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.rmtree(target, ignore_errors=True)
+            write_world(tmp, scenes=11, seed=1)
+            os.replace(tmp, target)
+    return target

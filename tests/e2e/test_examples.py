@@ -7,7 +7,6 @@ session's cache and shared by the xdist workers.
 
 from __future__ import annotations
 
-import os
 import shutil
 from pathlib import Path
 
@@ -31,28 +30,6 @@ EXAMPLES = Path(__file__).resolve().parents[2] / "planners" / "examples"
 FAMILIES, SEVERITIES = "jpeg,blackout", "1,3,5"
 CELLS = ("clean", "null", "blind", "jpeg-s1", "jpeg-s3", "jpeg-s5", "blackout-s1", "blackout-s3", "blackout-s5")
 LOG_ENV = "DRIVEDEGRADE_EXAMPLE_LOG"
-
-
-@pytest.fixture(scope="session")
-def two_scene_world(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """11 scenes, the last two val (rendered): written once per cache, under a lock so xdist workers share it."""
-    import fcntl
-
-    from pytest_drivedegrade.data.world import write_world
-    from pytest_drivedegrade.data.world.build import GENERATOR_VERSION, MANIFEST
-
-    cache = getattr(request.config, "cache", None)
-    root = Path(cache.mkdir("drivedegrade-example-tests")) if cache is not None else tmp_path_factory.mktemp("ex")
-    target = root / f"world-{GENERATOR_VERSION}-11-seed1"
-    with open(root / ".lock", "a+") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (target / MANIFEST).is_file():
-            tmp = root / f".tmp-{os.getpid()}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.rmtree(target, ignore_errors=True)
-            write_world(tmp, scenes=11, seed=1)
-            os.replace(tmp, target)
-    return target
 
 
 @pytest.fixture(scope="session")

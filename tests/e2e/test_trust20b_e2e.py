@@ -3,9 +3,7 @@ mean of per-shard means is not the pooled mean), a baseline is refused under --d
 
 from __future__ import annotations
 
-import fcntl
 import json
-import os
 import shutil
 from pathlib import Path
 
@@ -22,27 +20,6 @@ pytest_plugins = ["plugin_support"]
 
 #: Results of the runs below, made once per session (a folder per run), copied into each test that edits them.
 _MADE: dict[str, Path] = {}
-
-
-@pytest.fixture(scope="session")
-def two_scene_world(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """11 scenes (2 val scenes with rendered images): the world test_examples keeps in the test cache, made
-    once under its lock and shared by both."""
-    from pytest_drivedegrade.data.world import write_world
-    from pytest_drivedegrade.data.world.build import GENERATOR_VERSION, MANIFEST
-
-    cache = getattr(request.config, "cache", None)
-    root = Path(cache.mkdir("drivedegrade-example-tests")) if cache is not None else tmp_path_factory.mktemp("ex")
-    target = root / f"world-{GENERATOR_VERSION}-11-seed1"
-    with open(root / ".lock", "a+") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not (target / MANIFEST).is_file():
-            tmp = root / f".tmp-{os.getpid()}"
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.rmtree(target, ignore_errors=True)
-            write_world(tmp, scenes=11, seed=1)
-            os.replace(tmp, target)
-    return target
 
 
 def _run(dd, world, *extra, report):
