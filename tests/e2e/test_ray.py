@@ -16,7 +16,6 @@ import pytest
 
 pytest.importorskip("ray")
 pytest.register_assert_rewrite("plugin_support")
-import test_examples  # noqa: E402
 from plugin_support import no_traceback  # noqa: E402
 
 from pytest_drivedegrade.errors import DriveDegradeError  # noqa: E402
@@ -26,9 +25,6 @@ pytest_plugins = ["plugin_support"]
 #: Every test that starts Ray runs on one xdist worker (`--dist loadgroup`, pyproject addopts): the no_stray_ray
 #: check counts the Ray daemons that appeared during a test, and another worker's Ray run would be counted.
 pytestmark = pytest.mark.xdist_group("ray")
-
-#: test_examples' world (11 scenes, two val), rendered once into the test session's cache.
-two_scene_world = test_examples.two_scene_world
 
 PLANNERS = Path(__file__).resolve().parents[2] / "planners"
 FRAMES = ("--drivedegrade-frames", "8")
