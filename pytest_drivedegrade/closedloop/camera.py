@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from ..data.world import models, render, texture
-from ..data.world.export import JPEG_QUALITY
+from ..data.world.export import camera_jpeg, scene_backdrop
 from .routes import Route
 
 #: Agents farther than this from the ego (m) have no part the renderer draws (a part's centre within 6 m of its
@@ -60,13 +60,7 @@ def backdrop(route: Route) -> Backdrop:
         if key in _BACKDROPS:
             _BACKDROPS.move_to_end(key)
             return _BACKDROPS[key]
-        rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
-        ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng)
-        sky = texture.sky_panorama(scene.style, rng)
-        static = models.Parts()
-        for prop in scene.props:
-            getattr(models, prop.kind)(static, prop, rng)
-        made = _BACKDROPS[key] = Backdrop(ground, sky, static)
+        made = _BACKDROPS[key] = Backdrop(*scene_backdrop(scene))
         while len(_BACKDROPS) > BACKDROPS_KEPT:
             _BACKDROPS.popitem(last=False)
         return made
@@ -90,16 +84,9 @@ class RouteCameras:
         near = [a for a in scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
         render.agent_parts(parts, near, step)
         out = {}
+        pieces = (back.ground, back.sky, back.static)
         for cam in self.cameras:
-            info = rig.cameras[cam]
-            img = render.draw_background(self.pre[cam], (info.height, info.width), back.ground, back.sky, pose,
-                                         scene.style)
-            w2c, centre = render.world_to_camera(rig, cam, pose)
-            shadowed = [a for a in near if np.hypot(*(a.xy[step] - centre[:2])) < SHADOW_REACH]
-            render.draw_shadows(img, shadowed, step, info, w2c, scene.style)
-            render.draw_solids(img, parts, info, w2c, centre, scene.style)
-            _, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY,
-                                                                                  JPEG_QUALITY])
+            buf = camera_jpeg(scene, rig, cam, self.pre[cam], pieces, parts, pose, step, shadow_reach=SHADOW_REACH)
             decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
             assert decoded is not None  # a JPEG just encoded decodes
             out[cam] = cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)

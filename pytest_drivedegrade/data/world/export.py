@@ -229,14 +229,40 @@ def dump_items(path: Path, fragments: list[str]) -> bytes:
     return data
 
 
-def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
-    """Render and write the six JPEGs of every keyframe (or of `keys`); returns their bytes' digests."""
+def scene_backdrop(scene: Scene) -> tuple[texture.GroundMap, np.ndarray, models.Parts]:
+    """What every render of a scene starts from, logged or at a simulated pose (`closedloop.camera`): the ground
+    texture, the sky panorama and the static scenery, drawn from the scene's own random stream in this order."""
     rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
     ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng)
     sky = texture.sky_panorama(scene.style, rng)
     static = models.Parts()
     for prop in scene.props:
         getattr(models, prop.kind)(static, prop, rng)
+    return ground, sky, static
+
+
+def camera_jpeg(scene: Scene, rig: Rig, cam: str, pre: render.CameraPrecomp,
+                backdrop: tuple[texture.GroundMap, np.ndarray, models.Parts], parts: models.Parts,
+                pose: tuple[float, float, float], step: int, shadow_reach: float | None = None) -> np.ndarray:
+    """One camera's image at world `pose` with the agents at log `step` (`parts`: the scenery and the agents'
+    parts), JPEG-encoded as the data's images are. `shadow_reach`: only agents that near the camera cast a shadow
+    (the renderer draws none farther; None: every agent of the scene is tried)."""
+    ground, sky, _ = backdrop
+    info = rig.cameras[cam]
+    img = render.draw_background(pre, (info.height, info.width), ground, sky, pose, scene.style)
+    w2c, centre = render.world_to_camera(rig, cam, pose)
+    agents = scene.agents if shadow_reach is None else \
+        [a for a in scene.agents if np.hypot(*(a.xy[step] - centre[:2])) < shadow_reach]
+    render.draw_shadows(img, agents, step, info, w2c, scene.style)
+    render.draw_solids(img, parts, info, w2c, centre, scene.style)
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    return buf
+
+
+def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
+    """Render and write the six JPEGs of every keyframe (or of `keys`); returns their bytes' digests."""
+    backdrop = scene_backdrop(scene)
+    static = backdrop[2]
     pre = {cam: render.precompute(rig, cam, scene.style.haze_m) for cam in CAMERAS}
     digests = []
     for k in range(KEYFRAMES) if keys is None else keys:
@@ -245,13 +271,7 @@ def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
         parts = models.Parts(list(static.boxes), list(static.colours), dict(static.decals))
         render.agent_parts(parts, scene.agents, step)
         for cam in CAMERAS:
-            info = rig.cameras[cam]
-            img = render.draw_background(pre[cam], (info.height, info.width), ground, sky, pose, scene.style)
-            w2c, centre = render.world_to_camera(rig, cam, pose)
-            render.draw_shadows(img, scene.agents, step, info, w2c, scene.style)
-            render.draw_solids(img, parts, info, w2c, centre, scene.style)
-            ok, buf = cv2.imencode(".jpg", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY,
-                                                                                  JPEG_QUALITY])
+            buf = camera_jpeg(scene, rig, cam, pre[cam], backdrop, parts, pose, step)
             path = root / image_name(scene, cam, k)
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(buf.tobytes())
