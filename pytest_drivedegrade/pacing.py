@@ -64,7 +64,12 @@ def prefetch_depth(settings: RunSettings) -> int:
     outside the options) `auto_prefetch` for this process among the xdist workers it knows of."""
     if settings.prefetch is not None:
         return settings.prefetch
-    return auto_prefetch(max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)))
+    return auto_prefetch(processes_here())
+
+
+def processes_here() -> int:
+    """The processes running cells on this machine as this one knows them: the xdist workers, else 1."""
+    return max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1))
 
 
 _PROCESS: tuple[int, str] = (0, "")

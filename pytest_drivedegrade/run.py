@@ -7,6 +7,7 @@ cell to it, or to a planner that runs elsewhere (`PlannerElsewhere`: Ray actors)
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,14 +26,32 @@ from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DriveDegradeError
 from .metrics.pdms import PreparedFrame
+from .metrics.trajectory import FrameTruth
+from .pacing import processes_here
 from .planning import CallStyle, Planner, call_style, planner_cameras, planner_fingerprint
 from .settings import Builtin, RunSettings
 from .shards import shard_frames
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
-#: Decoded clean images kept per process for reuse by later cells (a fixed budget, so memory is flat in the
-#: number of frames): 512 MB holds about 500 images at 800 x 450.
-DECODE_CACHE_BYTES = 512 * 2**20
+#: Decoded clean images kept per process for reuse by later cells: a fixed budget, so memory is flat in the
+#: number of frames. At least this (about 500 images at 800 x 450) ...
+DECODE_CACHE_MIN_BYTES = 512 * 2**20
+#: ... and at most this (the embedded world's 204 frames x 3 cameras take 0.66 GB; a camera decoded again in
+#: every cell costs about 3 ms, issue 23's "decode work shared").
+DECODE_CACHE_MAX_BYTES = 2 * 2**30
+
+
+def decode_cache_bytes(processes: int, memory: int | None = None) -> int:
+    """The decoded-image budget of one process: a quarter of the machine's memory shared among the `processes`
+    running cells on it, within [DECODE_CACHE_MIN_BYTES, DECODE_CACHE_MAX_BYTES] (the minimum where the memory
+    cannot be read). Only speed depends on it: a frame outside the cache is decoded again, to the same pixels."""
+    if memory is None:
+        try:
+            memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (AttributeError, ValueError, OSError):  # pragma: no cover - a platform without sysconf
+            memory = 0
+    share = memory // (4 * max(1, processes))
+    return max(DECODE_CACHE_MIN_BYTES, min(DECODE_CACHE_MAX_BYTES, share))
 
 
 @dataclass
@@ -107,12 +126,15 @@ class RunContext:
     _planner: dict[int, PlannerInfo] = field(default_factory=dict)
     _decoded: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
     _decoded_bytes: int = 0
+    #: `decode_cache_bytes` for this process among the xdist workers it knows of
+    _decode_budget: int = field(default_factory=lambda: decode_cache_bytes(processes_here()))
     #: the prefetch thread (`loader.ahead`) and the planner's thread may decode at once: one fills the cache
     _decode_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _clean: dict[int, CellRecord] = field(default_factory=dict)
     _primed: set[int] = field(default_factory=set)  #: the planners that planned clean in this process
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
+    _truth: dict[str, FrameTruth] = field(default_factory=dict)
 
     @classmethod
     def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
@@ -196,7 +218,7 @@ class RunContext:
         return first
 
     def decode(self, frame: Frame, camera: str) -> np.ndarray:
-        """The clean image; the first DECODE_CACHE_BYTES of decoded images stay in memory for the next cells.
+        """The clean image; the first `decode_cache_bytes` of decoded images stay in memory for the next cells.
 
         Fill-once, never evict: every cell reads the frames in the same order, so an LRU would miss every
         time, while a fixed set hits every time. Memory stays bounded whatever the number of frames. Cached
@@ -211,7 +233,7 @@ class RunContext:
             cached = self._decoded.get(key)
             if cached is not None:
                 return cached
-            if self._decoded_bytes + image.nbytes <= DECODE_CACHE_BYTES:
+            if self._decoded_bytes + image.nbytes <= self._decode_budget:
                 image.setflags(write=False)
                 self._decoded[key] = image
                 self._decoded_bytes += image.nbytes
@@ -263,6 +285,13 @@ class RunContext:
         if found is None:
             found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
                                                                lane_map=self.reader.lane_map(frame))
+        return found
+
+    def frame_truth(self, frame: Frame) -> FrameTruth:
+        """What the L2 and collision metrics derive from the frame alone (`FrameTruth`), once per process."""
+        found = self._truth.get(frame.token)
+        if found is None:
+            found = self._truth[frame.token] = FrameTruth.of(frame)
         return found
 
     def run_cell(self, planner: AnyPlanner, family: str, severity: int, *, unread: tuple[str, ...] | None = None,

@@ -27,7 +27,7 @@ from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame, tracked_states
 from .metrics.pdms.extended import EC_MAX_INTERVAL_S, epdms_score, extended_comfort
-from .metrics.trajectory import bit1_density, frame_metrics
+from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
 from .pacing import Scorer, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
@@ -56,6 +56,8 @@ class Source(Protocol):
     def context_of(self, frame: Frame) -> FrameContext: ...
 
     def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
+
+    def frame_truth(self, frame: Frame) -> FrameTruth: ...
 
 
 class PlannerTimeout(Exception):
@@ -312,28 +314,28 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean)):
             clock.delivered(sample)
-            scorer.submit(partial(_record, rows, i, sample, result, clean, clock))
+            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock))
     start = time.perf_counter()
     score_cell_pdms(source, rows, frames)
     clock.spent["pdms"] += time.perf_counter() - start
     return rows.build(clock.total())
 
 
-def _record(rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str, clean: CellRecord | None,
-            clock: _Clock) -> None:
+def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str,
+            clean: CellRecord | None, clock: _Clock) -> None:
     """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores (its PDMS at the cell's end)."""
     if isinstance(result, str):
         rows.fail(str(result), data=isinstance(result, DataFault))
     elif sample.reused_from is not None and clean is not None:
         rows.copy_row(i, clean, sample.reused_from)
     else:
-        _score(rows, i, sample, result, clock)
+        _score(source, rows, i, sample, result, clock)
 
 
-def _score(rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:
+def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:
     """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read."""
     start = time.perf_counter()
-    m = frame_metrics(plan, sample.frame)
+    m = frame_metrics(plan, sample.frame, source.frame_truth(sample.frame))
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
     clock.scoring["metrics"] += time.perf_counter() - start
@@ -348,8 +350,7 @@ def score_cell_pdms(source: Source, rows: RecordBuilder, frames: list[Frame]) ->
     prepared = {i: source.pdms_frame(frames[i]) for i in have}
     states = dict(zip(have, tracked_states(plans[have], [prepared[i].initial for i in have])))
     for i in have:
-        result = prepared[i].score_tracked(plans[i], states[i])
-        terms = prepared[i].extended(states[i], result)
+        result, terms = prepared[i].judged(plans[i], states[i])
         human = prepared[i].human
         prev = previous_frame(frames, i)
         ec = extended_comfort(states[i], states.get(prev) if prev is not None else None,

@@ -253,17 +253,36 @@ class FrameMetrics(TypedDict):
     jerk: float  # m/s^3
 
 
-def frame_metrics(pred: npt.ArrayLike, frame: Frame) -> FrameMetrics:
-    """Every per-frame metric of one plan: L2 and collisions (all agents, VRUs) per step, and the jerk."""
+@dataclass(frozen=True)
+class FrameTruth:
+    """What `frame_metrics` derives from the frame alone (its logged future, its agents as flat boxes, which are
+    vulnerable road users, which steps the logged ego itself touches), made once per frame and process."""
+
+    gt: np.ndarray
+    flat: FlatAgents
+    vru: np.ndarray | None
+    gt_steps: np.ndarray  #: (6,) bool: the logged future touches some box at that step
+    gt_vru_steps: np.ndarray  #: (6,) bool: ... some pedestrian or cyclist
+
+    @classmethod
+    def of(cls, frame: Frame) -> FrameTruth:
+        gt = _as_plan(frame.gt_future, "gt_future")
+        flat = FlatAgents.of(tuple(frame.agents))
+        vru = flat.of_categories(VRU_CATEGORIES)
+        gt_hits = flat.hits(gt)
+        return cls(gt, flat, vru, flat.per_step(gt_hits), flat.per_step(gt_hits, vru))
+
+
+def frame_metrics(pred: npt.ArrayLike, frame: Frame, truth: FrameTruth | None = None) -> FrameMetrics:
+    """Every per-frame metric of one plan: L2 and collisions (all agents, VRUs) per step, and the jerk. `truth`:
+    the frame's `FrameTruth` where the caller keeps it (made here otherwise)."""
     pred_arr = _as_plan(pred, "pred")
-    gt = _as_plan(frame.gt_future, "gt_future")
-    flat = FlatAgents.of(tuple(frame.agents))
-    vru = flat.of_categories(VRU_CATEGORIES)
-    pred_hits, gt_hits = flat.hits(pred_arr), flat.hits(gt)
-    collision = flat.per_step(pred_hits) & ~flat.per_step(gt_hits)
-    collision_vru = flat.per_step(pred_hits, vru) & ~flat.per_step(gt_hits, vru)
+    t = truth if truth is not None else FrameTruth.of(frame)
+    pred_hits = t.flat.hits(pred_arr)
+    collision = t.flat.per_step(pred_hits) & ~t.gt_steps
+    collision_vru = t.flat.per_step(pred_hits, t.vru) & ~t.gt_vru_steps
     return {
-        "l2": [float(v) for v in l2_per_step(pred_arr, gt)],
+        "l2": [float(v) for v in l2_per_step(pred_arr, t.gt)],
         "collision": [int(v) for v in collision],
         "collision_vru": [int(v) for v in collision_vru],
         "jerk": jerk(pred_arr),

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from ...constants import PAST_STEPS, STEP_SECONDS
 from .constants import COMFORT_BOUNDS, HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
-from .lanes import LaneView
+from .lanes import LaneQuery, LaneView
 from .motion import EgoStates, savgol
 
 #: PDMScorerConfig (v2): driving direction over a 1 s window, compliant below 2 m, violated from 6 m; lane keeping
@@ -74,12 +74,14 @@ def ep_v2(plan_m: float, plan_multiplier: float, expert_m: float, expert_multipl
     return min(max(max(plan_m, 0.0) / top, 0.0), 1.0) if top > PROGRESS_DISTANCE_THRESHOLD else 1.0
 
 
-def driving_direction(states: EgoStates, lanes: LaneView | None) -> float:
+def driving_direction(states: EgoStates, lanes: LaneView | None, query: LaneQuery | None = None) -> float:
     """DDC in {0, 1/2, 1}: the distance driven in oncoming lanes (outside intersections) within any 1 s window:
-    below 2 m 1, below 6 m 1/2, else 0. NaN without lanes."""
+    below 2 m 1, below 6 m 1/2, else 0. NaN without lanes. `query`: the states' `LaneView.query`, where the
+    caller has it (LK reads the same)."""
     if lanes is None or not len(lanes.start):
         return math.nan
-    oncoming = lanes.oncoming(states.xy, states.heading) & ~lanes.in_intersection(states.xy)
+    q = query if query is not None else lanes.query(states.xy, states.heading)
+    oncoming = q.oncoming & ~q.in_intersection
     step = np.zeros(len(states.xy))
     step[1:] = np.linalg.norm(np.diff(states.xy, axis=0), axis=1)
     step[~oncoming] = 0.0
@@ -89,14 +91,14 @@ def driving_direction(states: EgoStates, lanes: LaneView | None) -> float:
     return 1.0 if worst < DDC_COMPLIANT_M else 0.5 if worst < DDC_VIOLATION_M else 0.0
 
 
-def lane_keeping(states: EgoStates, lanes: LaneView | None) -> float:
+def lane_keeping(states: EgoStates, lanes: LaneView | None, query: LaneQuery | None = None) -> float:
     """LK in {0, 1}: 0 when the ego centre stays more than 0.5 m from the nearest centreline running its way (none
     within `lanes.NEAR_M`: off) for 2 s of consecutive states (intersections skipped without resetting the
     count, as NAVSIM skips them). NaN without lanes."""
     if lanes is None or not len(lanes.start):
         return math.nan
-    deviation = lanes.deviation(states.xy, states.heading)
-    skip = lanes.in_intersection(states.xy)
+    q = query if query is not None else lanes.query(states.xy, states.heading)
+    deviation, skip = q.deviation, q.in_intersection
     needed, run = math.ceil(LK_WINDOW_S / SIM_DT - 1e-9), 0
     for far, skipped in zip((deviation > LK_DEVIATION_M).tolist(), skip.tolist()):
         if skipped:

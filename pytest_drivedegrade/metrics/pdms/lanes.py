@@ -93,45 +93,55 @@ class LaneView:
         near = ((self.start >= lo) & (self.start <= hi)).all(1) | ((self.end >= lo) & (self.end <= hi)).all(1)
         return np.flatnonzero(near)
 
-    def _nearest(self, pts: np.ndarray, segments: np.ndarray,
-                 along: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Distance (N,) of each point to its nearest segment among `segments` (those `along` (N, len) allows;
-        inf where none) and that segment's index (N,)."""
-        if not len(segments):
-            return np.full(len(pts), np.inf), np.zeros(len(pts), dtype=np.int64)
+    def _distances(self, pts: np.ndarray, segments: np.ndarray) -> np.ndarray:
+        """(N, len(segments)) distance of each point to each of `segments`: each entry from its point and segment
+        alone, so a column equals the same segment's column in any other selection."""
         a, ab = self.start[segments], self.end[segments] - self.start[segments]
         t = np.clip(((pts[:, None] - a[None]) * ab[None]).sum(-1) / np.maximum((ab**2).sum(-1), 1e-12), 0.0, 1.0)
-        dist = np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None], axis=-1)
-        if along is not None:
-            dist = np.where(along, dist, np.inf)
-        k = dist.argmin(axis=1)
-        return dist[np.arange(len(pts)), k], segments[k]
+        return np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None], axis=-1)
 
-    def deviation(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
-        """(N,) distance of each point to the nearest centreline segment running its way (within 90 degrees of
-        `heading`); inf where no lane runs that way within NEAR_M of the points."""
-        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        segments = self._near(pts, NEAR_M)
-        head = np.asarray(heading, dtype=np.float64).reshape(-1, 1)
-        return self._nearest(pts, segments, np.abs(_wrap(self.yaw[segments][None, :] - head)) < np.pi / 2)[0]
-
-    def oncoming(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
-        """(N,) bool: the point lies in some lane polygon and every lane it lies in runs against `heading` (more
-        than 90 degrees off, measured at that lane's centreline segment nearest the point)."""
+    def query(self, xy: np.ndarray, heading: np.ndarray) -> LaneQuery:
+        """The lane figures DDC and LK read for states at `xy` (N, 2) heading `heading` (N,), computed together:
+        the centreline segments within NEAR_M of the points and their distances once (`deviation`, `oncoming`)."""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         head = np.asarray(heading, dtype=np.float64).reshape(-1)
+        near = self._near(pts, NEAR_M)
+        dist = self._distances(pts, near) if len(near) else np.zeros((len(pts), 0))
+        along = np.abs(_wrap(self.yaw[near][None, :] - head[:, None])) < np.pi / 2
+        deviation = np.where(along, dist, np.inf).min(axis=1) if len(near) else np.full(len(pts), np.inf)
         inside_any = np.zeros(len(pts), dtype=bool)
         along_any = np.zeros(len(pts), dtype=bool)
-        near = self._near(pts, NEAR_M)
-        for k in np.unique(self.lane[near]).tolist():
+        lane_of = self.lane[near]
+        for k in np.unique(lane_of).tolist():
             ring = self.polygons[k]
             if ring is None:
                 continue
             inside = points_in_ring(pts, ring)
             if not inside.any():
                 continue
-            _, seg = self._nearest(pts, near[self.lane[near] == k])
-            along = np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2
+            columns = np.flatnonzero(lane_of == k)
+            seg = near[columns[dist[:, columns].argmin(axis=1)]]
             inside_any |= inside
-            along_any |= inside & along
-        return inside_any & ~along_any
+            along_any |= inside & (np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2)
+        return LaneQuery(deviation, inside_any & ~along_any, self.in_intersection(pts))
+
+    def deviation(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """(N,) distance of each point to the nearest centreline segment running its way (within 90 degrees of
+        `heading`); inf where no lane runs that way within NEAR_M of the points."""
+        return self.query(xy, heading).deviation
+
+    def oncoming(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
+        """(N,) bool: the point lies in some lane polygon and every lane it lies in runs against `heading` (more
+        than 90 degrees off, measured at that lane's centreline segment nearest the point)."""
+        return self.query(xy, heading).oncoming
+
+
+@dataclass(frozen=True)
+class LaneQuery:
+    """States against the lanes (`LaneView.query`): each state's distance to the nearest centreline running its
+    way (`deviation`, inf where none within NEAR_M), whether it drives in oncoming lanes only (`oncoming`), and
+    whether it is inside an intersection (`in_intersection`)."""
+
+    deviation: np.ndarray
+    oncoming: np.ndarray
+    in_intersection: np.ndarray

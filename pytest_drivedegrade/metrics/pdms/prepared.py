@@ -7,7 +7,7 @@ TTC projections in one vectorised separating-axis call, and the plans of many fr
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -53,6 +53,8 @@ if TYPE_CHECKING:  # `tracking` imports this package: its names are read through
 _TTC_STATE = np.array([s[0] for s in TTC_SCHEDULE], dtype=np.int64)
 _TTC_SECONDS = np.array([s[1] for s in TTC_SCHEDULE], dtype=np.float64)
 _TTC_STEP = np.array([s[2] for s in TTC_SCHEDULE], dtype=np.int64)
+#: Plans remembered per prepared frame (`PreparedFrame.judged`): more than a full ladder's cells, about 1 KB each.
+MEMO_PLANS = 256
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,8 @@ class PreparedFrame:
     lanes: LaneView | None = None  # the lanes around the ego (EPDMS's ddc and lk; None: not scored)
     past: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the ego's last 1.5 s (`extended.history`)
     human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
+    #: plans judged on this frame (`judged`), by their bytes, up to MEMO_PLANS of them
+    memo: dict[bytes, tuple[PDMSResult, ExtendedTerms]] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
@@ -177,17 +181,33 @@ class PreparedFrame:
                            self.expert_m, self.expert_multiplier, self.drivable is not None)
 
 
+    def judged(self, plan: np.ndarray, ps: EgoStates) -> tuple[PDMSResult, ExtendedTerms]:
+        """`score_tracked` and `extended` of a plan (6, 2) with its tracked states `ps`, remembered by the plan's
+        bytes: a cell that plans as another did (the null control, frames that reused clean's plan, an ego-only
+        planner's image cells) is judged once per process. Exact: the tracked states are a function of the plan
+        and `initial` alone (whatever the batch), and so is everything judged from them."""
+        key = np.ascontiguousarray(plan, dtype=np.float64).tobytes()
+        found = self.memo.get(key)
+        if found is None:
+            result = self.score_tracked(plan, ps)
+            found = (result, self.extended(ps, result))
+            if len(self.memo) < MEMO_PLANS:
+                self.memo[key] = found
+        return found
+
     def extended(self, ps: EgoStates, result: PDMSResult) -> ExtendedTerms:
         """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
         ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
         now with ddc), history comfort; tlc is not scored (no traffic lights in the data)."""
-        ddc = driving_direction(ps, self.lanes)
+        query = self.lanes.query(ps.xy, ps.heading) if self.lanes is not None and len(self.lanes.start) else None
+        ddc = driving_direction(ps, self.lanes, query)
         expert_ddc = self.human.ddc if self.human is not None else float("nan")
         plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
         expert_mult = self.expert_multiplier * (1.0 if np.isnan(expert_ddc) else expert_ddc)
         ep = ep_v2(result.progress_m, plan_mult, self.expert_m, expert_mult)
-        return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lane_keeping(ps, self.lanes),
-                             history_comfort(ps, self.past))
+        lk = lane_keeping(ps, self.lanes, query)
+        hc = history_comfort(ps, self.past)
+        return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lk, hc)
 
 
 def score_plans(frames: Sequence[PreparedFrame], plans: npt.ArrayLike) -> list[PDMSResult]:
