@@ -4,7 +4,7 @@ the suite's own CPU per prediction).
 The world's scorable frames (2 scenes, seed 7: 68 frames) are prepared once (`PreparedFrame.of`, as the run
 caches them per process), then `--cells` cells' worth of plans (the expert plus N(0, 0.3^2) noise, one draw per
 cell) are scored: one plan at a time (`PreparedFrame.score`) and, where the code has it, a cell's plans together
-(`pdms.score_plans`), and the PDMS with the EPDMS's terms as `stream.score_cell_pdms` scores a cell (spec 4.1).
+(`pdms.score_plans`), and the PDMS with the EPDMS's terms as `pacing.score_cell_pdms` scores a cell (spec 4.1).
 Prints CPU ms (process time, which a loaded
 machine disturbs less than wall time) per plan for each.
 Run it on another checkout with that checkout on PYTHONPATH to compare (a checkout without `score_plans` prints
@@ -51,7 +51,7 @@ def main() -> None:
         for plans in cells:
             pdms.score_plans(prepared, plans)
         print(f"a cell's plans together (score_plans): {(time.process_time() - start) * 1e3 / n:.2f} ms per plan")
-    if hasattr(pdms.PreparedFrame, "extended"):  # spec 4.1: the EPDMS terms too, as stream.score_cell_pdms does
+    if hasattr(pdms.PreparedFrame, "extended"):  # spec 4.1: the EPDMS terms too, as pacing.score_cell_pdms does
         from pytest_drivedegrade.metrics.pdms.extended import epdms_score, extended_comfort
 
         start = time.process_time()

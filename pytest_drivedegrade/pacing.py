@@ -1,7 +1,7 @@
 """What runs beside the planner (`--drivedegrade-prefetch`, spec section 16): the scorer thread that scores frame
-k-1 while the planner computes frame k, the prefetch depth the machine allows, and the process key under which
-the cost ledger records each process's wall and planner seconds. `stream` calls the planner; this module only
-keeps the threads and the bookkeeping around it."""
+k-1 while the planner computes frame k, a cell's PDMS scored in spans there (`CellPdms`), the prefetch depth the
+machine allows, and the process key under which the cost ledger records each process's wall and planner seconds.
+`stream` calls the planner; this module only keeps the threads and the bookkeeping around it."""
 
 from __future__ import annotations
 
@@ -9,8 +9,84 @@ import os
 import secrets
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Protocol
 
+import numpy as np
+
+from .cells import PDMS_FIELDS, RecordBuilder
+from .data.frame import Frame
+from .metrics.pdms import EgoStates, PreparedFrame, tracked_states
+from .metrics.pdms.extended import EC_MAX_INTERVAL_S, epdms_score, extended_comfort
 from .settings import RunSettings
+
+#: Frames whose PDMS the scoring thread scores together beside the planner (`CellPdms`): one tracker batch
+#: costs about as much for 1 plan as for 200, so a span trades CPU for not scoring the whole cell at its end.
+PDMS_SPAN = 32
+
+
+class PdmsSource(Protocol):
+    """Where a cell's PDMS preparation comes from (`run.RunContext.pdms_frame`, once per frame and process)."""
+
+    def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
+
+
+class CellPdms:
+    """The PDMS and EPDMS of a cell's frames with a plan, scored span by span as their rows are filled: every
+    `span` frames (on the scoring thread, beside the planner) or, with `span` None, all at the cell's end in one
+    tracker batch (the serial path: the cheapest). The figures are the same either way: a plan's tracked states
+    do not depend on its batch, and a frame's EC reads the previous frame's states, which are kept across spans."""
+
+    def __init__(self, source: PdmsSource, rows: RecordBuilder, frames: list[Frame], span: int | None) -> None:
+        self.source, self.rows, self.frames, self.span = source, rows, frames, span
+        self.done = 0
+        self.states: dict[int, EgoStates] = {}
+
+    def ready(self, i: int) -> bool:
+        """Frame `i`'s row is filled (rows fill in frame order): score the span it ends, if it ends one."""
+        if self.span is None or i + 1 - self.done < self.span:
+            return False
+        self._score(i + 1)
+        return True
+
+    def finish(self) -> None:
+        """Score the frames left (all of them on the serial path)."""
+        self._score(len(self.frames))
+
+    def _score(self, stop: int) -> None:
+        score_cell_pdms(self.source, self.rows, self.frames, range(self.done, stop), self.states)
+        self.done = stop
+        self.states = {i: s for i, s in self.states.items() if i == stop - 1}  # what the next span's EC reads
+
+
+def score_cell_pdms(source: PdmsSource, rows: RecordBuilder, frames: list[Frame], span: range,
+                    states: dict[int, EgoStates]) -> None:
+    """The PDMS and EPDMS of the frames in `span` with a plan (its own or clean's), their plans tracked in one
+    batch (added to `states`) and each frame's EC against the previous keyframe's plan of its scene in this cell
+    (`previous_frame`, its states in `states`): deterministic for any batches, spans, workers or reuse."""
+    plans = rows.arrays["plans"]
+    have = [i for i in span if np.isfinite(plans[i]).all()]
+    prepared = {i: source.pdms_frame(frames[i]) for i in have}
+    states.update(zip(have, tracked_states(plans[have], [prepared[i].initial for i in have])))
+    for i in have:
+        result, terms = prepared[i].judged(plans[i], states[i])
+        human = prepared[i].human
+        prev = previous_frame(frames, i)
+        ec = extended_comfort(states[i], states.get(prev) if prev is not None else None,
+                              (frames[i].timestamp - frames[prev].timestamp) * 1e-6 if prev is not None else 0.5)
+        rows.put(i, map_scored=float(result.map_scored), **{k: getattr(result, k) for k in PDMS_FIELDS},
+                 ddc=terms.ddc, tlc=terms.tlc, lk=terms.lk, hc=terms.hc, ec=ec,
+                 epdms=epdms_score(terms.filtered(human) if human is not None else terms, ec))
+
+
+def previous_frame(frames: list[Frame], i: int) -> int | None:
+    """The index of frame i's previous keyframe when it is frame i - 1 of the cell: same scene, the keyframe
+    before, at most EC_MAX_INTERVAL_S earlier (else None: EC not scored for frame i)."""
+    if i == 0:
+        return None
+    a, b = frames[i - 1], frames[i]
+    gap = (b.timestamp - a.timestamp) * 1e-6
+    same = a.scene_token == b.scene_token and b.index == a.index + 1
+    return i - 1 if same and 0.0 < gap < EC_MAX_INTERVAL_S else None
 
 
 class Scorer:

@@ -19,16 +19,15 @@ from typing import Protocol
 
 import numpy as np
 
-from .cells import PDMS_FIELDS, REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
+from .cells import REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
 from .constants import CAMERAS
 from .data.context import FrameContext
 from .data.frame import EgoStatus, Frame
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
-from .metrics.pdms import PreparedFrame, tracked_states
-from .metrics.pdms.extended import EC_MAX_INTERVAL_S, epdms_score, extended_comfort
+from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
-from .pacing import Scorer, prefetch_depth, process_key
+from .pacing import PDMS_SPAN, CellPdms, Scorer, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
 
@@ -306,30 +305,36 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
     per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
     (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice.
-    With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call; the PDMS
-    of the cell's plans is scored at its end, their tracking in one batch (`score_plans`)."""
+    With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call, and the
+    PDMS of every PDMS_SPAN frames' plans there too; without, the PDMS of the cell's plans at its end, their
+    tracking in one batch (`CellPdms`: the same figures either way)."""
     rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
     clock = _Clock()
-    with Scorer(prefetch_depth(source.settings) > 0) as scorer:
+    overlap = prefetch_depth(source.settings) > 0
+    pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None)
+    with Scorer(overlap) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean)):
             clock.delivered(sample)
-            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock))
+            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock, pdms))
     start = time.perf_counter()
-    score_cell_pdms(source, rows, frames)
+    pdms.finish()
     clock.spent["pdms"] += time.perf_counter() - start
     return rows.build(clock.total())
 
 
 def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, result: np.ndarray | str,
-            clean: CellRecord | None, clock: _Clock) -> None:
-    """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores (its PDMS at the cell's end)."""
+            clean: CellRecord | None, clock: _Clock, pdms: CellPdms) -> None:
+    """Frame `i`'s row: its failure, clean's row (a reused plan) or its scores; then its PDMS with its span's."""
     if isinstance(result, str):
         rows.fail(str(result), data=isinstance(result, DataFault))
     elif sample.reused_from is not None and clean is not None:
         rows.copy_row(i, clean, sample.reused_from)
     else:
         _score(source, rows, i, sample, result, clock)
+    start = time.perf_counter()
+    if pdms.ready(i):
+        clock.scoring["pdms"] += time.perf_counter() - start
 
 
 def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:
@@ -339,36 +344,6 @@ def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
     clock.scoring["metrics"] += time.perf_counter() - start
-
-
-def score_cell_pdms(source: Source, rows: RecordBuilder, frames: list[Frame]) -> None:
-    """The PDMS and EPDMS of every frame of the cell with a plan (its own or clean's), the plans tracked in one
-    batch (a plan's score does not depend on its batch) and each frame's EC against the previous keyframe's plan
-    of its scene in this cell (`previous_frame`): deterministic for any batches, workers or reuse."""
-    plans = rows.arrays["plans"]
-    have = [i for i in range(len(frames)) if np.isfinite(plans[i]).all()]
-    prepared = {i: source.pdms_frame(frames[i]) for i in have}
-    states = dict(zip(have, tracked_states(plans[have], [prepared[i].initial for i in have])))
-    for i in have:
-        result, terms = prepared[i].judged(plans[i], states[i])
-        human = prepared[i].human
-        prev = previous_frame(frames, i)
-        ec = extended_comfort(states[i], states.get(prev) if prev is not None else None,
-                              (frames[i].timestamp - frames[prev].timestamp) * 1e-6 if prev is not None else 0.5)
-        rows.put(i, map_scored=float(result.map_scored), **{k: getattr(result, k) for k in PDMS_FIELDS},
-                 ddc=terms.ddc, tlc=terms.tlc, lk=terms.lk, hc=terms.hc, ec=ec,
-                 epdms=epdms_score(terms.filtered(human) if human is not None else terms, ec))
-
-
-def previous_frame(frames: list[Frame], i: int) -> int | None:
-    """The index of frame i's previous keyframe when it is frame i - 1 of the cell: same scene, the keyframe
-    before, at most EC_MAX_INTERVAL_S earlier (else None: EC not scored for frame i)."""
-    if i == 0:
-        return None
-    a, b = frames[i - 1], frames[i]
-    gap = (b.timestamp - a.timestamp) * 1e-6
-    same = a.scene_token == b.scene_token and b.index == a.index + 1
-    return i - 1 if same and 0.0 < gap < EC_MAX_INTERVAL_S else None
 
 
 @contextlib.contextmanager

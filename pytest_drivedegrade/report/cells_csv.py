@@ -55,7 +55,8 @@ def cell_rows(analysis: RunAnalysis, provenance: Provenance) -> list[dict[str, s
              "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
              "spec_version": provenance.spec_version, "seed": provenance.seed,
              "convention": analysis.settings.get("convention", "")}
-    return [{col: _field({**s.flat(), **extra}.get(col)) for col in CSV_COLUMNS} for s in analysis.summaries]
+    rows = ({**s.flat(), **extra} for s in analysis.summaries)  # each summary flattened once, not per column
+    return [{col: _field(row.get(col)) for col in CSV_COLUMNS} for row in rows]
 
 
 def cells_csv_text(analysis: RunAnalysis, provenance: Provenance) -> str:

@@ -131,3 +131,77 @@ def test_the_cost_ledger_gives_each_process_wall_time_and_planner_busy():
     old = cost_ledger([record("jpeg-s3", {"planner": 0.5, "decode": 0.25, "total": 1.0})])
     assert old["wall"] is None and old["planner_busy"] is None and old["processes"] == []
     assert overhead_per_prediction(old) == pytest.approx(0.25 / 2)
+
+
+class _Prepared:
+    """`run.RunContext.pdms_frame` over a world, without a run: each frame prepared once."""
+
+    def __init__(self, reader):
+        self.reader, self.cache = reader, {}
+
+    def pdms_frame(self, frame):
+        from pytest_drivedegrade.metrics.pdms import PreparedFrame
+
+        if frame.token not in self.cache:
+            self.cache[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
+                                                       lane_map=self.reader.lane_map(frame))
+        return self.cache[frame.token]
+
+
+def _cell_rows(frames, plans):
+    from pytest_drivedegrade.cells import RecordBuilder
+
+    rows = RecordBuilder("jpeg-s3", "jpeg", 3, [f.token for f in frames])
+    for i, plan in enumerate(plans):
+        if np.isfinite(plan).all():
+            rows.put(i, plans=plan)
+        else:
+            rows.fail(f"frame {frames[i].token!r}: failed")
+    return rows
+
+
+def test_a_cells_pdms_scored_in_spans_beside_the_planner_equals_one_batch_at_its_end(small_world):
+    """`CellPdms`: spans of any length (the overlap path) give the serial path's PDMS and EPDMS arrays bit for bit,
+    EC across a span's edge and a failed frame included; and a plan judged twice (the memo) the same again."""
+    from pytest_drivedegrade.cells import PDMS_FIELDS
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.pacing import CellPdms
+
+    reader = NuScenesReader(small_world, split="all")
+    frames = reader.scorable_frames()[:14]
+    rng = np.random.default_rng(3)
+    plans = np.stack([f.gt_future + rng.normal(0.0, 0.6, (6, 2)) for f in frames])
+    plans[5] = np.nan  # a failed frame: no PDMS, and frame 6 has no previous plan for its EC
+    names = (*PDMS_FIELDS, "ddc", "lk", "hc", "ec", "epdms")
+    results = {}
+    for span in (None, 1, 3, 4, 32):
+        rows = _cell_rows(frames, plans)
+        pdms = CellPdms(_Prepared(reader), rows, frames, span)
+        spans_scored = sum(pdms.ready(i) for i in range(len(frames)))
+        pdms.finish()
+        assert spans_scored == (0 if span is None else len(frames) // span)
+        results[span] = {n: rows.arrays[n].tobytes() for n in names}
+    assert all(results[span] == results[None] for span in results)
+    serial = _cell_rows(frames, plans)
+    CellPdms(_Prepared(reader), serial, frames, None).finish()
+    assert np.isnan(serial.arrays["pdms"][5]) and np.isfinite(serial.arrays["pdms"][[4, 6]]).all()
+    assert np.isnan(serial.arrays["ec"][6]) and np.isfinite(serial.arrays["ec"][7])  # EC needs frame i - 1's plan
+    assert len(set(serial.arrays["pdms"].round(6).tolist())) > 3  # the noisy plans score differently
+
+
+def test_a_plan_judged_again_on_its_frame_comes_from_the_memo_with_the_same_figures(small_world):
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.metrics.pdms import PreparedFrame, tracked_states
+
+    reader = NuScenesReader(small_world, split="all")
+    frame = reader.scorable_frames()[2]
+    prepared = PreparedFrame.of(frame, reader.drivable_area(frame), lane_map=reader.lane_map(frame))
+    plan = frame.gt_future + np.random.default_rng(0).normal(0.0, 0.5, (6, 2))
+    states = tracked_states(plan[None], [prepared.initial])[0]
+    first = prepared.judged(plan, states)
+    assert prepared.judged(plan.copy(), states) is first  # the same bytes: judged once
+    fresh = PreparedFrame.of(frame, reader.drivable_area(frame), lane_map=reader.lane_map(frame))
+    result = fresh.score_tracked(plan, states)
+    assert (result, fresh.extended(states, result)).__repr__() == first.__repr__()
+    other = plan + 1e-9
+    assert prepared.judged(other, tracked_states(other[None], [prepared.initial])[0]) is not first
