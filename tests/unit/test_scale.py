@@ -272,3 +272,27 @@ def test_the_device_and_batched_no_reuse_enter_the_run_key(world, camera_cnn):
     assert key(device="cuda:0")["device"] == "cuda:0"
     assert key(reuse=False) == plain  # at batch 1 reuse changes no bit
     assert key(batch=8, reuse=False)["reuse"] is False and "reuse" not in key(batch=8)
+
+
+@pytest.mark.parametrize(("processes", "memory", "budget"), [
+    (2, 24 * 2**30, 2 * 2**30),  # this machine under -n 2: capped at 2 GiB
+    (1, 4 * 2**30, 2**30),  # a quarter of 4 GiB
+    (4, 4 * 2**30, 512 * 2**20),  # a small machine keeps the old 512 MiB floor
+    (1, 0, 512 * 2**20),  # memory unknown
+])
+def test_the_decode_budget_is_a_quarter_of_memory_per_process_within_bounds(processes, memory, budget):
+    from pytest_drivedegrade.run import decode_cache_bytes
+
+    assert decode_cache_bytes(processes, memory) == budget
+
+
+def test_decoded_images_are_kept_up_to_the_budget_and_the_pixels_do_not_depend_on_it(world):
+    """A budget of one image keeps one; the next frame's image is decoded again each time, to the same pixels."""
+    ctx = RunContext.open(RunSettings(data=world, timeout=0.0))
+    one = ctx.frames[0].cameras["CAM_FRONT"]
+    ctx._decode_budget = one.width * one.height * 3
+    first, second = ctx.decode(ctx.frames[0], "CAM_FRONT"), ctx.decode(ctx.frames[1], "CAM_FRONT")
+    assert ctx.decode(ctx.frames[0], "CAM_FRONT") is first  # kept
+    again = ctx.decode(ctx.frames[1], "CAM_FRONT")
+    assert again is not second and np.array_equal(again, second)  # over budget: decoded again, same pixels
+    assert ctx._decoded_bytes == first.nbytes
