@@ -184,10 +184,10 @@ def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.
     are v_k dt along the pose heading with v_k = v_0 + dt * (a_0 + .. + a_{k-1}) and the "jerk" penalty as
     NAVSIM applies it; heading changes are v_k dt kappa_k with a penalty on the curvature rate.
 
-    NAVSIM's (and nuPlan's) `_make_banded_difference_matrix` writes its +1 band and then overwrites most of it
-    with the -1 band, so the penalty is jerk_penalty * (a_0^2 + .. + a_{M-4}^2 + (a_{M-2} - a_{M-3})^2): a
-    ridge on the accelerations with one difference at the end (spec 4.2.0). Fitted with a true jerk penalty
-    the velocity profile of a noisy plan is up to 1 m/s off NAVSIM's (tests/unit/test_tracking.py)."""
+    NAVSIM's batched `_make_banded_difference_matrix` (nuPlan's own, a loop, sets both bands) writes its +1
+    band and then overwrites most of it with the -1 band, so the penalty is jerk_penalty * (a_0^2 + .. +
+    a_{M-4}^2 + (a_{M-2} - a_{M-3})^2): a ridge on the accelerations with one difference at the end (spec
+    4.2.0). Fitted with a true jerk penalty the speeds of a noisy plan are up to 1 m/s off NAVSIM's."""
     b, n = poses.shape[:2]
     m, dt = n - 1, SIM_DT
     disp = np.diff(poses, axis=1)

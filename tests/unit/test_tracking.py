@@ -101,7 +101,7 @@ NAVSIM_END = (14.679301420008704, 3.301507058562482, 1.048335060904563, 4.797949
 
 def test_profiles_and_tracked_states_equal_navsims_own_code_on_a_noisy_plan():
     """A jitter of about 1 m: NAVSIM's penalty on the velocity fit is its banded matrix as written (a ridge on
-    the accelerations, `fit_profiles`); a true jerk penalty put v_0 at 3.61 here, not NAVSIM's 3.74."""
+    the accelerations, `fit_profiles`); a true jerk penalty puts v_0 at 3.60 here, not NAVSIM's 3.74."""
     poses = T.interpolate_plan(NAVSIM_PLAN, NAVSIM_HEADINGS)
     velocity, curvature = T.fit_profiles(poses)
     for k, want in NAVSIM_VELOCITY.items():
