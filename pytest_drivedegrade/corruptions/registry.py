@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 #: Version of the ladder (operators and values) and of the scores certified on it. A new value is a minor bump; a
-#: changed operator is major; a changed score with the ladder unchanged is minor (4.1.0: PDMS on tracked states).
-SPEC_VERSION = "4.1.0"
+#: changed operator is major; a changed score with the ladder unchanged is minor (4.1.0: PDMS on tracked states;
+#: 4.2.0: the tracker's velocity fit with NAVSIM's penalty as its code applies it).
+SPEC_VERSION = "4.2.0"
 
 #: Order of SPEC section 3: the twelve core families first, then the four contamination families.
 ORDER: tuple[str, ...] = (

@@ -181,8 +181,13 @@ def _solve(a: np.ndarray, reg: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.ndarray, np.ndarray]:
     """Velocity and curvature at each 0.1 s step, (B, N - 1) each, fitted to the reference poses: displacements
-    are v_k dt along the pose heading with v_k = v_0 + dt * (a_0 + .. + a_{k-1}) and a jerk penalty on the
-    accelerations' differences; heading changes are v_k dt kappa_k with a penalty on the curvature rate."""
+    are v_k dt along the pose heading with v_k = v_0 + dt * (a_0 + .. + a_{k-1}) and the "jerk" penalty as
+    NAVSIM applies it; heading changes are v_k dt kappa_k with a penalty on the curvature rate.
+
+    NAVSIM's batched `_make_banded_difference_matrix` (nuPlan's own, a loop, sets both bands) writes its +1
+    band and then overwrites most of it with the -1 band, so the penalty is jerk_penalty * (a_0^2 + .. +
+    a_{M-4}^2 + (a_{M-2} - a_{M-3})^2): a ridge on the accelerations with one difference at the end (spec
+    4.2.0). Fitted with a true jerk penalty the speeds of a noisy plan are up to 1 m/s off NAVSIM's."""
     b, n = poses.shape[:2]
     m, dt = n - 1, SIM_DT
     disp = np.diff(poses, axis=1)
@@ -192,8 +197,8 @@ def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.
     a_vel = np.empty((b, m, 2, m))  # displacement k uses v_0 and a_0 .. a_{k-1}
     a_vel[..., 0] = direction * dt
     a_vel[..., 1:] = direction[..., None] * (dt * dt * np.tril(np.ones((m, m - 1)), -1))[None, :, None, :]
-    jerk = np.zeros((m - 2, m))
-    jerk[np.arange(m - 2), np.arange(1, m - 1)], jerk[np.arange(m - 2), np.arange(2, m)] = -1.0, 1.0
+    jerk = np.zeros((m - 2, m))  # NAVSIM's "difference" matrix: row k is -a_k, the last row a_{M-2} - a_{M-3}
+    jerk[np.arange(m - 2), np.arange(1, m - 1)], jerk[m - 3, m - 1] = -1.0, 1.0
     x = _solve(a_vel.reshape(b, 2 * m, m), np.broadcast_to(params.jerk_penalty * jerk.T @ jerk, (b, m, m)),
                disp[..., :2].reshape(b, 2 * m))
     velocity = x[:, :1] + np.concatenate([np.zeros((b, 1)), np.cumsum(x[:, 1:] * dt, axis=1)], axis=1)

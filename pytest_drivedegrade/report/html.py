@@ -18,7 +18,7 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..cells import CellRecord, is_camera_ladder
-from ..certificate.seal import Provenance
+from ..certificate.seal import Provenance, epdms_unscored
 from ..scoring.records import (
     AXES,
     BESIDE_AXES,
@@ -69,6 +69,10 @@ def trajectory_examples(records: Mapping[str, CellRecord], gt: Mapping[str, Any]
     order = [i for i in np.argsort(-shift, kind="stable") if clean.frames[i] in gt][:n_frames]
     return [TrajectoryExample(clean.frames[i], np.asarray(gt[clean.frames[i]], dtype=float),
                               {"clean": clean.plans[i], **{c: records[c].plans[i] for c in cells}}) for i in order]
+
+
+#: The EPDMS's own terms and score, as the sub-score table shows them (nc, dac, ttc, ep are the PDMS's).
+EPDMS_TERMS: tuple[str, ...] = ("epdms", "ddc", "tlc", "lk", "hc", "ec")
 
 
 def _fmt(value: object, digits: int = 3) -> str:
@@ -138,27 +142,35 @@ def _threshold_cells(t: FamilyThresholds) -> dict[str, str]:
 
 
 def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, str | None]:
-    """The PDMS retention heatmap and the camera-vs-ego reliance chart (spec 3, SPEC section 10)."""
+    """The PDMS and EPDMS retention heatmaps (none without a scored cell) and the camera-vs-ego reliance chart
+    (spec 3, spec 4.1, SPEC section 10)."""
     from . import plots
 
     blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
     return {"heatmap_pdms": plots.retention_heatmap(analysis.summaries, "pdms_retention", "PDMS retention"),
+            "heatmap_epdms": plots.retention_heatmap(analysis.summaries, "epdms_retention", "EPDMS retention"),
             "reliance": plots.reliance_chart(analysis.axes, analysis.verdict.flat, planner=provenance.planner_name,
                                              blind=blind, floor_ego=analysis.floor.ego_removal)}
 
 
 def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, object]:
-    """The template's PDMS and ego figures: both axes sets side by side, the ego axis and label, whether a map
-    was scored, and the PDMS sub-scores of the `n` most damaging cells (on L2 retention)."""
+    """The template's PDMS, EPDMS and ego figures: the axes sets side by side, the ego axis and label, whether a
+    map was scored, the EPDMS terms left unscored (with the certificate's reason), and the PDMS and EPDMS
+    sub-scores of the `n` most damaging cells (on L2 retention). EPDMS is shown where the clean cell scored it."""
     def sub(s: CellSummary) -> dict[str, str]:
         m = s.metrics
         return {"cell": s.cell, "retention": _fmt(s.retention), "pdms_retention": _fmt(m.get("pdms_retention")),
-                **{k: _fmt(m.get(k)) for k in ("pdms", "nc", "dac", "ttc", "ep", "comfort")}}
+                "epdms_retention": _fmt(m.get("epdms_retention")),
+                **{k: _fmt(m.get(k)) for k in ("pdms", "nc", "dac", "ttc", "ep", "comfort", *EPDMS_TERMS)}}
 
     clean = next((s for s in analysis.summaries if s.cell == "clean"), None)
     mapped = None if clean is None else clean.metrics.get("map_scored")
-    return {"axes_both": [{"k": k, "l2": _fmt(analysis.axes.value(k)), "pdms": _fmt(analysis.axes_pdms.value(k))}
-                          for k in AXES],
+    ax_e = analysis.axes_epdms
+    epdms = ax_e is not None and clean is not None and math.isfinite(float(clean.metrics.get("epdms", math.nan)))
+    return {"axes_both": [{"k": k, "l2": _fmt(analysis.axes.value(k)), "pdms": _fmt(analysis.axes_pdms.value(k)),
+                           "epdms": _fmt(ax_e.value(k) if ax_e is not None else None)} for k in AXES],
+            "epdms_shown": epdms,
+            "epdms_unscored": [{"term": k, "why": why} for k, why in epdms_unscored(analysis).items()] if epdms else [],
             "ego": {"ego": _fmt(analysis.axes.ego), "ego_removal": _fmt(analysis.axes.ego_removal),
                     "label": analysis.verdict.ego_label},
             "verdict_metric": analysis.verdict.metric,

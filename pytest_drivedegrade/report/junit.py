@@ -13,13 +13,14 @@ from typing import Any
 
 import numpy as np
 
+from ..certificate.seal import epdms_unscored
 from ..scoring.records import AXES, BESIDE_AXES, EGO_AXES, CellSummary, RunAnalysis
-from .columns import PDMS, STABLE, per_horizon
+from .columns import EPDMS, PDMS, STABLE, per_horizon
 
 #: Testcase properties of a finished summary, in the order they appear in the XML.
 CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"), "collision_3s_stp3",
                    "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
-                   "data_errors", *PDMS)
+                   "data_errors", *PDMS, *EPDMS)
 
 SUITE_PREFIX = "drivedegrade_"
 
@@ -50,6 +51,9 @@ def suite_properties(analysis: RunAnalysis) -> list[tuple[str, str | float | int
     ax, verdict, nc = analysis.axes, analysis.verdict, analysis.null_control
     out: list[tuple[str, object]] = [(f"axis_{k}", ax.value(k)) for k in (*AXES, *BESIDE_AXES, *EGO_AXES)]
     out += [(f"axis_pdms_{k}", analysis.axes_pdms.value(k)) for k in AXES]
+    if analysis.axes_epdms is not None:  # and each EPDMS term the run did not score, with the reason
+        out += [(f"axis_epdms_{k}", analysis.axes_epdms.value(k)) for k in AXES]
+        out += [(f"epdms_unscored_{k}", why) for k, why in epdms_unscored(analysis).items()]
     out += [("verdict", verdict.label), ("verdict_flat", verdict.flat), ("verdict_negative_gap", verdict.negative_gap),
             ("verdict_text", verdict.text), ("verdict_confidence", verdict.confidence),
             ("verdict_ego_label", verdict.ego_label), ("verdict_metric", verdict.metric),

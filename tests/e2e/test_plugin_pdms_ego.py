@@ -3,6 +3,7 @@ floor's known answer (SPEC section 10)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -69,7 +70,8 @@ def test_epdms_columns_axes_and_the_verdict_on_epdms(dd):
     """Spec 4.1: the EPDMS terms in cells.csv (tlc empty: the world has no traffic lights, and the certificate
     says so), axes_epdms that verify recomputes, and the verdict put on EPDMS retention."""
     dd.write_planner()
-    result = dd.run("--drivedegrade-metric", "epdms", "-n", "2", families="gaussian_blur,blackout", severities="1,5")
+    result = dd.run("--drivedegrade-metric", "epdms", "-n", "2", "--junitxml=e.xml", families="gaussian_blur,blackout",
+                    severities="1,5")
     no_traceback(result)
     folder = dd.folder()
     rows = read_csv(folder / "cells.csv")
@@ -85,6 +87,13 @@ def test_epdms_columns_axes_and_the_verdict_on_epdms(dd):
     assert set(cert["axes_epdms"]) >= {"quality", "removal", "gap", "mean"}
     assert cert["epdms_unscored"] == {"tlc": "the data have no traffic lights"}
     assert verify_cli(folder / "certificate.json").returncode == 0
+    page = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", "", (folder / "report.html").read_text()))
+    assert "L2, PDMS and EPDMS retention, side by side" in page
+    assert "tlc not scored: the data have no traffic lights." in page
+    junit = (dd.pytester.path / "e.xml").read_text()  # the page's figures as JUnit properties too
+    assert '<property name="drivedegrade_epdms_unscored_tlc" value="the data have no traffic lights"' in junit
+    removal = re.search(r'name="drivedegrade_axis_epdms_removal" value="([^"]+)"', junit).group(1)
+    assert float(removal) == pytest.approx(cert["axes_epdms"]["removal"], abs=1e-6)  # blackout S5 ran
 
 
 def test_an_unknown_metric_is_a_usage_error(dd):

@@ -186,3 +186,65 @@ def test_csv_fields_that_would_start_a_formula_are_neutralised() -> None:
     assert [_field(v) for v in ("=HYPERLINK(\"x\")", "+1+1", "-cmd", "@SUM(A1)", "plain")] == \
         ["'=HYPERLINK(\"x\")", "'+1+1", "'-cmd", "'@SUM(A1)", "plain"]
     assert [_field(v) for v in ("-0.5", "+3", "-1e-3", -2, -0.25)] == ["-0.5", "+3", "-1e-3", "-2", "-0.25"]
+
+
+# --- EPDMS on the page and in JUnit (spec 4.1) ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def epdms_run():
+    """The synthetic run with PDMS and EPDMS arrays: a cell's EPDMS is 0.9 times its L2 retention on every frame
+    (so its EPDMS retention is that retention), ddc 1, lk 0.5, hc 1, ec 0.75, tlc not scored (NaN)."""
+    from dataclasses import replace
+
+    recs, _ = synthetic_run(12)
+    clean_l2 = float(recs[0].l2.mean())
+    out, ratios = [], {}
+    for r in recs:
+        n, ratio = len(r.frames), clean_l2 / float(r.l2.mean())
+        ratios[r.cell] = ratio
+        arrays = {k: np.full(n, v, dtype=float) for k, v in (
+            ("nc", 1.0), ("dac", 1.0), ("ttc", 1.0), ("ep", 1.0), ("comfort", 1.0), ("pdms", 0.95 * ratio),
+            ("map_scored", 1.0), ("ddc", 1.0), ("tlc", math.nan), ("lk", 0.5), ("hc", 1.0), ("ec", 0.75),
+            ("epdms", 0.9 * ratio))}
+        out.append(replace(r, **arrays))
+    return analyse_run(out, groups=GROUPS, n_resamples=50, floor_l2=5.0), ratios
+
+
+def test_html_shows_epdms_beside_l2_and_pdms_and_says_what_is_not_scored(epdms_run) -> None:
+    from pytest_drivedegrade.report.html import render_report
+
+    epdms_run, _ = epdms_run
+    page = render_report(epdms_run, PROV)
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", "", page))
+    assert "L2, PDMS and EPDMS retention, side by side" in text
+    assert "tlc not scored: the data have no traffic lights." in text
+    assert "EPDMS retention heatmap" in page and "PDMS and EPDMS sub-scores of the most damaging cells" in text
+    ax = epdms_run.axes_epdms
+    for k in ("quality", "removal"):  # each card: L2, PDMS, EPDMS retention in that order
+        card = re.search(rf'<div class="k">{k}</div>(.*?)</div>\s*</div>', page, re.S)
+        values = re.findall(r'<div class="v"[^>]*>([^<]*)</div>', page[card.start():card.start() + 600])[:3]
+        assert values == [f"{epdms_run.axes.value(k):.3f}", f"{epdms_run.axes_pdms.value(k):.3f}",
+                          f"{ax.value(k):.3f}"], (k, values)
+    clean_row = re.search(r"<tr><td>clean</td>(.*?)</tr>", page, re.S).group(1)
+    cells_ = re.findall(r'<td class="n">([^<]*)</td>', clean_row)
+    assert cells_[-7:] == ["1.000", "0.900", "1.000", "—", "0.500", "1.000", "0.750"]  # retention, epdms .. ec
+
+
+def test_html_without_epdms_keeps_the_two_figures(page: str) -> None:
+    text = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", "", page))
+    assert "L2 and PDMS retention, side by side" in text and "EPDMS" not in text and "not scored:" not in text
+
+
+def test_junit_carries_the_epdms_axes_terms_and_what_is_not_scored(epdms_run) -> None:
+    epdms_run, ratios = epdms_run
+    suite = dict(junit.suite_properties(epdms_run))
+    for k in ("quality", "removal", "gap", "mean"):
+        want = epdms_run.axes_epdms.value(k)
+        assert suite[f"drivedegrade_axis_epdms_{k}"] == (pytest.approx(want, abs=1e-6) if want is not None else "none")
+    assert suite["drivedegrade_epdms_unscored_tlc"] == "the data have no traffic lights"
+    assert [k for k in suite if k.startswith("drivedegrade_epdms_unscored_")] == ["drivedegrade_epdms_unscored_tlc"]
+    fog = next(s for s in epdms_run.summaries if s.cell == "fog-s5")
+    props = dict(junit.cell_properties(fog))
+    assert props["epdms"] == pytest.approx(0.9 * ratios["fog-s5"], abs=1e-6)  # known answers of the fixture
+    assert props["epdms_retention"] == pytest.approx(ratios["fog-s5"], abs=1e-6)
+    assert props["lk"] == 0.5 and props["ec"] == 0.75 and props["hc"] == 1.0 and props["tlc"] == "none"

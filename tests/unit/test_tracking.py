@@ -74,7 +74,10 @@ def test_the_profile_fit_recovers_constant_acceleration_and_curvature():
     x = 8.0 * t + 0.5 * 1.5 * t**2
     poses = np.stack([x, np.zeros_like(t), np.zeros_like(t)], axis=-1)[None]
     velocity, curvature = T.fit_profiles(poses)
-    np.testing.assert_allclose(velocity[0], 8.0 + 1.5 * (t[:-1] + 0.05), atol=1e-3)  # mean speed per step
+    # mean speed per step in the middle; NAVSIM's acceleration ridge pulls both ends (its own code: 8.1677051 at
+    # step 0 for 8.075, 12.04095229 at step 27 for 12.125)
+    np.testing.assert_allclose(velocity[0, 5:23], 8.0 + 1.5 * (t[5:23] + 0.05), atol=1e-3)
+    np.testing.assert_allclose(velocity[0, [0, 27]], [8.1677051, 12.04095229], atol=1e-8)
     np.testing.assert_allclose(curvature[0], 0.0, atol=1e-12)
     rate = 0.5
     xy = arc(10.0, rate, t)
@@ -82,6 +85,59 @@ def test_the_profile_fit_recovers_constant_acceleration_and_curvature():
     velocity, curvature = T.fit_profiles(poses)
     np.testing.assert_allclose(velocity[0], 10.0 * np.sinc(0.05 * rate / np.pi) / np.cos(0.05 * rate), rtol=1e-3)
     np.testing.assert_allclose(curvature[0], rate / 10.0, rtol=2e-3)
+
+
+# NAVSIM v1.1's own code (batch_lqr_utils, BatchLQRTracker, BatchKinematicBicycleModel, PDMSimulator) on this plan
+# and start, run with thin stand-ins for nuPlan's containers: its velocity and curvature profiles and the state
+# it reaches at 3 s (x, y, heading, speed, acceleration, steering angle).
+NAVSIM_PLAN = np.array([[1.85, 0.53], [5.96, 0.35], [5.47, 1.01], [10.09, -1.22], [13.65, 0.56], [14.61, 2.47]])
+NAVSIM_HEADINGS = np.array([0.06, 0.13, -0.36, -0.05, 0.68, 1.42])
+NAVSIM_START = T.InitialState(velocity_x=5.2, acceleration_x=-0.5, yaw_rate=0.02)
+NAVSIM_VELOCITY = {0: 3.7427807069389787, 10: 1.6682591671205684, 29: 4.2084161277229555}
+NAVSIM_CURVATURE = {0: 0.02854642643676973, 15: 0.05355907278860189, 29: 0.32146103482417526}
+NAVSIM_END = (14.679301420008704, 3.301507058562482, 1.048335060904563, 4.797949436879287, -0.7777495325631334,
+              0.8408712641887133)
+
+
+def test_profiles_and_tracked_states_equal_navsims_own_code_on_a_noisy_plan():
+    """A jitter of about 1 m: NAVSIM's penalty on the velocity fit is its banded matrix as written (a ridge on
+    the accelerations, `fit_profiles`); a true jerk penalty puts v_0 at 3.60 here, not NAVSIM's 3.74."""
+    poses = T.interpolate_plan(NAVSIM_PLAN, NAVSIM_HEADINGS)
+    velocity, curvature = T.fit_profiles(poses)
+    for k, want in NAVSIM_VELOCITY.items():
+        assert velocity[0, k] == pytest.approx(want, abs=1e-9)
+    for k, want in NAVSIM_CURVATURE.items():
+        assert curvature[0, k] == pytest.approx(want, abs=1e-9)
+    s = T.track(poses, NAVSIM_START)
+    got = (s.x[0, -1], s.y[0, -1], s.heading[0, -1], s.velocity_x[0, -1], s.acceleration_x[0, -1],
+           s.steering_angle[0, -1])
+    np.testing.assert_allclose(got, NAVSIM_END, atol=1e-9)
+    assert not T.tracked_comfort(s)[0]  # NAVSIM's comfort on its states: False
+
+
+def test_the_velocity_fit_is_the_least_squares_problem_written_out():
+    """The literal problem (one residual row at a time): displacement k against v_k dt along the pose heading,
+    and sqrt(penalty) times -a_k for k < M - 3, then a_{M-2} - a_{M-3}: `fit_profiles` solves exactly this."""
+    poses = T.interpolate_plan(NAVSIM_PLAN, NAVSIM_HEADINGS)[0]
+    m, dt, w = len(poses) - 1, P.SIM_DT, math.sqrt(T.NAVSIM_LQR.jerk_penalty)
+    rows, rhs = [], []
+    for k in range(m):
+        for axis, trig in ((0, math.cos), (1, math.sin)):
+            row = np.zeros(m)  # unknowns v_0, a_0 .. a_{m-2}
+            row[0] = trig(poses[k, 2]) * dt
+            row[1:k + 1] = trig(poses[k, 2]) * dt * dt
+            rows.append(row)
+            rhs.append(poses[k + 1, axis] - poses[k, axis])
+    for k in range(m - 2):
+        row = np.zeros(m)
+        row[k + 1] = -w
+        if k == m - 3:
+            row[k + 2] = w
+        rows.append(row)
+        rhs.append(0.0)
+    x = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+    velocity, _ = T.fit_profiles(poses[None])
+    np.testing.assert_allclose(velocity[0], x[0] + np.concatenate([[0.0], np.cumsum(x[1:] * dt)]), atol=1e-9)
 
 
 def test_bad_plans_are_refused():
@@ -199,7 +255,7 @@ def test_the_turn_lane_change_and_hard_stop_get_navsims_verdicts(case):
 def test_tracked_comfort_on_noisy_expert_plans_matches_navsims_figures(tmp_path):
     """The world tests/unit/test_pdms.py checks the expert on; three noise draws per sigma. Up to 0.3 m the
     tracked figures are NAVSIM's within 0.05; at 1 m they depend on how headings are read off noisy waypoints
-    (spec/README, "Comfort on tracked states": 0.37 to 0.72 by convention against NAVSIM's 0.47), so the
+    (spec/README, "Comfort on tracked states": 0.25 to 0.75 by convention against NAVSIM's 0.47), so the
     tolerance there is 0.15."""
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.data.world import write_world
