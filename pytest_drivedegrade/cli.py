@@ -99,7 +99,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
                      salt=None if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep,
-                     any_planner=args.any_planner)
+                     any_planner=args.any_planner, closed_n=args.closed_cells, loop=args.loop)
 
 
 def _keygen(args: argparse.Namespace) -> int:
@@ -270,6 +270,11 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cells", type=int, default=3, metavar="N",
                    help="sampled cells besides clean and null (default 3; drawn by the certificate's digest and "
                         "--seed)")
+    p.add_argument("--closed-cells", type=int, default=1, metavar="N",
+                   help="closed-loop cells besides closed-clean, of a certificate that has them (default 1: each "
+                        "drives every route under every seed; drawn like --cells)")
+    p.add_argument("--loop", choices=("open", "closed", "both"),
+                   help="rerun the open-loop cells, the closed-loop ones or both (default: the certificate's)")
     p.add_argument("--data", metavar="PATH", help="the data set's root when the certificate's is not on this "
                                                   "machine (default: the certificate's, or the embedded world)")
     p.add_argument("--seed", type=int, metavar="INT", help="the sample seed (default: fresh randomness, printed so "
