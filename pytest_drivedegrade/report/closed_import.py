@@ -11,8 +11,8 @@ reads); its distance from clean is the wander, and a cell whose bounds overlap t
 from the null". ``--null clean-rerun`` names a second clean run (``clean-rerun=FILE``) as the null instead, for an
 agent that reads its rear cameras (blackout S3 is then an ordinary cell), as the plugin reruns clean for such a
 planner. ``--null-identical`` reads the blackout-S3 null as the plugin does a front-only planner's: on a
-deterministic CARLA setup it must reproduce clean run for run (DS, completion... as `RunRow.same` compares them:
-route, seed, DS, end), else the import exits 1 naming the first route that differs. ``--flat`` is the plugin's
+deterministic CARLA setup it must reproduce clean run for run (route, seed, DS and end: `RunRow.same` on runs
+without traces), else the import exits 1 naming the first route that differs. ``--flat`` is the plugin's
 ``--drivedegrade-flat``: the retention at or above which an axis counts as flat.
 """
 
