@@ -95,6 +95,19 @@ def test_closed_loop_csv_is_the_same_under_n0_n2_and_two_shards_merged(dd):
     assert merged["closed_loop"]["cells"] == section["cells"]
 
 
+
+def test_closed_loop_csv_is_the_same_with_and_without_prefetch(dd):
+    """--drivedegrade-prefetch 2 judges each plan's steps while the next cameras render (threads beside the
+    planner): closed_loop.csv is the serial path's (prefetch 0) byte for byte, and the cells' figures too."""
+    write(dd)
+    for depth in ("0", "2"):
+        closed(dd, "-p", "no:xdist", "--drivedegrade-prefetch", depth, "--drivedegrade-closed-cells",
+               "clean,blackout-s5", report=f"p{depth}").assert_outcomes(passed=2)
+    serial, threaded = (dd.folder("driver", f"p{d}") for d in ("0", "2"))
+    assert (threaded / "closed_loop.csv").read_text() == (serial / "closed_loop.csv").read_text()
+    assert load_json(threaded / "certificate.json")["closed_loop"]["cells"] == \
+        load_json(serial / "certificate.json")["closed_loop"]["cells"]
+
 def test_a_tampered_closed_loop_figure_fails_verify(dd):
     write(dd)
     closed(dd, "-p", "no:xdist").assert_outcomes(passed=3)
