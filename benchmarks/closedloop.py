@@ -5,8 +5,12 @@ seconds each cell spends rendering, planning, tracking and scoring, and the slic
 each cell's CPU seconds (single-threaded torch and OpenCV: on an idle machine CPU time is the wall time; on a
 shared one it is what the wall would be without the neighbours).
 
-    python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive]
+    python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive] [--prefetch N]
                                     [--planners expert,constant_velocity,floor,camera_cnn]
+
+`--prefetch N` (N > 0) drives as the plugin does under `--drivedegrade-prefetch N`: N + 1 threads render a step's
+cameras at once and judge the last plan's steps while the next cameras render (same runs, bit for bit); compare
+its wall and CPU columns with `--prefetch 0` (the default, serial).
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import argparse
 import importlib.util
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--planners", default="expert,constant_velocity,floor,camera_cnn")
     parser.add_argument("--slice", action="store_true", help="the paper's seven cells instead of clean and S5 blackout")
     parser.add_argument("--agents", default="log", choices=("log", "reactive"))
+    parser.add_argument("--prefetch", type=int, default=0, help="threads beside the planner: N + 1 (0: serial)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -72,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     root = ensure_default_world(args.cache_root)
     routes = load_routes(root)
     print("routes: " + ", ".join(f"{r.name} ({r.length:.0f} m)" for r in routes))
+    pool = ThreadPoolExecutor(args.prefetch + 1, "closed") if args.prefetch > 0 else None
     header = f"{'planner':<18} {'cell':<18} " + " ".join(f"{r.name[-4:]:>6}" for r in routes) + \
         "   mean  bounds          render  plan  track  score  wall   cpu"
     print(header)
@@ -79,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
         walls = []
         for corruption in SLICE if args.slice else CELLS:
             timings, start, cpu = Timings(), time.perf_counter(), time.process_time()
-            cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings, agents=args.agents)
+            cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings, agents=args.agents,
+                            pool=pool)
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu
             walls.append(cpu)
             cols = " ".join(_route_cell([r.ds for r in cell.runs if r.route == route.name]) for route in routes)

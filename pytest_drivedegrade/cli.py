@@ -99,7 +99,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
                      salt=None if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep,
-                     any_planner=args.any_planner)
+                     any_planner=args.any_planner, closed_n=args.closed_cells, loop=args.loop)
 
 
 def _keygen(args: argparse.Namespace) -> int:
@@ -187,15 +187,18 @@ def _estimate(args: argparse.Namespace) -> int:
 def _closed_loop_import(args: argparse.Namespace) -> int:
     """CARLA leaderboard results files (one per cell) through the closed-loop analysis into closed_loop.csv,
     closed_loop_summary.json and report.html."""
-    from .report.closed_import import import_results
+    from .report.closed_import import NullChoice, import_results
 
-    for line in import_results(args.files, Path(args.out)):
+    lines, null_ok = import_results(args.files, Path(args.out), args.flat, NullChoice(args.null, args.null_identical))
+    for line in lines:
         print(line)
-    return 0
+    return 0 if null_ok else 1
 
 
 def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
     """closed-loop import: runs of a real simulator into the closed-loop analysis."""
+    from .constants import DEFAULT_FLAT
+
     p = sub.add_parser("closed-loop", help="closed-loop results from a simulator: import CARLA leaderboard runs")
     actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
     q = actions.add_parser("import", help="read CARLA leaderboard results files (one per cell, clean among them) "
@@ -205,6 +208,16 @@ def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
                    help="the leaderboard's --checkpoint files, one per cell: CELL=FILE (e.g. blackout-s5=bo5.json), or "
                         "FILE named by its \"drivedegrade\": {\"cell\": ...} object or its file name")
     q.add_argument("--out", required=True, help="output folder")
+    q.add_argument("--null", choices=("blackout-s3", "clean-rerun"),
+                   help="the null control's results: blackout-s3 (the rear views a front-camera agent never reads), "
+                        "or clean-rerun (a second clean run, given as clean-rerun=FILE: for an agent that reads its "
+                        "rear cameras); default: clean-rerun when such a file is given, else blackout-s3")
+    q.add_argument("--null-identical", action="store_true",
+                   help="blackout S3 must reproduce clean run for run (DS and end): a front-only agent on a "
+                        "deterministic CARLA setup; exit 1 naming the first route that differs")
+    q.add_argument("--flat", type=float, default=DEFAULT_FLAT, metavar="F",
+                   help=f"retention at or above which an axis counts as flat (default {DEFAULT_FLAT}; the plugin's "
+                        "--drivedegrade-flat)")
     q.set_defaults(func=_closed_loop_import)
 
 
@@ -270,6 +283,11 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cells", type=int, default=3, metavar="N",
                    help="sampled cells besides clean and null (default 3; drawn by the certificate's digest and "
                         "--seed)")
+    p.add_argument("--closed-cells", type=int, default=1, metavar="N",
+                   help="closed-loop cells besides closed-clean, of a certificate that has them (default 1: each "
+                        "drives every route under every seed; drawn like --cells)")
+    p.add_argument("--loop", choices=("open", "closed", "both"),
+                   help="rerun the open-loop cells, the closed-loop ones or both (default: the certificate's)")
     p.add_argument("--data", metavar="PATH", help="the data set's root when the certificate's is not on this "
                                                   "machine (default: the certificate's, or the embedded world)")
     p.add_argument("--seed", type=int, metavar="INT", help="the sample seed (default: fresh randomness, printed so "

@@ -148,6 +148,14 @@ def processes_here() -> int:
     return max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1))
 
 
+def closed_threads(settings: RunSettings) -> int:
+    """The threads a closed-loop cell drives with beside the planner (`closedloop.simulate.run_route`: a step's
+    cameras rendered at once, the last plan's steps judged while the next cameras render): the prefetch depth
+    plus one where it is above 0, else none (the serial path)."""
+    depth = prefetch_depth(settings)
+    return depth + 1 if depth > 0 else 0
+
+
 _PROCESS: tuple[int, str] = (0, "")
 
 

@@ -8,6 +8,11 @@ rerun by the real pipeline: a ``python -m pytest --drivedegrade PLANNER -k CELLS
 folder, with the settings the certificate records (`RunSettings.from_certificate`, `RunSettings.rerun_argv`) and no
 pytest cache (``-p no:cacheprovider``: no stored cell and no last-failed state can leak in). Each cell's
 ``plans_digest`` is compared as it finishes, then every certified figure of the sampled cells.
+
+A certificate with closed-loop cells (``--drivedegrade-loop closed|both``) has ``closed-clean`` and
+``--closed-cells`` N (default 1) sampled closed cells rerun in the same subprocess (`reproduce_closed` says which
+and why so few, and compares each with the ``closed_loop`` section run by run); ``--loop open|closed`` reruns one
+loop only.
 """
 
 from __future__ import annotations
@@ -30,27 +35,33 @@ from typing import Any
 import numpy as np
 
 from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
+from ..closedloop.cells import ClosedPayload
 from ..errors import DriveDegradeError, InvalidInput
 from ..settings import RunSettings
+from . import reproduce_closed as rc
 
 #: Cells every reproduction reruns (when the certificate has them), before the sampled ones.
 ALWAYS: tuple[str, ...] = ("clean", "null")
 DEFAULT_SAMPLED = 3
+#: Settings reproduce sets itself (which loops and closed cells the rerun drives), not repeated from the
+#: certificate: never a reason to note that the rerun's figures are of another run.
+RERUN_CHOSEN = ("loop", "closed_cells")
 #: Library names of `runtime_versions` as people know them.
 LIBRARIES = {"python": "Python", "numpy": "numpy", "opencv": "OpenCV", "torch": "torch"}
 
 
-def sample_cells(cells: Sequence[str], digest: str, n: int, salt: str = "") -> list[str]:
-    """Clean, null and `n` other cells of `cells` (all of them when fewer), in `cells`' order.
+def sample_cells(cells: Sequence[str], digest: str, n: int, salt: str = "",
+                 always: Sequence[str] = ALWAYS) -> list[str]:
+    """Clean, null (`always`) and `n` other cells of `cells` (all of them when fewer), in `cells`' order.
 
     The others are ranked by ``sha256(digest|salt|cell)``: deterministic, independent of numpy and of the order
     of `cells`, and a different `salt` draws another sample from the same certificate.
     """
     if n < 0:
         raise InvalidInput(f"--cells must be 0 or more, got {n}")
-    others = sorted((c for c in cells if c not in ALWAYS),
+    others = sorted((c for c in cells if c not in always),
                     key=lambda c: hashlib.sha256(f"{digest}|{salt}|{c}".encode()).hexdigest())
-    chosen = {*ALWAYS, *others[:n]}
+    chosen = {*always, *others[:n]}
     return [c for c in cells if c in chosen]
 
 
@@ -106,9 +117,9 @@ def data_root(cert: Mapping[str, Any], data: str | None, cwd: Path) -> Path | No
 
 
 def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], report_dir: Path,
-               data: Path | None) -> list[str]:
-    """The pytest command that reruns `cells` with the certificate's settings (`RunSettings.rerun_argv`) into
-    `report_dir`, on the data at `data`."""
+               data: Path | None, closed: Sequence[str] = ()) -> list[str]:
+    """The pytest command that reruns `cells` (open) and `closed` (closed-loop ids) with the certificate's
+    settings (`RunSettings.rerun_argv`) into `report_dir`, on the data at `data`."""
     by_id = {c["cell"]: c for c in cert["cells"]}
     argv = [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "--drivedegrade", str(planner),
             "--drivedegrade-report", str(report_dir), *RunSettings.from_certificate(cert).rerun_argv()]
@@ -123,9 +134,11 @@ def rerun_argv(cert: Mapping[str, Any], planner: Path, cells: Sequence[str], rep
         argv += ["--drivedegrade-families", ",".join(dict.fromkeys(families))]
     if severities:
         argv += ["--drivedegrade-severities", ",".join(map(str, severities))]
-    if RunSettings.from_certificate(cert).loop != "open":  # the rerun compares open-loop cells only (-k clean
-        argv += ["--drivedegrade-loop", "open"]  # would also select closed-clean, minutes of driving)
-    return [*argv, "-k", " or ".join(cells)]
+    if closed:  # exactly the sampled closed cells are collected (-k clean also matches closed-clean)
+        argv += rc.closed_argv(closed, bool(cells))
+    elif RunSettings.from_certificate(cert).loop != "open":  # no closed cell to rerun: none is collected
+        argv += ["--drivedegrade-loop", "open"]
+    return [*argv, "-k", " or ".join([*cells, *closed])]
 
 
 def compare_plans(expected: str, got: CellRecord, original: CellRecord | None) -> str:
@@ -178,14 +191,15 @@ class Watch:
 
     report_dir: Path
     wanted: Sequence[str]
-    seen: dict[str, CellPayload] = field(default_factory=dict)
+    seen: dict[str, CellPayload | ClosedPayload] = field(default_factory=dict)
 
-    def poll(self) -> list[CellPayload]:
-        new = []
+    def poll(self) -> list[CellPayload | ClosedPayload]:
+        new: list[CellPayload | ClosedPayload] = []
         for path in sorted(self.report_dir.glob("*/cells/*.json")):
             if path.stem in self.wanted and path.stem not in self.seen:
+                kind = ClosedPayload if path.stem.startswith("closed-") else CellPayload
                 try:
-                    payload = CellPayload.from_builtins(json.loads(path.read_text()))
+                    payload = kind.from_builtins(json.loads(path.read_text()))
                 except (OSError, ValueError, DriveDegradeError):
                     continue  # written atomically, so only a file of another kind: read again next time
                 self.seen[path.stem] = payload
@@ -193,7 +207,7 @@ class Watch:
         return new
 
 
-def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[[CellPayload], None],
+def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[[CellPayload | ClosedPayload], None],
                 interval: float = 0.25) -> int:
     """Run the rerun, its output into `log`, calling `on_cell` for each sampled cell as it finishes."""
     with open(log, "w") as out:
@@ -231,8 +245,11 @@ def verified(path: Path, public_key: str | None) -> tuple[dict[str, Any], str]:
 
 
 def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
-    """The certificate's cell ids, when it carries what a rerun compares; DriveDegradeError otherwise."""
+    """The certificate's open cell ids, when it carries what a rerun compares (none for a closed-loop-only
+    certificate); DriveDegradeError otherwise."""
     cells = [c["cell"] for c in cert["cells"]]
+    if not cells and rc.closed_cells(cert):
+        return []
     lacking = [c["cell"] for c in cert["cells"] if "plans_digest" not in c]
     if lacking:
         raise DriveDegradeError(f"{path}: cells without plans_digest ({', '.join(lacking[:5])}"
@@ -260,11 +277,25 @@ def fresh_seed() -> str:
     return str(secrets.randbelow(2**31))
 
 
+def choose(cert: Mapping[str, Any], path: Path, n: int, closed_n: int, salt: str, loop: str | None) \
+        -> tuple[list[str], list[str]]:
+    """The open cells (clean, null and `n` sampled) and the closed cells (``closed-clean`` and `closed_n`
+    sampled, `reproduce_closed`) to rerun, of the loops `loop` names (None: the certificate's)."""
+    want_open, want_closed = rc.loops(cert, loop)
+    cells = sample_cells(usable(cert, path), cert["digest"], n, salt) if want_open else []
+    if closed_n < 0:
+        raise InvalidInput(f"--closed-cells must be 0 or more, got {closed_n}")
+    closed = sample_cells(rc.closed_cells(cert), cert["digest"], closed_n, salt, rc.CLOSED_ALWAYS) \
+        if want_closed else []
+    return cells, closed
+
+
 def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data: str | None = None,
               salt: str | None = None, public_key: str | None = None, keep: bool = False,
-              any_planner: bool = False, say: Callable[[str], None] = print,
-              progress: Callable[[str], None] | None = None) -> int:
-    """Rerun clean, null and `n` sampled cells; 0 when every one is identical to the certificate, 1 otherwise.
+              any_planner: bool = False, closed_n: int = rc.DEFAULT_CLOSED, loop: str | None = None,
+              say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None) -> int:
+    """Rerun clean, null and `n` sampled cells (and closed-clean and `closed_n` sampled closed cells, of the
+    loops `loop` names); 0 when every one is identical to the certificate, 1 otherwise.
     Usage errors (a missing planner or certificate, one that does not verify or contradicts its cells, a rerun
     by another planner unless `any_planner`) raise DriveDegradeError. Without `salt` (``--seed``) the sample is
     drawn from fresh randomness (`fresh_seed`), said in the output so the same cells can be drawn again."""
@@ -280,32 +311,34 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     consistent(cert, cert_path)
     drawn = "given" if salt is not None else "fresh randomness"
     salt = fresh_seed() if salt is None else salt
-    cells = sample_cells(usable(cert, cert_path), cert["digest"], n, salt)
+    open_cells, closed = choose(cert, cert_path, n, closed_n, salt, loop)
+    cells = [*open_cells, *closed]
     root = data_root(cert, data, Path.cwd())
-    note(f"reproduce: {cert_path}: {proof}; planner {cert['planner'].get('name')!r}, {len(cert['cells'])} cells")
+    note(f"reproduce: {cert_path}: {proof}; planner {cert['planner'].get('name')!r}, {len(cert['cells'])} cells"
+         + (f", {len(rc.closed_cells(cert))} closed-loop cells" if rc.closed_cells(cert) else ""))
     notes = version_notes(cert, runtime_versions(), __version__, SPEC_VERSION)
     for line in notes:
         note(f"reproduce: NOTE: {line}")
     report_dir = Path(tempfile.mkdtemp(prefix="drivedegrade-reproduce-"))
-    argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
+    argv = rerun_argv(cert, planner.resolve(), open_cells, report_dir, root, closed)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
     judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner)
-    rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
-    if rc in (2, 3, 4) and not judge.results:
-        raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
+    code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
+    if code in (2, 3, 4) and not judge.results:
+        raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {code}); its output:\n"
                                 f"{tail(report_dir / 'pytest.log')}")
     rerun = _rerun_certificate(report_dir)
-    figures = {c["cell"]: c for c in rerun["cells"]} if rerun is not None else {}
     for line in settings_notes(cert, rerun):
         note(f"reproduce: NOTE: {line}")
-    different = judge.finish(figures)
-    checked = "" if figures else " (the rerun wrote no certificate: figures not compared)"
+    different = judge.finish(rerun)
+    checked = "" if rerun is not None else " (the rerun wrote no certificate: figures not compared)"
     if different:
         say(f"reproduce: {len(different)} of {len(cells)} cell(s) DIFFERENT from the certificate: "
             f"{', '.join(different)}{checked}; the rerun is kept in {report_dir} (pytest.log, cells/)")
         return 1
-    say(f"reproduce: all {len(cells)} cell(s) identical to the certificate, plans bit for bit and every certified "
+    what = "plans bit for bit" + (", closed-loop runs bit for bit" if closed else "")
+    say(f"reproduce: all {len(cells)} cell(s) identical to the certificate, {what} and every certified "
         f"figure{checked}")
     if not keep:
         shutil.rmtree(report_dir, ignore_errors=True)
@@ -332,7 +365,7 @@ class Judge:
         self.results[cell] = verdict
         self.say(f"{prefix}{cell}: {verdict}{because}")
 
-    def other_planner(self, payload: CellPayload) -> None:
+    def other_planner(self, payload: CellPayload | ClosedPayload) -> None:
         """DriveDegradeError (the rerun is stopped) when the rerun's planner is not the certificate's, by name or
         fingerprint, unless `any_planner`."""
         theirs = self.cert["planner"]
@@ -348,7 +381,7 @@ class Judge:
                                     "a certificate with the planner it was made with; pass --any-planner to compare "
                                     "another planner's plans with it")
 
-    def on_cell(self, payload: CellPayload) -> None:
+    def on_cell(self, payload: CellPayload | ClosedPayload) -> None:
         if not self.results:  # the first cell says which planner and data the rerun had
             self.other_planner(payload)
             for name, section, what in (("planner_fingerprint", "planner", "planner"),
@@ -358,22 +391,31 @@ class Judge:
                     self.note(f"reproduce: NOTE: the {what} fingerprint differs from the certificate's "
                               f"({here[:16]}... here, {there[:16]}...): a different {what}")
                     self.expected.append(f"a different {what}")
-        by_id = {c["cell"]: c for c in self.cert["cells"]}
-        digest = by_id[payload.cell]["plans_digest"]
-        verdict = compare_plans(digest, payload.record, certified_record(self.cert_path, payload.cell, digest))
+        if isinstance(payload, ClosedPayload):
+            verdict = rc.compare_closed(self.cert, self.cert_path, payload.record)
+        else:
+            digest = {c["cell"]: c for c in self.cert["cells"]}[payload.cell]["plans_digest"]
+            verdict = compare_plans(digest, payload.record, certified_record(self.cert_path, payload.cell, digest))
         self._line(payload.cell, verdict,
                    f"[{len(self.results) + 1}/{len(self.cells)} {time.perf_counter() - self.started:.0f} s] ")
 
-    def finish(self, figures: Mapping[str, Mapping[str, Any]]) -> list[str]:
-        """Cells the rerun did not give, and identical plans whose other figures differ; the different cells."""
+    def finish(self, rerun: Mapping[str, Any] | None) -> list[str]:
+        """Cells the rerun did not give, and identical plans (runs) whose other figures in the rerun's
+        certificate differ; the different cells."""
         by_id = {c["cell"]: c for c in self.cert["cells"]}
+        figures = {c["cell"]: c for c in rerun["cells"]} if rerun is not None else {}
         for cell in self.cells:
             if cell not in self.results:
                 self._line(cell, "DIFFERENT (not rerun: the rerun gave no result for it; see its pytest.log)")
-            elif self.results[cell] == "identical" and cell in figures and \
-                    (diff := metric_differences(by_id[cell], figures[cell])):
-                self._line(cell, f"DIFFERENT (plans identical, figures not: {'; '.join(diff[:4])}"
-                                 f"{'; ...' if len(diff) > 4 else ''})")
+                continue
+            if self.results[cell] != "identical":
+                continue
+            closed = cell.startswith("closed-")
+            diff = rc.closed_figure_differences(self.cert, rerun, cell) if closed else \
+                metric_differences(by_id[cell], figures[cell]) if cell in figures else []
+            if diff:
+                self._line(cell, f"DIFFERENT ({'runs' if closed else 'plans'} identical, figures not: "
+                                 f"{'; '.join(diff[:4])}{'; ...' if len(diff) > 4 else ''})")
         return [c for c in self.cells if self.results.get(c) != "identical"]
 
 
@@ -395,7 +437,8 @@ def settings_notes(cert: Mapping[str, Any], rerun: Mapping[str, Any] | None) -> 
     should repeat them all: `RunSettings.rerun_argv`), as lines; where the data lies may differ."""
     if rerun is None:
         return []
-    differ = RunSettings.from_certificate(cert).same_run(RunSettings.from_certificate(rerun))
+    differ = [d for d in RunSettings.from_certificate(cert).same_run(RunSettings.from_certificate(rerun))
+              if d.setting.name not in RERUN_CHOSEN]
     return [f"the rerun ran with {d.setting.label} {d.theirs!r} where the certificate has {d.mine!r} "
             f"({d.setting.flag}): its figures are of another run" for d in differ]
 

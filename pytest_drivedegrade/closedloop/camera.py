@@ -75,19 +75,29 @@ class RouteCameras:
         self.backdrop = backdrop(route) if self.cameras else None
         self.pre = {cam: self.backdrop.camera(route, cam) for cam in self.cameras} if self.backdrop else {}
 
+    def parts(self, pose: tuple[float, float, float], step: int) -> models.Parts:
+        """The scenery's and the near agents' parts at log `step` (what every camera at `pose` draws)."""
+        assert self.backdrop is not None
+        back = self.backdrop
+        parts = models.Parts(list(back.static.boxes), list(back.static.colours), dict(back.static.decals))
+        near = [a for a in self.route.scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
+        render.agent_parts(parts, near, step)
+        return parts
+
+    def one(self, cam: str, parts: models.Parts, pose: tuple[float, float, float], step: int) -> np.ndarray:
+        """Camera `cam`'s RGB uint8 image at world `pose` with `parts` (`parts`), through the JPEG round trip.
+        Reads the backdrop and `parts` only: cameras may render on threads at once."""
+        assert self.backdrop is not None
+        back = self.backdrop
+        buf = camera_jpeg(self.route.scene, self.route.rig, cam, self.pre[cam], (back.ground, back.sky, back.static),
+                          parts, pose, step, shadow_reach=SHADOW_REACH)
+        decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
+        assert decoded is not None  # a JPEG just encoded decodes
+        return cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
+
     def images(self, pose: tuple[float, float, float], step: int) -> dict[str, np.ndarray]:
         """RGB uint8 images of the cameras at world `pose` (x, y, yaw), agents at log `step`."""
         if self.backdrop is None:
             return {}
-        scene, rig, back = self.route.scene, self.route.rig, self.backdrop
-        parts = models.Parts(list(back.static.boxes), list(back.static.colours), dict(back.static.decals))
-        near = [a for a in scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
-        render.agent_parts(parts, near, step)
-        out = {}
-        pieces = (back.ground, back.sky, back.static)
-        for cam in self.cameras:
-            buf = camera_jpeg(scene, rig, cam, self.pre[cam], pieces, parts, pose, step, shadow_reach=SHADOW_REACH)
-            decoded = cv2.imdecode(buf, cv2.IMREAD_COLOR)
-            assert decoded is not None  # a JPEG just encoded decodes
-            out[cam] = cv2.cvtColor(decoded, cv2.COLOR_BGR2RGB)
-        return out
+        parts = self.parts(pose, step)
+        return {cam: self.one(cam, parts, pose, step) for cam in self.cameras}

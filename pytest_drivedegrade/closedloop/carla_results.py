@@ -79,15 +79,20 @@ class ResultsFile:
     runs: tuple[LeaderboardRun, ...]
 
 
+#: The name of a second clean run's file: the null control of an agent that reads its rear cameras (`--null`).
+CLEAN_RERUN = "clean-rerun"
+
+
 def cell_name(name: str, where: str) -> str:
-    """A cell name ("clean" or "<family>-s<1..5>", "closed-" prefix allowed: the plugin's closed cells) or
-    DataError naming it."""
+    """A cell name ("clean" or "<family>-s<1..5>", "closed-" prefix allowed: the plugin's closed cells), or
+    `CLEAN_RERUN`; DataError naming it otherwise."""
     bare = name[len("closed-"):] if name.startswith("closed-") else name
     family, _, severity = bare.rpartition("-s")
-    if bare == "clean" or (family in FAMILIES and severity in ("1", "2", "3", "4", "5")):
+    if bare in ("clean", CLEAN_RERUN) or (family in FAMILIES and severity in ("1", "2", "3", "4", "5")):
         return bare
-    raise DataError(f"{where}: {name!r} is not a cell name (clean or FAMILY-sN, e.g. blackout-s5): name the "
-                    "cell as CELL=FILE on the command line or in the file's \"drivedegrade\": {\"cell\": ...}")
+    raise DataError(f"{where}: {name!r} is not a cell name (clean, FAMILY-sN such as blackout-s5, or {CLEAN_RERUN} "
+                    "for a second clean run): name the cell as CELL=FILE on the command line or in the file's "
+                    "\"drivedegrade\": {\"cell\": ...}")
 
 
 def _number(value: object, where: str, lo: float, hi: float) -> float:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -104,9 +105,9 @@ def _start(route: Route) -> _Run:
     return run
 
 
-def _judge_step(run: _Run, k: int, t: int) -> str | None:
-    """Score sim step `t` (the ego already moved there): progress, off-road, collisions; the end reason if any."""
-    route, pose = run.route, run.pose
+def _judge_step(run: _Run, pose: judge.Pose, k: int, t: int) -> str | None:
+    """Score sim step `t` (the ego moved to `pose` there): progress, off-road, collisions; the end reason if any."""
+    route = run.route
     outside = judge.outside_m(route, pose)
     s, d = lane_progress(route, pose.xy)
     progress = float(np.clip(s[0], 0.0, route.length))
@@ -157,32 +158,66 @@ def _plan(planner: Planner, run: _Run, k: int, images: Mapping[str, np.ndarray],
     return validate_output(raw, token)
 
 
-def _execute(run: _Run, plan: np.ndarray, k: int, t: int, timings: Timings, plan_every: int = PLAN_EVERY) \
-        -> str | None:
+@dataclass(frozen=True)
+class _Step:
+    """The ego at one 10 Hz step of an executed plan: pose, yaw rate and steering angle."""
+
+    pose: judge.Pose
+    yaw_rate: float
+    steering: float
+
+
+def _execute(run: _Run, plan: np.ndarray, t: int, timings: Timings, plan_every: int = PLAN_EVERY) -> list[_Step]:
     """Track the plan from the simulated state and drive its first `plan_every` 0.1 s steps (0.5 s at 2 Hz),
-    judging every step."""
+    moving reactive agents along; the run's motion state becomes the last step's. Nothing is judged here
+    (`_judge`): the next step's cameras depend on the pose only, so they may render while it is judged."""
     t0 = time.perf_counter()
     start = InitialState(run.pose.speed, 0.0, run.pose.accel, 0.0, run.yaw_rate, run.steering)
     states = track(interpolate_plan(plan), start)
-    timings.track += time.perf_counter() - t0
     x0, y0, yaw0 = run.xyyaw
     c, s = np.cos(yaw0), np.sin(yaw0)
+    steps, pose = [], run.pose
+    for i in range(1, plan_every + 1):
+        if run.world is not None:  # the agents move to t + i from where the ego was at t + i - 1
+            run.world.advance(t + i, pose)
+        lx, ly = float(states.x[0, i]), float(states.y[0, i])
+        pose = judge.Pose(x0 + c * lx - s * ly, y0 + s * lx + c * ly, yaw0 + float(states.heading[0, i]),
+                          max(float(states.velocity_x[0, i]), 0.0), float(states.acceleration_x[0, i]))
+        steps.append(_Step(pose, float(states.yaw_rate[0, i]), float(states.steering_angle[0, i])))
+    run.pose, run.yaw_rate, run.steering = steps[-1].pose, steps[-1].yaw_rate, steps[-1].steering
+    timings.track += time.perf_counter() - t0
+    return steps
+
+
+def _judge(run: _Run, steps: list[_Step], k: int, t: int, timings: Timings) -> str | None:
+    """Judge the executed steps of route step `k` (sim steps t + 1 ...) in order, each added to the trace, up to
+    the first that ends the run; its end reason, or None."""
     t1 = time.perf_counter()
     try:
-        for i in range(1, plan_every + 1):
-            if run.world is not None:  # the agents move to t + i from where the ego was at t + i - 1
-                run.world.advance(t + i, run.pose)
-            lx, ly = float(states.x[0, i]), float(states.y[0, i])
-            run.pose = judge.Pose(x0 + c * lx - s * ly, y0 + s * lx + c * ly, yaw0 + float(states.heading[0, i]),
-                                  max(float(states.velocity_x[0, i]), 0.0), float(states.acceleration_x[0, i]))
-            run.yaw_rate, run.steering = float(states.yaw_rate[0, i]), float(states.steering_angle[0, i])
-            run.trace.append(run.xyyaw)
-            end = _judge_step(run, k, t + i)
+        for i, step in enumerate(steps, 1):
+            run.trace.append((step.pose.x, step.pose.y, step.pose.yaw))
+            end = _judge_step(run, step.pose, k, t + i)
             if end is not None:
                 return end
     finally:
         timings.score += time.perf_counter() - t1
     return None
+
+
+def _judge_while_rendering(pool: Executor, stream: StepImages, run: _Run, steps: list[_Step], k: int, t: int,
+                           timings: Timings, more: bool) -> tuple[str | None, Mapping[str, np.ndarray] | None]:
+    """Judge route step `k`'s executed steps on the pool while step k + 1's cameras render here (when the run
+    may go on: `more`): (the end reason, the next images). Step k + 1 is rendered from the pose alone, so the
+    images are those the serial path renders after judging; a rendering failure counts only for a run that goes
+    on, as serially it would."""
+    judged = pool.submit(_judge, run, steps, k, t, timings)
+    try:
+        images = stream.at(run.xyyaw, t + len(steps), k + 1) if more else None
+    except Exception:
+        if judged.result() is None:
+            raise
+        return judged.result(), None
+    return judged.result(), images
 
 
 def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
@@ -194,31 +229,42 @@ def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
 
 def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
               timings: Timings | None = None, *, plan_every: int = PLAN_EVERY,
-              max_steps: int | None = None, agents: str = "log") -> RunResult:
+              max_steps: int | None = None, agents: str = "log", pool: Executor | None = None) -> RunResult:
     """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>"),
     calling it every `plan_every` 0.1 s steps, at most `max_steps` times (then the run ends as at the scene's end),
     the other agents replayed (`agents="log"`) or reactive (`"reactive"`). A planner that raises, times out or
-    returns a bad plan leaves the run unscored (ds None, `error` set)."""
+    returns a bad plan leaves the run unscored (ds None, `error` set).
+
+    With a thread `pool` (``--drivedegrade-prefetch`` above 0) a step's cameras render and corrupt on its threads,
+    and the steps an executed plan drove are judged on one of them while the next step's cameras render (the
+    planner is called only once they are judged: a run that ended is never planned further). The same run, bit
+    for bit: nothing judged feeds the pose or the cameras."""
     timings = timings if timings is not None else Timings()
     route, world = run_world(route, agents)
     style = call_style(planner)
     t0 = time.perf_counter()
-    stream = StepImages(RouteCameras(route, planner_cameras(planner)), corruption, seed, timings)
+    stream = StepImages(RouteCameras(route, planner_cameras(planner)), corruption, seed, timings, pool)
     timings.render += time.perf_counter() - t0
     if style.resets:
         planner.reset(route.name)  # type: ignore[attr-defined]
     run = _start(route)
     run.world = world
     k, t = 0, route.start_step
+    images: Mapping[str, np.ndarray] | None = None
     while t + plan_every <= route.end_step and (max_steps is None or k < max_steps):
-        images = stream.at(run.xyyaw, t, k)
+        images = stream.at(run.xyyaw, t, k) if images is None else images
         try:
             plan = _plan(planner, run, k, images, style.takes_context, timings)
         except Exception as exc:  # noqa: BLE001 - any failure of the planner leaves the run unscored
             return RunResult(route.name, seed, None, None, END_UNSCORED, tuple(run.infractions),
                              np.array(run.trace), f"step {k}: {type(exc).__name__}: {exc}", k)
         run.history.append(run.xyyaw)
-        end = _execute(run, plan, k, t, timings, plan_every)
+        steps = _execute(run, plan, t, timings, plan_every)
+        if pool is None:
+            end, images = _judge(run, steps, k, t, timings), None
+        else:
+            more = t + 2 * plan_every <= route.end_step and (max_steps is None or k + 1 < max_steps)
+            end, images = _judge_while_rendering(pool, stream, run, steps, k, t, timings, more)
         k, t = k + 1, t + plan_every
         if end is not None:
             return _result(run, seed, end, k)
@@ -226,7 +272,9 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
 
 
 def run_cell(planner: Planner, routes: list[Route], corruption: Corruption = Corruption(),
-             seeds: tuple[int, ...] = (0,), timings: Timings | None = None, *, agents: str = "log") -> CellResult:
-    """Every route under every seed: the cell's runs, route-major."""
-    runs = [run_route(planner, route, corruption, seed, timings, agents=agents) for route in routes for seed in seeds]
+             seeds: tuple[int, ...] = (0,), timings: Timings | None = None, *, agents: str = "log",
+             pool: Executor | None = None) -> CellResult:
+    """Every route under every seed: the cell's runs, route-major (`pool`: as `run_route` takes it)."""
+    runs = [run_route(planner, route, corruption, seed, timings, agents=agents, pool=pool)
+            for route in routes for seed in seeds]
     return CellResult.of(f"closed-{corruption.name}", runs)

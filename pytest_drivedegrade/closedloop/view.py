@@ -3,12 +3,17 @@ view (`loader.planner_view`). The cameras the planner declares are rendered and 
 sample; any other camera is rendered only if the planner reads it (then corrupted alone, which gives the same
 pixels: each camera's randomness is keyed by its own name). So undeclared cameras cost nothing, and a planner
 that secretly reads one sees it, clean in `closed-clean` and black in `closed-blackout-s3`: the null control
-catches it."""
+catches it.
+
+With a thread pool (``--drivedegrade-prefetch`` above 0) each declared camera renders and is corrupted on a
+thread of its own: the same pixels, since each camera's randomness is keyed by its own name (OpenCV and most of
+numpy let go of the GIL while they work)."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from concurrent.futures import Executor
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,8 +29,10 @@ if TYPE_CHECKING:
 class StepImages:
     """The route's camera stream under one corruption and seed (frame key ``<route>/<step>``)."""
 
-    def __init__(self, cameras: RouteCameras, corruption: Corruption, seed: int, timings: Timings) -> None:
+    def __init__(self, cameras: RouteCameras, corruption: Corruption, seed: int, timings: Timings,
+                 pool: Executor | None = None) -> None:
         self.cameras, self.corruption, self.seed, self.timings = cameras, corruption, seed, timings
+        self.pool = pool
         self._others: dict[str, RouteCameras] = {}  # an undeclared camera's renderer, built on its first read
         self._previous: dict[str, np.ndarray] = {}  # the last delivered image per camera (frame_dropout holds it)
 
@@ -36,10 +43,23 @@ class StepImages:
         return corrupt_sample(images, self.corruption.family, self.corruption.severity, seed=self.seed,
                               frame=f"{self.cameras.route.name}/{k}", previous=previous)
 
+    def _made(self, pose: tuple[float, float, float], t: int, k: int) -> dict[str, np.ndarray]:
+        """The declared cameras at `pose`, corrupted: on the pool's threads a camera each, or here."""
+        cams = self.cameras
+        if self.pool is None or len(cams.cameras) < 2:
+            return self._corrupt(cams.images(pose, t), k)
+        parts = cams.parts(pose, t)
+
+        def one(cam: str) -> np.ndarray:
+            return self._corrupt({cam: cams.one(cam, parts, pose, t)}, k)[cam]
+
+        futures = [(cam, self.pool.submit(one, cam)) for cam in cams.cameras]
+        return {cam: f.result() for cam, f in futures}
+
     def at(self, pose: tuple[float, float, float], t: int, k: int) -> Mapping[str, np.ndarray]:
         """The planner's images at route step `k` (log step `t`, world `pose`)."""
         t0 = time.perf_counter()
-        made = self._corrupt(self.cameras.images(pose, t), k)
+        made = self._made(pose, t, k)
         self.timings.render += time.perf_counter() - t0
         delivered = dict(made)
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 from ..cells import Property, rear_cameras
@@ -29,6 +31,7 @@ from ..closedloop.results import RunResult
 from ..closedloop.routes import Route, load_routes
 from ..closedloop.simulate import Corruption, Timings, run_route
 from ..errors import DriveDegradeError, InvalidInput
+from ..pacing import closed_threads
 from ..planning import planner_name
 from ..report.junit import plain
 from ..run import AnyPlanner, PlannerElsewhere, RunContext
@@ -77,10 +80,12 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
     if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own
         return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps,
                                 s.closed_agents)
-    timings, out = Timings(), []
-    for route, seed in runs:
-        out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
-                             plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents))
+    timings, out, threads = Timings(), [], closed_threads(s)
+    with ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
+        for route, seed in runs:
+            out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
+                                 plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents,
+                                 pool=pool))
     seconds = {"render": timings.render, "plan": timings.plan, "track": timings.track, "score": timings.score}
     return ClosedRecord(closed_id(family, severity), family, severity, tuple(out), seconds=seconds)
 

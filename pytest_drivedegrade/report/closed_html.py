@@ -105,23 +105,24 @@ def _lead(run: ClosedRun | None) -> str:
             "out or returned a bad plan) is bounded, never dropped: bounds put it at 0 and at 100.")
 
 
-def _null_text(analysis: ClosedAnalysis, imported: bool) -> str:
+def _null_text(analysis: ClosedAnalysis, imported: bool, imported_null: str = "blackout S3") -> str:
     null, e = analysis.null, html.escape
     if null is None:
         return "The null control's cells did not run."
     if null.mode == "identical":
-        return ("Null control: blackout S3 (the rear cameras, which the planner does not read) reproduces clean "
-                "run for run, bit for bit." if null.passed else
-                f"Null control FAILED: route {e(str(null.first_route))} (seed {null.first_seed}) parts from clean "
-                f"at step {null.first_step}.")
+        where = f"parts from clean at step {null.first_step}" if null.first_step is not None else "differs from clean"
+        return (f"Null control: blackout S3 (the rear cameras, which the planner does not read) reproduces clean "
+                f"run for run, {'DS and end alike' if imported else 'bit for bit'}." if null.passed else
+                f"Null control FAILED: route {e(str(null.first_route))} (seed {null.first_seed}) {where}.")
     why = ("The simulator is not deterministic, so the null control is blackout S3 (the rear views a front-camera "
-           "agent never reads) against clean:" if imported else
+           "agent never reads) against clean:" if imported and imported_null == "blackout S3" else
+           "The agent reads a rear camera, so the null is a clean rerun:" if imported else
            "The planner reads a rear camera, so the null is a clean rerun:")
     return (f"{why} it wanders by {_f(null.wander, 3)} DS; cells whose bounds overlap [{_f(null.low)}, "
             f"{_f(null.high)}] are not separable from the null.")
 
 
-def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None) -> str:
+def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> str:
     """The section's HTML (escaped text; charts as data URIs); `run` None for runs imported from CARLA (no
     traces: the simulator keeps them)."""
     e = html.escape
@@ -144,7 +145,7 @@ def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None) -> str:
         "<table><tr><th>cell</th><th>runs</th><th>unscored</th><th>DS mean (std)</th><th>bounds</th>"
         "<th>completion</th><th>retention [bounds]</th><th>infractions</th><th>separable</th></tr>"
         + "".join(rows) + "</table>"
-        f"<p>{_null_text(analysis, run is None)}</p>"
+        f"<p>{_null_text(analysis, run is None, imported_null)}</p>"
         f"<p>Closed-loop verdict: <b>{e(analysis.label)}</b>{e(also)}"
         f". Availability-versus-quality separation: {e(str(separation.get('holds')))}; under every assignment of the "
         f"unscored runs: {e(str(separation.get('holds_under_every_assignment')))}. Agrees with the open-loop verdict: "
@@ -169,12 +170,12 @@ def write_closed_report(path: str | os.PathLike[str], planner: str, analysis: Cl
 
 
 def write_imported_report(path: str | os.PathLike[str], analysis: ClosedAnalysis,
-                          sources: Sequence[tuple[str, str]]) -> Path:
+                          sources: Sequence[tuple[str, str]], null: str = "blackout S3") -> Path:
     """The page of `drivedegrade closed-loop import`: the closed-loop section of CARLA leaderboard runs and the
     results files it read, as (cell, file) pairs."""
     e = html.escape
     files = "".join(f"<li>{e(cell)}: {e(path)}</li>" for cell, path in sources)
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>DriveDegrade closed loop: CARLA leaderboard"
             f"</title>{_STYLE}</head><body><h1>CARLA leaderboard: closed loop</h1>"
-            + closed_fragment(analysis, None) + f"<h3>Results files</h3><ul>{files}</ul></body></html>\n")
+            + closed_fragment(analysis, None, null) + f"<h3>Results files</h3><ul>{files}</ul></body></html>\n")
     return atomic_write_text(path, page)

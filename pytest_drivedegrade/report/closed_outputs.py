@@ -49,9 +49,9 @@ def _fmt(value: float | None, digits: int = 1) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
 
-def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None) -> list[str]:
+def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> list[str]:
     """The terminal summary of the closed cells: one line per cell, the null control, the verdict (`run` None:
-    runs imported from CARLA, whose null control is blackout S3 against clean)."""
+    runs imported from CARLA, whose null control is `imported_null` against clean)."""
     lines = ["closed loop: cell: DS mean (std) [bounds], completion, retention [bounds], infractions"]
     for c in analysis.cells:
         low, high = c.bounds
@@ -62,12 +62,14 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None) -> list[str]:
                      + ("; not separable from the null" if c.separable_from_null is False else ""))
     null = analysis.null
     if null is not None and null.mode == "identical":
-        lines.append("closed null control: blackout S3 reproduces clean run for run, bit for bit" if null.passed else
-                     f"closed null control FAILED: route {null.first_route} (seed {null.first_seed}) parts from "
-                     f"clean at step {null.first_step}")
+        how = "bit for bit" if run is not None else "DS and end alike (the simulator keeps the traces)"
+        where = f"parts from clean at step {null.first_step}" if null.first_step is not None else "differs from clean"
+        lines.append(f"closed null control: blackout S3 reproduces clean run for run, {how}" if null.passed else
+                     f"closed null control FAILED: route {null.first_route} (seed {null.first_seed}) {where}")
     elif null is not None:
         what = "the planner reads a rear camera; a clean rerun" if run is not None else \
-            "the simulator is not deterministic; blackout S3 against clean"
+            "the agent reads a rear camera; a clean rerun against clean" if imported_null == "a clean rerun" else \
+            f"the simulator is not deterministic; {imported_null} against clean"
         lines.append(f"closed null control: {what} wanders by {_fmt(null.wander, 3)} DS (null bounds "
                      f"[{_fmt(null.low)}, {_fmt(null.high)}])")
     sep = analysis.separation

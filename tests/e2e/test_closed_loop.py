@@ -95,6 +95,19 @@ def test_closed_loop_csv_is_the_same_under_n0_n2_and_two_shards_merged(dd):
     assert merged["closed_loop"]["cells"] == section["cells"]
 
 
+
+def test_closed_loop_csv_is_the_same_with_and_without_prefetch(dd):
+    """--drivedegrade-prefetch 2 judges each plan's steps while the next cameras render (threads beside the
+    planner): closed_loop.csv is the serial path's (prefetch 0) byte for byte, and the cells' figures too."""
+    write(dd)
+    for depth in ("0", "2"):
+        closed(dd, "-p", "no:xdist", "--drivedegrade-prefetch", depth, "--drivedegrade-closed-cells",
+               "clean,blackout-s5", report=f"p{depth}").assert_outcomes(passed=2)
+    serial, threaded = (dd.folder("driver", f"p{d}") for d in ("0", "2"))
+    assert (threaded / "closed_loop.csv").read_text() == (serial / "closed_loop.csv").read_text()
+    assert load_json(threaded / "certificate.json")["closed_loop"]["cells"] == \
+        load_json(serial / "certificate.json")["closed_loop"]["cells"]
+
 def test_a_tampered_closed_loop_figure_fails_verify(dd):
     write(dd)
     closed(dd, "-p", "no:xdist").assert_outcomes(passed=3)
@@ -161,6 +174,30 @@ def test_both_loops_put_the_closed_section_beside_the_open_cells_with_their_agre
     junit = (dd.pytester.path / "j.xml").read_text()  # the closed items' figures as testcase properties
     assert 'name="closed_ds_mean"' in junit and 'name="closed_cell" value="closed-blackout-s5"' in junit
 
+
+
+def test_both_loops_in_two_shards_merged_give_the_unsharded_csvs(dd, eleven_scene_world):
+    """`--drivedegrade-loop both` sharded: each shard scores its scene's open frames and drives its share of every
+    closed cell's runs (2 val scenes: 2 routes, one seed); merged, closed_loop.csv and cells.csv equal the
+    unsharded run's byte for byte."""
+    write(dd)
+    both = ("--drivedegrade-loop", "both", *CLOSED[2:6], "--drivedegrade-closed-seeds", "1", "-p", "no:randomly",
+            "-p", "no:xdist")
+    kw = {"planner": "driver.py", "families": "blackout", "severities": "5", "data": eleven_scene_world}
+    assert dd.run(*both, report="full", **kw).ret == 0
+    for i in (1, 2):
+        shard = dd.run(*both, "--drivedegrade-shard", f"{i}/2", report="sh", **kw)
+        assert shard.ret == 0, shard.stdout.str()
+    shards, out = dd.pytester.path / "sh" / "driver", dd.pytester.path / "merged"
+    assert main(["merge", str(shards / "shard-1-of-2"), str(shards / "shard-2-of-2"), "--out", str(out)]) == 0
+    full, merged = dd.folder("driver", "full"), out / "driver"
+    assert len(read_csv(full / "closed_loop.csv")) == 6 and len(read_csv(full / "cells.csv")) >= 3
+    assert len({r["route"] for r in read_csv(full / "closed_loop.csv")}) == 2
+    for name in ("closed_loop.csv", "cells.csv"):
+        assert (merged / name).read_text() == (full / name).read_text(), name
+    a, b = load_json(full / "certificate.json"), load_json(merged / "certificate.json")
+    assert b["closed_loop"]["loop"] == "both" and b["closed_loop"]["cells"] == a["closed_loop"]["cells"]
+    assert b["verdict"] == a["verdict"] and check_consistency(b) == []
 
 def test_reactive_agents_are_an_option_recorded_in_the_closed_loop_section(dd):
     """--drivedegrade-closed-agents reactive drives the cells with IDM agents, says so in the certificate's

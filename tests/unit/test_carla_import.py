@@ -198,3 +198,91 @@ def test_an_import_without_clean_is_a_clear_error(tmp_path: Path, capsys: pytest
     err = capsys.readouterr().err
     assert "no clean cell among closed-blackout-s5" in err and "clean=FILE" in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_clean_rerun_named_as_the_null_gives_its_wander(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Known answers: clean [100, 80] (90) and its rerun [100, 70] (85): the null of an agent that reads its rear
+    cameras wanders by 5 over [85, 90]. Blackout S3 [100, 80] is then an ordinary cell: retention 1, bounds
+    [90, 90] inside the null's band (not separable); blackout S5 (18) is separable, blur S5 (90) is not."""
+    sources = [cell_file(tmp_path, "clean", [100.0, 80.0]), cell_file(tmp_path, "clean-rerun", [100.0, 70.0]),
+               cell_file(tmp_path, "gaussian_blur-s5", [100.0, 80.0]), cell_file(tmp_path, "blackout-s5", [20.0, 16.0]),
+               cell_file(tmp_path, "blackout-s3", [100.0, 80.0])]
+    out = tmp_path / "out"
+    assert main(["closed-loop", "import", *sources, "--out", str(out), "--null", "clean-rerun"]) == 0
+    printed = capsys.readouterr().out
+    assert ("closed null control: the agent reads a rear camera; a clean rerun against clean wanders by 5.000 DS "
+            "(null bounds [85.0, 90.0])") in printed
+    data = json.loads((out / SUMMARY_NAME).read_text())
+    section = data["closed_loop"]
+    assert data["null"] == {"cell": "closed-clean-rerun", "mode": "wander"}
+    assert check_section(section, None) == []
+    null = section["null_control"]
+    assert (null["mode"], null["wander"], null["low"], null["high"]) == ("wander", 5.0, 85.0, 90.0)
+    assert [(r[0], r[2]) for r in null["run_rows"]] == [("RouteScenario_0_rep0", 100.0), ("RouteScenario_1_rep0", 70.0)]
+    separable = {c["cell"]: c["separable_from_null"] for c in section["cells"]}
+    assert separable == {"closed-clean": None, "closed-gaussian_blur-s5": False, "closed-blackout-s5": True,
+                         "closed-blackout-s3": False}
+    assert "The agent reads a rear camera, so the null is a clean rerun" in (out / REPORT_NAME).read_text()
+    assert sum(r["cell"] == "closed-clean-rerun" for r in csv.DictReader((out / CSV_NAME).open())) == 2
+    # a clean-rerun file is the null without --null too (it has no other use)
+    assert analyse_import(gather(sources)).figures() == section
+
+
+def test_an_identical_null_passes_when_blackout_s3_repeats_clean_and_fails_naming_the_route(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--null-identical (a front-only agent, deterministic CARLA): blackout S3 [100, 80] = clean [100, 80] passes;
+    [100, 79] fails at route 1 and the import exits 1. The null's band is clean's [90, 90]."""
+    base = [cell_file(tmp_path, "clean", [100.0, 80.0]), cell_file(tmp_path, "gaussian_blur-s5", [100.0, 80.0]),
+            cell_file(tmp_path, "blackout-s5", [20.0, 16.0])]
+    same = [*base, cell_file(tmp_path, "blackout-s3", [100.0, 80.0])]
+    assert main(["closed-loop", "import", *same, "--out", str(tmp_path / "a"), "--null-identical"]) == 0
+    assert "closed null control: blackout S3 reproduces clean run for run, DS and end alike (the simulator keeps " \
+           "the traces)" in capsys.readouterr().out
+    data = json.loads((tmp_path / "a" / SUMMARY_NAME).read_text())
+    assert data["null"] == {"cell": "closed-blackout-s3", "mode": "identical"}
+    section = data["closed_loop"]
+    assert (section["null_control"]["mode"], section["null_control"]["passed"]) == ("identical", True)
+    assert (section["null_control"]["low"], section["null_control"]["high"]) == (90.0, 90.0)
+    assert check_section(section, None) == []
+    apart = [*base, cell_file(tmp_path, "blackout-s3", [100.0, 79.0])]
+    assert main(["closed-loop", "import", *apart, "--out", str(tmp_path / "b"), "--null-identical"]) == 1
+    assert "closed null control FAILED: route RouteScenario_1_rep0 (seed 0) differs from clean" in \
+        capsys.readouterr().out
+    section = json.loads((tmp_path / "b" / SUMMARY_NAME).read_text())["closed_loop"]
+    assert section["null_control"]["passed"] is False and check_section(section, None) == []
+    assert "Null control FAILED: route RouteScenario_1_rep0 (seed 0) differs from clean." in \
+        (tmp_path / "b" / REPORT_NAME).read_text()
+
+
+def test_flat_moves_the_import_verdict_as_the_plugins_does(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Clean 90, blur S5 81 (retention 0.9), blackout S5 18 (0.2): camera-reliant at the default flat line 0.95
+    (0.9 < 0.95), quality-insensitive at --flat 0.85 (0.9 >= 0.85 > 0.2)."""
+    sources = [cell_file(tmp_path, "clean", [100.0, 80.0]), cell_file(tmp_path, "gaussian_blur-s5", [90.0, 72.0]),
+               cell_file(tmp_path, "blackout-s5", [20.0, 16.0])]
+    assert analyse_import(gather(sources)).label == "camera-reliant"
+    assert main(["closed-loop", "import", *sources, "--out", str(tmp_path / "o"), "--flat", "0.85"]) == 0
+    assert "closed-loop verdict: quality-insensitive;" in capsys.readouterr().out
+    section = json.loads((tmp_path / "o" / SUMMARY_NAME).read_text())["closed_loop"]
+    assert section["verdict"]["flat"] == 0.85 and section["axes"]["quality"] == pytest.approx(0.9)
+    assert check_section(section, None) == []
+    assert main(["closed-loop", "import", *sources, "--out", str(tmp_path / "x"), "--flat", "1.5"]) == 2
+    assert "--flat 1.5: expected a retention in [0, 1] (the plugin's --drivedegrade-flat)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("cells", "args", "message"), [
+    (("clean", "blackout-s5"), ["--null", "clean-rerun"],
+     "--null clean-rerun: no results file of cell clean-rerun among closed-clean, closed-blackout-s5: give it as "
+     "clean-rerun=FILE"),
+    (("clean", "blackout-s5"), ["--null-identical"], "--null-identical: no results file of cell blackout-s3"),
+    (("clean", "clean-rerun", "blackout-s3"), ["--null-identical"],
+     "--null-identical: only blackout S3 (the rear views a front-only agent never reads) can reproduce clean"),
+    (("clean", "clean-rerun", "blackout-s3"), ["--null", "blackout-s3"],
+     "--null blackout-s3: a clean-rerun file was given too, and would be read for nothing"),
+])
+def test_a_null_named_but_not_given_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                     cells: tuple[str, ...], args: list[str], message: str) -> None:
+    sources = [cell_file(tmp_path, cell, [100.0, 80.0]) for cell in cells]
+    assert main(["closed-loop", "import", *sources, "--out", str(tmp_path / "o"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("drivedegrade: error: ") and message in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
