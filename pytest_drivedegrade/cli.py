@@ -143,6 +143,13 @@ def _merge(args: argparse.Namespace) -> int:
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here)
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
+    if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
+        import shutil
+
+        cells = Path(args.out) / merged.provenance.planner_name / "cells"
+        cells.mkdir(parents=True, exist_ok=True)
+        for cell, path in merged.cell_files.items():
+            shutil.copyfile(path, cells / f"{cell}.json")
     return 0
 
 

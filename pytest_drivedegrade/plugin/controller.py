@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -282,6 +282,13 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
                               front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
     if closed is not None and closed[1]:  # the closed cells this shard drove its share of runs of (SPEC 13)
         manifest["closed_cells"] = list(closed[1])
+    if options.settings.adaptive:  # the shard owns whole families' cells, on every frame (`adaptive_merge`)
+        from ..certificate.adaptive_merge import adaptive_manifest
+
+        manifest["adaptive"] = adaptive_manifest(expected, shard, context.frames, context.seed)
+        owned = set(manifest["adaptive"]["owned"])
+        run = replace(run, missing=[c for c in run.missing if c in owned])
+        manifest["missing_cells"] = run.missing
     path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     scenes = len({f.scene_token for f in context.frames})
     out.lines.append(f"shard {shard}: {len(context.frames)} of {context.frames_total} frames ({scenes} scene(s)), "

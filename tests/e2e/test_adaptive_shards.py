@@ -1,0 +1,65 @@
+"""Adaptive runs (SPEC section 14) beyond one process: shards that own whole families, merged into the unsharded
+run's certificate bit for bit (and verified); the sequential gate's stops recomputed by verify; a full baseline
+gating an adaptive run and an adaptive baseline gating a full one. Small worlds and few frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
+
+from pytest_drivedegrade.certificate.seal import seal, write_certificate  # noqa: E402
+from pytest_drivedegrade.cli import main  # noqa: E402
+
+pytest_plugins = ["plugin_support"]
+
+FRAMES = ("--drivedegrade-frames", "12")
+#: What a merge must give exactly as the unsharded run: every analysed section and the adaptive one.
+SAME = ("cells", "thresholds", "axes", "verdict", "floor", "null_control", "settings", "adaptive", "dataset")
+
+
+def records(folder: Path) -> dict[str, dict]:
+    """Every stored cell record without its timings (which `record_digests` covers, so those differ by run)."""
+    out = {}
+    for path in sorted((folder / "cells").glob("*.json")):
+        record = load_json(path)["record"]
+        record.pop("seconds")
+        out[path.stem] = record
+    return out
+
+
+def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys):
+    dd.write_planner()
+    kw = {"families": "jpeg,blackout", "severities": "1,2,3,4,5"}
+    dd.run("-p", "no:xdist", *FRAMES, "--drivedegrade-adaptive", report="full", **kw).assert_outcomes(passed=13)
+    owned = {1: 8, 2: 5}  # clean, blind, null and blackout S1-S5; jpeg S1-S5
+    for i in (1, 2):
+        result = dd.run("-p", "no:xdist", *FRAMES, "--drivedegrade-adaptive", "--drivedegrade-shard", f"{i}/2",
+                        report="sh", **kw)
+        result.assert_outcomes(passed=owned[i])
+        no_traceback(result)
+        result.stdout.fnmatch_lines([f"*shard {i}/2: 12 of 12 frames (*), {owned[i]} cell(s) finished*"])
+    shards = dd.folder(report="sh")
+    out = dd.pytester.path / "merged"
+    assert main(["merge", str(shards / "shard-2-of-2"), str(shards / "shard-1-of-2"), "--out", str(out)]) == 0
+    assert "adaptive (alpha 0.05, asymptotic):" in capsys.readouterr().out
+    full, merged = dd.folder(report="full"), out / "testplanner"
+    a, b = load_json(full / "certificate.json"), load_json(merged / "certificate.json")
+    for key in SAME:
+        assert a[key] == b[key], key
+    assert (merged / "cells.csv").read_text() == (full / "cells.csv").read_text()
+    assert records(merged) == records(full) and len(records(full)) == 13
+    done = verify_cli(merged / "certificate.json")
+    assert done.returncode == 0, done.stderr
+
+
+def test_adaptive_shards_are_refused_beyond_the_run_s_families(dd):
+    dd.write_planner()
+    result = dd.run("-p", "no:xdist", "--drivedegrade-adaptive", "--drivedegrade-shard", "3/3", families="jpeg")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    result.stderr.fnmatch_lines(["*--drivedegrade-shard: an adaptive run is sharded by whole families * this one has "
+                                 "2 group(s) *: use at most 2 shards*"])
+    no_traceback(result)
