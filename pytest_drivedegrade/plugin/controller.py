@@ -26,7 +26,9 @@ from .options import RunOptions
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
+    from ..cells import CellRecord
     from ..certificate.closed import ClosedRun
+    from ..scoring.sequential import UnitPlan
 
 
 @dataclass
@@ -232,13 +234,32 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
 
     groups = FamilyGroups.from_registry()
     records = {c: p.record for c, p in run.payloads.items()}
+    plan = sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    cells = run_order(options.families, options.severities, ego=options.ego)
     section = sequential.adaptive_section(
-        records, sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0)),
-        run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
-        flat=options.settings.flat, quality=groups.quality, removal=groups.removal,
-        rule="certify" if options.baseline_path is None else "gate")
+        records, plan, cells, alpha=options.settings.alpha, flat=options.settings.flat, quality=groups.quality,
+        removal=groups.removal, rule="certify" if options.baseline_path is None else "gate")
+    if options.baseline_path is not None:  # what verify needs to recompute the gate's stops (`seqgate.gate_record`)
+        section["gate"] = gate_part(options, records, plan, 2 * sequential.alpha_side(options.settings.alpha, cells))
     notes.append(sequential.summary_line(section))
     return section
+
+
+def gate_part(options: RunOptions, records: Mapping[str, CellRecord], plan: UnitPlan,
+              alpha: float) -> dict[str, object]:
+    """A gate run's ``adaptive.gate``: the baseline's digest, the tolerance, the level each cell's test ran at and
+    per cell its test's parts (`seqgate.gate_record`, from the baseline's cells/ beside its certificate)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.seqgate import gate_record
+
+    assert options.baseline_path is not None
+    base, _ = load_records(options.baseline_path.parent / "cells", sorted(records), {})
+    try:
+        digest = json.loads(options.baseline_path.read_text()).get("digest")
+    except (OSError, ValueError, AttributeError):
+        digest = None
+    return {"baseline_digest": digest, "tolerance": options.tolerance, "alpha": alpha,
+            "cells": gate_record(records, base, plan, tolerance=options.tolerance, alpha=alpha)}
 
 
 def _command(config: pytest.Config) -> str:

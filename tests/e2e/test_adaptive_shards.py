@@ -63,3 +63,36 @@ def test_adaptive_shards_are_refused_beyond_the_run_s_families(dd):
     result.stderr.fnmatch_lines(["*--drivedegrade-shard: an adaptive run is sharded by whole families * this one has "
                                  "2 group(s) *: use at most 2 shards*"])
     no_traceback(result)
+
+
+GATE = {"families": "low_light,blackout", "severities": "5"}
+
+
+def test_a_gate_run_records_its_test_and_verify_recomputes_every_stop(dd):
+    """A full baseline gates an adaptive run: each cell's sequential test is in adaptive.gate, verify recomputes
+    where it settled, and a tampered stop or decision fails verify."""
+    dd.write_planner()
+    dd.run("-p", "no:xdist", *FRAMES, report="base", **GATE).assert_outcomes(passed=5)
+    baseline = dd.folder(report="base") / "certificate.json"
+    done = dd.run("-p", "no:xdist", *FRAMES, "--drivedegrade-baseline", str(baseline), "--drivedegrade-adaptive",
+                  **GATE)
+    done.assert_outcomes(passed=5)
+    assert done.ret == 0
+    cert_path = dd.folder() / "certificate.json"
+    cert = load_json(cert_path)
+    gate = cert["adaptive"]["gate"]
+    assert gate["baseline_digest"] == load_json(baseline)["digest"] and gate["tolerance"] == 0.02
+    assert sorted(gate["cells"]) == ["blackout-s5", "blind", "low_light-s5"]
+    for cell, part in gate["cells"].items():
+        entry = cert["adaptive"]["cells"][cell]
+        assert part["side"] == "above" and part["units"] == entry.get("stored_units", entry["units"]), cell
+    check = verify_cli(cert_path)
+    assert check.returncode == 0, check.stderr
+    part = gate["cells"]["low_light-s5"]
+    for field, value in (("side", "below"), ("units", part["units"] - 1)):
+        tampered = load_json(cert_path)
+        tampered["adaptive"]["gate"]["cells"]["low_light-s5"][field] = value
+        write_certificate(dd.folder() / "tampered.json", seal(tampered))  # resealed: only verify's recomputation
+        check = verify_cli(dd.folder() / "tampered.json")
+        assert check.returncode == 1, field
+        assert "adaptive: cell low_light-s5: the gate's test says" in check.stderr, check.stderr
