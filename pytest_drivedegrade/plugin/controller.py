@@ -198,6 +198,13 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
             xml.add_global_property(prop, value)
     if options.settings.adaptive and baseline is not None:
         gate_lines, out.failed = sequential_gate(options, context, run, published.certificate, baseline)
+    elif baseline is not None and isinstance(baseline.get("adaptive"), Mapping):  # its intervals, not its points
+        from ..scoring.seqgate import interval_gate, interval_lines
+
+        why = incompatible(published.certificate, baseline)
+        result = interval_gate(published.certificate, baseline, options.tolerance)
+        gate_lines, out.failed = ([f"baseline: {why}"], True) if why else \
+            (interval_lines(result, options.tolerance, baseline), result.failed)
     else:
         gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
                                       partial=options.baseline_partial, any_planner=options.baseline_any_planner)
@@ -366,14 +373,10 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     return lines, failed
 
 
-def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
-                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
-    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
-    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
-    from ..certificate.adaptive_check import load_records
+def incompatible(cert: Mapping[str, object], baseline: Mapping[str, object]) -> str:
+    """Why `baseline` cannot gate the run of `cert` (another spec, data set, settings or frame count); "" when it
+    can (`scoring.baseline.check_baseline_compatible`)."""
     from ..scoring.baseline import BaselineError, check_baseline_compatible
-    from ..scoring.seqgate import gate_lines, sequential_gate
-    from ..scoring.sequential import UnitPlan
     from ..settings import RunSettings
 
     got = cert.get("dataset")
@@ -385,7 +388,21 @@ def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cer
                                   settings=RunSettings.from_certificate(cert),
                                   frames_scored=frames if isinstance(frames, int) else None)
     except BaselineError as exc:
-        return [f"baseline: {exc}"], True
+        return str(exc)
+    return ""
+
+
+def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
+                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
+    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
+    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.seqgate import gate_lines, sequential_gate
+    from ..scoring.sequential import UnitPlan
+
+    why = incompatible(cert, baseline)
+    if why:
+        return [f"baseline: {why}"], True
     assert options.baseline_path is not None
     folder = options.baseline_path.parent / "cells"
     records = {c: p.record for c, p in run.payloads.items()}

@@ -135,3 +135,59 @@ def gate_record(current: Mapping[str, CellRecord], baseline: Mapping[str, CellRe
         out[cell] = {"baseline_retention": ref.retention(), "level": level.hex(), "mean": float(np.mean(d)).hex(),
                      "differences": _pack(d[:units]), "side": got.side, "units": got.units, "how": got.how}
     return out
+
+
+# -- an adaptive baseline gating a full run ---------------------------------------------------------------------
+
+def interval_gate(current: Mapping[str, object], baseline: Mapping[str, object], tolerance: float) -> GateResult:
+    """A full run gated by an adaptive baseline: the baseline's retention is known only to lie in its anytime-valid
+    interval [lo, hi] (``adaptive.cells``/``axes``: all of them hold at once with probability 1 - alpha), so a cell
+    or axis regressed, settled, when this run's retention < lo - tolerance, settled as no regression when it is
+    >= hi - tolerance, and is open in between; a severity the baseline skipped has no interval and is not gated.
+    A regression is then wrong with probability at most the baseline's alpha. On L2 retention (its intervals')."""
+    out = GateResult()
+    section = baseline.get("adaptive")
+    spans: dict[str, object] = {}
+    if isinstance(section, Mapping):
+        for part in ("cells", "axes"):
+            got = section.get(part)
+            spans.update({(k if part == "cells" else f"axis {k}"): v
+                          for k, v in (got.items() if isinstance(got, Mapping) else ())})
+    rows = current.get("cells")
+    mine = {str(r.get("cell")): r.get("retention") for r in (rows if isinstance(rows, list) else [])
+            if isinstance(r, Mapping) and r.get("cell") not in FULL_CELLS}
+    axes = current.get("axes")
+    mine.update({f"axis {a}": axes.get(a) for a in ("quality", "removal")} if isinstance(axes, Mapping) else {})
+    for name, now in mine.items():
+        entry = spans.get(name)
+        span = entry.get("interval") if isinstance(entry, Mapping) else None
+        if now is None and entry is None:  # neither run has it (an axis of families not run)
+            continue
+        if not isinstance(now, (int, float)) or not isinstance(span, list) or len(span) != 2:
+            (out.skipped if isinstance(entry, Mapping) else out.ungated).append(name)
+        elif now < span[0] - tolerance:
+            out.regressions.append((name, float(span[0]), float(now)))
+        elif now >= span[1] - tolerance:
+            out.passed.append(name)
+        else:
+            out.open.append(name)
+    return out
+
+
+def interval_lines(result: GateResult, tolerance: float, baseline: Mapping[str, object]) -> list[str]:
+    """The terminal's lines on a full run gated by an adaptive baseline's intervals."""
+    section = baseline.get("adaptive")
+    alpha = section.get("alpha") if isinstance(section, Mapping) else None
+    lines = [f"REGRESSION {cell}: retention {now:.3f}, below the adaptive baseline's interval (low end {low:.3f}) by "
+             f"more than {tolerance:g}, settled at the baseline's level {alpha}"
+             for cell, low, now in result.regressions]
+    if result.open:
+        lines.append(f"baseline (adaptive, intervals): not settled, within {tolerance:g} of the baseline's interval "
+                     f"({len(result.open)}): {', '.join(result.open)}")
+    if result.skipped or result.ungated:
+        lines.append(f"baseline (adaptive, intervals): not gated, the adaptive baseline has no interval for "
+                     f"{', '.join(result.skipped + result.ungated)} (a skipped severity, a cell that decides nothing, "
+                     "or one it did not run)")
+    lines.append(f"baseline (adaptive, intervals, alpha {alpha}): {len(result.regressions)} regression(s) beyond "
+                 f"tolerance {tolerance:g}, {len(result.passed)} settled as no regression")
+    return lines

@@ -96,3 +96,30 @@ def test_a_gate_run_records_its_test_and_verify_recomputes_every_stop(dd):
         check = verify_cli(dd.folder() / "tampered.json")
         assert check.returncode == 1, field
         assert "adaptive: cell low_light-s5: the gate's test says" in check.stderr, check.stderr
+
+
+def test_an_adaptive_baseline_gates_a_full_run_on_its_intervals(dd):
+    """The adaptive baseline's retentions are intervals: an unchanged planner is never failed, a fragile one is
+    failed where its retention lies below an interval's low end by more than the tolerance, and the cells the
+    baseline decided nothing from are named, not gated."""
+    from plugin_support import FRAGILE
+
+    dd.write_planner()
+    dd.run("-p", "no:xdist", *FRAMES, "--drivedegrade-adaptive", report="base", **GATE).assert_outcomes(passed=5)
+    gate = ("--drivedegrade-baseline", str(dd.folder(report="base") / "certificate.json"))
+    same = dd.run("-p", "no:xdist", *FRAMES, *gate, **GATE)
+    same.assert_outcomes(passed=5)
+    assert same.ret == 0
+    no_traceback(same)
+    same.stdout.fnmatch_lines(["*baseline (adaptive, intervals): not gated, the adaptive baseline has no interval "
+                               "for blind (*",
+                               "*baseline (adaptive, intervals, alpha 0.05): 0 regression(s) beyond tolerance 0.02*"])
+    dd.write_planner(scale=FRAGILE)
+    worse = dd.run("-p", "no:xdist", *FRAMES, *gate, report="fragile", **GATE)
+    assert worse.ret == 1
+    no_traceback(worse)
+    worse.stdout.fnmatch_lines(["*REGRESSION low_light-s5: retention 0.0*, below the adaptive baseline's interval "
+                                "(low end 0.1*) by more than 0.02, settled at the baseline's level 0.05*"])
+    refused = dd.run("-p", "no:xdist", *FRAMES, *gate, families="low_light,fog", severities="5")
+    assert refused.ret == pytest.ExitCode.USAGE_ERROR
+    assert "1 cell(s) of this run are not in the adaptive baseline: fog-s5" in refused.stderr.str()
