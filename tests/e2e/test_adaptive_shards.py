@@ -31,9 +31,17 @@ def records(folder: Path) -> dict[str, dict]:
     return out
 
 
-def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys):
-    dd.write_planner()
-    kw = {"families": "jpeg,blackout", "severities": "1,2,3,4,5"}
+@pytest.mark.parametrize("temporal", [False, True], ids=["frames", "windows"])
+def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, temporal):
+    """Single-frame units (a planner without reset) and windows after a warm-up (the temporal test planner)."""
+    if temporal:
+        from test_temporal import TEMPORAL
+
+        dd.pytester.makepyfile(temporal=TEMPORAL.format(leak=False))
+    else:
+        dd.write_planner()
+    name = "temporal" if temporal else "testplanner"
+    kw = {"families": "jpeg,blackout", "severities": "1,2,3,4,5", **({"planner": "temporal.py"} if temporal else {})}
     dd.run("-p", "no:xdist", *FRAMES, "--drivedegrade-adaptive", report="full", **kw).assert_outcomes(passed=13)
     owned = {1: 8, 2: 5}  # clean, blind, null and blackout S1-S5; jpeg S1-S5
     for i in (1, 2):
@@ -42,18 +50,24 @@ def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys):
         result.assert_outcomes(passed=owned[i])
         no_traceback(result)
         result.stdout.fnmatch_lines([f"*shard {i}/2: 12 of 12 frames (*), {owned[i]} cell(s) finished*"])
-    shards = dd.folder(report="sh")
+    shards = dd.folder(name, report="sh")
     out = dd.pytester.path / "merged"
     assert main(["merge", str(shards / "shard-2-of-2"), str(shards / "shard-1-of-2"), "--out", str(out)]) == 0
     assert "adaptive (alpha 0.05, asymptotic):" in capsys.readouterr().out
-    full, merged = dd.folder(report="full"), out / "testplanner"
+    full, merged = dd.folder(name, report="full"), out / name
     a, b = load_json(full / "certificate.json"), load_json(merged / "certificate.json")
     for key in SAME:
         assert a[key] == b[key], key
     assert (merged / "cells.csv").read_text() == (full / "cells.csv").read_text()
     assert records(merged) == records(full) and len(records(full)) == 13
+    assert b["adaptive"]["plan"]["window"] == (8 if temporal else 1)
     done = verify_cli(merged / "certificate.json")
     assert done.returncode == 0, done.stderr
+    if not temporal:  # a merged adaptive certificate reruns, unsharded, bit for bit
+        capsys.readouterr()
+        planner = dd.pytester.path / "myplanner.py"
+        assert main(["reproduce", str(merged / "certificate.json"), str(planner), "--cells", "3", "--seed", "0"]) == 0
+        assert "identical" in capsys.readouterr().out
 
 
 def test_adaptive_shards_are_refused_beyond_the_run_s_families(dd):
