@@ -90,7 +90,12 @@ def check_baseline(baseline: Mapping[str, object] | None, options: RunOptions, c
     except BaselineError as exc:
         raise pytest.UsageError(f"{where}: {exc}") from None
     section = baseline.get("adaptive")
-    if isinstance(section, Mapping) and not options.settings.adaptive:  # gated on its intervals (`interval_gate`)
+    if isinstance(section, Mapping) and options.settings.adaptive:
+        raise pytest.UsageError(f"{where}: an adaptive baseline cannot gate an adaptive run: the sequential gate "
+                                "pairs each unit with the baseline's result on it and needs the baseline's mean "
+                                "over every unit, and an adaptive baseline ran only some units; gate against a full "
+                                "baseline, or gate a full run against this one (on its intervals)")
+    if isinstance(section, Mapping):  # a full run, gated on the adaptive baseline's intervals (`interval_gate`)
         if options.settings.metric != "l2":
             raise pytest.UsageError(f"{where}: an adaptive baseline holds anytime-valid intervals of L2 retention "
                                     f"only; gate a --drivedegrade-metric {options.settings.metric} run against a "

@@ -134,6 +134,10 @@ def test_an_adaptive_baseline_gates_a_full_run_on_its_intervals(dd):
     no_traceback(worse)
     worse.stdout.fnmatch_lines(["*REGRESSION low_light-s5: retention 0.0*, below the adaptive baseline's interval "
                                 "(low end 0.1*) by more than 0.02, settled at the baseline's level 0.05*"])
-    refused = dd.run("-p", "no:xdist", *FRAMES, *gate, families="low_light,fog", severities="5")
-    assert refused.ret == pytest.ExitCode.USAGE_ERROR
-    assert "1 cell(s) of this run are not in the adaptive baseline: fog-s5" in refused.stderr.str()
+    for extra, message in ((("--drivedegrade-families", "low_light,fog"), "1 cell(s) of this run are not in the "
+                                                                          "adaptive baseline: fog-s5"),
+                           (("--drivedegrade-adaptive",), "an adaptive baseline cannot gate an adaptive run: the "
+                                                          "sequential gate pairs each unit")):
+        refused = dd.run("-p", "no:xdist", *FRAMES, *gate, *extra, severities="5")
+        assert refused.ret == pytest.ExitCode.USAGE_ERROR, extra
+        assert message in refused.stderr.str(), extra
