@@ -54,9 +54,7 @@ def owners(shards: Sequence[ShardResult]) -> dict[str, ShardResult]:
                 raise DriveDegradeError(f"shards {found[cell].manifest['index']} and {s.manifest['index']} both own "
                                         f"cell {cell}: shards of one adaptive run own disjoint families")
             found[cell] = s
-        from .merge import shard_frames
-
-        frames = shard_frames(s)
+        frames = {f for p in s.payloads.values() for f in p.record.frames}
         if frames and len(frames) != s.manifest["frames_total"]:
             raise DriveDegradeError(f"{s.folder}: an adaptive shard scores every frame of the run, and this one holds "
                                     f"{len(frames)} of {s.manifest['frames_total']}; rerun that shard")
