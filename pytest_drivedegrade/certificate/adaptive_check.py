@@ -172,3 +172,39 @@ def gate_problems(gate: object, records: Mapping[str, CellRecord], plan: sequent
             problems.append(f"adaptive: cell {cell}: ran {units} unit(s), but the gate's test settles it "
                             + (f"after {got.units}" if got.side != "open" else "at none (it must run every unit)"))
     return problems
+
+
+def check_gate_baseline(cert: Mapping[str, object], folder: Path, baseline_path: Path) -> list[str]:
+    """`verify --baseline FILE`: a gate run's recorded test parts (``adaptive.gate``) recomputed from the baseline
+    itself (its certificate, which must verify and be the one whose digest the gate recorded, and its cells/), so
+    the control variates the stops were recomputed from are shown to be that baseline's."""
+    from ..scoring.seqgate import gate_record
+    from .seal import CertificateError, CertificateMismatch, verify
+
+    section = cert.get("adaptive")
+    gate = section.get("gate") if isinstance(section, Mapping) else None
+    if not isinstance(section, Mapping) or not isinstance(gate, Mapping):
+        return ["--baseline: the certificate is not an adaptive gate run (no adaptive.gate): there is nothing a "
+                "baseline is needed for"]
+    try:
+        base_cert = verify(baseline_path)
+    except (CertificateError, CertificateMismatch, OSError, ValueError) as exc:
+        return [f"--baseline: {baseline_path}: {exc}"]
+    if base_cert.get("digest") != gate.get("baseline_digest"):
+        return [f"--baseline: {baseline_path} is not the baseline this run was gated against (digest "
+                f"{base_cert.get('digest')}, the gate recorded {gate.get('baseline_digest')})"]
+    rows = cert.get("cells")
+    cells = [(str(c.get("cell")), str(c.get("family")), int(c.get("severity") or 0))
+             for c in (rows if isinstance(rows, list) else []) if isinstance(c, Mapping)]
+    digests, base_digests = cert.get("record_digests"), base_cert.get("record_digests")
+    records, problems = load_records(folder, [c for c, _, _ in cells], digests if isinstance(digests, Mapping) else {})
+    base, base_problems = load_records(baseline_path.parent / "cells", sorted(records),
+                                       base_digests if isinstance(base_digests, Mapping) else {})
+    if problems or "clean" not in records:
+        return problems or ["adaptive: no clean cell among the stored results"]
+    plan = sequential.UnitPlan.from_builtins(section.get("plan") or {})
+    alpha = 2 * sequential.alpha_side(_number(section.get("alpha"), 0.05), [(f, s) for _, f, s in cells])
+    recomputed = gate_record(records, base, plan, tolerance=_number(gate.get("tolerance"), 0.0), alpha=alpha)
+    out: list[str] = []
+    _differences(canonicalize(gate.get("cells")), canonicalize(recomputed), "adaptive.gate.cells", out)
+    return [f"--baseline: {p}" for p in base_problems] + out

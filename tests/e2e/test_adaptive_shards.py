@@ -4,6 +4,8 @@ gating an adaptive run and an adaptive baseline gating a full one. Small worlds 
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -82,6 +84,12 @@ def test_adaptive_shards_are_refused_beyond_the_run_s_families(dd):
 GATE = {"families": "low_light,blackout", "severities": "5"}
 
 
+def verify_baseline(cert: Path, baseline: Path) -> subprocess.CompletedProcess:
+    """`drivedegrade verify CERT --baseline BASE`."""
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify", str(cert), "--baseline",
+                           str(baseline)], capture_output=True, text=True, check=False)
+
+
 def test_a_gate_run_records_its_test_and_verify_recomputes_every_stop(dd):
     """A full baseline gates an adaptive run: each cell's sequential test is in adaptive.gate, verify recomputes
     where it settled, and a tampered stop or decision fails verify."""
@@ -102,6 +110,9 @@ def test_a_gate_run_records_its_test_and_verify_recomputes_every_stop(dd):
         assert part["side"] == "above" and part["units"] == entry.get("stored_units", entry["units"]), cell
     check = verify_cli(cert_path)
     assert check.returncode == 0, check.stderr
+    assert verify_baseline(cert_path, baseline).returncode == 0  # the recorded parts are the baseline's
+    check = verify_baseline(cert_path, cert_path)  # another certificate than the baseline
+    assert check.returncode == 1 and "is not the baseline this run was gated against" in check.stderr
     part = gate["cells"]["low_light-s5"]
     for field, value in (("side", "below"), ("units", part["units"] - 1)):
         tampered = load_json(cert_path)
@@ -110,6 +121,12 @@ def test_a_gate_run_records_its_test_and_verify_recomputes_every_stop(dd):
         check = verify_cli(dd.folder() / "tampered.json")
         assert check.returncode == 1, field
         assert "adaptive: cell low_light-s5: the gate's test says" in check.stderr, check.stderr
+    tampered = load_json(cert_path)  # the baseline's mean moved: only the baseline itself can tell
+    entry = tampered["adaptive"]["gate"]["cells"]["low_light-s5"]
+    entry["mean"] = (float.fromhex(entry["mean"]) + 1e-9).hex()
+    write_certificate(dd.folder() / "tampered.json", seal(tampered))
+    check = verify_baseline(dd.folder() / "tampered.json", baseline)
+    assert check.returncode == 1 and "adaptive.gate.cells.low_light-s5.mean: certificate says" in check.stderr
 
 
 def test_an_adaptive_baseline_gates_a_full_run_on_its_intervals(dd):
