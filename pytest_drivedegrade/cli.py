@@ -65,6 +65,10 @@ def _verify(args: argparse.Namespace) -> int:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
     inconsistent = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
+    if args.baseline:  # a gate run's recorded test parts recomputed from the baseline itself
+        from .certificate.adaptive_check import check_gate_baseline
+
+        inconsistent += check_gate_baseline(cert, Path(args.file).parent / "cells", Path(args.baseline))
     if inconsistent:
         print(f"drivedegrade: verify: FAILED: {args.file}: the digest verifies but the arithmetic does not add up "
               f"({len(inconsistent)} field(s)):", file=sys.stderr)
@@ -143,6 +147,13 @@ def _merge(args: argparse.Namespace) -> int:
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here)
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
+    if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
+        import shutil
+
+        cells = Path(args.out) / merged.provenance.planner_name / "cells"
+        cells.mkdir(parents=True, exist_ok=True)
+        for cell, path in merged.cell_files.items():
+            shutil.copyfile(path, cells / f"{cell}.json")
     return 0
 
 
@@ -274,6 +285,8 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("file", metavar="FILE", help="the certificate.json to check")
     p.add_argument("--public-key", metavar="PUB", help="also check the certificate's Ed25519 signature with this "
                                                        "public key (NAME.pub); an unsigned certificate then fails")
+    p.add_argument("--baseline", metavar="BASE", help="an adaptive gate run: also recompute its gate's recorded "
+                                                     "test parts from this baseline certificate (with its cells/)")
     p.set_defaults(func=_verify)
 
     p = sub.add_parser("reproduce", help="rerun clean, null and N sampled cells of a certificate and compare them bit "

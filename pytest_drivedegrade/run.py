@@ -140,9 +140,10 @@ class RunContext:
     def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
              digest_cache: Path | None = None) -> RunContext:
         """Index the data at `root` (default ``settings.data``) and pick the scored frames (of one shard, with
-        ``settings.shard``); a data problem raises DataError naming the file or token. The dataset fingerprint
-        covers the content of the files every scored frame of the run (all shards) is read from (`data.content`),
-        with file digests cached in `digest_cache` (a folder) when given."""
+        ``settings.shard``; every frame for an adaptive shard, which owns cells); a data problem raises DataError
+        naming the file or token. The dataset fingerprint covers the content of the files every scored frame of
+        the run (all shards) is read from (`data.content`), with file digests cached in `digest_cache` (a folder)
+        when given."""
         root = root if root is not None else settings.data
         if root is None:
             raise DriveDegradeError("no data root: the settings name none and none was given")
@@ -153,7 +154,7 @@ class RunContext:
                                     f"future keyframes); skipped: {dict(reader.skipped)}")
         total = len(chosen)
         fingerprint = content_fingerprint(reader, chosen, digest_cache)
-        if settings.shard is not None:
+        if settings.shard is not None and not settings.adaptive:  # an adaptive shard owns cells, on every frame
             chosen = shard_frames(chosen, settings.shard)
         return cls(reader, chosen, settings, fingerprint, planner_path, frames_unscored=reader.skipped[UNSCORED],
                    frames_total=total)

@@ -283,8 +283,8 @@ TABLE: tuple[Setting, ...] = (
             per_shard=True),
     Setting("adaptive", "adaptive", "--drivedegrade-adaptive", (("adaptive", "enabled"),), _F, "the gate compares "
             "retentions: an adaptive run estimates the same retention on the units it drew, and the sequential "
-            "gate pairs it unit by unit with a full baseline's frames (and a full run with an adaptive baseline's "
-            "frames it has); the run key holds it, so neither reuses the other's stored cells",
+            "gate pairs it unit by unit with a full baseline's frames (and a full run is gated on an adaptive "
+            "baseline's intervals); the run key holds it, so neither reuses the other's stored cells",
             keyed=lambda s: s.adaptive),
     Setting("alpha", "alpha", "--drivedegrade-alpha", (("adaptive", "alpha"),), _F, "it sets how sure an adaptive "
             "cell is when it stops, not what it estimates; the run key holds it in an adaptive run",

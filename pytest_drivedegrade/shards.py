@@ -3,15 +3,21 @@ balanced by frame count, so a job array or a CI matrix runs shard I of N and `dr
 
 Whole scenes stay together (a temporal planner's stream is never cut), and shard order is scene order, so the
 merged frames are in exactly the order of an unsharded run.
+
+An adaptive run (spec 14) is sharded by cells instead (`adaptive_owned`): a cell's stopping rule draws units from
+every scene in one seeded order, so each shard scores every frame and owns whole families' sequential runs.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from .data.frame import Frame
 from .errors import DriveDegradeError
 from .settings import Shard
 
-__all__ = ["Shard", "partition", "scene_runs", "shard_frames"]  # Shard lives with the settings
+#: Shard lives with the settings
+__all__ = ["Shard", "adaptive_groups", "adaptive_owned", "partition", "scene_runs", "shard_frames"]
 
 
 def scene_runs(frames: list[Frame]) -> list[list[Frame]]:
@@ -76,3 +82,29 @@ def partition(frames: list[Frame], count: int) -> list[list[Frame]]:
 def shard_frames(frames: list[Frame], shard: Shard) -> list[Frame]:
     """The frames of one shard."""
     return partition(frames, shard.count)[shard.index - 1]
+
+
+#: The cells an adaptive shard keeps with clean: blind and the null control compare with clean's whole record.
+WITH_CLEAN = ("clean", "blind", "null")
+
+
+def adaptive_groups(cells: Sequence[tuple[str, int]]) -> list[list[tuple[str, int]]]:
+    """An adaptive run's cells in the groups a shard owns whole: clean with blind and the null control, then one
+    group per family in run order (a family's severity schedule reads every visited severity's outcome)."""
+    groups: dict[str, list[tuple[str, int]]] = {}
+    for family, severity in cells:
+        groups.setdefault("clean" if family in WITH_CLEAN else family, []).append((family, severity))
+    return list(groups.values())
+
+
+def adaptive_owned(cells: Sequence[tuple[str, int]], shard: Shard) -> list[tuple[str, int]]:
+    """The cells shard I of N owns in an adaptive run: group g (`adaptive_groups`) goes to shard g mod N + 1.
+    Each owned cell runs exactly its unsharded sequential run: every shard scores every frame, and the stopping
+    rule reads only the seeded draw order, clean's units and the run's cell count. A DriveDegradeError when there
+    are fewer groups than shards."""
+    groups = adaptive_groups(cells)
+    if shard.count > len(groups):
+        raise DriveDegradeError(f"an adaptive run is sharded by whole families (a cell's stopping rule reads units "
+                                f"of every scene), and this one has {len(groups)} group(s) (clean with blind and "
+                                f"the null control, then one per family): use at most {len(groups)} shards")
+    return [c for g, group in enumerate(groups) if g % shard.count + 1 == shard.index for c in group]

@@ -118,8 +118,93 @@ def check_adaptive(cert: Mapping[str, object], folder: Path | None, groups: Fami
     rule = "gate" if section.get("rule") == "gate" else "certify"
     recomputed = sequential.adaptive_section(records, plan, [(f, s) for _, f, s in cells], alpha=alpha, flat=flat,
                                              quality=groups.quality, removal=groups.removal, rule=rule)
-    _differences(canonicalize(dict(section)), canonicalize(recomputed), "adaptive", problems)
-    if rule == "gate":  # cells stopped on the baseline's test, which needs the baseline: their open decisions show
-        return problems
+    mine = {k: v for k, v in section.items() if k != "gate"}  # a gate run's test parts: checked by gate_problems
+    _differences(canonicalize(mine), canonicalize(recomputed), "adaptive", problems)
     a_side = sequential.alpha_side(alpha, [(f, s) for _, f, s in cells])
+    if rule == "gate":  # cells stopped on the baseline's test (its parts are in the section): their decisions show
+        return problems + gate_problems(section.get("gate"), records, plan, alpha=2 * a_side, flat=flat,
+                                        groups=groups)
     return problems + stop_problems(records, plan, alpha=a_side, flat=flat, groups=groups)
+
+
+def gate_problems(gate: object, records: Mapping[str, CellRecord], plan: sequential.UnitPlan, *, alpha: float,
+                  flat: float, groups: FamilyGroups) -> list[str]:
+    """A gate run's stops recomputed: each cell the gate's test stopped (``adaptive.gate.cells``: the test's level,
+    the baseline's population mean and its control variates on the units the cell ran) settles where the
+    certificate says and the cell ran exactly to there (to the last unit when it never settled), at the level the
+    run's cell count gives (`alpha`); a cell without them stopped on its own decisions, which must be settled."""
+    from ..scoring.seqgate import gate_settlement, unpack
+
+    parts = gate.get("cells") if isinstance(gate, Mapping) else None
+    if not isinstance(parts, Mapping):
+        return ["adaptive: a gate run without adaptive.gate.cells (its test's parts per cell), so its stops cannot be "
+                "recomputed"]
+    problems = []
+    clean = records["clean"].l2_avg_per_frame()
+    axis = (*groups.quality, groups.removal)
+    for cell, record in sorted(records.items()):
+        units, part = int(record.units or 0), parts.get(cell)
+        if record.family in sequential.FULL_CELLS or units == 0:
+            continue
+        if not isinstance(part, Mapping):  # no baseline for it: it stopped on its own decisions
+            levels = sequential.levels_of(record.family, record.severity, axis, flat)
+            if sequential.cell_outcome(plan, clean, record, levels, alpha=alpha / 2).reason == "open":
+                problems.append(f"adaptive: cell {cell}: stopped after {units} of {plan.population} units with a "
+                                "decision open and no gate test recorded")
+            continue
+        try:
+            level, mean = float.fromhex(str(part["level"])), float.fromhex(str(part["mean"]))
+            diffs = unpack(str(part["differences"]))
+        except (KeyError, ValueError, TypeError) as exc:
+            problems.append(f"adaptive: cell {cell}: its gate test's parts are unreadable ({exc})")
+            continue
+        if len(diffs) != units:
+            problems.append(f"adaptive: cell {cell}: the gate test has the baseline on {len(diffs)} unit(s), the "
+                            f"cell ran {units}")
+            continue
+        a, b = sequential.unit_sums(plan, clean, record.l2_avg_per_frame(), units)
+        got = gate_settlement(a, b, level, mean, diffs, plan.population, alpha)
+        said = (part.get("side"), part.get("units"), part.get("how"))
+        if said != (got.side, got.units, got.how):
+            problems.append(f"adaptive: cell {cell}: the gate's test says {said}, its cells give "
+                            f"{(got.side, got.units, got.how)}")
+        if units != (got.units if got.side != "open" else plan.population):
+            problems.append(f"adaptive: cell {cell}: ran {units} unit(s), but the gate's test settles it "
+                            + (f"after {got.units}" if got.side != "open" else "at none (it must run every unit)"))
+    return problems
+
+
+def check_gate_baseline(cert: Mapping[str, object], folder: Path, baseline_path: Path) -> list[str]:
+    """`verify --baseline FILE`: a gate run's recorded test parts (``adaptive.gate``) recomputed from the baseline
+    itself (its certificate, which must verify and be the one whose digest the gate recorded, and its cells/), so
+    the control variates the stops were recomputed from are shown to be that baseline's."""
+    from ..scoring.seqgate import gate_record
+    from .seal import CertificateError, CertificateMismatch, verify
+
+    section = cert.get("adaptive")
+    gate = section.get("gate") if isinstance(section, Mapping) else None
+    if not isinstance(section, Mapping) or not isinstance(gate, Mapping):
+        return ["--baseline: the certificate is not an adaptive gate run (no adaptive.gate): there is nothing a "
+                "baseline is needed for"]
+    try:
+        base_cert = verify(baseline_path)
+    except (CertificateError, CertificateMismatch, OSError, ValueError) as exc:
+        return [f"--baseline: {baseline_path}: {exc}"]
+    if base_cert.get("digest") != gate.get("baseline_digest"):
+        return [f"--baseline: {baseline_path} is not the baseline this run was gated against (digest "
+                f"{base_cert.get('digest')}, the gate recorded {gate.get('baseline_digest')})"]
+    rows = cert.get("cells")
+    cells = [(str(c.get("cell")), str(c.get("family")), int(c.get("severity") or 0))
+             for c in (rows if isinstance(rows, list) else []) if isinstance(c, Mapping)]
+    digests, base_digests = cert.get("record_digests"), base_cert.get("record_digests")
+    records, problems = load_records(folder, [c for c, _, _ in cells], digests if isinstance(digests, Mapping) else {})
+    base, base_problems = load_records(baseline_path.parent / "cells", sorted(records),
+                                       base_digests if isinstance(base_digests, Mapping) else {})
+    if problems or "clean" not in records:
+        return problems or ["adaptive: no clean cell among the stored results"]
+    plan = sequential.UnitPlan.from_builtins(section.get("plan") or {})
+    alpha = 2 * sequential.alpha_side(_number(section.get("alpha"), 0.05), [(f, s) for _, f, s in cells])
+    recomputed = gate_record(records, base, plan, tolerance=_number(gate.get("tolerance"), 0.0), alpha=alpha)
+    out: list[str] = []
+    _differences(canonicalize(gate.get("cells")), canonicalize(recomputed), "adaptive.gate.cells", out)
+    return [f"--baseline: {p}" for p in base_problems] + out

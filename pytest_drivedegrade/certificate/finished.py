@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -71,3 +72,6 @@ class FinishedRun:
     notes: tuple[str, ...] = ()
     closed: ClosedRun | None = None  #: the closed-loop cells (SPEC section 13), when the run drove any
     adaptive: Mapping[str, object] | None = None  #: the certificate's ``adaptive`` section (adaptive runs only)
+    #: a merge of adaptive shards: each cell's stored file in the shard that owns it, copied into the merged
+    #: report's cells/ (where `verify` recomputes the stops from the per-frame results)
+    cell_files: Mapping[str, Path] | None = None

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..cells import CellPayload, CellRecord, RecordDigestMismatch
 from ..errors import DriveDegradeError
+from ..scoring.sequential import summary_line
 from ..settings import RunSettings
 from .closed import ClosedRun
 from .finished import FinishedRun, FloorFigures
@@ -183,14 +184,22 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         raise DriveDegradeError("these shards ran with --drivedegrade-seeds above 1: merging multi-seed shards is "
                                 "not supported yet; run the shards with one seed, or the whole run unsharded")
     cells = list(first["cells"])
-    check_frames(shards, complete=not missing_shards)
-    records = _records(shards, cells)
+    adaptive, files = None, None
+    if settings.adaptive:  # shards own whole families on every frame (`adaptive_merge`), not scenes
+        from .adaptive_merge import adaptive_records, merged_section
+
+        records, files = adaptive_records(shards, cells)
+        adaptive = merged_section(shards, records, settings)
+    else:
+        check_frames(shards, complete=not missing_shards)
+        records = _records(shards, cells)
     closed = closed_of_shards(shards, settings)
     if "clean" not in records and (cells or closed is None):
         raise DriveDegradeError("the clean cell is missing from at least one shard: retention needs it; rerun that "
                                 "shard (finished cells are reused)")
-    floor = FloorFigures.of(_joined([s.manifest.get("floor_l2") for s in shards]),
-                            _joined([s.manifest.get("floor_ego_blind_l2") for s in shards]))
+    floored = shards[:1] if settings.adaptive else shards  # an adaptive shard's floor is of every frame
+    floor = FloorFigures.of(_joined([s.manifest.get("floor_l2") for s in floored]),
+                            _joined([s.manifest.get("floor_ego_blind_l2") for s in floored]))
     prov = run_provenance(settings, planner_name=first["planner"], key=first["key"],
                           frames=len(records["clean"].frames) if "clean" in records else 0,
                           frames_unscored=first.get("frames_unscored"),
@@ -202,7 +211,8 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
                        missing_cells=tuple(c for c in cells if c not in records),
                        missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells),
-                       closed=closed)
+                       closed=closed, adaptive=adaptive, cell_files=files,
+                       notes=(summary_line(adaptive),) if adaptive is not None else ())
 
 
 def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
@@ -210,7 +220,8 @@ def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
     finished by rerunning that shard, not the merge); empty when none lacks any."""
     parts = []
     for s in shards:
-        lacking = [c for c in cells if c not in s.payloads]
+        mine = s.manifest.get("adaptive", {}).get("owned", cells) if s.settings.adaptive else cells
+        lacking = [c for c in cells if c in mine and c not in s.payloads]
         if lacking:
             shown = ", ".join(lacking[:8]) + (f" and {len(lacking) - 8} more" if len(lacking) > 8 else "")
             parts.append(f"shard {s.manifest['index']}/{s.manifest['count']} ({s.folder}) lacks {shown}")

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,7 +26,9 @@ from .options import RunOptions
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
+    from ..cells import CellRecord
     from ..certificate.closed import ClosedRun
+    from ..scoring.sequential import UnitPlan
 
 
 @dataclass
@@ -196,6 +198,13 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
             xml.add_global_property(prop, value)
     if options.settings.adaptive and baseline is not None:
         gate_lines, out.failed = sequential_gate(options, context, run, published.certificate, baseline)
+    elif baseline is not None and isinstance(baseline.get("adaptive"), Mapping):  # its intervals, not its points
+        from ..scoring.seqgate import interval_gate, interval_lines
+
+        why = incompatible(published.certificate, baseline)
+        result = interval_gate(published.certificate, baseline, options.tolerance)
+        gate_lines, out.failed = ([f"baseline: {why}"], True) if why else \
+            (interval_lines(result, options.tolerance, baseline), result.failed)
     else:
         gate_lines, out.failed = gate(published.certificate, baseline, options.tolerance,
                                       partial=options.baseline_partial, any_planner=options.baseline_any_planner)
@@ -232,13 +241,32 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
 
     groups = FamilyGroups.from_registry()
     records = {c: p.record for c, p in run.payloads.items()}
+    plan = sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    cells = run_order(options.families, options.severities, ego=options.ego)
     section = sequential.adaptive_section(
-        records, sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0)),
-        run_order(options.families, options.severities, ego=options.ego), alpha=options.settings.alpha,
-        flat=options.settings.flat, quality=groups.quality, removal=groups.removal,
-        rule="certify" if options.baseline_path is None else "gate")
+        records, plan, cells, alpha=options.settings.alpha, flat=options.settings.flat, quality=groups.quality,
+        removal=groups.removal, rule="certify" if options.baseline_path is None else "gate")
+    if options.baseline_path is not None:  # what verify needs to recompute the gate's stops (`seqgate.gate_record`)
+        section["gate"] = gate_part(options, records, plan, 2 * sequential.alpha_side(options.settings.alpha, cells))
     notes.append(sequential.summary_line(section))
     return section
+
+
+def gate_part(options: RunOptions, records: Mapping[str, CellRecord], plan: UnitPlan,
+              alpha: float) -> dict[str, object]:
+    """A gate run's ``adaptive.gate``: the baseline's digest, the tolerance, the level each cell's test ran at and
+    per cell its test's parts (`seqgate.gate_record`, from the baseline's cells/ beside its certificate)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.seqgate import gate_record
+
+    assert options.baseline_path is not None
+    base, _ = load_records(options.baseline_path.parent / "cells", sorted(records), {})
+    try:
+        digest = json.loads(options.baseline_path.read_text()).get("digest")
+    except (OSError, ValueError, AttributeError):
+        digest = None
+    return {"baseline_digest": digest, "tolerance": options.tolerance, "alpha": alpha,
+            "cells": gate_record(records, base, plan, tolerance=options.tolerance, alpha=alpha)}
 
 
 def _command(config: pytest.Config) -> str:
@@ -282,6 +310,13 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
                               front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
     if closed is not None and closed[1]:  # the closed cells this shard drove its share of runs of (SPEC 13)
         manifest["closed_cells"] = list(closed[1])
+    if options.settings.adaptive:  # the shard owns whole families' cells, on every frame (`adaptive_merge`)
+        from ..certificate.adaptive_merge import adaptive_manifest
+
+        manifest["adaptive"] = adaptive_manifest(expected, shard, context.frames, context.seed)
+        owned = set(manifest["adaptive"]["owned"])
+        run = replace(run, missing=[c for c in run.missing if c in owned])
+        manifest["missing_cells"] = run.missing
     path = atomic_write_text(store.folder(run.planner) / MANIFEST, json.dumps(manifest, indent=1) + "\n")
     scenes = len({f.scene_token for f in context.frames})
     out.lines.append(f"shard {shard}: {len(context.frames)} of {context.frames_total} frames ({scenes} scene(s)), "
@@ -338,14 +373,10 @@ def gate(cert: Mapping[str, Any], baseline: Mapping[str, object] | None, toleran
     return lines, failed
 
 
-def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
-                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
-    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
-    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
-    from ..certificate.adaptive_check import load_records
+def incompatible(cert: Mapping[str, object], baseline: Mapping[str, object]) -> str:
+    """Why `baseline` cannot gate the run of `cert` (another spec, data set, settings or frame count); "" when it
+    can (`scoring.baseline.check_baseline_compatible`)."""
     from ..scoring.baseline import BaselineError, check_baseline_compatible
-    from ..scoring.seqgate import gate_lines, sequential_gate
-    from ..scoring.sequential import UnitPlan
     from ..settings import RunSettings
 
     got = cert.get("dataset")
@@ -357,7 +388,21 @@ def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cer
                                   settings=RunSettings.from_certificate(cert),
                                   frames_scored=frames if isinstance(frames, int) else None)
     except BaselineError as exc:
-        return [f"baseline: {exc}"], True
+        return str(exc)
+    return ""
+
+
+def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cert: Mapping[str, object],
+                    baseline: Mapping[str, object]) -> tuple[list[str], bool]:
+    """--drivedegrade-baseline with --drivedegrade-adaptive: each cell's sequential test against the baseline's
+    per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
+    from ..certificate.adaptive_check import load_records
+    from ..scoring.seqgate import gate_lines, sequential_gate
+    from ..scoring.sequential import UnitPlan
+
+    why = incompatible(cert, baseline)
+    if why:
+        return [f"baseline: {why}"], True
     assert options.baseline_path is not None
     folder = options.baseline_path.parent / "cells"
     records = {c: p.record for c, p in run.payloads.items()}

@@ -305,7 +305,7 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         shard=shard,
         prefetch=_prefetch(config),
-        adaptive=_adaptive(config, shard),
+        adaptive=_adaptive(config),
         alpha=_number(config, "drivedegrade_alpha", float, DEFAULTS.alpha, 1e-9, 0.5),
     ))
 
@@ -347,18 +347,13 @@ def _agents(config: pytest.Config) -> str:
     return agents
 
 
-def _adaptive(config: pytest.Config, shard: Shard | None) -> bool:
-    """--drivedegrade-adaptive (its --drivedegrade-alpha in (0, 0.5]), checked: not with a shard (a cell's
-    stopping rule reads units of every scene in one seeded order, and a shard sees only its own scenes) nor with
-    several seeds (the stopping rule pairs one run of a cell with clean)."""
+def _adaptive(config: pytest.Config) -> bool:
+    """--drivedegrade-adaptive (its --drivedegrade-alpha in (0, 0.5]), checked: not with several seeds (the
+    stopping rule pairs one run of a cell with clean). With a shard, a shard owns whole families (`parse`)."""
     if not _flag(config, "drivedegrade_adaptive"):
         if value(config, "drivedegrade_alpha") is not None:
             raise _fail("drivedegrade_alpha", "needs --drivedegrade-adaptive (a full run stops no cell early)")
         return False
-    if shard is not None:
-        raise _fail("drivedegrade_adaptive", "cannot be combined with --drivedegrade-shard: a cell's stopping rule "
-                    "draws units from every scene in one seeded order and stops on what all of them gave, which "
-                    "no shard sees; run it unsharded (with -n or --drivedegrade-ray for parallelism)")
     if (_number(config, "drivedegrade_seeds", int, DEFAULTS.seeds, 1, None) or 1) > 1:
         raise _fail("drivedegrade_adaptive", "cannot be combined with --drivedegrade-seeds above 1: the stopping "
                     "rule pairs one run of each cell with clean, unit by unit")
@@ -412,7 +407,7 @@ def parse(config: pytest.Config) -> RunOptions:
         raise _fail("drivedegrade_baseline", "a shard cannot be gated: the baseline covers the whole run, a shard "
                     f"only its part of the frames ({settings.shard}). Run the shards without "
                     "--drivedegrade-baseline and merge them (drivedegrade merge), or gate the whole run unsharded")
-    return RunOptions(
+    options = RunOptions(
         planner_path=planner_path,
         settings=settings,
         families=tuple(f for f in FAMILIES if f in families),
@@ -429,3 +424,12 @@ def parse(config: pytest.Config) -> RunOptions:
         resume=not _flag(config, "drivedegrade_no_resume"),
         ray=_ray(config),
     )
+    if settings.adaptive and settings.shard is not None:  # an adaptive shard owns whole families' cells
+        from ..cells import run_order
+        from ..shards import adaptive_owned
+
+        try:
+            adaptive_owned(run_order(options.families, options.severities, ego=options.ego), settings.shard)
+        except DriveDegradeError as exc:
+            raise _fail("drivedegrade_shard", str(exc)) from None
+    return options

@@ -89,7 +89,23 @@ def check_baseline(baseline: Mapping[str, object] | None, options: RunOptions, c
                                   frames_scored=context.frames_total, settings=options.settings)
     except BaselineError as exc:
         raise pytest.UsageError(f"{where}: {exc}") from None
-    gaps = not_compared(baseline, [cell_id(f, s) for f, s in cells], metric=options.settings.metric)
+    section = baseline.get("adaptive")
+    if isinstance(section, Mapping) and options.settings.adaptive:
+        raise pytest.UsageError(f"{where}: an adaptive baseline cannot gate an adaptive run: the sequential gate "
+                                "pairs each unit with the baseline's result on it and needs the baseline's mean "
+                                "over every unit, and an adaptive baseline ran only some units; gate against a full "
+                                "baseline, or gate a full run against this one (on its intervals)")
+    if isinstance(section, Mapping):  # a full run, gated on the adaptive baseline's intervals (`interval_gate`)
+        if options.settings.metric != "l2":
+            raise pytest.UsageError(f"{where}: an adaptive baseline holds anytime-valid intervals of L2 retention "
+                                    f"only; gate a --drivedegrade-metric {options.settings.metric} run against a "
+                                    "full baseline")
+        theirs = section.get("cells")
+        lacking = [cell_id(f, s) for f, s in cells if not isinstance(theirs, Mapping) or cell_id(f, s) not in theirs]
+        gaps = [f"{len(lacking)} cell(s) of this run are not in the adaptive baseline: {', '.join(lacking[:8])}"] \
+            if lacking else []
+    else:
+        gaps = not_compared(baseline, [cell_id(f, s) for f, s in cells], metric=options.settings.metric)
     if gaps and not options.baseline_partial:
         raise pytest.UsageError(f"{where}: the baseline does not cover this run, so part of it would not be "
                                 f"compared: {'; '.join(gaps)}; certify a complete baseline with this run's "

@@ -131,10 +131,20 @@ class DriveDegradeSession:
             return None
         collector = CellCollector.from_parent(parent, path=file_path)
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
-        collector.module, collector.cells, collector.call = self.planner_module, self.cells, call
+        collector.module, collector.cells, collector.call = self.planner_module, self.owned_cells(), call
         collector.closed = self.closed
         collector.closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
         return collector
+
+    def owned_cells(self) -> list[tuple[str, int]]:
+        """The cells this process collects: all of the run's, or an adaptive shard's own (`shards.adaptive_owned`;
+        `self.cells` stays the run's, which the union bound counts)."""
+        shard = self.options.settings.shard
+        if shard is None or not self.options.settings.adaptive:
+            return self.cells
+        from ..shards import adaptive_owned
+
+        return adaptive_owned(self.cells, shard)
 
     @pytest.hookimpl(tryfirst=True)
     def pytest_pycollect_makemodule(self, module_path: Path, parent: pytest.Collector) -> pytest.Collector | None:

@@ -87,8 +87,6 @@ def test_verify_fails_a_tampered_stopping_decision_and_reproduce_reruns_bit_for_
 def test_adaptive_usage_errors(dd):
     for extra, message in ((["--drivedegrade-alpha", "0.1"], "--drivedegrade-alpha: needs --drivedegrade-adaptive"),
                            (["--drivedegrade-adaptive", "--drivedegrade-alpha", "0.9"], "must be between"),
-                           (["--drivedegrade-adaptive", "--drivedegrade-shard", "1/2"], "cannot be combined with "
-                            "--drivedegrade-shard"),
                            (["--drivedegrade-adaptive", "--drivedegrade-seeds", "2"], "--drivedegrade-seeds above 1")):
         dd.write_planner()
         result = dd.run("-p", "no:xdist", *extra)

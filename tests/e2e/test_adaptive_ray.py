@@ -1,0 +1,42 @@
+"""--drivedegrade-adaptive on Ray planner actors (SPEC sections 9 and 14): the controller runs each cell's
+sequential run unit by unit through the actors, and the stored cells, cells.csv and the certificate's adaptive
+section are those of a single-process run, bit for bit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("ray")
+pytest.register_assert_rewrite("plugin_support")
+import test_ray  # noqa: E402
+from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
+from test_adaptive_shards import records  # noqa: E402
+
+pytest_plugins = ["plugin_support"]
+#: Every test that starts Ray runs on one xdist worker (`--dist loadgroup`): see test_ray.
+pytestmark = pytest.mark.xdist_group("ray")
+
+no_stray_ray = test_ray.no_stray_ray  # the fixture: no Ray daemon outlives the run
+PLANNERS = Path(__file__).resolve().parents[2] / "planners"
+
+
+def test_an_adaptive_ray_run_gives_the_cells_of_a_local_one(dd, two_scene_world, no_stray_ray):
+    kw = {"planner": str(PLANNERS / "camera_cnn.py"), "data": two_scene_world, "families": "jpeg,blackout",
+          "severities": "1,2,3,4,5"}
+    adaptive = ("--drivedegrade-frames", "16", "--drivedegrade-adaptive")
+    dd.run("-p", "no:xdist", *adaptive, report="local", **kw).assert_outcomes(passed=13)
+    result = dd.run(*test_ray.RAY, *adaptive, report="ray", subprocess=True, **kw)
+    result.assert_outcomes(passed=13)
+    no_traceback(result)
+    result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster*"])
+    local, ray = (dd.pytester.path / report / "camera_cnn" for report in ("local", "ray"))
+    assert (ray / "cells.csv").read_text() == (local / "cells.csv").read_text()
+    assert records(ray) == records(local)
+    a, b = load_json(local / "certificate.json"), load_json(ray / "certificate.json")
+    assert a["adaptive"] == b["adaptive"] and a["cells"] == b["cells"]
+    assert any(c["stop"] == "skipped" for c in b["adaptive"]["cells"].values())  # the schedule skipped some
+    assert b["adaptive"]["passes"] < b["adaptive"]["full_passes"]
+    done = verify_cli(ray / "certificate.json")
+    assert done.returncode == 0, done.stderr
