@@ -64,7 +64,7 @@ class UnitPlan:
     @classmethod
     def of(cls, frames: Sequence[Frame], seed: int, temporal: bool = True) -> UnitPlan:
         """The plan of a planner with `reset` (`temporal`: windows after a warm-up) or without (single frames)."""
-        window = WINDOW if temporal else 1  # single frames keep their warm-up for a temporal corruption's history
+        window = WINDOW if temporal else 1  # single frames: their warm-up frames are recorded, never run
         return cls(tuple(cut_units(frames, window=window, warmup=WARMUP, seed=seed)), int(seed), window)
 
     @classmethod
@@ -306,8 +306,8 @@ def guarantee(alpha: float, a_side: float, cells: int, axes: Mapping[str, Mappin
              f"handful of units); per-unit mean L2 in [0, {DEFAULT_BOUND:g} m] ({clipped} unit figure(s) clipped); ")
     text += (f"windows of {WINDOW} scored frames after {WARMUP} warm-up frames with reset stand for the full stream "
              f"(a planner that remembers at most {WARMUP} frames)" if window > 1 else "single frames as units (a "
-             f"planner without reset keeps no scene state; a temporal corruption gets {WARMUP} warm-up frames of "
-             "history)")
+             "planner without reset keeps no scene state; frame_dropout's held frames are replayed from the "
+             "scene's start, so each unit sees the full run's images)")
     if skipped:
         text += f"; retention non-increasing in severity where severities were skipped ({', '.join(skipped)})"
     if seen:

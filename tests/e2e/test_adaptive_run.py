@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
@@ -121,3 +122,29 @@ def test_the_sequential_gate_passes_an_unchanged_planner_and_fails_a_planted_reg
     worse.stdout.fnmatch_lines(["*REGRESSION low_light-s5: retention 0.0* on the units tested, baseline 0.1*: "
                                 "dropped by more than 0.02, settled at level 0.05*",
                                 "*baseline (sequential, alpha 0.05): 1 regression(s) beyond tolerance 0.02*"])
+
+
+def test_adaptive_units_score_their_frames_bit_for_bit_as_the_full_run(dd):
+    """Every frame an adaptive cell scored has the full run's row of that cell, bit for bit (but EC, see below):
+    for frame_dropout too, whose held frame may come from before the unit (the span replays the scene's loss
+    draws; without that, 30 % of this cell's plans differ)."""
+    from pytest_drivedegrade.cells import FRAME_ARRAYS, CellPayload
+
+    dd.write_planner()
+    kw = {"families": "frame_dropout,jpeg", "severities": "5"}
+    frames = ("--drivedegrade-frames", "16")
+    dd.run("-p", "no:xdist", *frames, report="full", **kw).assert_outcomes(passed=5)
+    dd.run("-p", "no:xdist", *frames, "--drivedegrade-adaptive", report="ada", **kw).assert_outcomes(passed=5)
+    compared = 0
+    for cell in ("frame_dropout-s5", "jpeg-s5", "clean"):
+        full, ada = (CellPayload.from_builtins(load_json(dd.folder(report=r) / "cells" / f"{cell}.json")).record
+                     for r in ("full", "ada"))
+        ran = np.isfinite(ada.l2_avg_per_frame())
+        assert ran.any() and ada.frames == full.frames
+        for a in FRAME_ARRAYS:
+            if a.name in ("ec", "epdms"):  # EC reads the previous keyframe's plan, which a single frame does not run
+                assert np.isnan(ada.array("ec")[ran]).all()
+                continue
+            np.testing.assert_array_equal(ada.array(a.name)[ran], full.array(a.name)[ran], err_msg=f"{cell} {a.name}")
+        compared += int(ran.sum())
+    assert compared >= 16
