@@ -1,8 +1,9 @@
 """The adaptive certification study (issue 22), simulated.
 
 1. Error rate under optional stopping: thousands of synthetic paired populations with known retention (on a
-   threshold, just off it, far from it), one decision each at alpha = 0.05: the adaptive rule (betting CS, and the
-   asymptotic CS) against the naive "stop when the paired bootstrap 95% CI clears" rule; mean share of units used.
+   threshold, just off it, far from it), one decision each at alpha = 0.05: the adaptive rule (betting CS, the
+   asymptotic CS, and its without-replacement form the plugin stops on) against the naive "stop when the paired
+   bootstrap 95% CI clears" rule; mean share of units used.
 2. Severity scheduling on two non-monotone curves: how often the scheduled s*10 / s*25 equal the full curve's, how
    often a violation is flagged.
 3. Extrapolation to nuScenes-val size (6,019 frames, 150 scenes, windows of 8 scored + 2 warm-up frames) of a
@@ -53,13 +54,14 @@ def study(runs: int, seed: int) -> None:
     from test_adaptive import error_rates
 
     print(f"\n1. optional stopping, alpha = 0.05 per decision, {runs} populations of 750 units each (B = 5 m)")
-    print(f"{'scenario':<18} {'level':>5} {'true r':>6} {'betting err':>11} {'asympt err':>10} {'naive err':>9} "
-          f"{'betting units':>13} {'asympt units':>12}")
+    print(f"{'scenario':<18} {'level':>5} {'true r':>6} {'betting err':>11} {'asympt err':>10} {'wor err':>7} "
+          f"{'naive err':>9} {'betting units':>13} {'asympt units':>12} {'wor units':>9}")
     for i, (name, level, r) in enumerate(SCENARIOS):
         bet, naive, used_b = error_rates(r, level, runs, 750, seed + i)
         asy, _, used_a = error_rates(r, level, runs, 750, seed + i, method="asymptotic", naive=False)
-        print(f"{name:<18} {level:>5.2f} {r:>6.2f} {bet:>11.3f} {asy:>10.3f} {naive:>9.3f} {used_b:>13.1%} "
-              f"{used_a:>12.1%}")
+        wor, _, used_w = error_rates(r, level, runs, 750, seed + i, method="asymptotic-wor", naive=False)
+        print(f"{name:<18} {level:>5.2f} {r:>6.2f} {bet:>11.3f} {asy:>10.3f} {wor:>7.3f} {naive:>9.3f} "
+              f"{used_b:>13.1%} {used_a:>12.1%} {used_w:>9.1%}")
 
 
 def curve_for(s10: float | None, power: float) -> dict[int, float]:
@@ -189,15 +191,15 @@ def extrapolate(reps: int, seed: int) -> None:
           f"scored + {WARMUP} warm-up frames; full run = {CELLS} cells x {FRAMES} frames; {reps} repetitions")
     print("   UniAD-like profile (paper tab:thresh s*10, tab:visrel quality 0.739 / blackout S5 0.680): "
           + ", ".join(f"{f} S5 {c[5]:.2f}" for f, c in profile.items()))
-    print(f"{'method':<11} {'noise':<7} {'certify share':>13} {'(max)':>6} {'cells visited':>13} {'flags':>5} "
+    print(f"{'method':<14} {'noise':<7} {'certify share':>13} {'(max)':>6} {'cells visited':>13} {'flags':>5} "
           f"{'gate share':>10} {'(max)':>6}")
     for model in ("scaled", "flat"):
-        for method in ("betting", "asymptotic"):
+        for method in ("betting", "asymptotic", "asymptotic-wor"):
             rng = np.random.default_rng(seed)
             runs = [certify_once(profile, passes, rng, method, model) for _ in range(reps)]
             gates = [gate_once(profile, passes, rng, method, model) for _ in range(reps)]
             shares = [r[0] for r in runs]
-            print(f"{method:<11} {model:<7} {np.mean(shares):>13.1%} {max(shares):>6.1%} "
+            print(f"{method:<14} {model:<7} {np.mean(shares):>13.1%} {max(shares):>6.1%} "
                   f"{np.mean([r[1] for r in runs]):>13.1f} {sum(r[2] for r in runs):>5} {np.mean(gates):>10.1%} "
                   f"{max(gates):>6.1%}")
 
