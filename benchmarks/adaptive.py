@@ -45,8 +45,8 @@ FRAMES, SCENES, WINDOW, WARMUP, CELLS = 6019, 150, 8, 2, 89
 TOLERANCE = 0.02
 #: The lowest retention a curve is given (the paper: UniAD keeps about 0.52 under blur at S5).
 FLOOR = 0.45
-#: The retention the simulation gives the non-ladder cells that stop on their own (blind, the ego cells): far
-#: below both thresholds, as blind is for any camera planner (an assumption for the ego cells).
+#: The retention the simulation gives the ego cells that stop on their own (ego_noise S5, ego_blind, against the
+#: flat line): far below it (an assumption).
 OTHER_R = 0.6
 
 
@@ -112,6 +112,7 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
     S5 cells extended until `axis_settled` clears the flat line (or the data run out)."""
     from test_adaptive import population
 
+    from pytest_drivedegrade.constants import DEFAULT_FLAT
     from pytest_drivedegrade.corruptions.ladder import QUALITY_FAMILIES
     from pytest_drivedegrade.scoring.adaptive import run_cell, schedule_family
 
@@ -135,13 +136,16 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
         flags += bool(plan.violations)
     for axis in (QUALITY_FAMILIES, ("blackout",)):
         extend_axis(axis, s5, used, alpha, method)
-    cost = sum(min(cum[u], FRAMES) for u in used.values())  # a cell needing every unit runs as the full stream
-    # the plugin's cost model: clean and the null control run every unit; the other 7 non-ladder cells (blind,
-    # ego_noise S1-S5, ego_blind) stop on their own levels, simulated here at retention OTHER_R (an assumption)
-    cost += 2 * FRAMES
-    for _ in range(CELLS - 5 * len(profile) - 2):
+    # charged as the plugin runs them: unit by unit, each window with its warm-up (a cell that needs every unit
+    # costs cum[n] = 1.25 full streams; the earlier model capped it at one full stream, which the plugin never did)
+    cost = sum(cum[u] for u in used.values())
+    # the plugin's cost model: clean and the null control run every unit; of the other 7 non-ladder cells, blind
+    # and ego_noise S1-S4 decide nothing and run no unit (`sequential.levels_of`), ego_noise S5 and ego_blind (the
+    # ego axis) stop on the flat line, simulated here at retention OTHER_R (an assumption)
+    cost += 2 * cum[n]
+    for _ in range(2):
         clean, cell = population(rng, n, OTHER_R, noise_for(OTHER_R, model), clean=base)
-        cost += min(cum[run_cell(clean, cell, (0.9, 0.75), alpha=alpha, method=method).units], FRAMES)
+        cost += cum[run_cell(clean, cell, (DEFAULT_FLAT,), alpha=alpha, method=method).units]
     return cost / (CELLS * FRAMES), len(used), flags
 
 
@@ -178,9 +182,9 @@ def gate_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.
             d = gate_cell(clean, cell, GateBaseline(clean, cell), list(range(n)), tolerance=TOLERANCE, alpha=alpha,
                           method=method)
             used = n if d.side != "above" else d.units
-            cost += min(cum[used], FRAMES)
+            cost += cum[used]
             most = max(most, used)
-    cost += 2 * FRAMES + (CELLS - 5 * len(profile) - 2) * min(cum[most], FRAMES)  # clean and null: every unit
+    cost += 2 * cum[n] + (CELLS - 5 * len(profile) - 2) * cum[most]  # clean and null: every unit
     return cost / (CELLS * FRAMES)
 
 
