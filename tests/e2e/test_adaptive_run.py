@@ -48,7 +48,7 @@ def test_adaptive_cells_are_the_same_serially_and_under_n2_and_verify(dd, two_sc
                         **kw)
         result.assert_outcomes(passed=13)
         no_traceback(result)
-        result.stdout.fnmatch_lines(["*adaptive (alpha 0.05, asymptotic): * forward passes against *"])
+        result.stdout.fnmatch_lines(["*adaptive (alpha 0.05, asymptotic-wor): * forward passes against *"])
         folder = dd.pytester.path / report / name
         got[layout] = (records(folder), (folder / "cells.csv").read_text(), section(folder))
         done = verify_cli(folder / "certificate.json")
