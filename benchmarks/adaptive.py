@@ -1,8 +1,9 @@
 """The adaptive certification study (issue 22), simulated.
 
 1. Error rate under optional stopping: thousands of synthetic paired populations with known retention (on a
-   threshold, just off it, far from it), one decision each at alpha = 0.05: the adaptive rule (betting CS, and the
-   asymptotic CS) against the naive "stop when the paired bootstrap 95% CI clears" rule; mean share of units used.
+   threshold, just off it, far from it), one decision each at alpha = 0.05: the adaptive rule (betting CS, the
+   asymptotic CS, and its without-replacement form the plugin stops on) against the naive "stop when the paired
+   bootstrap 95% CI clears" rule; mean share of units used.
 2. Severity scheduling on two non-monotone curves: how often the scheduled s*10 / s*25 equal the full curve's, how
    often a violation is flagged.
 3. Extrapolation to nuScenes-val size (6,019 frames, 150 scenes, windows of 8 scored + 2 warm-up frames) of a
@@ -44,8 +45,8 @@ FRAMES, SCENES, WINDOW, WARMUP, CELLS = 6019, 150, 8, 2, 89
 TOLERANCE = 0.02
 #: The lowest retention a curve is given (the paper: UniAD keeps about 0.52 under blur at S5).
 FLOOR = 0.45
-#: The retention the simulation gives the non-ladder cells that stop on their own (blind, the ego cells): far
-#: below both thresholds, as blind is for any camera planner (an assumption for the ego cells).
+#: The retention the simulation gives the ego cells that stop on their own (ego_noise S5, ego_blind, against the
+#: flat line): far below it (an assumption).
 OTHER_R = 0.6
 
 
@@ -53,13 +54,14 @@ def study(runs: int, seed: int) -> None:
     from test_adaptive import error_rates
 
     print(f"\n1. optional stopping, alpha = 0.05 per decision, {runs} populations of 750 units each (B = 5 m)")
-    print(f"{'scenario':<18} {'level':>5} {'true r':>6} {'betting err':>11} {'asympt err':>10} {'naive err':>9} "
-          f"{'betting units':>13} {'asympt units':>12}")
+    print(f"{'scenario':<18} {'level':>5} {'true r':>6} {'betting err':>11} {'asympt err':>10} {'wor err':>7} "
+          f"{'naive err':>9} {'betting units':>13} {'asympt units':>12} {'wor units':>9}")
     for i, (name, level, r) in enumerate(SCENARIOS):
         bet, naive, used_b = error_rates(r, level, runs, 750, seed + i)
         asy, _, used_a = error_rates(r, level, runs, 750, seed + i, method="asymptotic", naive=False)
-        print(f"{name:<18} {level:>5.2f} {r:>6.2f} {bet:>11.3f} {asy:>10.3f} {naive:>9.3f} {used_b:>13.1%} "
-              f"{used_a:>12.1%}")
+        wor, _, used_w = error_rates(r, level, runs, 750, seed + i, method="asymptotic-wor", naive=False)
+        print(f"{name:<18} {level:>5.2f} {r:>6.2f} {bet:>11.3f} {asy:>10.3f} {wor:>7.3f} {naive:>9.3f} "
+              f"{used_b:>13.1%} {used_a:>12.1%} {used_w:>9.1%}")
 
 
 def curve_for(s10: float | None, power: float) -> dict[int, float]:
@@ -110,6 +112,7 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
     S5 cells extended until `axis_settled` clears the flat line (or the data run out)."""
     from test_adaptive import population
 
+    from pytest_drivedegrade.constants import DEFAULT_FLAT
     from pytest_drivedegrade.corruptions.ladder import QUALITY_FAMILIES
     from pytest_drivedegrade.scoring.adaptive import run_cell, schedule_family
 
@@ -133,13 +136,16 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
         flags += bool(plan.violations)
     for axis in (QUALITY_FAMILIES, ("blackout",)):
         extend_axis(axis, s5, used, alpha, method)
-    cost = sum(min(cum[u], FRAMES) for u in used.values())  # a cell needing every unit runs as the full stream
-    # the plugin's cost model: clean and the null control run every unit; the other 7 non-ladder cells (blind,
-    # ego_noise S1-S5, ego_blind) stop on their own levels, simulated here at retention OTHER_R (an assumption)
-    cost += 2 * FRAMES
-    for _ in range(CELLS - 5 * len(profile) - 2):
+    # charged as the plugin runs them: unit by unit, each window with its warm-up (a cell that needs every unit
+    # costs cum[n] = 1.25 full streams; the earlier model capped it at one full stream, which the plugin never did)
+    cost = sum(cum[u] for u in used.values())
+    # the plugin's cost model: clean and the null control run every unit; of the other 7 non-ladder cells, blind
+    # and ego_noise S1-S4 decide nothing and run no unit (`sequential.levels_of`), ego_noise S5 and ego_blind (the
+    # ego axis) stop on the flat line, simulated here at retention OTHER_R (an assumption)
+    cost += 2 * cum[n]
+    for _ in range(2):
         clean, cell = population(rng, n, OTHER_R, noise_for(OTHER_R, model), clean=base)
-        cost += min(cum[run_cell(clean, cell, (0.9, 0.75), alpha=alpha, method=method).units], FRAMES)
+        cost += cum[run_cell(clean, cell, (DEFAULT_FLAT,), alpha=alpha, method=method).units]
     return cost / (CELLS * FRAMES), len(used), flags
 
 
@@ -176,9 +182,9 @@ def gate_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.
             d = gate_cell(clean, cell, GateBaseline(clean, cell), list(range(n)), tolerance=TOLERANCE, alpha=alpha,
                           method=method)
             used = n if d.side != "above" else d.units
-            cost += min(cum[used], FRAMES)
+            cost += cum[used]
             most = max(most, used)
-    cost += 2 * FRAMES + (CELLS - 5 * len(profile) - 2) * min(cum[most], FRAMES)  # clean and null: every unit
+    cost += 2 * cum[n] + (CELLS - 5 * len(profile) - 2) * cum[most]  # clean and null: every unit
     return cost / (CELLS * FRAMES)
 
 
@@ -189,15 +195,15 @@ def extrapolate(reps: int, seed: int) -> None:
           f"scored + {WARMUP} warm-up frames; full run = {CELLS} cells x {FRAMES} frames; {reps} repetitions")
     print("   UniAD-like profile (paper tab:thresh s*10, tab:visrel quality 0.739 / blackout S5 0.680): "
           + ", ".join(f"{f} S5 {c[5]:.2f}" for f, c in profile.items()))
-    print(f"{'method':<11} {'noise':<7} {'certify share':>13} {'(max)':>6} {'cells visited':>13} {'flags':>5} "
+    print(f"{'method':<14} {'noise':<7} {'certify share':>13} {'(max)':>6} {'cells visited':>13} {'flags':>5} "
           f"{'gate share':>10} {'(max)':>6}")
     for model in ("scaled", "flat"):
-        for method in ("betting", "asymptotic"):
+        for method in ("betting", "asymptotic", "asymptotic-wor"):
             rng = np.random.default_rng(seed)
             runs = [certify_once(profile, passes, rng, method, model) for _ in range(reps)]
             gates = [gate_once(profile, passes, rng, method, model) for _ in range(reps)]
             shares = [r[0] for r in runs]
-            print(f"{method:<11} {model:<7} {np.mean(shares):>13.1%} {max(shares):>6.1%} "
+            print(f"{method:<14} {model:<7} {np.mean(shares):>13.1%} {max(shares):>6.1%} "
                   f"{np.mean([r[1] for r in runs]):>13.1f} {sum(r[2] for r in runs):>5} {np.mean(gates):>10.1%} "
                   f"{max(gates):>6.1%}")
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from collections.abc import Callable, ItemsView, Iterator, KeysView, Mapping
+from collections.abc import Callable, ItemsView, Iterator, KeysView, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from types import MappingProxyType
 from typing import TypeVar
@@ -285,10 +285,15 @@ class CellSample(Mapping[str, np.ndarray]):
 
 
 def samples(frames: list[Frame], family: str, severity: int, *, seed: int, decode: Decode,
-            unread: tuple[str, ...] = ()) -> Iterator[CellSample]:
-    """The cell's samples in frame order (frame_dropout's state runs along them)."""
+            unread: tuple[str, ...] = (), history: Sequence[Frame] = ()) -> Iterator[CellSample]:
+    """The cell's samples in frame order (frame_dropout's state runs along them). `history`: the run's frames of
+    the first frame's scene before it (a span that starts mid-scene); frame_dropout's state is advanced over them
+    (loss draws only, nothing decoded), so every frame delivers the images a run from the scene's start gives."""
     state = DropoutState() if family == "frame_dropout" else None
     probability = FAMILIES[family].value(severity) if state else 0.0
+    if state is not None:
+        for frame in history:
+            state.advance(frame, probability, seed, severity)
     for frame in frames:
         dropout = state.advance(frame, probability, seed, severity) if state else None
         yield CellSample(frame, family, severity, seed=seed, decode=decode, unread=unread, dropout=dropout)

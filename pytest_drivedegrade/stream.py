@@ -11,7 +11,7 @@ import contextlib
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
 from types import FrameType
@@ -140,7 +140,8 @@ def reuser(clean: CellRecord, unread: tuple[str, ...]) -> Reuser:
 
 
 def stream(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
-           unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> Iterator[FrameResult]:
+           unread: tuple[str, ...], seed: int, clean: CellRecord | None = None,
+           history: Sequence[Frame] = ()) -> Iterator[FrameResult]:
     """Feed `frames` (scene by scene, in order) through the planner under one cell's corruption: for each frame
     its sample and the validated plan, or the one-line reason the frame failed.
 
@@ -153,12 +154,13 @@ def stream(source: Source, planner: Planner, family: str, severity: int, frames:
     plan is yielded instead (bit for bit what the call would return) and the sample is marked (``reused_from``:
     its index in clean). A frame that failed in clean is called again. On frame-by-frame calls, the second
     reused frame and every `REUSE_CONTROL_EVERY`-th after it are predicted as well (the reuse control): a plan
-    that is not the reused one bit for bit fails the frame, naming why.
+    that is not the reused one bit for bit fails the frame, naming why. `history`: see `loader.samples`.
     """
     style = call_style(planner)
     reuse = reuser(clean, unread) if clean is not None and may_reuse(source.settings, planner, family, severity) \
         else _predict_every_frame
-    feed = ((s, reuse(s)) for s in samples(frames, family, severity, seed=seed, decode=source.decode, unread=unread))
+    feed = ((s, reuse(s)) for s in samples(frames, family, severity, seed=seed, decode=source.decode, unread=unread,
+                                           history=history))
     pairs = ahead(feed, _declared(planner), prefetch_depth(source.settings), wanted=_is_none)
     if source.settings.batch > 1 and not style.resets and callable(getattr(planner, "predict_batch", None)):
         yield from _stream_batched(source, planner, pairs)
@@ -301,7 +303,8 @@ class _Clock:
 
 
 def run_cell(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
-             unread: tuple[str, ...], seed: int, clean: CellRecord | None = None) -> CellRecord:
+             unread: tuple[str, ...], seed: int, clean: CellRecord | None = None,
+             history: Sequence[Frame] = ()) -> CellRecord:
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
     per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
     (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice.
@@ -314,7 +317,7 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None)
     with Scorer(overlap) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
-                                                    seed=seed, clean=clean)):
+                                                    seed=seed, clean=clean, history=history)):
             clock.delivered(sample)
             scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock, pdms))
     start = time.perf_counter()

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from ..cells import FRAME_ARRAYS, CellRecord, cell_id, is_camera_ladder
-from ..corruptions.ladder import FAMILIES
 from ..run import AnyPlanner, RunContext, style_of
 from ..scoring.adaptive import SEVERITIES, GateBaseline, Unit, gate_cell
 from ..scoring.sequential import (
@@ -69,15 +68,15 @@ class AdaptiveRunner:
 
     # --- units ---------------------------------------------------------------------------------------------------
 
-    def _frames(self, unit: Unit, family: str) -> tuple[int, ...]:
-        """The frames a unit runs: its warm-up too for a planner with `reset`, or for a temporal corruption (its
-        state, e.g. frame_dropout's held frame, needs the frames before)."""
-        temporal = family in FAMILIES and FAMILIES[family].group == "temporal"
-        return (*unit.warmup, *unit.scored) if self.warm or temporal else unit.scored
+    def _frames(self, unit: Unit) -> tuple[int, ...]:
+        """The frames a unit runs: its warm-up too for a planner with `reset`. A temporal corruption needs none:
+        a span replays frame_dropout's loss draws from the scene's start (`RunContext.run_cell`), so a unit's
+        frames get the full run's images bit for bit."""
+        return (*unit.warmup, *unit.scored) if self.warm else unit.scored
 
     def _run_unit(self, family: str, severity: int, unit: Unit, clean: CellRecord | None = None) -> CellRecord:
         """The cell on the unit's frames (warm-up first, `reset` at its start), as a run of them alone."""
-        idx = self._frames(unit, family)
+        idx = self._frames(unit)
         return self.context.run_cell(self.planner, family, severity, span=(idx[0], idx[-1] + 1), clean=clean)
 
     def clean_unit(self, k: int) -> CellRecord:

@@ -259,3 +259,20 @@ def test_optional_stopping_error_at_most_alpha_and_the_naive_rule_exceeds_it(r: 
 def test_the_asymptotic_rule_keeps_alpha_on_the_boundary() -> None:
     adaptive, _, _ = error_rates(0.9, 0.9, runs=200, n=300, seed=11, method="asymptotic")
     assert adaptive <= 0.05 + 3 * (0.05 * 0.95 / 200) ** 0.5
+
+
+@pytest.mark.parametrize(("r", "level"), [(0.9, 0.9), (0.89, 0.9)])
+def test_the_without_replacement_rule_keeps_alpha_on_the_boundary(r: float, level: float) -> None:
+    adaptive, _, _ = error_rates(r, level, runs=300, n=300, seed=13, method="asymptotic-wor")
+    assert adaptive <= 0.05 + 3 * (0.05 * 0.95 / 300) ** 0.5
+
+
+def test_the_without_replacement_rule_settles_near_the_line_sooner_as_the_units_run_out() -> None:
+    """A population 0.02 above the level: the with-replacement sequence needs nearly every unit (or never
+    settles), the finite-population one far fewer, and both say "above"."""
+    rng = np.random.default_rng(21)
+    clean, cell = population(rng, 400, 0.92, noise=0.1)
+    iid = settle_retention(clean, cell, 0.9, population=400, alpha=0.001, bound=BOUND, method="asymptotic")
+    wor = settle_retention(clean, cell, 0.9, population=400, alpha=0.001, bound=BOUND, method="asymptotic-wor")
+    assert wor.side == iid.side == "above"
+    assert wor.units < 0.9 * iid.units

@@ -65,6 +65,27 @@ def test_frame_dropout_runs_along_the_cell_and_resets_per_scene():
     assert held > 0
 
 
+def test_frame_dropout_span_with_its_scene_history_delivers_the_full_runs_images():
+    """A span that starts mid-scene (an adaptive unit, a replay), given the scene's frames before it, delivers
+    the images a run from the scene's start delivers, bit for bit, without decoding the history; without it,
+    a frame held from before the span is black instead (so the test sees the case it guards)."""
+    frames = make_frames(30, scenes=2)
+    full = {s.frame.token: {c: s[c] for c in CAMERAS} for s in samples(frames, "frame_dropout", 5, seed=3,
+                                                                        decode=Decoder())}
+    differ = 0
+    for start in range(len(frames)):
+        first = next(i for i, f in enumerate(frames) if f.scene_token == frames[start].scene_token)
+        decode = Decoder()
+        got = next(samples(frames[start:start + 1], "frame_dropout", 5, seed=3, decode=decode,
+                           history=frames[first:start]))
+        for cam in CAMERAS:
+            assert np.array_equal(got[cam], full[got.frame.token][cam]), (start, cam)
+        assert len(decode.calls) <= len(CAMERAS)  # the history's frames are never decoded
+        alone = next(samples(frames[start:start + 1], "frame_dropout", 5, seed=3, decode=Decoder()))
+        differ += any(not np.array_equal(alone[c], full[alone.frame.token][c]) for c in CAMERAS)
+    assert differ > 0
+
+
 def test_only_read_cameras_are_decoded_and_arrays_are_read_only():
     decode = Decoder()
     sample = next(samples(make_frames(1), "jpeg", 2, seed=0, decode=decode))

@@ -26,8 +26,10 @@ def frames(scenes: list[int]) -> list[Frame]:
             for i, n in enumerate(scenes) for j in range(n)]
 
 
-def test_the_unit_plan_round_trips_and_its_draw_order_is_checked() -> None:
+def test_the_unit_plan_round_trips_and_its_draw_order_is_checked(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sq, "SCENE_UNITS_BELOW", 3)  # three scenes: windows
     plan = sq.UnitPlan.of(frames([20, 9, 3]), seed=4)
+    assert plan.kind == "windows"
     assert plan.population == 3 + 2 + 1  # 20 -> 8, 8, 4; 9 -> 8, 1; 3 -> 3
     back = sq.UnitPlan.from_builtins(plan.to_builtins())
     assert [u.scored for u in back.units] == [u.scored for u in plan.units]
@@ -43,6 +45,18 @@ def test_the_unit_plan_round_trips_and_its_draw_order_is_checked() -> None:
     assert sq.UnitPlan.matching(frames([20, 9, 3]), 4, 32).window == 1
     assert sq.UnitPlan.matching(frames([20, 9, 3]), 4, 6).window == 8
     assert sq.UnitPlan.from_builtins(single.to_builtins()).window == 1
+
+
+def test_a_planner_with_reset_gets_whole_scenes_when_the_run_has_few() -> None:
+    """Few scenes: each unit is a scene from its start (exact for any memory), no warm-up, scenes weighed by
+    their frames (the figure divides by the longest scene)."""
+    plan = sq.UnitPlan.of(frames([20, 9, 3]), seed=4)
+    assert (plan.kind, plan.population, plan.window) == ("scenes", 3, 20)
+    assert sorted(len(u.scored) for u in plan.units) == [3, 9, 20] and not any(u.warmup for u in plan.units)
+    back = sq.UnitPlan.from_builtins(plan.to_builtins())
+    assert back.kind == "scenes" and [u.scored for u in back.units] == [u.scored for u in plan.units]
+    assert sq.UnitPlan.matching(frames([20, 9, 3]), 4, 3).kind == "scenes"
+    assert sq.UnitPlan.of(frames([20, 9, 3]), seed=4, temporal=False).kind == "frames"
 
 
 def test_a_cell_equal_to_clean_settles_above_both_thresholds_at_ten_units() -> None:
@@ -126,7 +140,7 @@ def synthetic_run(tmp_path: Path) -> tuple[dict[str, object], Path]:
     """A sealed adaptive certificate of one family (jpeg) plus clean, with its cells/ folder."""
     rng = np.random.default_rng(1)
     fr = frames([48, 48, 40])
-    plan = sq.UnitPlan.of(fr, seed=0)
+    plan = sq.UnitPlan.of(fr, seed=0, temporal=False)  # single frames: enough units to settle a cell early
     clean_m = rng.uniform(0.3, 1.0, len(fr))
     recs = {"clean": record("clean", "clean", 0, clean_m, plan.population)}
     for s in range(1, 6):
