@@ -41,3 +41,6 @@ DEFAULT_TOLERANCE: float = 0.02
 #: The ego ladder's families (SPEC section 10), cells outside the camera axes: `ego_noise` S1..S5 and the
 #: diagnostic `ego_blind` (cell ids ``ego_noise-s1`` .. ``ego_noise-s5``, ``ego_blind``).
 EGO_NOISE, EGO_BLIND = "ego_noise", "ego_blind"
+#: The confidence sequence adaptive cells stop on (`scoring.sequential.METHOD`): part of an adaptive run's key,
+#: so a changed stopping rule never reuses cells a former rule stopped.
+ADAPTIVE_METHOD = "asymptotic-wor"

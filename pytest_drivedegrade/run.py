@@ -18,7 +18,7 @@ import numpy as np
 
 from . import stream
 from .cells import RECORD_VERSION, CellRecord
-from .constants import CAMERAS
+from .constants import ADAPTIVE_METHOD, CAMERAS
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.content import content_fingerprint
 from .data.context import FrameContext
@@ -194,6 +194,8 @@ class RunContext:
             "spec_version": SPEC_VERSION, "tool_version": __version__, "record_version": RECORD_VERSION,
             "planner_fingerprint": self.planner_info(planner).fingerprint,
             "dataset_fingerprint": self.dataset_fingerprint, "frames_key": self.frames_key}
+        if self.settings.adaptive:  # where a cell stops depends on the stopping rule
+            key["adaptive_method"] = ADAPTIVE_METHOD
         return {**key, **self.settings.run_key_fields()}
 
     def seeds_for(self, family: str) -> list[int]:

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..cells import DIAGNOSTIC, CellRecord, is_camera_ladder
-from ..constants import EGO_BLIND, EGO_NOISE
+from ..constants import ADAPTIVE_METHOD, EGO_BLIND, EGO_NOISE
 from ..data.frame import Frame
 from .adaptive import (
     DEFAULT_BOUND,
@@ -53,7 +53,7 @@ SCENE_UNITS_BELOW = 30
 #: grow, in its without-replacement form (the units are a finite population, so it tightens as they run out;
 #: 19 % of a full run's passes at nuScenes-val size against 21 % for the with-replacement form); "betting" is
 #: nonasymptotic but needs about twice the units (`benchmarks/adaptive.py`).
-METHOD = "asymptotic-wor"
+METHOD = ADAPTIVE_METHOD
 #: Cells that run every unit and take no decision: clean (every cell pairs with it) and the null control.
 FULL_CELLS = ("clean", "null")
 #: The search range and steps of a cell's interval (`retention_span`): 4 / 2**16, about 6e-5.

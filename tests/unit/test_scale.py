@@ -296,3 +296,12 @@ def test_decoded_images_are_kept_up_to_the_budget_and_the_pixels_do_not_depend_o
     again = ctx.decode(ctx.frames[1], "CAM_FRONT")
     assert again is not second and np.array_equal(again, second)  # over budget: decoded again, same pixels
     assert ctx._decoded_bytes == first.nbytes
+
+
+def test_an_adaptive_runs_key_holds_its_stopping_rule_and_a_full_runs_key_does_not(world, camera_cnn):
+    """A changed stopping rule must not reuse cells a former rule stopped; a full run keeps its key."""
+    from pytest_drivedegrade.scoring.sequential import METHOD
+
+    full = RunContext.open(RunSettings(data=world, timeout=0.0)).run_key(camera_cnn)
+    adaptive = RunContext.open(RunSettings(data=world, timeout=0.0, adaptive=True)).run_key(camera_cnn)
+    assert "adaptive_method" not in full and adaptive["adaptive_method"] == METHOD == "asymptotic-wor"
