@@ -151,7 +151,8 @@ def ground_map(net: RoadNet, ego_xy: np.ndarray, style, crosswalks: list[float],
     cv2.multiply(img, three, dst=img, scale=1 / 128)
     grain = rng.integers(0, 18, size=(h, w), dtype=np.uint8)  # surface grain, +-9 grey levels
     cv2.add(img, cv2.merge([grain] * 3, dst=three), dst=img)
-    cv2.subtract(img, (9, 9, 9, 0), dst=img)
+    three.fill(9)
+    cv2.subtract(img, three, dst=img)
     levels = [img]
     for _ in range(3):
         levels.append(cv2.pyrDown(levels[-1]))
