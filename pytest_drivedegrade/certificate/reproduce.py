@@ -31,6 +31,7 @@ import numpy as np
 
 from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
 from ..errors import DriveDegradeError, InvalidInput
+from ..progress import Progress, Sink
 from ..settings import RunSettings
 
 #: Cells every reproduction reruns (when the certificate has them), before the sampled ones.
@@ -194,8 +195,9 @@ class Watch:
 
 
 def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[[CellPayload], None],
-                interval: float = 0.25) -> int:
-    """Run the rerun, its output into `log`, calling `on_cell` for each sampled cell as it finishes."""
+                interval: float = 0.25, tick: Callable[[], None] | None = None) -> int:
+    """Run the rerun, its output into `log`, calling `on_cell` for each sampled cell as it finishes (and `tick`
+    at every look, for a progress line's clock)."""
     with open(log, "w") as out:
         proc = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT)
         try:
@@ -203,6 +205,8 @@ def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[
                 done = proc.poll() is not None
                 for payload in watch.poll():
                     on_cell(payload)
+                if tick is not None:
+                    tick()
                 if done:
                     return int(proc.returncode)
                 time.sleep(interval)
@@ -263,7 +267,7 @@ def fresh_seed() -> str:
 def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data: str | None = None,
               salt: str | None = None, public_key: str | None = None, keep: bool = False,
               any_planner: bool = False, say: Callable[[str], None] = print,
-              progress: Callable[[str], None] | None = None) -> int:
+              progress: Callable[[str], None] | None = None, bar_sink: Sink | None = None) -> int:
     """Rerun clean, null and `n` sampled cells; 0 when every one is identical to the certificate, 1 otherwise.
     Usage errors (a missing planner or certificate, one that does not verify or contradicts its cells, a rerun
     by another planner unless `any_planner`) raise DriveDegradeError. Without `salt` (``--seed``) the sample is
@@ -278,7 +282,7 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
                                 "certificate was made with")
     cert, proof = verified(cert_path, public_key)
     consistent(cert, cert_path)
-    drawn = "given" if salt is not None else "fresh randomness"
+    drawn = "given" if salt is not None else "fresh randomness"  # (the rerun: one progress line on `bar_sink`)
     salt = fresh_seed() if salt is None else salt
     cells = sample_cells(usable(cert, cert_path), cert["digest"], n, salt)
     root = data_root(cert, data, Path.cwd())
@@ -290,8 +294,17 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     argv = rerun_argv(cert, planner.resolve(), cells, report_dir, root)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
-    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner)
-    rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
+    # one line per cell is the result (said as each finishes); between them the line counts cells and seconds
+    with Progress("drivedegrade reproduce", len(cells), unit="cells", milestones=1,
+                  sink=bar_sink or Sink.silent()) as bar:
+        judge = Judge(cert, cert_path, cells, lambda s: bar.interject(say, s), lambda s: bar.interject(note, s),
+                      ["other software"] if notes else [], any_planner)
+
+        def finished(payload: CellPayload) -> None:
+            judge.on_cell(payload)
+            bar.advance(note=payload.cell)
+
+        rc = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), finished, tick=bar.tick)
     if rc in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {rc}); its output:\n"
                                 f"{tail(report_dir / 'pytest.log')}")
