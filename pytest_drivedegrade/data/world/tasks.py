@@ -1,4 +1,4 @@
-"""One scene of a world as one task, run in worker processes: the world's build spread over the machine's cores.
+"""One scene of a world as one task, run in worker processes (and this one): the build spread over the cores.
 
 A task generates its scene and writes the scene's own files (point clouds, CAN bus, map expansion, images); the
 tables it returns as JSON text and its share of the world's fingerprint as bytes, which the builder joins in scene
