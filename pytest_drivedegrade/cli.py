@@ -100,10 +100,11 @@ def _reproduce(args: argparse.Namespace) -> int:
     """Exit 0 when every rerun cell is bit-identical to the certificate, 1 when one differs, 2 for a usage error
     (a missing file, a certificate that does not verify)."""
     from .certificate.reproduce import reproduce
+    from .progress import Sink
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
                      salt=None if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep,
-                     any_planner=args.any_planner, closed_n=args.closed_cells, loop=args.loop)
+                     any_planner=args.any_planner, closed_n=args.closed_cells, loop=args.loop, bar_sink=Sink())
 
 
 def _keygen(args: argparse.Namespace) -> int:
@@ -137,6 +138,7 @@ def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
 def _merge(args: argparse.Namespace) -> int:
     """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
     from .certificate.merge import merge_shards
+    from .progress import Sink
     from .report.publish import publish
     from .settings import shown_arg
 
@@ -144,7 +146,8 @@ def _merge(args: argparse.Namespace) -> int:
     command = "drivedegrade merge " + " ".join(shown_arg(a, here) for a in [*args.shards, "--out", args.out])
     key = _merge_signing_key(args)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
-                          command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here)
+                          command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here,
+                          progress=Sink())
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
     if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it

@@ -1,4 +1,4 @@
-"""One progress line for long work (building the world, long merges, reproduce, closed-loop runs).
+"""One progress line for long work (building the world, merging shards, reproducing a certificate).
 
 On a terminal the line is rewritten in place (at most every `Progress.interval_s`); where output is a log (CI, a
 pipe, a file) it is a few milestone lines and a closing one, never a line per step. Where the lines go is a
@@ -45,6 +45,12 @@ class Sink:
         self.stream.flush()
         self._shown = len(text)
 
+    def rewrite_start(self) -> None:
+        """Back to the start of the (blank) line being rewritten, for other output to take it."""
+        self.stream.write("\r")
+        self.stream.flush()
+        self._shown = 0
+
     def end_rewrite(self) -> None:
         """Finish the line being rewritten."""
         self.stream.write("\n")
@@ -77,6 +83,9 @@ class _ReporterSink(Sink):
         self._reporter.rewrite(text, erase=True)  # type: ignore[attr-defined]
         self._reporter.write("", flush=True)  # type: ignore[attr-defined]
 
+    def rewrite_start(self) -> None:
+        self._reporter.write("\r", flush=True)  # type: ignore[attr-defined]
+
     def end_rewrite(self) -> None:
         self._reporter.write("\n", flush=True)  # type: ignore[attr-defined]
 
@@ -89,6 +98,9 @@ class _SilentSink(Sink):
         pass
 
     def rewrite(self, text: str) -> None:
+        pass
+
+    def rewrite_start(self) -> None:
         pass
 
     def end_rewrite(self) -> None:
@@ -147,6 +159,25 @@ class Progress:
         if self._mark < mark < self.milestones:
             self.sink.line(self.text())
         self._mark = max(self._mark, mark)
+
+    def tick(self, note: str = "") -> None:
+        """Nothing more done, time passed: on a terminal the line is redrawn (its seconds), at most every
+        `interval_s`; a log gets nothing (for waits with no step to count, e.g. a subprocess working)."""
+        now = self._clock()
+        if self.sink.tty and not self._closed and (self._drawn_at is None or now - self._drawn_at >= self.interval_s):
+            self.sink.rewrite(self.text(note))
+            self._drawn_at = now
+
+    def interject(self, write: Callable[[str], None], text: str) -> None:
+        """A finished line of other output (`write(text)`, e.g. a result to stdout) while the progress line is
+        shown: on a terminal the line is cleared first and drawn again below it, so neither is garbled."""
+        if self.sink.tty and self._drawn_at is not None and not self._closed:
+            self.sink.rewrite("")
+            self.sink.rewrite_start()
+            write(text)
+            self.sink.rewrite(self.text())
+        else:
+            write(text)
 
     def finish(self, summary: str = "") -> None:
         """Close the line: "<label>: <done>[/<total> when short of it] <unit> in <s> s[; summary]" (once; later

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..cells import CellPayload, CellRecord, RecordDigestMismatch
 from ..errors import DriveDegradeError
+from ..progress import Progress, Sink
 from ..scoring.sequential import summary_line
 from ..settings import RunSettings
 from .closed import ClosedRun
@@ -60,7 +61,9 @@ def find_manifest(folder: Path) -> Path:
                             "pass each shard folder")
 
 
-def load_shard(folder: Path) -> ShardResult:
+def read_manifest(folder: Path) -> ShardResult:
+    """A shard folder's checked manifest and settings, its cells not yet read (`load_cells`); DriveDegradeError
+    naming what is wrong with it."""
     path = find_manifest(Path(folder))
     try:
         manifest = cast("dict[str, Any]", read_strict_json(path, constants=True))  # its shape is checked below
@@ -81,8 +84,17 @@ def load_shard(folder: Path) -> ShardResult:
         settings = RunSettings.from_builtins(manifest["settings"])
     except (KeyError, TypeError, DriveDegradeError) as exc:
         raise DriveDegradeError(f"{path}: the shard manifest's settings are unreadable ({exc})") from None
+    return ShardResult(path.parent, manifest, settings, {})
+
+
+def load_cells(shard: ShardResult, bar: Progress | None = None) -> ShardResult:
+    """`shard` (from `read_manifest`) with the cells it finished, read and digest-checked (`bar` advanced per
+    cell file)."""
+    path, manifest = shard.folder / MANIFEST, shard.manifest
     payloads: dict[str, CellPayload] = {}
     for cell in manifest["cells"]:
+        if bar is not None:
+            bar.advance(note=f"shard {manifest['index']}/{manifest['count']}")
         file = path.parent / "cells" / f"{cell}.json"
         if not file.is_file():
             continue  # a cell this shard did not finish: reported as a missing cell of this shard
@@ -96,7 +108,7 @@ def load_shard(folder: Path) -> ShardResult:
             continue  # a missing or broken cell file: reported as a missing cell of this shard
         if dict(payload.key) == manifest["key"] and payload.cell == cell:
             payloads[cell] = payload
-    return ShardResult(path.parent, manifest, settings, payloads)
+    return replace(shard, payloads=payloads)
 
 
 def _records(shards: Sequence[ShardResult], cells: Sequence[str]) -> dict[str, CellRecord]:
@@ -158,13 +170,17 @@ def _front_image(front: Sequence[str] | None) -> tuple[str, np.ndarray] | None:
 
 
 def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, command: str = "",
-                 root: Path | None = None) -> FinishedRun:
+                 root: Path | None = None, progress: Sink | None = None) -> FinishedRun:
     """Join shard folders into one finished run (`report.publish.publish` writes its outputs); DriveDegradeError
     when they are not one run or a shard is missing (unless `allow_incomplete`). With `root`, the data set's
-    path is recorded relative to it."""
+    path is recorded relative to it. Reading the cell files (the long part) is one progress line on `progress`
+    (None: none)."""
     if not folders:
         raise DriveDegradeError("no shard folders given")
-    shards = sorted((load_shard(Path(f)) for f in folders), key=lambda s: s.manifest["index"])
+    heads = [read_manifest(Path(f)) for f in folders]
+    with Progress("drivedegrade merge", sum(len(h.manifest["cells"]) for h in heads), unit="cell files",
+                  sink=progress or Sink.silent()) as bar:
+        shards = sorted((load_cells(h, bar) for h in heads), key=lambda s: s.manifest["index"])
     first, settings = shards[0].manifest, replace(shards[0].settings, shard=None)
     for s in shards[1:]:
         diff = [k for k in SAME_RUN if s.manifest.get(k) != first.get(k)] + \

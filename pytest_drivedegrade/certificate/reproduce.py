@@ -23,7 +23,6 @@ import math
 import secrets
 import shlex
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,8 +36,10 @@ import numpy as np
 from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
 from ..closedloop.cells import ClosedPayload
 from ..errors import DriveDegradeError, InvalidInput
+from ..progress import Progress, Sink
 from ..settings import RunSettings
 from . import reproduce_closed as rc
+from .rerun_watch import Watch, run_watched, tail
 
 #: Cells every reproduction reruns (when the certificate has them), before the sampled ones.
 ALWAYS: tuple[str, ...] = ("clean", "null")
@@ -185,52 +186,6 @@ def certified_record(cert_path: Path, cell: str, digest: str) -> CellRecord | No
     return record if record.plans_digest() == digest else None
 
 
-@dataclass
-class Watch:
-    """The rerun's finished cells, read from its store as each one is written."""
-
-    report_dir: Path
-    wanted: Sequence[str]
-    seen: dict[str, CellPayload | ClosedPayload] = field(default_factory=dict)
-
-    def poll(self) -> list[CellPayload | ClosedPayload]:
-        new: list[CellPayload | ClosedPayload] = []
-        for path in sorted(self.report_dir.glob("*/cells/*.json")):
-            if path.stem in self.wanted and path.stem not in self.seen:
-                kind = ClosedPayload if path.stem.startswith("closed-") else CellPayload
-                try:
-                    payload = kind.from_builtins(json.loads(path.read_text()))
-                except (OSError, ValueError, DriveDegradeError):
-                    continue  # written atomically, so only a file of another kind: read again next time
-                self.seen[path.stem] = payload
-                new.append(payload)
-        return new
-
-
-def run_watched(argv: Sequence[str], log: Path, watch: Watch, on_cell: Callable[[CellPayload | ClosedPayload], None],
-                interval: float = 0.25) -> int:
-    """Run the rerun, its output into `log`, calling `on_cell` for each sampled cell as it finishes."""
-    with open(log, "w") as out:
-        proc = subprocess.Popen(list(argv), stdout=out, stderr=subprocess.STDOUT)
-        try:
-            while True:
-                done = proc.poll() is not None
-                for payload in watch.poll():
-                    on_cell(payload)
-                if done:
-                    return int(proc.returncode)
-                time.sleep(interval)
-        except BaseException:
-            proc.kill()
-            proc.wait()
-            raise
-
-
-def tail(path: Path, lines: int = 15) -> str:
-    text = path.read_text(errors="replace").splitlines() if path.is_file() else []
-    return "\n".join(f"    {line}" for line in text[-lines:])
-
-
 def verified(path: Path, public_key: str | None) -> tuple[dict[str, Any], str]:
     """The certificate when its digest (and, with `public_key`, its signature) verifies, and what was proven;
     ``CertificateError`` otherwise (edited, unreadable, badly signed: a usage error for reproduce)."""
@@ -293,7 +248,8 @@ def choose(cert: Mapping[str, Any], path: Path, n: int, closed_n: int, salt: str
 def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data: str | None = None,
               salt: str | None = None, public_key: str | None = None, keep: bool = False,
               any_planner: bool = False, closed_n: int = rc.DEFAULT_CLOSED, loop: str | None = None,
-              say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None) -> int:
+              say: Callable[[str], None] = print, progress: Callable[[str], None] | None = None,
+              bar_sink: Sink | None = None) -> int:
     """Rerun clean, null and `n` sampled cells (and closed-clean and `closed_n` sampled closed cells, of the
     loops `loop` names); 0 when every one is identical to the certificate, 1 otherwise.
     Usage errors (a missing planner or certificate, one that does not verify or contradicts its cells, a rerun
@@ -309,7 +265,7 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
                                 "certificate was made with")
     cert, proof = verified(cert_path, public_key)
     consistent(cert, cert_path)
-    drawn = "given" if salt is not None else "fresh randomness"
+    drawn = "given" if salt is not None else "fresh randomness"  # (the rerun: one progress line on `bar_sink`)
     salt = fresh_seed() if salt is None else salt
     open_cells, closed = choose(cert, cert_path, n, closed_n, salt, loop)
     cells = [*open_cells, *closed]
@@ -323,8 +279,17 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     argv = rerun_argv(cert, planner.resolve(), open_cells, report_dir, root, closed)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
-    judge = Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner)
-    code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), judge.on_cell)
+    # one line per cell is the result (said as each finishes); between them the line counts cells and seconds
+    with Progress("drivedegrade reproduce", len(cells), unit="cells", milestones=1,
+                  sink=bar_sink or Sink.silent()) as bar:
+        judge = Judge(cert, cert_path, cells, lambda s: bar.interject(say, s), lambda s: bar.interject(note, s),
+                      ["other software"] if notes else [], any_planner)
+
+        def finished(payload: CellPayload | ClosedPayload) -> None:
+            judge.on_cell(payload)
+            bar.advance(note=payload.cell)
+
+        code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), finished, tick=bar.tick)
     if code in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {code}); its output:\n"
                                 f"{tail(report_dir / 'pytest.log')}")

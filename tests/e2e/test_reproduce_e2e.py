@@ -37,6 +37,9 @@ def test_reproduce_identical_then_different_then_tampered(dd, capsys):
     assert sorted(line.split("] ")[1] for line in lines) == sorted(f"{c}: identical" for c in expected), out + err
     assert "all 4 cell(s) identical" in out
     assert "NOTE" not in err, err  # same machine, same planner, same data: nothing to warn about
+    # its progress line, in a log (no terminal here): the closing count only, the verdict lines say each cell
+    progress = [line for line in err.splitlines() if line.startswith("drivedegrade reproduce")]
+    assert len(progress) == 1 and progress[0].startswith("drivedegrade reproduce: 4 cells in "), err
 
     source = planner.read_text()
     planner.write_text(source.replace("        return plan\n\n    def misbehave",

@@ -44,7 +44,11 @@ def test_two_shards_merged_equal_the_unsharded_run(dd, two_scene_world, capsys):
     assert sorted(p.name for p in shards.iterdir() if p.is_dir()) == ["shard-1-of-2", "shard-2-of-2"]
     assert not (shards / "certificate.json").exists()  # a shard writes no certificate of its own
     out = dd.pytester.path / "merged"
+    capsys.readouterr()
     assert main(["merge", str(shards / "shard-2-of-2"), str(shards / "shard-1-of-2"), "--out", str(out)]) == 0
+    # one progress line in a log (stderr is no terminal here): milestones and the closing count, no line per cell
+    progress = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("drivedegrade merge")]
+    assert progress[-1].startswith("drivedegrade merge: 10 cell files in ") and len(progress) <= 4, progress
     full, merged = dd.pytester.path / "full" / "temporal", out / "temporal"
     assert read_csv(merged / "cells.csv") == read_csv(full / "cells.csv")
     a, b = load_json(full / "certificate.json"), load_json(merged / "certificate.json")

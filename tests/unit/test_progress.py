@@ -86,3 +86,36 @@ def test_the_pytest_sink_uses_the_terminal_reporter(pytester):
     result.assert_outcomes(passed=1)
     result.stdout.re_match_lines([r"building: 2/8 parts \(25 %\)", r"building: 8 parts in \d+\.\d s"])
     assert len([ln for ln in result.stdout.lines if ln.startswith("building")]) == 4
+
+
+def test_tick_redraws_the_clock_on_a_terminal_only_and_throttled():
+    out, clock = io.StringIO(), Clock()
+    bar = Progress("reproduce", 3, unit="cells", sink=Sink(out, tty=True), interval_s=1.0, clock=clock)
+    for _ in range(5):  # a subprocess working: no step done, 0.4 s apart
+        bar.tick()
+        clock.now += 0.4
+    draws = out.getvalue().split("\r")[1:]
+    assert [d.strip() for d in draws] == ["reproduce: 0/3 cells (0 %) 0.0 s", "reproduce: 0/3 cells (0 %) 1.2 s"]
+    log = io.StringIO()
+    quiet = Progress("reproduce", 3, sink=Sink(log, tty=False), clock=clock)
+    quiet.tick()
+    assert log.getvalue() == ""
+
+
+def test_a_line_said_while_the_bar_shows_is_not_garbled():
+    out, clock = io.StringIO(), Clock()
+    bar = Progress("reproduce", 2, unit="cells", sink=Sink(out, tty=True), clock=clock)
+    bar.advance(note="clean")
+    bar.interject(lambda s: out.write(s + "\n"), "clean: identical")
+    bar.finish()
+    # the bar cleared, the line at the start of its own line, the bar drawn again below it, then closed
+    screen = out.getvalue()
+    assert "\rclean: identical\n" in screen
+    after = screen.split("clean: identical\n")[1]
+    assert after.startswith("\rreproduce: 1/2 cells (50 %)") and screen.endswith("\n")
+    log = io.StringIO()
+    plain = Progress("reproduce", 2, sink=Sink(log, tty=False), milestones=1, clock=clock)
+    plain.advance()
+    plain.interject(lambda s: log.write(s + "\n"), "clean: identical")
+    plain.finish()
+    assert log.getvalue().splitlines() == ["clean: identical", "reproduce: 1/2 in 0.0 s"]

@@ -104,6 +104,12 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
                        "first_sample_token": samples[0], "last_sample_token": samples[-1], "name": scene.name,
                        "description": describe(scene)})
     ann_tokens: dict[int, list[str]] = {}
+    # tokens used more than once (a sample_data's is its neighbours' prev/next too) are hashed once
+    channels = (*CAMERAS, LIDAR)
+    sd_tokens = {ch: [token(seed, "sd", scene.index, ch, j) for j in range(KEYFRAMES)] + [""] for ch in channels}
+    calib = {ch: token(seed, "calib", ch) for ch in channels}
+    inst = [token(seed, "inst", scene.index, i) for i in range(len(scene.agents))]
+    attribute = {a: token(seed, "attribute", a) for a in ATTRIBUTES}
     for k, st in enumerate(samples):
         step, ts = k * KEY_EVERY, timestamp(scene, k)
         t["sample"].append({"token": st, "timestamp": ts, "prev": samples[k - 1] if k else "",
@@ -112,17 +118,17 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
         t["ego_pose"].append({"token": pose_tok, "timestamp": ts, "rotation": list(yaw_to_quat(scene.ego.yaw[step])),
                               "translation": [float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), 0.0]})
         for cam in CAMERAS:
-            sd = lambda j, cam=cam: token(seed, "sd", scene.index, cam, j) if 0 <= j < KEYFRAMES else ""  # noqa: E731
-            t["sample_data"].append({"token": sd(k), "sample_token": st, "ego_pose_token": pose_tok,
-                                     "calibrated_sensor_token": token(seed, "calib", cam), "timestamp": ts,
+            sd = sd_tokens[cam]  # sd[-1] is "": no previous at k = 0, no next at the last keyframe
+            t["sample_data"].append({"token": sd[k], "sample_token": st, "ego_pose_token": pose_tok,
+                                     "calibrated_sensor_token": calib[cam], "timestamp": ts,
                                      "fileformat": "jpg", "is_key_frame": True, "height": rig.cameras[cam].height,
                                      "width": rig.cameras[cam].width, "filename": image_name(scene, cam, k),
-                                     "prev": sd(k - 1), "next": sd(k + 1)})
-        lidar_sd = lambda j: token(seed, "sd", scene.index, LIDAR, j) if 0 <= j < KEYFRAMES else ""  # noqa: E731
-        t["sample_data"].append({"token": lidar_sd(k), "sample_token": st, "ego_pose_token": pose_tok,
-                                 "calibrated_sensor_token": token(seed, "calib", LIDAR), "timestamp": ts,
+                                     "prev": sd[k - 1], "next": sd[k + 1]})
+        sd = sd_tokens[LIDAR]
+        t["sample_data"].append({"token": sd[k], "sample_token": st, "ego_pose_token": pose_tok,
+                                 "calibrated_sensor_token": calib[LIDAR], "timestamp": ts,
                                  "fileformat": "pcd", "is_key_frame": True, "height": 0, "width": 0,
-                                 "filename": lidar_name(scene, k), "prev": lidar_sd(k - 1), "next": lidar_sd(k + 1)})
+                                 "filename": lidar_name(scene, k), "prev": sd[k - 1], "next": sd[k + 1]})
         pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
         boxes = sensing.boxes_at(scene.agents, step, pose)
         cloud, n_points = sensing.lidar_scan(boxes)
@@ -135,9 +141,9 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
             at = token(seed, "ann", scene.index, i, k)
             ann_tokens.setdefault(i, []).append(at)
             t["sample_annotation"].append({
-                "token": at, "sample_token": st, "instance_token": token(seed, "inst", scene.index, i),
+                "token": at, "sample_token": st, "instance_token": inst[i],
                 "visibility_token": sensing.visibility_token(float(visible[i])),
-                "attribute_tokens": [token(seed, "attribute", _attribute(a, step))],
+                "attribute_tokens": [attribute[_attribute(a, step)]],
                 "translation": [float(a.xy[step, 0]), float(a.xy[step, 1]), a.size[2] / 2],
                 "size": [a.size[1], a.size[0], a.size[2]], "rotation": list(yaw_to_quat(float(a.yaw[step]))),
                 "prev": "", "next": "", "num_lidar_pts": int(n_points[i]), "num_radar_pts": 0})

@@ -85,17 +85,36 @@ def arclines(xy: np.ndarray, yaw: np.ndarray) -> list[dict]:
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
     n = max(1, round(s[-1] / ARC_M))
     cuts = np.unique(np.searchsorted(s, np.linspace(0.0, s[-1], n + 1)).clip(0, len(s) - 1))
+    pose = np.column_stack([xy, _wrap(yaw)]).tolist()
     out = []
-    for a0, b0 in zip(cuts[:-1], cuts[1:]):
-        for a, b, k in _fit(xy, yaw, s, int(a0), int(b0)):
-            length = float(s[b] - s[a])
-            if abs(k) < MIN_CURVATURE:
-                shape, radius, seg = "LSL", STRAIGHT_RADIUS, [0.0, length, 0.0]
-            else:
-                shape, radius, seg = ("LSL" if k > 0 else "RSR"), 1.0 / abs(k), [length, 0.0, 0.0]
-            out.append({"start_pose": [round(float(v), 6) for v in (xy[a, 0], xy[a, 1], _wrap(yaw[a]))],
-                        "end_pose": [round(float(v), 6) for v in (xy[b, 0], xy[b, 1], _wrap(yaw[b]))],
-                        "shape": shape, "radius": round(radius, 6), "segment_length": [round(v, 6) for v in seg]})
+    for a, b, k in _fit_all(xy, yaw, s, cuts):
+        length = float(s[b] - s[a])
+        if abs(k) < MIN_CURVATURE:
+            shape, radius, seg = "LSL", STRAIGHT_RADIUS, [0.0, length, 0.0]
+        else:
+            shape, radius, seg = ("LSL" if k > 0 else "RSR"), 1.0 / abs(k), [length, 0.0, 0.0]
+        out.append({"start_pose": [round(v, 6) for v in pose[a]], "end_pose": [round(v, 6) for v in pose[b]],
+                    "shape": shape, "radius": round(radius, 6), "segment_length": [round(v, 6) for v in seg]})
+    return out
+
+
+def _fit_all(xy: np.ndarray, yaw: np.ndarray, s: np.ndarray, cuts: np.ndarray) -> list[tuple[int, int, float]]:
+    """`_fit` of every piece between consecutive `cuts`, the first try of all pieces at once: a piece whose arc
+    meets its end (not within 1e-12 m of the tolerance, where the two ways of summing could disagree) is one arc
+    with the curvature `_fit` computes; the others go through `_fit` itself."""
+    a, b = cuts[:-1], cuts[1:]
+    length = s[b] - s[a]
+    k = _wrap(yaw[b] - yaw[a]) / np.maximum(length, 1e-9)
+    x, y, h = xy[a, 0], xy[a, 1], yaw[a]
+    flat = np.abs(k) < MIN_CURVATURE
+    kk = np.where(flat, 1.0, k)
+    end_x = np.where(flat, x + length * np.cos(h), x + (np.sin(h + kk * length) - np.sin(h)) / kk)
+    end_y = np.where(flat, y + length * np.sin(h), y + (np.cos(h) - np.cos(h + kk * length)) / kk)
+    miss = np.hypot(end_x - xy[b, 0], end_y - xy[b, 1])
+    whole = ((miss <= ARC_TOLERANCE) | (b - a < 2)) & (np.abs(miss - ARC_TOLERANCE) > 1e-12)
+    out: list[tuple[int, int, float]] = []
+    for i, (ai, bi, ki) in enumerate(zip(a.tolist(), b.tolist(), k.tolist())):
+        out += [(ai, bi, ki)] if whole[i] else _fit(xy, yaw, s, ai, bi)
     return out
 
 
@@ -127,7 +146,9 @@ class MapTables:
         (float64) vertices, so two polygons sharing an edge share its coordinates exactly (no sliver between)."""
         flat = (ring - ring[0]).astype(np.float32)
         simple = cv2.approxPolyDP(flat.reshape(-1, 1, 2), POLY_TOLERANCE, True).reshape(-1, 2)
-        keep = [int(np.flatnonzero((flat == v).all(1))[0]) for v in simple]
+        rows = [tuple(v) for v in flat.tolist()]
+        first = dict(zip(reversed(rows), range(len(rows) - 1, -1, -1)))  # a vertex -> its first index in ring
+        keep = [first[tuple(v)] for v in simple.tolist()]
         tok = self.token("polygon")
         self.layers["polygon"].append({"token": tok, "exterior_node_tokens": self.nodes(ring[keep]), "holes": []})
         return tok
@@ -135,12 +156,7 @@ class MapTables:
     def line(self, xy: np.ndarray) -> tuple[str, list[str]]:
         o = xy[0]
         simple = cv2.approxPolyDP((xy - o).astype(np.float32).reshape(-1, 1, 2), POLY_TOLERANCE, False)
-        pts = simple.reshape(-1, 2).astype(np.float64) + o
-        dense = [pts[:1]]
-        for p, q in zip(pts[:-1], pts[1:]):
-            k = max(1, int(np.ceil(np.linalg.norm(q - p) / LINE_GAP)))
-            dense.append(p + np.linspace(0.0, 1.0, k + 1)[1:, None] * (q - p))
-        toks = self.nodes(np.concatenate(dense))
+        toks = self.nodes(_densify(simple.reshape(-1, 2).astype(np.float64) + o))
         tok = self.token("line")
         self.layers["line"].append({"token": tok, "node_tokens": toks})
         return tok, toks
@@ -175,6 +191,22 @@ class MapTables:
         for i, t in enumerate(toks):
             self.connectivity[t] = {"incoming": [toks[j] for j in np.flatnonzero(follows[:, i])],
                                     "outgoing": [toks[j] for j in np.flatnonzero(follows[i])]}
+
+
+def _densify(pts: np.ndarray) -> np.ndarray:
+    """A polyline (M, 2) with each segment p -> q cut into k = ceil(|q - p| / LINE_GAP) (at least 1) equal parts:
+    the points p + t (q - p), t = i / k as `np.linspace(0, 1, k + 1)` gives them (i * (1 / k), the last exactly 1)."""
+    d = pts[1:] - pts[:-1]
+    ratio = np.hypot(d[:, 0], d[:, 1]) / LINE_GAP
+    k = np.ceil(ratio)
+    near = np.flatnonzero(np.abs(ratio - np.round(ratio)) < 1e-9)  # where a last-bit difference could matter
+    k[near] = [np.ceil(np.linalg.norm(d[j]) / LINE_GAP) for j in near]
+    k = np.maximum(k, 1).astype(np.int64)
+    seg = np.repeat(np.arange(len(k)), k)
+    i = np.arange(1, len(seg) + 1) - np.repeat(np.cumsum(k) - k, k)  # 1..k within each segment
+    t = i.astype(np.float64) * (1.0 / k)[seg]
+    t[i == k[seg]] = 1.0
+    return np.concatenate([pts[:1], pts[:-1][seg] + t[:, None] * d[seg]])
 
 
 def _strip(xy: np.ndarray, yaw: np.ndarray, d_right: float, d_left: float) -> np.ndarray:

@@ -22,6 +22,7 @@ LEVEL_EDGES = (9.0, 18.0, 36.0)  # m forward  # m: ground distance at which the 
 GROUND_MAX = 350.0
 DECAL_MAX = 90.0  # m: decals of farther parts are below a pixel or two
 SOLID_MAX = 220.0
+SHADOW_REACH = 80.0  # m: agents farther from the camera cast no shadow in its image
 AA = cv2.LINE_AA
 SHIFT = 4
 
@@ -89,7 +90,7 @@ def draw_background(pre: CameraPrecomp, shape, ground: GroundMap, sky: np.ndarra
     if pre.horizon:
         pw = sky.shape[1]
         cols = ((pre.sky_x + yaw / (2 * np.pi)) * pw).astype(np.int64) % pw
-        img[: pre.horizon] = np.take(sky[pre.sky_y], cols, axis=1)
+        img[: pre.horizon] = sky[pre.sky_y[:, None], cols[None, :]]  # one gather: the rows' pixels at the columns
     return img
 
 
@@ -209,12 +210,15 @@ def _fill_in_order(img, groups: list[tuple[np.ndarray, np.ndarray]], intrinsic) 
 def draw_shadows(img, agents: list[Agent], step: int, cam, world_to_cam, style) -> None:
     """Dark contact shadows under every agent, drawn before the solids."""
     colour = tuple(float(x) for x in np.array([28, 28, 32]) * style.light)
+    centre = -world_to_cam[:3, :3].T @ world_to_cam[:3, 3]  # the camera in the world
     for a in agents:
         x, y = a.xy[step]
+        if np.hypot(np.hypot(x - centre[0], y - centre[1]), centre[2]) > SHADOW_REACH + 1.0:
+            continue  # surely beyond the reach tested below (a shortcut: the same agents get shadows)
         box = np.array([[x, y, a.yaw[step], 0.02, 0.02, a.size[0] + 0.3, a.size[1] + 0.3]])
         top = _corners(box)[0][FACES[4]]
         pc = top @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
-        if (pc[:, 2] > NEAR_PLANE).any() and np.linalg.norm(pc.mean(0)) < 80:
+        if (pc[:, 2] > NEAR_PLANE).any() and np.linalg.norm(pc.mean(0)) < SHADOW_REACH:
             _fill_many(img, pc[None], cam.intrinsic, np.array([colour]))
 
 

@@ -65,11 +65,14 @@ class Path:
     def project(self, xy: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
         """Arc length and signed lateral offset (left positive) of points (N, 2) on their nearest sample."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        sub = self.xy[::8]
+        sub_x, sub_y = np.ascontiguousarray(self.xy[::8].T)
         idx = np.empty(len(xy), dtype=int)
-        for i in range(0, len(xy), chunk):
-            d = xy[i:i + chunk, None, :] - sub[None, :, :]
-            idx[i:i + chunk] = np.einsum("nmk,nmk->nm", d, d).argmin(1) * 8
+        for i in range(0, len(xy), chunk):  # squared distances as dx * dx + dy * dy: einsum's sum, several x faster
+            dx, dy = xy[i:i + chunk, 0, None] - sub_x, xy[i:i + chunk, 1, None] - sub_y
+            dx *= dx
+            dy *= dy
+            dx += dy
+            idx[i:i + chunk] = dx.argmin(1) * 8
         rel = xy - self.xy[idx]
         c, s = np.cos(self.yaw[idx]), np.sin(self.yaw[idx])
         return self.s[idx] + rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c

@@ -53,6 +53,8 @@ _COL_OFFSET = int(round(np.degrees(-np.arctan2(_DIR_EGO[RINGS // 2, 0, 1], _DIR_
 # returns are kept (within range, on one of the GROUND_EVERY spokes).
 with np.errstate(divide="ignore"):
     _GROUND = np.where(_DIR_EGO[..., 2].ravel() < 0, -_T_LIDAR[2] / _DIR_EGO[..., 2].ravel(), np.inf)
+#: Each ray's rise per metre of horizontal travel (ego frame).
+_SLOPE = _DIR_EGO[..., 2].ravel() / np.hypot(_DIR_EGO[..., 0], _DIR_EGO[..., 1]).ravel()
 _GROUND_KEPT = (_GROUND <= LIDAR_RANGE) & ((np.tile(np.arange(_N_AZ), RINGS) - _COL_OFFSET) % GROUND_EVERY == 0)
 
 
@@ -67,20 +69,32 @@ def boxes_at(agents: list[Agent], step: int, pose) -> np.ndarray:
     return out
 
 
-def _slab(origin: np.ndarray, direction: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """Entry distance along each ray (pairs: (P, 3) origins, directions, (P, 6) boxes); inf where it misses."""
-    c, s = np.cos(boxes[:, 2]), np.sin(boxes[:, 2])
-    ox, oy = origin[:, 0] - boxes[:, 0], origin[:, 1] - boxes[:, 1]
-    o = np.stack([c * ox + s * oy, -s * ox + c * oy, origin[:, 2]], -1)
+def _slab(origin: np.ndarray, direction: np.ndarray, boxes: np.ndarray, box_of: np.ndarray) -> np.ndarray:
+    """Entry distance along each ray (pairs: (P, 3) directions against boxes `box_of` (P,) of (B, 6) `boxes`,
+    from (P, 3) origins or one (3,) origin for all); inf where it misses.
+
+    What depends only on a box (its rotation, extents, and with one origin that origin in its frame) is computed
+    once per box and gathered per pair: the same arithmetic on the same numbers as per pair, fewer operations."""
+    c_b, s_b = np.cos(boxes[:, 2]), np.sin(boxes[:, 2])
+    lo_b = np.stack([-boxes[:, 3] / 2, -boxes[:, 4] / 2, np.zeros(len(boxes))], -1)
+    hi_b = np.stack([boxes[:, 3] / 2, boxes[:, 4] / 2, boxes[:, 5]], -1)
+    c, s = c_b[box_of], s_b[box_of]
+    if origin.ndim == 1:
+        ox, oy = origin[0] - boxes[:, 0], origin[1] - boxes[:, 1]
+        o_b = np.stack([c_b * ox + s_b * oy, -s_b * ox + c_b * oy, np.full(len(boxes), origin[2])], -1)
+        low, high, inside = (lo_b - o_b)[box_of], (hi_b - o_b)[box_of], ((o_b >= lo_b) & (o_b <= hi_b))[box_of]
+    else:
+        ox, oy = origin[:, 0] - boxes[box_of, 0], origin[:, 1] - boxes[box_of, 1]
+        o = np.stack([c * ox + s * oy, -s * ox + c * oy, origin[:, 2]], -1)
+        lo, hi = lo_b[box_of], hi_b[box_of]
+        low, high, inside = lo - o, hi - o, (o >= lo) & (o <= hi)  # inside: a ray parallel to a slab
     d = np.stack([c * direction[:, 0] + s * direction[:, 1], -s * direction[:, 0] + c * direction[:, 1],
                   direction[:, 2]], -1)
-    lo = np.stack([-boxes[:, 3] / 2, -boxes[:, 4] / 2, np.zeros(len(boxes))], -1)
-    hi = np.stack([boxes[:, 3] / 2, boxes[:, 4] / 2, boxes[:, 5]], -1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo - o) / d, (hi - o) / d
-    inside = (o >= lo) & (o <= hi)  # a ray parallel to a slab: always or never within it
-    t0 = np.where(d == 0, np.where(inside, -np.inf, np.inf), t0)
-    t1 = np.where(d == 0, np.where(inside, np.inf, np.inf), t1)
+        t0, t1 = low / d, high / d
+    parallel = d == 0  # always or never within that slab
+    t0 = np.where(parallel, np.where(inside, -np.inf, np.inf), t0)
+    t1 = np.where(parallel, np.inf, t1)
     near = np.minimum(t0, t1).max(-1)
     far = np.maximum(t0, t1).min(-1)
     hit = (far >= np.maximum(near, 0.0)) & (near >= 0.0)
@@ -111,7 +125,13 @@ def lidar_scan(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         col = (np.repeat(c0, width) + np.arange(width.sum()) - start) % _N_AZ
         rays = (np.arange(RINGS)[:, None] * _N_AZ + col[None]).ravel()
         box_of = np.tile(box_of, RINGS)
-        t = _slab(np.broadcast_to(_T_LIDAR, (len(rays), 3)), _DIR_EGO.reshape(-1, 3)[rays], boxes[box_of])
+        # drop the pairs that cannot hit: at the box's nearest horizontal distance a falling ray is already below
+        # the ground or a rising one above the roof (then the whole box is out of its reach); the others are cast
+        # as before, in the same order, so the nearest hits and their ties are the same
+        z_at = _T_LIDAR[2] + np.maximum(dist - radius, 0.0)[box_of] * _SLOPE[rays]
+        can = np.where(_SLOPE[rays] > 0, z_at <= boxes[box_of, 5] + 0.01, z_at >= -0.01)
+        rays, box_of = rays[can], box_of[can]
+        t = _slab(_T_LIDAR, _DIR_EGO.reshape(-1, 3)[rays], boxes, box_of)
         hit = np.flatnonzero(np.isfinite(t) & (t <= LIDAR_RANGE))
         order = hit[np.lexsort((t[hit], rays[hit]))]
         first = order[np.unique(rays[order], return_index=True)[1]]
@@ -195,14 +215,15 @@ def visible_fractions(boxes: np.ndarray, targets, rig: Rig) -> np.ndarray:
         length = np.linalg.norm(seg, axis=1)
         direction = seg / length[:, None]
         # candidate occluders: another box whose footprint circle comes within reach of the segment (2D)
-        rel = boxes[None, :, :2] - view_centre[:, None, :2]  # (V, B, 2)
-        seg2 = seg[:, None, :2]
-        along = np.clip((rel * seg2).sum(-1) / np.maximum((seg2 ** 2).sum(-1), 1e-9), 0.0, 1.0)
-        gap = np.hypot(*np.moveaxis(rel - along[..., None] * seg2, -1, 0))
+        # (V, B) arrays per coordinate, not (V, B, 2) ones: the same sums of two products, less memory traffic
+        rx, ry = boxes[None, :, 0] - view_centre[:, 0, None], boxes[None, :, 1] - view_centre[:, 1, None]
+        sx, sy = seg[:, 0, None], seg[:, 1, None]
+        along = np.clip((rx * sx + ry * sy) / np.maximum(sx ** 2 + sy ** 2, 1e-9), 0.0, 1.0)
+        gap = np.hypot(rx - along * sx, ry - along * sy)
         reach = gap <= 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])[None]
         reach[np.arange(len(view_sample)), targets[owner_k[view_sample]]] = False
         view_of, box_of = np.nonzero(reach)
-        t = _slab(view_centre[view_of], direction[view_of], boxes[box_of])
+        t = _slab(view_centre[view_of], direction[view_of], boxes, box_of)
         blocked = np.zeros(len(view_sample), bool)
         np.logical_or.at(blocked, view_of, t < length[view_of] - 1e-3)
         seen[view_sample[~blocked]] = True

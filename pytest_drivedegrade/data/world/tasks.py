@@ -1,4 +1,4 @@
-"""One scene of a world as one task, run in worker processes: the world's build spread over the machine's cores.
+"""One scene of a world as one task, run in worker processes (and this one): the build spread over the cores.
 
 A task generates its scene and writes the scene's own files (point clouds, CAN bus, map expansion, images); the
 tables it returns as JSON text and its share of the world's fingerprint as bytes, which the builder joins in scene
@@ -10,8 +10,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from collections import deque
 from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -109,7 +110,9 @@ def run_tasks(tasks: list[SceneTask], workers: int | None = None,
               done: Callable[[SceneTask], None] | None = None) -> list[SceneOutput]:
     """Run `tasks` on `workers` processes (None: `default_workers`), the costliest first; outputs in task order.
 
-    Workers are spawned, not forked: the caller may be a pytest process with torch's or OpenCV's threads running.
+    This process is one of them: it runs tasks itself while `workers - 1` spawned processes run theirs, so work
+    starts at once, not after a worker has started and imported (and one process fewer is spawned). Workers are
+    spawned, not forked: the caller may be a pytest process with torch's or OpenCV's threads running.
     `done` is called in this process as each task finishes (for a progress line).
     """
     n = default_workers(len(tasks)) if workers is None else max(1, min(workers, len(tasks) or 1))
@@ -121,12 +124,19 @@ def run_tasks(tasks: list[SceneTask], workers: int | None = None,
             note(task)
         return outputs
     results: dict[int, SceneOutput] = {}
-    pool = ProcessPoolExecutor(n, mp_context=get_context("spawn"), initializer=_init_worker)
+    queue = deque(sorted(range(len(tasks)), key=lambda i: (-tasks[i].cost, i)))
+    pending: dict[Future[SceneOutput], int] = {}
+    pool = ProcessPoolExecutor(n - 1, mp_context=get_context("spawn"), initializer=_init_worker)
     try:
-        order = sorted(range(len(tasks)), key=lambda i: (-tasks[i].cost, i))
-        pending = {pool.submit(run_task, tasks[i]): i for i in order}
-        while pending:
-            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+        while queue or pending:
+            while queue and len(pending) < 2 * (n - 1):  # the workers' next tasks, queued while this one works
+                i = queue.popleft()
+                pending[pool.submit(run_task, tasks[i])] = i
+            if queue:
+                i = queue.popleft()
+                results[i] = _here(tasks[i])
+                note(tasks[i])
+            finished, _ = wait(pending, timeout=0 if queue else None, return_when=FIRST_COMPLETED)
             for future in finished:
                 i = pending.pop(future)
                 results[i] = future.result()
@@ -134,3 +144,15 @@ def run_tasks(tasks: list[SceneTask], workers: int | None = None,
     finally:  # on an error or an interrupt, the tasks not yet started are dropped, not waited for
         pool.shutdown(wait=True, cancel_futures=True)
     return [results[i] for i in range(len(tasks))]
+
+
+def _here(task: SceneTask) -> SceneOutput:
+    """`run_task` in this process, on one OpenCV thread as in the workers (the caller's setting restored)."""
+    import cv2
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return run_task(task)
+    finally:
+        cv2.setNumThreads(threads)

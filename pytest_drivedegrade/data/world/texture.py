@@ -131,22 +131,28 @@ def _paint_markings(p: _Painter, net: RoadNet, style, crosswalks: list[float]) -
 
 def ground_map(net: RoadNet, ego_xy: np.ndarray, style, crosswalks: list[float],
                rng: np.random.Generator) -> GroundMap:
-    """Paint the ground around the ego's drive into a mip pyramid (uint8 throughout: the map is large)."""
+    """Paint the ground around the ego's drive into a mip pyramid (uint8 throughout: the map is large).
+
+    The map is tens of megabytes: every step after the painting works in place (a fresh array that size costs
+    more in page faults than the arithmetic), with the same saturating arithmetic as fresh arrays would give."""
     lo, hi = ego_xy.min(0) - 100.0, ego_xy.max(0) + 100.0
     h, w = (np.ceil((hi - lo) / MAP_RES).astype(int))[::-1]
     img = np.empty((h, w, 3), np.uint8)
-    img[:] = np.clip(style.verge, 0, 255).astype(np.uint8)
+    img[0] = np.clip(style.verge, 0, 255).astype(np.uint8)
+    img[1:] = img[0]  # row copies: much faster than broadcasting one pixel over the image
     p = _Painter(img, lo)
     _paint_roads(p, net, style, rng)
     _paint_markings(p, net, style, crosswalks)
     small = (h // 4 + 1, w // 4 + 1)
     patches = 1.0 + 0.10 * noise(rng, small, 75) + 0.06 * noise(rng, small, 10)
     factor = cv2.resize((patches * style.light * 128).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-    factor = cv2.merge([np.clip(factor, 0, 255).astype(np.uint8)] * 3)
-    img = cv2.multiply(img, factor, scale=1 / 128)
+    np.clip(factor, 0, 255, out=factor)
+    three = cv2.merge([factor.astype(np.uint8)] * 3)
+    cv2.multiply(img, three, dst=img, scale=1 / 128)
     grain = rng.integers(0, 18, size=(h, w), dtype=np.uint8)  # surface grain, +-9 grey levels
-    grain3 = cv2.merge([grain] * 3)
-    img = cv2.subtract(cv2.add(img, grain3), np.full_like(grain3, 9))
+    cv2.add(img, cv2.merge([grain] * 3, dst=three), dst=img)
+    three.fill(9)
+    cv2.subtract(img, three, dst=img)
     levels = [img]
     for _ in range(3):
         levels.append(cv2.pyrDown(levels[-1]))
