@@ -279,20 +279,8 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     argv = rerun_argv(cert, planner.resolve(), open_cells, report_dir, root, closed)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
-    # one line per cell is the result (said as each finishes); between them the line counts cells and seconds
-    with Progress("drivedegrade reproduce", len(cells), unit="cells", milestones=1,
-                  sink=bar_sink or Sink.silent()) as bar:
-        judge = Judge(cert, cert_path, cells, lambda s: bar.interject(say, s), lambda s: bar.interject(note, s),
-                      ["other software"] if notes else [], any_planner)
-
-        def finished(payload: CellPayload | ClosedPayload) -> None:
-            judge.on_cell(payload)
-            bar.advance(note=payload.cell)
-
-        code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), finished, tick=bar.tick)
-    if code in (2, 3, 4) and not judge.results:
-        raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {code}); its output:\n"
-                                f"{tail(report_dir / 'pytest.log')}")
+    judge = _judged_rerun(Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner),
+                          argv, report_dir, bar_sink)
     rerun = _rerun_certificate(report_dir)
     for line in settings_notes(cert, rerun):
         note(f"reproduce: NOTE: {line}")
@@ -308,6 +296,26 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     if not keep:
         shutil.rmtree(report_dir, ignore_errors=True)
     return 0
+
+
+def _judged_rerun(judge: Judge, argv: Sequence[str], report_dir: Path, bar_sink: Sink | None) -> Judge:
+    """Run the rerun, `judge` saying each cell's verdict as it finishes; between verdicts one progress line on
+    `bar_sink` counts cells and seconds (the verdict lines print above it)."""
+    say, note = judge.say, judge.note
+    with Progress("drivedegrade reproduce", len(judge.cells), unit="cells", milestones=1,
+                  sink=bar_sink or Sink.silent()) as bar:
+        judge.say, judge.note = (lambda s: bar.interject(say, s)), (lambda s: bar.interject(note, s))
+
+        def finished(payload: CellPayload | ClosedPayload) -> None:
+            judge.on_cell(payload)
+            bar.advance(note=payload.cell)
+
+        code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, judge.cells), finished, tick=bar.tick)
+    judge.say, judge.note = say, note
+    if code in (2, 3, 4) and not judge.results:
+        raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {code}); its output:\n"
+                                f"{tail(report_dir / 'pytest.log')}")
+    return judge
 
 
 @dataclass

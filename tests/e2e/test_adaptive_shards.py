@@ -15,6 +15,7 @@ from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
 
 from pytest_drivedegrade.certificate.seal import seal, write_certificate  # noqa: E402
 from pytest_drivedegrade.cli import main  # noqa: E402
+from pytest_drivedegrade.scoring.sequential import METHOD  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
@@ -33,9 +34,10 @@ def records(folder: Path) -> dict[str, dict]:
     return out
 
 
-@pytest.mark.parametrize("temporal", [False, True], ids=["frames", "windows"])
+@pytest.mark.parametrize("temporal", [False, True], ids=["frames", "scenes"])
 def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, temporal):
-    """Single-frame units (a planner without reset) and windows after a warm-up (the temporal test planner)."""
+    """Single-frame units (a planner without reset) and whole scenes (the temporal test planner: a run of fewer
+    than SCENE_UNITS_BELOW scenes)."""
     if temporal:
         from test_temporal import TEMPORAL
 
@@ -55,14 +57,15 @@ def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, t
     shards = dd.folder(name, report="sh")
     out = dd.pytester.path / "merged"
     assert main(["merge", str(shards / "shard-2-of-2"), str(shards / "shard-1-of-2"), "--out", str(out)]) == 0
-    assert "adaptive (alpha 0.05, asymptotic):" in capsys.readouterr().out
+    assert f"adaptive (alpha 0.05, {METHOD}):" in capsys.readouterr().out
     full, merged = dd.folder(name, report="full"), out / name
     a, b = load_json(full / "certificate.json"), load_json(merged / "certificate.json")
     for key in SAME:
         assert a[key] == b[key], key
     assert (merged / "cells.csv").read_text() == (full / "cells.csv").read_text()
     assert records(merged) == records(full) and len(records(full)) == 13
-    assert b["adaptive"]["plan"]["window"] == (8 if temporal else 1)
+    plan = b["adaptive"]["plan"]
+    assert (plan["window"], plan["warmup"]) == ((12, 0) if temporal else (1, 2))  # one 12-frame scene; frames
     done = verify_cli(merged / "certificate.json")
     assert done.returncode == 0, done.stderr
     if not temporal:  # a merged adaptive certificate reruns, unsharded, bit for bit
