@@ -202,6 +202,17 @@ def load_json(path: Path) -> Any:
     return json.loads(path.read_text())
 
 
+def stored_records(folder: Path) -> dict[str, dict]:
+    """Every stored cell record of a report folder without its timings (which `record_digests` covers, so those
+    differ by run), by cell."""
+    out = {}
+    for path in sorted((folder / "cells").glob("*.json")):
+        record = load_json(path)["record"]
+        record.pop("seconds")
+        out[path.stem] = record
+    return out
+
+
 def _warm_up_matplotlib() -> None:
     """Render one small chart, so matplotlib's lazily imported parts are loaded outside the runs too."""
     import io

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
+from plugin_support import load_json, no_traceback, stored_records, verify_cli  # noqa: E402
 from test_shards import two_scene_world  # noqa: E402, F401 - 2 val scenes: the temporal planner resets between them
 
 from pytest_drivedegrade.certificate.seal import seal, write_certificate  # noqa: E402
@@ -20,16 +20,6 @@ from pytest_drivedegrade.cli import main  # noqa: E402
 PLANNERS = Path(__file__).resolve().parents[2] / "planners"
 
 pytest_plugins = ["plugin_support"]
-
-
-def records(folder: Path) -> dict[str, dict]:
-    """Every stored cell record without its timings."""
-    out = {}
-    for path in sorted((folder / "cells").glob("*.json")):
-        record = load_json(path)["record"]
-        record.pop("seconds")
-        out[path.stem] = record
-    return out
 
 
 def section(folder: Path) -> dict:
@@ -50,7 +40,7 @@ def test_adaptive_cells_are_the_same_serially_and_under_n2_and_verify(dd, two_sc
         no_traceback(result)
         result.stdout.fnmatch_lines(["*adaptive (alpha 0.05, asymptotic-wor): * forward passes against *"])
         folder = dd.pytester.path / report / name
-        got[layout] = (records(folder), (folder / "cells.csv").read_text(), section(folder))
+        got[layout] = (stored_records(folder), (folder / "cells.csv").read_text(), section(folder))
         done = verify_cli(folder / "certificate.json")
         assert done.returncode == 0, done.stderr
     serial, parallel = got["-p no:xdist"], got["-n 2"]

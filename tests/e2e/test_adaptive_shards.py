@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
+from plugin_support import load_json, no_traceback, stored_records, verify_cli  # noqa: E402
 
 from pytest_drivedegrade.certificate.seal import seal, write_certificate  # noqa: E402
 from pytest_drivedegrade.cli import main  # noqa: E402
@@ -22,16 +22,6 @@ pytest_plugins = ["plugin_support"]
 FRAMES = ("--drivedegrade-frames", "12")
 #: What a merge must give exactly as the unsharded run: every analysed section and the adaptive one.
 SAME = ("cells", "thresholds", "axes", "verdict", "floor", "null_control", "settings", "adaptive", "dataset")
-
-
-def records(folder: Path) -> dict[str, dict]:
-    """Every stored cell record without its timings (which `record_digests` covers, so those differ by run)."""
-    out = {}
-    for path in sorted((folder / "cells").glob("*.json")):
-        record = load_json(path)["record"]
-        record.pop("seconds")
-        out[path.stem] = record
-    return out
 
 
 @pytest.mark.parametrize("temporal", [False, True], ids=["frames", "scenes"])
@@ -63,7 +53,7 @@ def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, t
     for key in SAME:
         assert a[key] == b[key], key
     assert (merged / "cells.csv").read_text() == (full / "cells.csv").read_text()
-    assert records(merged) == records(full) and len(records(full)) == 13
+    assert stored_records(merged) == stored_records(full) and len(stored_records(full)) == 13
     plan = b["adaptive"]["plan"]
     assert (plan["window"], plan["warmup"]) == ((12, 0) if temporal else (1, 2))  # one 12-frame scene; frames
     done = verify_cli(merged / "certificate.json")
