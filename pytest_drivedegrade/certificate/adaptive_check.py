@@ -98,6 +98,10 @@ def check_adaptive(cert: Mapping[str, object], folder: Path | None, groups: Fami
     if folder is None or not folder.is_dir():
         return ["adaptive: no cells/ folder beside the certificate, so the stopping decisions cannot be "
                 "recomputed; verify the certificate in its report folder"]
+    if section.get("method") != sequential.METHOD:  # a former stopping rule: its stops are not this version's
+        return [f"adaptive: its cells stopped on the {section.get('method')!r} confidence sequence; this version "
+                f"stops on {sequential.METHOD!r} and recomputes only those stops: verify it with the release that "
+                "made it (its `tool` section), or certify again"]
     try:
         plan = sequential.UnitPlan.from_builtins(section.get("plan") or {})
     except (TypeError, ValueError) as exc:

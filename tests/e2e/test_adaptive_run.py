@@ -76,6 +76,12 @@ def test_verify_fails_a_tampered_stopping_decision_and_reproduce_reruns_bit_for_
     done = verify_cli(cert_path)
     assert done.returncode == 1
     assert f"adaptive.cells.{cell}.units: certificate says" in done.stderr
+    cert["adaptive"]["cells"][cell]["units"] += 1
+    cert["adaptive"]["method"] = "asymptotic"  # a certificate stopped by the former rule: said so, not a mismatch
+    write_certificate(cert_path, seal(cert))
+    done = verify_cli(cert_path)
+    assert done.returncode == 1 and "stopped on the 'asymptotic' confidence sequence; this version stops on" \
+        in done.stderr, done.stderr
 
 
 def test_adaptive_usage_errors(dd):
