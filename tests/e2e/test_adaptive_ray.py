@@ -11,8 +11,7 @@ import pytest
 pytest.importorskip("ray")
 pytest.register_assert_rewrite("plugin_support")
 import test_ray  # noqa: E402
-from plugin_support import load_json, no_traceback, verify_cli  # noqa: E402
-from test_adaptive_shards import records  # noqa: E402
+from plugin_support import load_json, no_traceback, stored_records, verify_cli  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 #: Every test that starts Ray runs on one xdist worker (`--dist loadgroup`): see test_ray.
@@ -33,7 +32,7 @@ def test_an_adaptive_ray_run_gives_the_cells_of_a_local_one(dd, two_scene_world,
     result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster*"])
     local, ray = (dd.pytester.path / report / "camera_cnn" for report in ("local", "ray"))
     assert (ray / "cells.csv").read_text() == (local / "cells.csv").read_text()
-    assert records(ray) == records(local)
+    assert stored_records(ray) == stored_records(local)
     a, b = load_json(local / "certificate.json"), load_json(ray / "certificate.json")
     assert a["adaptive"] == b["adaptive"] and a["cells"] == b["cells"]
     assert any(c["stop"] == "skipped" for c in b["adaptive"]["cells"].values())  # the schedule skipped some
