@@ -279,8 +279,8 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     argv = rerun_argv(cert, planner.resolve(), open_cells, report_dir, root, closed)
     note(f"reproduce: rerunning {len(cells)} cell(s): {', '.join(cells)}\n  {shlex.join(['python', *argv[1:]])}")
     say(f"reproduce: sample seed {salt} ({drawn}; --seed {salt} draws these cells again): {', '.join(cells)}")
-    judge = _judged_rerun(Judge(cert, cert_path, cells, say, note, ["other software"] if notes else [], any_planner),
-                          argv, report_dir, bar_sink)
+    judge = _judged_rerun(lambda s, n: Judge(cert, cert_path, cells, s, n, ["other software"] if notes else [],
+                                             any_planner), say, note, cells, argv, report_dir, bar_sink)
     rerun = _rerun_certificate(report_dir)
     for line in settings_notes(cert, rerun):
         note(f"reproduce: NOTE: {line}")
@@ -298,20 +298,21 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
     return 0
 
 
-def _judged_rerun(judge: Judge, argv: Sequence[str], report_dir: Path, bar_sink: Sink | None) -> Judge:
-    """Run the rerun, `judge` saying each cell's verdict as it finishes; between verdicts one progress line on
-    `bar_sink` counts cells and seconds (the verdict lines print above it)."""
-    say, note = judge.say, judge.note
-    with Progress("drivedegrade reproduce", len(judge.cells), unit="cells", milestones=1,
+def _judged_rerun(judge_for: Callable[[Callable[[str], None], Callable[[str], None]], Judge],
+                  say: Callable[[str], None], note: Callable[[str], None], cells: Sequence[str], argv: Sequence[str],
+                  report_dir: Path, bar_sink: Sink | None) -> Judge:
+    """Run the rerun, a judge (`judge_for(say, note)`) saying each cell's verdict as it finishes; between verdicts
+    one progress line on `bar_sink` counts cells and seconds (verdict lines print above it; once the line is
+    closed they print plainly)."""
+    with Progress("drivedegrade reproduce", len(cells), unit="cells", milestones=1,
                   sink=bar_sink or Sink.silent()) as bar:
-        judge.say, judge.note = (lambda s: bar.interject(say, s)), (lambda s: bar.interject(note, s))
+        judge = judge_for(lambda s: bar.interject(say, s), lambda s: bar.interject(note, s))
 
         def finished(payload: CellPayload | ClosedPayload) -> None:
             judge.on_cell(payload)
             bar.advance(note=payload.cell)
 
-        code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, judge.cells), finished, tick=bar.tick)
-    judge.say, judge.note = say, note
+        code = run_watched(argv, report_dir / "pytest.log", Watch(report_dir, cells), finished, tick=bar.tick)
     if code in (2, 3, 4) and not judge.results:
         raise DriveDegradeError(f"the rerun stopped before any cell finished (pytest exit {code}); its output:\n"
                                 f"{tail(report_dir / 'pytest.log')}")

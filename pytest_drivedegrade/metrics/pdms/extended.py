@@ -74,6 +74,11 @@ def ep_v2(plan_m: float, plan_multiplier: float, expert_m: float, expert_multipl
     return min(max(max(plan_m, 0.0) / top, 0.0), 1.0) if top > PROGRESS_DISTANCE_THRESHOLD else 1.0
 
 
+def lane_query(states: EgoStates, lanes: LaneView | None) -> LaneQuery | None:
+    """The states against the lanes (`LaneView.query`), once for DDC and LK; None without lanes."""
+    return lanes.query(states.xy, states.heading) if lanes is not None and len(lanes.start) else None
+
+
 def driving_direction(states: EgoStates, lanes: LaneView | None, query: LaneQuery | None = None) -> float:
     """DDC in {0, 1/2, 1}: the distance driven in oncoming lanes (outside intersections) within any 1 s window:
     below 2 m 1, below 6 m 1/2, else 0. NaN without lanes. `query`: the states' `LaneView.query`, where the

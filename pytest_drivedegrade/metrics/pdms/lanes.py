@@ -125,16 +125,6 @@ class LaneView:
             along_any |= inside & (np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2)
         return LaneQuery(deviation, inside_any & ~along_any, self.in_intersection(pts))
 
-    def deviation(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
-        """(N,) distance of each point to the nearest centreline segment running its way (within 90 degrees of
-        `heading`); inf where no lane runs that way within NEAR_M of the points."""
-        return self.query(xy, heading).deviation
-
-    def oncoming(self, xy: np.ndarray, heading: np.ndarray) -> np.ndarray:
-        """(N,) bool: the point lies in some lane polygon and every lane it lies in runs against `heading` (more
-        than 90 degrees off, measured at that lane's centreline segment nearest the point)."""
-        return self.query(xy, heading).oncoming
-
 
 @dataclass(frozen=True)
 class LaneQuery:

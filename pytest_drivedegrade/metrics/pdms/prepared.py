@@ -29,7 +29,15 @@ from .constants import (
     DrivableQuery,
     PDMSResult,
 )
-from .extended import ExtendedTerms, driving_direction, ep_v2, history, history_comfort, lane_keeping
+from .extended import (
+    ExtendedTerms,
+    driving_direction,
+    ep_v2,
+    history,
+    history_comfort,
+    lane_keeping,
+    lane_query,
+)
 from .lanes import LaneView
 from .local_map import LocalDrivable
 from .motion import (
@@ -112,9 +120,10 @@ class PreparedFrame:
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
         past = history(ego.past_xy, ego.velocity, ego.acceleration) if isinstance(ego, EgoStatus) else None
         dac = 0.0 if expert_off.any() else 1.0
-        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes), float("nan"), 1.0,
+        query = lane_query(es, lanes)
+        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), float("nan"), 1.0,
                               time_to_collision_within_bound(es, steps, ids, expert_astray),
-                              lane_keeping(es, lanes), history_comfort(es, past))
+                              lane_keeping(es, lanes, query), history_comfort(es, past))
         return cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
                    tuple(static_categories), path, progress_along(path, es.xy[-1]), expert_nc * dac, boxes, index,
                    reach, lanes, past, human)
@@ -199,7 +208,7 @@ class PreparedFrame:
         """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
         ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
         now with ddc), history comfort; tlc is not scored (no traffic lights in the data)."""
-        query = self.lanes.query(ps.xy, ps.heading) if self.lanes is not None and len(self.lanes.start) else None
+        query = lane_query(ps, self.lanes)
         ddc = driving_direction(ps, self.lanes, query)
         expert_ddc = self.human.ddc if self.human is not None else float("nan")
         plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
