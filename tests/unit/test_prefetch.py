@@ -205,3 +205,33 @@ def test_a_plan_judged_again_on_its_frame_comes_from_the_memo_with_the_same_figu
     assert (result, fresh.extended(states, result)).__repr__() == first.__repr__()
     other = plan + 1e-9
     assert prepared.judged(other, tracked_states(other[None], [prepared.initial])[0]) is not first
+
+
+class _Config:
+    """The options `plugin.options._prefetch` reads, as a worker's config holds them."""
+
+    def __init__(self, **options: object) -> None:
+        self.options = options
+
+    def getoption(self, dest: str, default: object = None) -> object:
+        return self.options.get(dest, default)
+
+    def getini(self, dest: str) -> object:
+        return None
+
+
+@pytest.mark.parametrize(("workers_env", "cpus", "depth"), [("2", 2, 0), ("", 2, 2), ("2", 4, 2), ("4", 4, 0)])
+def test_an_xdist_worker_counts_its_siblings_though_its_n_reads_none(monkeypatch, workers_env, cpus, depth):
+    """xdist hands a worker -n as None: the default depth is read from PYTEST_XDIST_WORKER_COUNT there, so the two
+    workers of `-n 2` on two cores run no loading or scoring threads beside their planners."""
+    from pytest_drivedegrade.plugin import options
+
+    monkeypatch.setattr("os.cpu_count", lambda: cpus)
+    if workers_env:
+        monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", workers_env)
+    else:
+        monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)
+    assert options._prefetch(_Config(numprocesses=None)) == depth
+    assert options._prefetch(_Config(numprocesses=None, drivedegrade_prefetch="3")) == 3
+    monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)
+    assert options._prefetch(_Config(numprocesses=cpus)) == 0  # the controller of -n <cores>
