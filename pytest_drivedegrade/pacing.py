@@ -34,23 +34,26 @@ class CellPdms:
     """The PDMS and EPDMS of a cell's frames with a plan, scored span by span as their rows are filled: every
     `span` frames (on the scoring thread, beside the planner) or, with `span` None, all at the cell's end in one
     tracker batch (the serial path: the cheapest). The figures are the same either way: a plan's tracked states
-    do not depend on its batch, and a frame's EC reads the previous frame's states, which are kept across spans."""
+    do not depend on its batch, and a frame's EC reads the previous frame's states, which are kept across spans.
+    Not `enabled`: nothing is scored (the columns stay NaN)."""
 
-    def __init__(self, source: PdmsSource, rows: RecordBuilder, frames: list[Frame], span: int | None) -> None:
-        self.source, self.rows, self.frames, self.span = source, rows, frames, span
+    def __init__(self, source: PdmsSource, rows: RecordBuilder, frames: list[Frame], span: int | None,
+                 enabled: bool = True) -> None:
+        self.source, self.rows, self.frames, self.span, self.enabled = source, rows, frames, span, enabled
         self.done = 0
         self.states: dict[int, EgoStates] = {}
 
     def ready(self, i: int) -> bool:
         """Frame `i`'s row is filled (rows fill in frame order): score the span it ends, if it ends one."""
-        if self.span is None or i + 1 - self.done < self.span:
+        if not self.enabled or self.span is None or i + 1 - self.done < self.span:
             return False
         self._score(i + 1)
         return True
 
     def finish(self) -> None:
         """Score the frames left (all of them on the serial path)."""
-        self._score(len(self.frames))
+        if self.enabled:
+            self._score(len(self.frames))
 
     def _score(self, stop: int) -> None:
         score_cell_pdms(self.source, self.rows, self.frames, range(self.done, stop), self.states)

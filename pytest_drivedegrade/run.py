@@ -298,13 +298,15 @@ class RunContext:
         return found
 
     def run_cell(self, planner: AnyPlanner, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
-                 seed: int | None = None, span: Span | None = None, clean: CellRecord | None = None) -> CellRecord:
+                 seed: int | None = None, span: Span | None = None, clean: CellRecord | None = None,
+                 pdms: bool = True) -> CellRecord:
         """Every frame of one cell through the planner (`stream.run_cell`); per-frame failures become NaN rows
         plus a message. `seed` overrides the run's seed (one of `seeds_for`); `span` runs only
         ``frames[start:stop]`` (a replay, an adaptive unit, or one group of a cell run by planner actors), streamed
         as a run of those frames alone would be, except that frame_dropout's held frames are those of a run from
         the scene's start (`scene_history`); with `clean`, frames whose inputs equal clean's reuse its plans and the
-        record counts them (``reused``). Planner actors do not reuse: each predicts every frame it is sent."""
+        record counts them (``reused``). Planner actors do not reuse: each predicts every frame it is sent.
+        `pdms` False skips the PDMS and EPDMS (NaN columns: the floor's cells, of which the report reads L2)."""
         if unread is None:  # the cameras only: the floor model needs no fingerprint
             unread = unread_cameras(planner_cameras(planner))
         start, stop = span or (0, len(self.frames))
@@ -312,7 +314,7 @@ class RunContext:
         if isinstance(planner, PlannerElsewhere):
             return planner.run_cell(self, family, severity, unread=unread, seed=seed, span=(start, stop))
         return stream.run_cell(self, planner, family, severity, self.frames[start:stop], unread=unread, seed=seed,
-                               clean=clean, history=self.scene_history(start))
+                               clean=clean, history=self.scene_history(start), pdms=pdms)
 
     def scene_history(self, start: int) -> list[Frame]:
         """The run's frames of frame `start`'s scene before it (none at a scene's start)."""

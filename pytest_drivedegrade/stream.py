@@ -304,24 +304,25 @@ class _Clock:
 
 def run_cell(source: Source, planner: Planner, family: str, severity: int, frames: list[Frame], *,
              unread: tuple[str, ...], seed: int, clean: CellRecord | None = None,
-             history: Sequence[Frame] = ()) -> CellRecord:
+             history: Sequence[Frame] = (), pdms: bool = True) -> CellRecord:
     """Every frame of `frames` through the planner under one cell (`stream`), scored into the cell's record;
     per-frame failures become NaN rows plus a message. A frame that reused clean's plan takes clean's whole row
     (the bit-1 density too: what the planner would have read is clean's images), so nothing is scored twice.
     With --drivedegrade-prefetch above 0 a frame is scored on a thread beside the planner's next call, and the
     PDMS of every PDMS_SPAN frames' plans there too; without, the PDMS of the cell's plans at its end, their
-    tracking in one batch (`CellPdms`: the same figures either way)."""
+    tracking in one batch (`CellPdms`: the same figures either way). `pdms` False leaves the PDMS and EPDMS
+    columns NaN (the ego-only floor, whose L2 alone the report reads)."""
     rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
     clock = _Clock()
     overlap = prefetch_depth(source.settings) > 0
-    pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None)
+    cell_pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None, enabled=pdms)
     with Scorer(overlap) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean, history=history)):
             clock.delivered(sample)
-            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock, pdms))
+            scorer.submit(partial(_record, source, rows, i, sample, result, clean, clock, cell_pdms))
     start = time.perf_counter()
-    pdms.finish()
+    cell_pdms.finish()
     clock.spent["pdms"] += time.perf_counter() - start
     return rows.build(clock.total())
 

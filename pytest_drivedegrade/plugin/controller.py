@@ -5,6 +5,7 @@ baseline gate, and return the terminal summary's lines. Never raises for a user 
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -118,9 +119,52 @@ def floor_frames(config: pytest.Config, context: RunContext, split: str, lines: 
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None
-    clean = context.run_cell(model, "clean", 0).l2_avg_per_frame()
-    blind = context.run_cell(model, "ego_blind", 0).l2_avg_per_frame() if ego else None
+    clean = context.run_cell(model, "clean", 0, pdms=False).l2_avg_per_frame()
+    blind = context.run_cell(model, "ego_blind", 0, pdms=False).l2_avg_per_frame() if ego else None
     return FloorFrames(clean, blind)
+
+
+class FloorAhead:
+    """The floor (`floor_frames`) worked out on a thread of the xdist controller while its workers run the cells:
+    the controller is idle then, and the floor (trained on the first run, then its two cells) was a serial tail
+    after the last cell. The same figures and lines as at the end: the floor reads no image and no cell's result,
+    and the controller runs no planner. `take` waits for it and adds its lines where the end would have."""
+
+    def __init__(self, config: pytest.Config, context: RunContext, split: str, ego: bool) -> None:
+        self.lines: list[str] = []
+        self.frames: FloorFrames | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._work, args=(config, context, split, ego), daemon=True,
+                                       name="drivedegrade-floor")
+        self.thread.start()
+
+    def _work(self, config: pytest.Config, context: RunContext, split: str, ego: bool) -> None:
+        try:
+            self.frames = floor_frames(config, context, split, self.lines, ego)
+        except BaseException as exc:  # noqa: BLE001 - raised again in the controller's thread, by `take`
+            self.error = exc
+
+    def take(self, notes: list[str]) -> FloorFrames | None:
+        self.thread.join()
+        if self.error is not None:
+            raise self.error
+        notes += self.lines
+        return self.frames
+
+
+def start_floor(config: pytest.Config, options: RunOptions, context: RunContext) -> FloorAhead | None:
+    """The floor started beside the cells where this process is an xdist controller (which runs no cell), else
+    None: the end computes it, as a single process, whose thread runs the planner, must."""
+    if not config.pluginmanager.has_plugin("dsession") or options.ray is not None:
+        return None
+    return FloorAhead(config, context, options.settings.split, bool(options.ego))
+
+
+def _floor(config: pytest.Config, options: RunOptions, context: RunContext, notes: list[str],
+           ahead: FloorAhead | None) -> FloorFrames | None:
+    if ahead is not None:
+        return ahead.take(notes)
+    return floor_frames(config, context, options.settings.split, notes, bool(options.ego))
 
 
 def planner_file(config: pytest.Config, path: Path) -> str:
@@ -154,10 +198,12 @@ def coverage_lines(path: Path | None) -> list[str]:
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
                baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
-               signing_key: Ed25519PrivateKey | None = None, closed: ClosedInput | None = None) -> Outcome | None:
+               signing_key: Ed25519PrivateKey | None = None, closed: ClosedInput | None = None,
+               floor: FloorAhead | None = None) -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
     the run never opened its data. `planner_file` goes into the certificate (see `planner_file`), which is
-    signed with `signing_key` when given. `closed`: the closed-loop cells received and expected (SPEC 13)."""
+    signed with `signing_key` when given. `closed`: the closed-loop cells received and expected (SPEC 13);
+    `floor`: the floor started beside the cells (`start_floor`), else it is computed here."""
     if context is None:
         return None
     out = Outcome()
@@ -172,9 +218,9 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     out.lines += reuse_lines(received, run, store) + coverage_lines(options.planner_path)
     if options.settings.shard is not None:
-        return finish_shard(config, options, context, run, store, out, expected, planner_file, closed)
+        return finish_shard(config, options, context, run, store, out, expected, planner_file, closed, floor)
     if closed_cells is not None and not run.payloads:
-        finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells)
+        finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells, floor)
         from ..report.publish import publish
 
         out.lines = publish(finished, options.report_dir, signing_key=signing_key).lines
@@ -186,7 +232,7 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
         return out
     from ..report.publish import publish
 
-    finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells)
+    finished = finished_run(config, options, context, run, out.lines, planner_file, closed_cells, floor)
     published = publish(finished, options.report_dir, signing_key=signing_key)
     from .compat import junit_xml
 
@@ -213,11 +259,11 @@ def finish_run(config: pytest.Config, options: RunOptions, context: RunContext |
 
 
 def finished_run(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
-                 notes: list[str], planner_file: str = "", closed: ClosedRun | None = None) -> FinishedRun:
-    """This session's run as `report.publish` takes it (the floor is run here, for open cells; its notes join
-    `notes`); with its closed-loop cells."""
-    floor = floor_frames(config, context, options.settings.split, notes, bool(options.ego)) if run.payloads \
-        else None
+                 notes: list[str], planner_file: str = "", closed: ClosedRun | None = None,
+                 ahead: FloorAhead | None = None) -> FinishedRun:
+    """This session's run as `report.publish` takes it (the floor is run here, or taken from `ahead`, for open
+    cells; its notes join `notes`); with its closed-loop cells."""
+    floor = _floor(config, options, context, notes, ahead) if run.payloads else None
     adaptive = adaptive_section(options, context, run, notes)
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
@@ -291,15 +337,15 @@ def front_image(context: RunContext) -> tuple[str, np.ndarray] | None:
 
 def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext, run: Gathered,
                  store: ResultStore, out: Outcome, expected: Sequence[tuple[str, int]],
-                 planner_file: str = "", closed: ClosedInput | None = None) -> Outcome:
+                 planner_file: str = "", closed: ClosedInput | None = None,
+                 ahead: FloorAhead | None = None) -> Outcome:
     """A shard's end: its manifest beside its cells, for `drivedegrade merge`; no certificate of its own."""
     from ..atomic import atomic_write_text
     from ..certificate.merge import MANIFEST, shard_manifest
 
     shard = options.settings.shard
     assert shard is not None
-    floor = floor_frames(config, context, options.settings.split, out.lines, bool(options.ego)) if expected \
-        else None
+    floor = _floor(config, options, context, out.lines, ahead) if expected else None
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=provenance(config, options, context, run, planner_file),
                               settings=options.settings, frames_total=context.frames_total,

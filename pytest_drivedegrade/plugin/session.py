@@ -25,7 +25,7 @@ from ..store import ResultStore
 from . import SESSION_KEY, preflight
 from .closed import CLOSED_ATTR, ClosedState, write_stored
 from .context import build_run_context
-from .controller import Outcome, planner_file
+from .controller import FloorAhead, Outcome, planner_file, start_floor
 from .items import CellCollector, CellItem, ClosedItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
 
@@ -103,6 +103,7 @@ class DriveDegradeSession:
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
+        self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -174,6 +175,8 @@ class DriveDegradeSession:
         reporter = self.config.pluginmanager.get_plugin("terminalreporter")
         if swept and reporter is not None:
             reporter.write_line(swept)
+        if self.cells:  # the open cells' floor, beside them on an xdist controller (`controller.start_floor`)
+            self.floor = start_floor(self.config, self.options, context)
         if self.options.ray is not None:
             from .actors import start_planner_actors
 
@@ -293,7 +296,8 @@ class DriveDegradeSession:
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
                                   signing_key=preflight.signing_key(self.options),
-                                  closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]))
+                                  closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]),
+                                  floor=self.floor)
         if self.outcome is not None:
             self.outcome.lines += actors
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
