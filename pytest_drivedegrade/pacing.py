@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import secrets
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Protocol
@@ -44,8 +45,13 @@ class CellPdms:
         self.states: dict[int, EgoStates] = {}
 
     def ready(self, i: int) -> bool:
-        """Frame `i`'s row is filled (rows fill in frame order): score the span it ends, if it ends one."""
-        if not self.enabled or self.span is None or i + 1 - self.done < self.span:
+        """Frame `i`'s row is filled (rows fill in frame order): prepare its frame (`PdmsSource.pdms_frame`, once
+        per process: the first cell's, frame by frame beside the planner rather than a span's worth at once,
+        which held the planner's next frame back) and score the span it ends, if it ends one."""
+        if not self.enabled or self.span is None:
+            return False
+        self.source.pdms_frame(self.frames[i])
+        if i + 1 - self.done < self.span:
             return False
         self._score(i + 1)
         return True
@@ -92,14 +98,20 @@ def previous_frame(frames: list[Frame], i: int) -> int | None:
     return i - 1 if same and 0.0 < gap < EC_MAX_INTERVAL_S else None
 
 
+#: Frames the scoring thread may hold beside the planner (`Scorer`): two, so that a PDMS span scored with one
+#: frame (`CellPdms`, about 40 ms for 32 plans) does not hold the planner's next frame back.
+SCORER_DEPTH = 2
+
+
 class Scorer:
-    """Scores frame k-1 on one thread while the planner computes frame k (`overlap`), in frame order, with at
-    most one frame waiting; without `overlap` each frame is scored at once, in the caller's thread (the serial
-    path). A scoring failure is raised at the next frame or at the end, as the serial path raises it."""
+    """Scores the planner's last frames on one thread while it computes the next (`overlap`), in frame order,
+    with at most `SCORER_DEPTH` frames waiting (their samples and images: the memory bound); without `overlap`
+    each frame is scored at once, in the caller's thread (the serial path). A scoring failure is raised at a
+    later frame or at the end, as the serial path raises it."""
 
     def __init__(self, overlap: bool) -> None:
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="drivedegrade-score") if overlap else None
-        self.last: Future[None] | None = None
+        self.waiting: deque[Future[None]] = deque()
 
     def __enter__(self) -> Scorer:
         return self
@@ -108,13 +120,13 @@ class Scorer:
         if self.pool is None:
             score()
             return
-        self.drain()
-        self.last = self.pool.submit(score)
+        while len(self.waiting) >= SCORER_DEPTH:
+            self.waiting.popleft().result()
+        self.waiting.append(self.pool.submit(score))
 
     def drain(self) -> None:
-        last, self.last = self.last, None
-        if last is not None:
-            last.result()
+        while self.waiting:
+            self.waiting.popleft().result()
 
     def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
         if self.pool is None:

@@ -337,8 +337,8 @@ def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, res
     else:
         _score(source, rows, i, sample, result, clock)
     start = time.perf_counter()
-    if pdms.ready(i):
-        clock.scoring["pdms"] += time.perf_counter() - start
+    pdms.ready(i)
+    clock.scoring["pdms"] += time.perf_counter() - start
 
 
 def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:

@@ -181,6 +181,8 @@ def test_a_cells_pdms_scored_in_spans_beside_the_planner_equals_one_batch_at_its
         pdms.finish()
         assert spans_scored == (0 if span is None else len(frames) // span)
         results[span] = {n: rows.arrays[n].tobytes() for n in names}
+        if span is not None:  # each frame prepared as its row filled, the failed one too: none left for a span
+            assert len(pdms.source.cache) == len(frames)
     assert all(results[span] == results[None] for span in results)
     serial = _cell_rows(frames, plans)
     CellPdms(_Prepared(reader), serial, frames, None).finish()
@@ -235,3 +237,38 @@ def test_an_xdist_worker_counts_its_siblings_though_its_n_reads_none(monkeypatch
     assert options._prefetch(_Config(numprocesses=None, drivedegrade_prefetch="3")) == 3
     monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)
     assert options._prefetch(_Config(numprocesses=cpus)) == 0  # the controller of -n <cores>
+
+
+def test_the_scorer_keeps_frame_order_and_holds_at_most_its_depth_beside_the_planner():
+    """`Scorer`: frames scored on one thread in submission order; `submit` returns while fewer than
+    SCORER_DEPTH frames wait and blocks past that (the memory bound); a failure is raised by a later call."""
+    from pytest_drivedegrade.pacing import SCORER_DEPTH, Scorer
+
+    gate, done, order = threading.Event(), [], []
+
+    def score(i):
+        def run():
+            gate.wait(5)
+            order.append(i)
+        return run
+
+    with Scorer(True) as scorer:
+        for i in range(SCORER_DEPTH):
+            scorer.submit(score(i))
+        assert order == [] and len(scorer.waiting) == SCORER_DEPTH  # nothing scored yet, the caller not held
+        threading.Timer(0.2, gate.set).start()
+        start = time.perf_counter()
+        scorer.submit(score(SCORER_DEPTH))  # one too many: waits for the oldest
+        assert time.perf_counter() - start >= 0.15 and order[0] == 0
+    assert order == list(range(SCORER_DEPTH + 1))
+
+    def fail():
+        raise ValueError("scoring broke")
+
+    with pytest.raises(ValueError, match="scoring broke"), Scorer(True) as scorer:
+        scorer.submit(fail)
+        for _ in range(SCORER_DEPTH + 1):
+            scorer.submit(done.clear)
+    with Scorer(False) as serial:  # the serial path scores at once, in the caller's thread
+        serial.submit(lambda: done.append(threading.current_thread().name))
+    assert done == [threading.current_thread().name]
