@@ -121,9 +121,14 @@ class DriveDegradeSession:
         return session
 
     def pytest_unconfigure(self, config: pytest.Config) -> None:
-        """Never leave actors or a local cluster behind, whatever ended the session; restore the device variable."""
+        """Never leave actors or a local cluster behind, whatever ended the session; restore the device variable;
+        let go of the run's data (its tables, frames and caches: millions of objects), so that the full garbage
+        collections pytest runs after this hook (five, for unraisable exceptions) do not walk them: 2.5 s at the
+        end of the main job."""
         self._close_actors()
         preflight.restore_device(self._device_env)
+        self.context, self.floor, self.runner = None, None, None
+        self.received.clear()
 
     # --- collection ------------------------------------------------------------------------------------------
 
