@@ -5,7 +5,6 @@ baseline gate, and return the terminal summary's lines. Never raises for a user 
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -21,7 +20,7 @@ from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
 from .closed import ClosedInput, closed_run
-from .context import cache_root
+from .egofloor import FloorAhead, floor_of_run
 from .options import RunOptions
 
 if TYPE_CHECKING:
@@ -90,83 +89,6 @@ def reuse_lines(received: Mapping[str, CellPayload], run: Gathered, store: Resul
     return lines
 
 
-@dataclass(frozen=True)
-class FloorFrames:
-    """The ego-only floor's clean l2_avg per scored frame and, when the ego cells run, its ego_blind one."""
-
-    clean: np.ndarray
-    ego_blind: np.ndarray | None = None
-
-    def figures(self) -> FloorFigures:
-        return FloorFigures.of(self.clean, self.ego_blind)
-
-    def blind_list(self) -> list[float] | None:
-        return None if self.ego_blind is None else [float(v) for v in self.ego_blind]
-
-
-def floor_frames(config: pytest.Config, context: RunContext, split: str, lines: list[str],
-                 ego: bool = False) -> FloorFrames | None:
-    """The ego-only floor on the scored frames (trained on the train split once, cached), with its ego_blind
-    cell when `ego`; None with a line saying why when there is no floor."""
-    from ..floor import load_or_train_floor, train_split_for
-
-    try:
-        train = context.reader.with_split(train_split_for(split))
-        if not any(f.scorable for f in train.frames()):  # lazily: stops at the first scorable frame
-            lines.append(f"ego-only floor: skipped, split {train.split!r} has no scorable frames")
-            return None
-        model = load_or_train_floor(train, cache_root(config) / "floor")
-    except DriveDegradeError as exc:
-        lines.append(f"ego-only floor: skipped ({exc})")
-        return None
-    clean = context.run_cell(model, "clean", 0, pdms=False).l2_avg_per_frame()
-    blind = context.run_cell(model, "ego_blind", 0, pdms=False).l2_avg_per_frame() if ego else None
-    return FloorFrames(clean, blind)
-
-
-class FloorAhead:
-    """The floor (`floor_frames`) worked out on a thread of the xdist controller while its workers run the cells:
-    the controller is idle then, and the floor (trained on the first run, then its two cells) was a serial tail
-    after the last cell. The same figures and lines as at the end: the floor reads no image and no cell's result,
-    and the controller runs no planner. `take` waits for it and adds its lines where the end would have."""
-
-    def __init__(self, config: pytest.Config, context: RunContext, split: str, ego: bool) -> None:
-        self.lines: list[str] = []
-        self.frames: FloorFrames | None = None
-        self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._work, args=(config, context, split, ego), daemon=True,
-                                       name="drivedegrade-floor")
-        self.thread.start()
-
-    def _work(self, config: pytest.Config, context: RunContext, split: str, ego: bool) -> None:
-        try:
-            self.frames = floor_frames(config, context, split, self.lines, ego)
-        except BaseException as exc:  # noqa: BLE001 - raised again in the controller's thread, by `take`
-            self.error = exc
-
-    def take(self, notes: list[str]) -> FloorFrames | None:
-        self.thread.join()
-        if self.error is not None:
-            raise self.error
-        notes += self.lines
-        return self.frames
-
-
-def start_floor(config: pytest.Config, options: RunOptions, context: RunContext) -> FloorAhead | None:
-    """The floor started beside the cells where this process is an xdist controller (which runs no cell), else
-    None: the end computes it, as a single process, whose thread runs the planner, must."""
-    if not config.pluginmanager.has_plugin("dsession") or options.ray is not None:
-        return None
-    return FloorAhead(config, context, options.settings.split, bool(options.ego))
-
-
-def _floor(config: pytest.Config, options: RunOptions, context: RunContext, notes: list[str],
-           ahead: FloorAhead | None) -> FloorFrames | None:
-    if ahead is not None:
-        return ahead.take(notes)
-    return floor_frames(config, context, options.settings.split, notes, bool(options.ego))
-
-
 def planner_file(config: pytest.Config, path: Path) -> str:
     """The planner file (or conftest.py) as the certificate records it: relative to rootdir when inside it, so
     a moved checkout keeps it; else only its name (`shown_path`: no absolute path is published)."""
@@ -198,12 +120,11 @@ def coverage_lines(path: Path | None) -> list[str]:
 def finish_run(config: pytest.Config, options: RunOptions, context: RunContext | None,
                received: Mapping[str, CellPayload], expected: Sequence[tuple[str, int]],
                baseline: Mapping[str, object] | None, store: ResultStore | None = None, planner_file: str = "",
-               signing_key: Ed25519PrivateKey | None = None, closed: ClosedInput | None = None,
+               signing_key: Ed25519PrivateKey | None = None, closed: ClosedInput | None = None, *,
                floor: FloorAhead | None = None) -> Outcome | None:
     """Analyse and write everything the run has (a shard writes its manifest for the merge instead); None when
-    the run never opened its data. `planner_file` goes into the certificate (see `planner_file`), which is
-    signed with `signing_key` when given. `closed`: the closed-loop cells received and expected (SPEC 13);
-    `floor`: the floor started beside the cells (`start_floor`), else it is computed here."""
+    the run never opened its data. `planner_file` goes into the certificate, signed with `signing_key` when
+    given; `closed`: the closed-loop cells received and expected (SPEC 13); `floor`: `egofloor.start_floor`'s."""
     if context is None:
         return None
     out = Outcome()
@@ -263,7 +184,7 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
                  ahead: FloorAhead | None = None) -> FinishedRun:
     """This session's run as `report.publish` takes it (the floor is run here, or taken from `ahead`, for open
     cells; its notes join `notes`); with its closed-loop cells."""
-    floor = _floor(config, options, context, notes, ahead) if run.payloads else None
+    floor = floor_of_run(config, options, context, notes, ahead) if run.payloads else None
     adaptive = adaptive_section(options, context, run, notes)
     return FinishedRun(records={c: p.record for c, p in run.payloads.items()},
                        provenance=provenance(config, options, context, run, planner_file),
@@ -345,7 +266,7 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
 
     shard = options.settings.shard
     assert shard is not None
-    floor = _floor(config, options, context, out.lines, ahead) if expected else None
+    floor = floor_of_run(config, options, context, out.lines, ahead) if expected else None
     manifest = shard_manifest(index=shard.index, count=shard.count, planner=run.planner, key=run.key,
                               provenance=provenance(config, options, context, run, planner_file),
                               settings=options.settings, frames_total=context.frames_total,

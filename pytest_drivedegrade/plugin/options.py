@@ -103,8 +103,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-prefetch", "drivedegrade_prefetch", "frames decoded and corrupted ahead of the "
                "planner, on a thread beside it, while another thread scores the frame before (0: all in one thread, "
                "one frame after the other; every output is the same either way). Default: 2 where this machine "
-               "has a core to spare (more cores than xdist workers or local Ray actors + 1), else 0, so that "
-               "the threads never slow the -n workers", {"metavar": "N"}),
+               "has more cores than the processes running cells (the -n workers, the local Ray actors, or 1), "
+               "else 0, so that the threads never slow the other workers", {"metavar": "N"}),
     OptionSpec("--drivedegrade-loop", "drivedegrade_loop", "open (default): the planner on the data's replayed frames; "
                "closed: it drives the embedded world through the degraded cameras (cells closed-clean, "
                "closed-blackout-s5, ...); both", {"metavar": "open|closed|both"}),

@@ -25,7 +25,8 @@ from ..store import ResultStore
 from . import SESSION_KEY, preflight
 from .closed import CLOSED_ATTR, ClosedState, write_stored
 from .context import build_run_context
-from .controller import FloorAhead, Outcome, planner_file, start_floor
+from .controller import Outcome, planner_file
+from .egofloor import FloorAhead, start_floor
 from .items import CellCollector, CellItem, ClosedItem, NothingCollector, conftest_with_planner, import_planner_file
 from .options import RunOptions, parse
 
