@@ -18,15 +18,17 @@ PLANNERS = Path(__file__).resolve().parents[2] / "planners"
 pytest_plugins = ["plugin_support"]
 
 
-def outputs(folder: Path) -> tuple[str, dict[str, str], dict[str, dict]]:
-    """cells.csv, the certificate's plans digest per cell, and every stored cell record without its timings."""
+def outputs(folder: Path) -> tuple[str, dict[str, str], dict[str, dict], object]:
+    """cells.csv, the certificate's plans digest per cell, every stored cell record without its timings, and the
+    certificate's floor (worked out beside the cells on an xdist controller, at the end in one process)."""
     cert = load_json(folder / "certificate.json")
     records = {}
     for path in sorted((folder / "cells").glob("*.json")):
         record = load_json(path)["record"]
         record.pop("seconds")
         records[path.stem] = record
-    return (folder / "cells.csv").read_text(), {c["cell"]: c["plans_digest"] for c in cert["cells"]}, records
+    return ((folder / "cells.csv").read_text(), {c["cell"]: c["plans_digest"] for c in cert["cells"]}, records,
+            cert["floor"])
 
 
 @pytest.mark.parametrize("planner", ["camera_cnn.py", "temporal_cnn.py"])
@@ -51,7 +53,9 @@ def test_prefetch_gives_the_serial_outputs_bit_for_bit(dd, two_scene_world, plan
         assert other[0] == serial[0], report
         assert other[1] == serial[1], report
         assert other[2] == serial[2], report
+        assert other[3] == serial[3], report
     assert len(serial[1]) == 9
+    assert serial[3]["l2_avg"] is not None  # the floor was trained and run, not skipped
 
 
 def test_a_failing_planner_is_reported_as_in_the_serial_path(dd, scored_tokens):
