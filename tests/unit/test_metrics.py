@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from pytest_drivedegrade.constants import EGO_LENGTH, EGO_WIDTH
 from pytest_drivedegrade.data.frame import AgentBoxes, Command, EgoStatus, Frame
 from pytest_drivedegrade.metrics import trajectory as metrics
+from pytest_drivedegrade.metrics.trajectory import _ones
 
 STRAIGHT = np.stack([np.arange(1, 7) * 2.0, np.zeros(6)], axis=1)  # 4 m/s straight ahead
 
@@ -233,11 +234,18 @@ def test_bit1_density_known_answers() -> None:
     assert metrics.bit1_density({}) == 0.0
 
 
-@settings(max_examples=30, deadline=None)
-@given(st.binary(min_size=1, max_size=300))
+@settings(max_examples=60, deadline=None)
+@given(st.binary(min_size=1, max_size=3000))
 def test_bit1_density_matches_unpackbits(data: bytes) -> None:
+    """Exactly: the popcount of whole 64-bit words summed by OpenCV, the tail bytes by table."""
     arr = np.frombuffer(data, np.uint8)
-    assert metrics.bit1_density({"A": arr}) == pytest.approx(np.unpackbits(arr).mean())
+    assert _ones(arr) == int(np.unpackbits(arr).sum(dtype=np.int64))
+    assert metrics.bit1_density({"A": arr}) == np.unpackbits(arr).mean()
+
+
+def test_bit1_count_of_a_full_size_saturated_frame_is_exact() -> None:
+    frame = np.full((900, 1600, 3), 255, np.uint8)
+    assert _ones(frame.reshape(-1)) == frame.size * 8 and metrics.bit1_density({"A": frame}) == 1.0
 
 
 def test_frame_metrics_returns_plain_builtins() -> None:
