@@ -253,3 +253,37 @@ def test_frame_metrics_returns_plain_builtins() -> None:
     assert set(out) == {"l2", "collision", "collision_vru", "jerk"}
     assert all(type(v) is float for v in out["l2"]) and all(type(v) is int for v in out["collision"])
     assert type(out["jerk"]) is float
+
+
+def _overlap_vector_form(c0, size0, yaw0, c1, size1, yaw1):
+    """`overlap_pairs` as it was written before issue 23 (dot products summed over a length-2 axis)."""
+    u0 = np.stack([np.cos(yaw0), np.sin(yaw0)], axis=1)
+    v0 = np.stack([-u0[:, 1], u0[:, 0]], axis=1)
+    u1 = np.stack([np.cos(yaw1), np.sin(yaw1)], axis=1)
+    v1 = np.stack([-u1[:, 1], u1[:, 0]], axis=1)
+    h0, h1 = size0 / 2.0, size1 / 2.0
+    delta = c1 - c0
+    separated = np.zeros(len(c0), dtype=bool)
+    for axis in (u0, v0, u1, v1):
+        r0 = h0[:, 0] * np.abs(np.sum(axis * u0, axis=1)) + h0[:, 1] * np.abs(np.sum(axis * v0, axis=1))
+        r1 = h1[:, 0] * np.abs(np.sum(axis * u1, axis=1)) + h1[:, 1] * np.abs(np.sum(axis * v1, axis=1))
+        separated |= np.abs(np.sum(delta * axis, axis=1)) > r0 + r1 + metrics.TOUCH_EPS_M
+    return ~separated
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 60), touching=st.booleans())
+def test_overlap_pairs_per_coordinate_equals_the_vector_form(seed: int, n: int, touching: bool) -> None:
+    """Random pairs, and pairs touching end to end (where the slack decides): the same answer for every pair."""
+    rng = np.random.default_rng(seed)
+    c0 = rng.normal(0, 5, (n, 2))
+    s0, s1 = rng.uniform(0.3, 6, (n, 2)), rng.uniform(0.3, 6, (n, 2))
+    y0, y1 = rng.uniform(-4, 4, n), rng.uniform(-4, 4, n)
+    c1 = c0 + rng.normal(0, 3, (n, 2))
+    if touching:
+        y1 = y0.copy()
+        c1 = c0 + ((s0[:, 0] + s1[:, 0]) / 2)[:, None] * np.stack([np.cos(y0), np.sin(y0)], axis=1)
+    got = metrics.overlap_pairs(c0, s0, y0, c1, s1, y1)
+    assert np.array_equal(got, _overlap_vector_form(c0, s0, y0, c1, s1, y1))
+    if touching:
+        assert got.all()  # end to end within the slack: touching counts
