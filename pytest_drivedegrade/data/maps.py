@@ -40,31 +40,48 @@ def points_in_ring(xy: np.ndarray, ring: np.ndarray) -> np.ndarray:
     """Even-odd (crossing number) test of points (N, 2) against one closed ring (M, 2): shape (N,) bool.
 
     The ring is closed implicitly (last vertex back to the first). Vectorised over points and edges; points
-    exactly on an edge may fall either way.
+    exactly on an edge may fall either way. A ring tested many times keeps its `RingIndex`.
     """
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    ring = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
-    inside = np.zeros(len(xy), dtype=bool)
-    if len(ring) < 3 or not len(xy):
+    return RingIndex(ring).contains(xy)
+
+
+class RingIndex:
+    """One closed ring ready for `points_in_ring`'s test, done many times (a frame's lanes against each plan's
+    states): its bounding box and edge ends computed once. `contains` is that test."""
+
+    __slots__ = ("lo", "hi", "x0", "y0", "x1", "y1", "edge")
+
+    def __init__(self, ring: np.ndarray) -> None:
+        ring = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
+        self.edge: np.ndarray | None = np.arange(len(ring)) if len(ring) >= 3 else None
+        self.lo: np.ndarray = ring.min(0) if len(ring) else np.zeros(2)  # unused without three vertices
+        self.hi: np.ndarray = ring.max(0) if len(ring) else np.zeros(2)
+        self.x0, self.y0 = ring[:, 0], ring[:, 1]
+        self.x1, self.y1 = np.roll(self.x0, -1), np.roll(self.y0, -1)
+
+    def contains(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) bool: each point (N, 2) lies inside the ring."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        inside = np.zeros(len(xy), dtype=bool)
+        if self.edge is None or not len(xy):
+            return inside
+        lo, hi = self.lo, self.hi
+        cand = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
+        if not len(cand):
+            return inside
+        x0, y0, x1, y1, edge = self.x0, self.y0, self.x1, self.y1, self.edge
+        step = max(_CHUNK // len(edge), 1)
+        for i in range(0, len(cand), step):
+            idx = cand[i:i + step]
+            px, py = xy[idx, 0:1], xy[idx, 1:2]
+            # edges that straddle the horizontal line through the point (half-open, so a vertex counts once)
+            straddle = (y0[None, :] > py) != (y1[None, :] > py)
+            pe, ee = np.nonzero(straddle)
+            e = edge[ee]
+            t = (py[pe, 0] - y0[e]) / (y1[e] - y0[e])
+            crosses = px[pe, 0] < x0[e] + t * (x1[e] - x0[e])
+            inside[idx] = np.bincount(pe[crosses], minlength=len(idx)) % 2 == 1
         return inside
-    lo, hi = ring.min(0), ring.max(0)
-    cand = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
-    if not len(cand):
-        return inside
-    x0, y0 = ring[:, 0], ring[:, 1]
-    x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
-    edge = np.arange(len(ring))
-    for i in range(0, len(cand), max(_CHUNK // len(ring), 1)):
-        idx = cand[i:i + max(_CHUNK // len(ring), 1)]
-        px, py = xy[idx, 0:1], xy[idx, 1:2]
-        # edges that straddle the horizontal line through the point (half-open, so a vertex counts once)
-        straddle = (y0[None, :] > py) != (y1[None, :] > py)
-        pe, ee = np.nonzero(straddle)
-        e = edge[ee]
-        t = (py[pe, 0] - y0[e]) / (y1[e] - y0[e])
-        crosses = px[pe, 0] < x0[e] + t * (x1[e] - x0[e])
-        inside[idx] = np.bincount(pe[crosses], minlength=len(idx)) % 2 == 1
-    return inside
 
 
 @dataclass(frozen=True)

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from ...data.maps import LaneMap, points_in_ring
+from ...data.maps import LaneMap, RingIndex
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
@@ -79,12 +80,21 @@ class LaneView:
         return cls.of_centrelines([cl for cl, _ in lanes], [p for _, p in lanes],
                                   [j for j in junctions if near(j)])
 
+    @cached_property
+    def _lane_rings(self) -> tuple[RingIndex | None, ...]:
+        """Each lane's polygon ready for `maps.points_in_ring`'s test (once per view: every plan's query uses it)."""
+        return tuple(None if ring is None else RingIndex(ring) for ring in self.polygons)
+
+    @cached_property
+    def _junction_rings(self) -> tuple[RingIndex, ...]:
+        return tuple(RingIndex(ring) for ring in self.intersections)
+
     def in_intersection(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: the points lie in an intersection."""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         out = np.zeros(len(pts), dtype=bool)
-        for ring in self.intersections:
-            out |= points_in_ring(pts, ring)
+        for ring in self._junction_rings:
+            out |= ring.contains(pts)
         return out
 
     def _near(self, pts: np.ndarray, margin: float) -> np.ndarray:
@@ -118,10 +128,10 @@ class LaneView:
         along_any = np.zeros(len(pts), dtype=bool)
         lane_of = self.lane[near]
         for k in np.unique(lane_of).tolist():
-            ring = self.polygons[k]
+            ring = self._lane_rings[k]
             if ring is None:
                 continue
-            inside = points_in_ring(pts, ring)
+            inside = ring.contains(pts)
             if not inside.any():
                 continue
             columns = np.flatnonzero(lane_of == k)
