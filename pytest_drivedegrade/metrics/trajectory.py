@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TypedDict
 
 import cv2
@@ -140,12 +141,18 @@ class FlatAgents:
                    np.concatenate([np.asarray(b.yaw, np.float64).reshape(-1) for b in steps]),
                    np.array([c for b in steps for c in b.category], dtype=object))
 
+    @cached_property
+    def reach(self) -> np.ndarray:
+        """(M,) the distance within which a box's centre may touch the ego box: both half diagonals."""
+        return _EGO_RADIUS + np.hypot(self.sizes[:, 0], self.sizes[:, 1]) / 2 + 1e-6
+
     def hits(self, traj: np.ndarray) -> np.ndarray:
         """Per box (M,) bool: the ego box at that box's step waypoint of `traj` overlaps it. A bounding-circle
-        test first leaves the exact separating-axis test to the few boxes near the ego."""
+        test first leaves the exact separating-axis test to the few boxes near the ego (the distance written per
+        coordinate: `np.linalg.norm`'s sum over the length-2 axis, the same bits)."""
         ego = traj[self.step]
-        reach = _EGO_RADIUS + np.hypot(self.sizes[:, 0], self.sizes[:, 1]) / 2 + 1e-6
-        near = np.linalg.norm(self.centers - ego, axis=1) <= reach
+        dx, dy = self.centers[:, 0] - ego[:, 0], self.centers[:, 1] - ego[:, 1]
+        near = np.sqrt(dx * dx + dy * dy) <= self.reach
         hits = np.zeros(len(self.step), dtype=bool)
         if near.any():
             k = np.flatnonzero(near)
