@@ -417,3 +417,6 @@ def test_local_drivable_keeps_holes_and_overlapping_polygons():
     area = DrivableArea("holes", (MapPolygon(square, (hole,)), MapPolygon(hole + 5.0)))
     pts = np.random.default_rng(2).uniform(-5, 45, (2000, 2))
     np.testing.assert_array_equal(P.LocalDrivable(area, (20.0, 20.0), half=60.0)(pts), area.contains(pts))
+    row = np.column_stack([np.linspace(-5.0, 45.0, 101), np.full(101, 15.0)])  # one line of y: a narrow edge band
+    np.testing.assert_array_equal(P.LocalDrivable(area, (20.0, 20.0), half=60.0)(row), area.contains(row))
+    assert P.LocalDrivable(area, (20.0, 20.0), half=60.0)(np.zeros((0, 2))).shape == (0,)

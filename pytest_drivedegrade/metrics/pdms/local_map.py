@@ -38,7 +38,7 @@ class LocalDrivable:
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if not ((pts >= self.lo) & (pts <= self.hi)).all():
             return np.asarray(self.full(pts), dtype=bool).reshape(-1)
-        if not self.n_rings:
+        if not self.n_rings or not len(pts):
             return np.zeros(len(pts), dtype=bool)
         px, py = pts[:, 0:1], pts[:, 1:2]
         # only an edge whose y-range meets the points' can straddle one of them (y_low <= y < y_high): the same
