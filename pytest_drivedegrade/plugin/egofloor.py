@@ -71,8 +71,13 @@ class FloorAhead:
         except BaseException as exc:  # noqa: BLE001 - raised again in the controller's thread, by `take`
             self.error = exc
 
-    def take(self, notes: list[str]) -> FloorFrames | None:
+    def close(self) -> None:
+        """Wait for the thread (the session's end: a run without clean never takes the floor, and a thread still
+        training torch while the interpreter shuts down may crash it or cut the floor's cache file short)."""
         self.thread.join()
+
+    def take(self, notes: list[str]) -> FloorFrames | None:
+        self.close()
         if self.error is not None:
             raise self.error
         notes += self.lines

@@ -128,6 +128,8 @@ class DriveDegradeSession:
         end of the main job."""
         self._close_actors()
         preflight.restore_device(self._device_env)
+        if self.floor is not None:
+            self.floor.close()
         self.context, self.floor, self.runner = None, None, None
         self.received.clear()
 

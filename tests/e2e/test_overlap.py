@@ -77,3 +77,31 @@ def test_a_failing_planner_is_reported_as_in_the_serial_path(dd, scored_tokens):
     assert runs["3"] == runs["0"]
     assert any("took longer than 2 s" in line for line in runs["0"][0])
     assert any("boom in the test planner" in line for line in runs["0"][0])
+
+
+def test_a_run_without_clean_still_waits_for_the_floor_started_beside_its_cells(dd, monkeypatch):
+    """-n 2 -k jpeg-s1: the controller starts the floor on a thread, the run ends without clean (no report, so the
+    floor is never taken), and the session still waits for the thread before it ends: none is left running torch
+    into the interpreter's shutdown."""
+    import threading
+    import time
+
+    from pytest_drivedegrade.plugin import egofloor
+
+    finished = threading.Event()
+    real = egofloor.floor_frames
+
+    def slow(*args, **kwargs):
+        time.sleep(4.0)  # longer than the one cell the workers run
+        try:
+            return real(*args, **kwargs)
+        finally:
+            finished.set()
+
+    monkeypatch.setattr(egofloor, "floor_frames", slow)
+    dd.write_planner()
+    result = dd.run("-n", "2", "-k", "jpeg-s1", report="nc")
+    result.assert_outcomes(passed=1)
+    result.stdout.fnmatch_lines(["*no clean cell result*"])
+    assert finished.is_set()
+    assert not any(t.name == "drivedegrade-floor" for t in threading.enumerate())
