@@ -46,3 +46,36 @@ def test_known_distances_to_a_segment():
     got = lanes._distances(pts, np.array([0, 1]))
     np.testing.assert_array_equal(got[:, 0], [3.0, 5.0, 5.0, 5.0])  # foot inside, before the start, past the end
     np.testing.assert_array_equal(got[:, 1], [2.0, np.hypot(8.0, 1.0), np.hypot(8.0, 9.0), 0.0])
+
+
+def near_by_scan(start: np.ndarray, end: np.ndarray, pts: np.ndarray, margin: float) -> np.ndarray:
+    """The near segments as the suite found them before (every end tested against the box)."""
+    lo, hi = pts.min(0) - margin, pts.max(0) + margin
+    return np.flatnonzero(((start >= lo) & (start <= hi)).all(1) | ((end >= lo) & (end <= hi)).all(1))
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), segments=st.integers(1, 400), points=st.integers(1, 40),
+       grid=st.booleans(), margin=st.sampled_from([0.0, 0.5, 10.0]))
+def test_near_segments_by_bisection_equal_the_scan_of_every_end(seed, segments, points, grid, margin):
+    """Ends exactly on the box's edges (a coarse grid puts many there), shared ends and NaN ends included."""
+    rng = np.random.default_rng(seed)
+    draw = (lambda shape: rng.integers(-20, 21, shape).astype(float)) if grid else \
+        (lambda shape: rng.normal(0.0, 15.0, shape))
+    start = draw((segments, 2))
+    end = np.where(rng.random((segments, 1)) < 0.3, np.roll(start, -1, axis=0), draw((segments, 2)))
+    end[rng.random(segments) < 0.05] = np.nan
+    pts = draw((points, 2))
+    got = view(start, end)._near(pts, margin)
+    want = near_by_scan(start, end, pts, margin)
+    assert got.dtype.kind == "i" and got.tolist() == want.tolist()
+
+
+def test_near_segments_of_a_known_box():
+    start = np.array([[0.0, 0.0], [20.0, 0.0], [10.0, 10.0], [-5.0, 0.0]])
+    end = np.array([[5.0, 0.0], [30.0, 0.0], [10.0, 11.0], [0.0, 1.0]])
+    lanes = view(start, end)
+    assert lanes._near(np.array([[1.0, 0.0], [2.0, 0.0]]), 0.0).tolist() == []  # no end inside [1, 2] x [0, 0]
+    assert lanes._near(np.array([[1.0, 0.0], [2.0, 0.0]]), 1.0).tolist() == [0, 3]  # (0, 0) and (0, 1) on the edges
+    assert lanes._near(np.array([[10.0, 10.5]]), 0.5).tolist() == [2]
+    assert view(np.zeros((0, 2)), np.zeros((0, 2)))._near(np.zeros((1, 2)), 10.0).tolist() == []

@@ -97,11 +97,22 @@ class LaneView:
             out |= ring.contains(pts)
         return out
 
+    @cached_property
+    def _ends_by_x(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every segment end (the starts, then the ends) sorted by x: their x, their y and their segment."""
+        ends = np.concatenate([self.start, self.end])
+        order = np.argsort(ends[:, 0], kind="stable")
+        return ends[order, 0], ends[order, 1], order % max(len(self.start), 1)
+
     def _near(self, pts: np.ndarray, margin: float) -> np.ndarray:
-        """Indices of the centreline segments with an end inside the points' bounding box grown by `margin`."""
+        """Indices (ascending) of the centreline segments with an end inside the points' bounding box grown by
+        `margin`: the ends within its x-range found by bisection in `_ends_by_x`, then tested on y (the same
+        closed comparisons as testing every end)."""
         lo, hi = pts.min(0) - margin, pts.max(0) + margin
-        near = ((self.start >= lo) & (self.start <= hi)).all(1) | ((self.end >= lo) & (self.end <= hi)).all(1)
-        return np.flatnonzero(near)
+        x, y, segment = self._ends_by_x
+        first, stop = np.searchsorted(x, lo[0], side="left"), np.searchsorted(x, hi[0], side="right")
+        ys = y[first:stop]
+        return np.unique(segment[first:stop][(ys >= lo[1]) & (ys <= hi[1])])
 
     def _distances(self, pts: np.ndarray, segments: np.ndarray) -> np.ndarray:
         """(N, len(segments)) distance of each point to each of `segments`: each entry from its point and segment
