@@ -25,7 +25,7 @@ from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DriveDegradeError
-from .metrics.pdms import PreparedFrame
+from .metrics.pdms import EgoStates, PreparedFrame, tracked_experts
 from .metrics.trajectory import FrameTruth
 from .pacing import processes_here
 from .planning import CallStyle, Planner, call_style, planner_cameras, planner_fingerprint
@@ -134,6 +134,7 @@ class RunContext:
     _primed: set[int] = field(default_factory=set)  #: the planners that planned clean in this process
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
+    _experts: dict[str, EgoStates] | None = None  # the run frames' experts tracked (`tracked_experts`)
     _truth: dict[str, FrameTruth] = field(default_factory=dict)
 
     @classmethod
@@ -286,8 +287,11 @@ class RunContext:
         process and shared by every cell: a cell then pays only for its own plans."""
         found = self._pdms.get(frame.token)
         if found is None:
+            if self._experts is None:  # every run frame's expert tracked at the first, in one batch
+                self._experts = tracked_experts(self.frames)
             found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
-                                                               lane_map=self.reader.lane_map(frame))
+                                                               lane_map=self.reader.lane_map(frame),
+                                                               expert_states=self._experts.get(frame.token))
         return found
 
     def frame_truth(self, frame: Frame) -> FrameTruth:

@@ -401,6 +401,37 @@ def test_prepared_frame_equals_pdm_score_on_the_world_with_a_local_map(tmp_path)
     assert P.score_plans(frames[7:30], plans[7:30]) == refs[7:30]
 
 
+def test_experts_tracked_in_one_batch_prepare_each_frame_as_tracked_alone(tmp_path):
+    """`tracked_experts` (every run frame's expert in one batch, as `RunContext.pdms_frame` prepares them) gives
+    each frame the bits of tracking its expert alone, so the same preparation and the same judgement of any
+    plan (PDMS and EPDMS terms); a frame whose expert cannot be tracked is left out, to raise on its own."""
+    import dataclasses
+
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.data.world import write_world
+
+    reader = NuScenesReader(write_world(tmp_path / "w", scenes=2, seed=5, val_images=False), split="all")
+    frames = reader.scorable_frames()
+    broken = dataclasses.replace(frames[0], token="broken", gt_future=np.full((6, 2), np.nan))
+    batch = P.tracked_experts([*frames, broken])
+    assert list(batch) == [f.token for f in frames]
+    with pytest.raises(ValueError, match="expert has non-finite waypoints"):
+        P.PreparedFrame.of(broken, expert_states=batch.get("broken"))
+    rng = np.random.default_rng(2)
+    for frame in frames:
+        alone = P.tracked_states(P.waypoints(frame.gt_future, "expert")[None], [P.initial_state(frame.ego)])[0]
+        for name in ("xy", "velocity", "accel", "heading", "speed"):
+            assert getattr(batch[frame.token], name).tobytes() == getattr(alone, name).tobytes(), name
+        area, lanes = reader.drivable_area(frame), reader.lane_map(frame)
+        single = P.PreparedFrame.of(frame, area, lane_map=lanes)
+        shared = P.PreparedFrame.of(frame, area, lane_map=lanes, expert_states=batch[frame.token])
+        assert repr((shared.expert_m, shared.expert_multiplier, shared.human, shared.path.tobytes())) == \
+            repr((single.expert_m, single.expert_multiplier, single.human, single.path.tobytes()))
+        plan = frame.gt_future + rng.normal(0.0, 1.5, (6, 2))
+        states = P.tracked_states(plan[None], [single.initial])[0]
+        assert repr(shared.judged(plan, states)) == repr(single.judged(plan, states))
+
+
 def test_local_drivable_agrees_with_the_whole_map_inside_and_outside_its_window():
     area = road_area()
     local = P.LocalDrivable(area, POSE[:2], half=30.0)

@@ -82,7 +82,7 @@ from .motion import (
     savgol,
     waypoints,
 )
-from .prepared import PreparedFrame, score_plans
+from .prepared import PreparedFrame, score_plans, tracked_experts
 from .reference import (
     collisions,
     frame_pdms,
@@ -111,6 +111,6 @@ __all__ = [
     "PDMSResult", "PreparedFrame", "agent_steps", "agent_tracks", "at_fault", "box_corners", "collision_score",
     "collisions", "comfort_terms", "ego_progress", "expert_path", "first_seen", "frame_pdms", "hits", "initial_state",
     "interpolate", "is_comfortable", "no_at_fault_collisions", "off_road", "out_of_lane", "path_distance",
-    "pdm_score", "pdms_result", "progress_along", "projections", "relative_angle", "savgol",
-    "score_plans", "time_to_collision_within_bound", "tracked_states", "ttc_fails", "ttc_score", "waypoints",
+    "pdm_score", "pdms_result", "progress_along", "projections", "relative_angle", "savgol", "score_plans",
+    "time_to_collision_within_bound", "tracked_experts", "tracked_states", "ttc_fails", "ttc_score", "waypoints",
 ]

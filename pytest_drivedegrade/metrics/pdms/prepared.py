@@ -98,11 +98,12 @@ class PreparedFrame:
     def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
                 ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
                 ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
-                lanes: LaneView | None = None) -> PreparedFrame:
+                lanes: LaneView | None = None, expert_states: EgoStates | None = None) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
         polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
         and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
-        terms for the human filter (`lanes`: the lanes around the ego, in its frame)."""
+        terms for the human filter (`lanes`: the lanes around the ego, in its frame). `expert_states`: the
+        expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states."""
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents)
         ids, velocities = agent_tracks(steps)
@@ -110,7 +111,7 @@ class PreparedFrame:
         start = initial_state(ego)
         if isinstance(drivable, DrivableArea) and ego_pose is not None:
             drivable = LocalDrivable(drivable, [float(ego_pose[0]), float(ego_pose[1])])
-        es = tracked_states(expert_arr[None], [start])[0]
+        es = tracked_states(expert_arr[None], [start])[0] if expert_states is None else expert_states
         expert_off = off_road(es, drivable, ego_pose)
         path = expert_path(expert_arr, float(es.heading[-1]))
         expert_astray = expert_off | out_of_lane(es, path)
@@ -130,11 +131,13 @@ class PreparedFrame:
 
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
-           static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None) -> PreparedFrame:
-        """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS)."""
+           static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None,
+           expert_states: EgoStates | None = None) -> PreparedFrame:
+        """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS;
+        `expert_states`: its expert's from `tracked_experts`)."""
         lanes = LaneView.of_map(lane_map, frame.pose) if lane_map is not None and frame.pose is not None else None
         return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
-                           static_categories=static_categories, lanes=lanes)
+                           static_categories=static_categories, lanes=lanes, expert_states=expert_states)
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -217,6 +220,25 @@ class PreparedFrame:
         lk = lane_keeping(ps, self.lanes, query)
         hc = history_comfort(ps, self.past)
         return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lk, hc)
+
+
+def tracked_experts(frames: Sequence[Frame]) -> dict[str, EgoStates]:
+    """The experts (logged futures) of reader frames tracked from their egos in one batch, by frame token, for
+    `PreparedFrame.of`: the tracker's cost is its 30 steps, nearly the same for 200 plans as for one, and a
+    plan's states are bit-identical whichever plans share its batch. A frame whose expert or ego is not
+    trackable is left out (its own preparation then raises what it raises)."""
+    tokens, experts, starts = [], [], []
+    for frame in frames:
+        try:
+            expert, start = waypoints(frame.gt_future, "expert"), initial_state(frame.ego)
+        except (TypeError, ValueError):
+            continue
+        tokens.append(frame.token)
+        experts.append(expert)
+        starts.append(start)
+    if not tokens:
+        return {}
+    return dict(zip(tokens, tracked_states(np.stack(experts), starts)))
 
 
 def score_plans(frames: Sequence[PreparedFrame], plans: npt.ArrayLike) -> list[PDMSResult]:
