@@ -1,6 +1,7 @@
-"""`LaneView._distances`, written per coordinate for speed (issue 23), gives the bits of the vector formula it
-replaced (a dot product and `np.linalg.norm` over a length-2 axis): DDC and LK, and so every EPDMS, stay as
-they were, whatever the segments (degenerate ones included), points and scale."""
+"""`LaneView._distances` and `motion.path_distance`, written per coordinate for speed (issue 23), give the bits
+of the vector formulas they replaced (a dot product and `np.linalg.norm` over a length-2 axis): DDC, LK and the
+out-of-lane test, and so every PDMS and EPDMS, stay as they were, whatever the segments (degenerate ones
+included), points and scale; `LaneView._near`'s bisection finds the segments the scan of every end found."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pytest_drivedegrade.metrics.pdms.lanes import LaneView
+from pytest_drivedegrade.metrics.pdms.motion import path_distance
 
 
 def vector_formula(start: np.ndarray, end: np.ndarray, pts: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -79,3 +81,34 @@ def test_near_segments_of_a_known_box():
     assert lanes._near(np.array([[1.0, 0.0], [2.0, 0.0]]), 1.0).tolist() == [0, 3]  # (0, 0) and (0, 1) on the edges
     assert lanes._near(np.array([[10.0, 10.5]]), 0.5).tolist() == [2]
     assert view(np.zeros((0, 2)), np.zeros((0, 2)))._near(np.zeros((1, 2)), 10.0).tolist() == []
+
+
+def path_distance_vector_formula(path: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """`motion.path_distance` as the suite computed it before issue 23's second pass."""
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    t = ((pts[:, None, :] - a[None]) * ab[None]).sum(-1) / (ab**2).sum(1)[None]
+    lo, hi = np.zeros(len(a)), np.ones(len(a))
+    lo[0], hi[-1] = -np.inf, np.inf
+    t = np.clip(t, lo[None], hi[None])
+    return np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None, :], axis=-1).min(1)
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), vertices=st.integers(2, 12), points=st.integers(1, 130),
+       log_scale=st.floats(-3.0, 4.0))
+def test_path_distance_equals_the_vector_formula_bit_for_bit(seed, vertices, points, log_scale):
+    """The expert's path (its points de-duplicated, so no zero-length segment) against the ego box's corners."""
+    rng = np.random.default_rng(seed)
+    scale = 10.0**log_scale
+    path = np.cumsum(rng.normal(0.0, scale, (vertices, 2)) + 1e-3 * scale, axis=0)
+    pts = rng.normal(0.0, 3 * scale, (points, 2))
+    got = path_distance(path, pts)
+    assert got.shape == (points,)
+    assert got.tobytes() == path_distance_vector_formula(path, pts).tobytes()
+
+
+def test_path_distance_continues_the_end_segments_straight():
+    path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    pts = np.array([[-5.0, 3.0], [5.0, -2.0], [13.0, 20.0], [12.0, 5.0]])
+    np.testing.assert_array_equal(path_distance(path, pts), [3.0, 2.0, 3.0, 2.0])

@@ -148,14 +148,20 @@ def expert_path(expert: npt.ArrayLike, final_heading: float = 0.0) -> np.ndarray
 
 
 def path_distance(path: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Distance of points (K, 2) to a polyline (M, 2), its first and last segments continued straight."""
-    a, b = path[:-1], path[1:]
-    ab = b - a
-    t = ((pts[:, None, :] - a[None]) * ab[None]).sum(-1) / (ab**2).sum(1)[None]
-    lo, hi = np.zeros(len(a)), np.ones(len(a))
+    """Distance of points (K, 2) to a polyline (M, 2), its first and last segments continued straight.
+
+    Written per coordinate (no (K, M, 2) temporaries, no reduction over a length-2 axis): the same sums in the
+    same order as the dot product and `np.linalg.norm` over that axis it replaced, so the same bits
+    (tests/unit/test_lanes_exact.py)."""
+    ax, ay = path[:-1, 0], path[:-1, 1]
+    bx, by = path[1:, 0] - ax, path[1:, 1] - ay
+    px, py = pts[:, 0:1], pts[:, 1:2]
+    t = ((px - ax) * bx + (py - ay) * by) / (bx * bx + by * by)
+    lo, hi = np.zeros(len(ax)), np.ones(len(ax))
     lo[0], hi[-1] = -np.inf, np.inf
     t = np.clip(t, lo[None], hi[None])
-    return np.linalg.norm(a[None] + t[..., None] * ab[None] - pts[:, None, :], axis=-1).min(1)
+    dx, dy = ax + t * bx - px, ay + t * by - py
+    return np.sqrt(dx * dx + dy * dy).min(1)
 
 
 def out_of_lane(states: EgoStates, path: np.ndarray) -> np.ndarray:
