@@ -15,6 +15,7 @@ polygon's holes (even-odd rule per ring); polygons may overlap, the area is thei
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,42 +47,78 @@ def points_in_ring(xy: np.ndarray, ring: np.ndarray) -> np.ndarray:
 
 
 class RingIndex:
-    """One closed ring ready for `points_in_ring`'s test, done many times (a frame's lanes against each plan's
-    states): its bounding box and edge ends computed once. `contains` is that test."""
+    """One closed ring ready for `points_in_ring`'s test, done many times: its bounding box and edges computed once
+    (a `RingSet` of one). `contains` is that test: the points outside the box are out, the others go through the
+    ring's crossing test in chunks (bounding the work arrays)."""
 
-    __slots__ = ("lo", "hi", "x0", "y0", "x1", "y1", "edge")
+    __slots__ = ("lo", "hi", "edges")
 
     def __init__(self, ring: np.ndarray) -> None:
-        ring = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
-        self.edge: np.ndarray | None = np.arange(len(ring)) if len(ring) >= 3 else None
-        self.lo: np.ndarray = ring.min(0) if len(ring) else np.zeros(2)  # unused without three vertices
-        self.hi: np.ndarray = ring.max(0) if len(ring) else np.zeros(2)
-        self.x0, self.y0 = ring[:, 0], ring[:, 1]
-        self.x1, self.y1 = np.roll(self.x0, -1), np.roll(self.y0, -1)
+        self.edges = RingSet([ring])
+        self.lo: np.ndarray = self.edges.lo[0]  # unused without three vertices
+        self.hi: np.ndarray = self.edges.hi[0]
 
     def contains(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: each point (N, 2) lies inside the ring."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         inside = np.zeros(len(xy), dtype=bool)
-        if self.edge is None or not len(xy):
+        edges = len(self.edges.x0)
+        if not edges or not len(xy):
             return inside
         lo, hi = self.lo, self.hi
         cand = np.flatnonzero((xy[:, 0] >= lo[0]) & (xy[:, 0] <= hi[0]) & (xy[:, 1] >= lo[1]) & (xy[:, 1] <= hi[1]))
-        if not len(cand):
-            return inside
-        x0, y0, x1, y1, edge = self.x0, self.y0, self.x1, self.y1, self.edge
-        step = max(_CHUNK // len(edge), 1)
+        step = max(_CHUNK // edges, 1)
         for i in range(0, len(cand), step):
             idx = cand[i:i + step]
-            px, py = xy[idx, 0:1], xy[idx, 1:2]
-            # edges that straddle the horizontal line through the point (half-open, so a vertex counts once)
-            straddle = (y0[None, :] > py) != (y1[None, :] > py)
-            pe, ee = np.nonzero(straddle)
-            e = edge[ee]
-            t = (py[pe, 0] - y0[e]) / (y1[e] - y0[e])
-            crosses = px[pe, 0] < x0[e] + t * (x1[e] - x0[e])
-            inside[idx] = np.bincount(pe[crosses], minlength=len(idx)) % 2 == 1
+            inside[idx] = self.edges.parity(xy[idx])[:, 0]
         return inside
+
+
+class RingSet:
+    """Several closed rings tested together, all their edges in one crossing test (a frame's lane polygons
+    against each plan's states, a local map's rings): the (point, edge) pairs and the arithmetic of
+    `RingIndex.contains`, so the same parity bits. Rings of fewer than three vertices have no edges."""
+
+    def __init__(self, rings: Sequence[np.ndarray]) -> None:
+        arrays = [np.asarray(r, dtype=np.float64).reshape(-1, 2) for r in rings]
+        edged = [(i, r) for i, r in enumerate(arrays) if len(r) >= 3]
+        start = np.concatenate([r for _, r in edged]) if edged else np.zeros((0, 2))
+        end = np.concatenate([np.roll(r, -1, axis=0) for _, r in edged]) if edged else np.zeros((0, 2))
+        self.count = len(arrays)
+        self.x0, self.y0, self.x1, self.y1 = start[:, 0], start[:, 1], end[:, 0], end[:, 1]
+        self.ring = np.concatenate([np.full(len(r), i) for i, r in edged]) if edged else np.zeros(0, np.int64)
+        self.y_low, self.y_high = np.minimum(self.y0, self.y1), np.maximum(self.y0, self.y1)
+        self.lo = np.array([r.min(0) if len(r) else np.zeros(2) for r in arrays]).reshape(-1, 2)
+        self.hi = np.array([r.max(0) if len(r) else np.zeros(2) for r in arrays]).reshape(-1, 2)
+
+    def parity(self, pts: np.ndarray, rings: np.ndarray | None = None) -> np.ndarray:
+        """(P, R) bool: an odd number of each ring's edges crosses the ray from each point (P, 2) towards +x, for
+        the rings `rings` (indices, R of them; None: all) in that order. Only an edge whose y-range meets the
+        points' can straddle one (y_low <= y < y_high): the same pairs as testing every edge, far fewer tests."""
+        chosen = np.arange(self.count) if rings is None else np.asarray(rings, dtype=np.int64)
+        column = np.full(self.count, -1)
+        column[chosen] = np.arange(len(chosen))
+        if not len(pts) or not len(chosen):
+            return np.zeros((len(pts), len(chosen)), dtype=bool)
+        px, py = pts[:, 0:1], pts[:, 1:2]
+        band = np.flatnonzero((self.y_low <= py.max()) & (self.y_high > py.min()) & (column[self.ring] >= 0))
+        straddle = (self.y0[band][None, :] > py) != (self.y1[band][None, :] > py)
+        pe, e = np.nonzero(straddle)
+        e = band[e]
+        t = (py[pe, 0] - self.y0[e]) / (self.y1[e] - self.y0[e])
+        crosses = px[pe, 0] < self.x0[e] + t * (self.x1[e] - self.x0[e])
+        counts = np.bincount(pe[crosses] * len(chosen) + column[self.ring[e[crosses]]],
+                             minlength=len(pts) * len(chosen))
+        return counts.reshape(len(pts), len(chosen)) % 2 == 1
+
+    def contains(self, pts: np.ndarray, rings: np.ndarray) -> np.ndarray:
+        """(P, R) bool: each point lies inside each of `rings`, as `RingIndex.contains` finds it (a point
+        outside a ring's bounding box is outside it; a ring without three vertices holds nothing)."""
+        chosen = np.asarray(rings, dtype=np.int64)
+        lo, hi = self.lo[chosen], self.hi[chosen]
+        px, py = pts[:, 0:1], pts[:, 1:2]
+        boxed = (px >= lo[:, 0]) & (px <= hi[:, 0]) & (py >= lo[:, 1]) & (py <= hi[:, 1])
+        return self.parity(pts, chosen) & boxed
 
 
 @dataclass(frozen=True)

@@ -112,3 +112,97 @@ def test_path_distance_continues_the_end_segments_straight():
     path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
     pts = np.array([[-5.0, 3.0], [5.0, -2.0], [13.0, 20.0], [12.0, 5.0]])
     np.testing.assert_array_equal(path_distance(path, pts), [3.0, 2.0, 3.0, 2.0])
+
+
+def random_rings(rng: np.random.Generator, count: int, grid: bool) -> list[np.ndarray]:
+    """Star-shaped rings around random centres (a few self-touching on a coarse grid), some of one or two
+    vertices (no edges), some empty."""
+    rings = []
+    for _ in range(count):
+        n = int(rng.choice([0, 1, 2, 3, 4, 7, 12]))
+        angles = np.sort(rng.uniform(0, 2 * np.pi, n))
+        radius = rng.uniform(1.0, 8.0, n)
+        ring = rng.uniform(-10, 10, 2) + np.stack([radius * np.cos(angles), radius * np.sin(angles)], axis=1)
+        rings.append(np.round(ring) if grid else ring)
+    return rings
+
+
+def ring_one_point_at_a_time(ring: np.ndarray, pts: np.ndarray) -> list[bool]:
+    """The even-odd test as `maps.RingIndex` made it before issue 23's second pass: the points in the ring's
+    bounding box, each against every edge (half-open straddle, crossing to the right of the point)."""
+    ring = np.asarray(ring, dtype=np.float64).reshape(-1, 2)
+    out = []
+    for px, py in pts.tolist():
+        boxed = len(ring) >= 3 and ring[:, 0].min() <= px <= ring[:, 0].max() and \
+            ring[:, 1].min() <= py <= ring[:, 1].max()
+        if not boxed:
+            out.append(False)
+            continue
+        x0, y0 = ring[:, 0], ring[:, 1]
+        x1, y1 = np.roll(x0, -1), np.roll(y0, -1)
+        e = np.flatnonzero((y0 > py) != (y1 > py))
+        t = (py - y0[e]) / (y1[e] - y0[e])
+        out.append(int(np.count_nonzero(px < x0[e] + t * (x1[e] - x0[e]))) % 2 == 1)
+    return out
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(0, 12), points=st.integers(0, 60), grid=st.booleans())
+def test_a_ring_set_and_a_ring_index_contain_what_the_edge_by_edge_test_does(seed, count, points, grid):
+    """Points on vertices and edges (the coarse grid) included: the same bits as testing each point against each
+    edge, for any subset of the rings in any order, and for one ring at a time (`RingIndex`)."""
+    from pytest_drivedegrade.data.maps import RingIndex, RingSet
+
+    rng = np.random.default_rng(seed)
+    rings = random_rings(rng, count, grid)
+    pts = rng.integers(-18, 19, (points, 2)).astype(float) if grid else rng.uniform(-18, 18, (points, 2))
+    chosen = rng.permutation(count)[: rng.integers(0, count + 1)] if count else np.zeros(0, int)
+    got = RingSet(rings).contains(pts, chosen)
+    assert got.shape == (points, len(chosen))
+    for j, k in enumerate(chosen.tolist()):
+        want = ring_one_point_at_a_time(rings[k], pts)
+        assert got[:, j].tolist() == want
+        assert RingIndex(rings[k]).contains(pts).tolist() == want
+
+
+def query_one_ring_at_a_time(lanes: LaneView, xy: np.ndarray, heading: np.ndarray) -> tuple[list, list, list]:
+    """`LaneView.query` as the suite computed it before (each near lane's polygon tested alone)."""
+    from pytest_drivedegrade.metrics.pdms.lanes import NEAR_M, _wrap
+
+    pts, head = xy, heading
+    near = near_by_scan(lanes.start, lanes.end, pts, NEAR_M)
+    dist = lanes._distances(pts, near) if len(near) else np.zeros((len(pts), 0))
+    along = np.abs(_wrap(lanes.yaw[near][None, :] - head[:, None])) < np.pi / 2
+    deviation = np.where(along, dist, np.inf).min(axis=1) if len(near) else np.full(len(pts), np.inf)
+    inside_any, along_any = np.zeros(len(pts), bool), np.zeros(len(pts), bool)
+    lane_of = lanes.lane[near]
+    for k in np.unique(lane_of).tolist():
+        if lanes.polygons[k] is None:
+            continue
+        inside = np.array(ring_one_point_at_a_time(lanes.polygons[k], pts), dtype=bool)
+        if not inside.any():
+            continue
+        columns = np.flatnonzero(lane_of == k)
+        seg = near[columns[dist[:, columns].argmin(axis=1)]]
+        inside_any |= inside
+        along_any |= inside & (np.abs(_wrap(lanes.yaw[seg] - head)) < np.pi / 2)
+    junction = np.zeros(len(pts), bool)
+    for ring in lanes.intersections:
+        junction |= ring_one_point_at_a_time(ring, pts)
+    return deviation.tolist(), (inside_any & ~along_any).tolist(), junction.tolist()
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), count=st.integers(1, 10), states=st.integers(1, 31), grid=st.booleans())
+def test_the_lane_query_equals_testing_each_lane_polygon_alone(seed, count, states, grid):
+    rng = np.random.default_rng(seed)
+    rings = random_rings(rng, count, grid)
+    centrelines = [ring[:: max(1, len(ring) // 3)] if len(ring) >= 2 else rng.uniform(-10, 10, (2, 2))
+                   for ring in rings]
+    polygons = [None if rng.random() < 0.2 else ring for ring in rings]
+    lanes = LaneView.of_centrelines(centrelines, polygons, [r for r in random_rings(rng, 2, grid) if len(r) >= 3])
+    xy = rng.uniform(-15, 15, (states, 2))
+    heading = rng.uniform(-4.0, 4.0, states)
+    q = lanes.query(xy, heading)
+    assert (q.deviation.tolist(), q.oncoming.tolist(), q.in_intersection.tolist()) == \
+        query_one_ring_at_a_time(lanes, xy, heading)

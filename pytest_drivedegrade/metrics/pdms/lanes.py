@@ -14,7 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
-from ...data.maps import LaneMap, RingIndex
+from ...data.maps import LaneMap, RingSet
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
@@ -81,21 +81,19 @@ class LaneView:
                                   [j for j in junctions if near(j)])
 
     @cached_property
-    def _lane_rings(self) -> tuple[RingIndex | None, ...]:
-        """Each lane's polygon ready for `maps.points_in_ring`'s test (once per view: every plan's query uses it)."""
-        return tuple(None if ring is None else RingIndex(ring) for ring in self.polygons)
+    def _lane_set(self) -> RingSet:
+        """The lanes' polygons (an empty ring for a lane without one), tested together by every plan's query."""
+        return RingSet([np.zeros((0, 2)) if ring is None else ring for ring in self.polygons])
 
     @cached_property
-    def _junction_rings(self) -> tuple[RingIndex, ...]:
-        return tuple(RingIndex(ring) for ring in self.intersections)
+    def _junction_set(self) -> RingSet:
+        return RingSet(self.intersections)
 
     def in_intersection(self, xy: np.ndarray) -> np.ndarray:
         """(N,) bool: the points lie in an intersection."""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        out = np.zeros(len(pts), dtype=bool)
-        for ring in self._junction_rings:
-            out |= ring.contains(pts)
-        return out
+        junctions = self._junction_set
+        return np.asarray(junctions.contains(pts, np.arange(junctions.count)).any(axis=1), dtype=bool)
 
     @cached_property
     def _ends_by_x(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -138,17 +136,13 @@ class LaneView:
         inside_any = np.zeros(len(pts), dtype=bool)
         along_any = np.zeros(len(pts), dtype=bool)
         lane_of = self.lane[near]
-        for k in np.unique(lane_of).tolist():
-            ring = self._lane_rings[k]
-            if ring is None:
-                continue
-            inside = ring.contains(pts)
-            if not inside.any():
-                continue
-            columns = np.flatnonzero(lane_of == k)
+        lanes = np.unique(lane_of)
+        inside = self._lane_set.contains(pts, lanes)  # (N, lanes): every near lane's polygon at once
+        for j in np.flatnonzero(inside.any(axis=0)).tolist():
+            columns = np.flatnonzero(lane_of == lanes[j])
             seg = near[columns[dist[:, columns].argmin(axis=1)]]
-            inside_any |= inside
-            along_any |= inside & (np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2)
+            inside_any |= inside[:, j]
+            along_any |= inside[:, j] & (np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2)
         return LaneQuery(deviation, inside_any & ~along_any, self.in_intersection(pts))
 
 

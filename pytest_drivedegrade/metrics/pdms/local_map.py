@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from ...data.maps import DrivableArea
+from ...data.maps import DrivableArea, RingSet
 from .constants import LOCAL_MAP_M
 
 
@@ -27,12 +27,7 @@ class LocalDrivable:
         self.n_polygons, self.n_rings = len(polygons), len(rings)
         self.ring_polygon = np.array([r[0] for r in rings], dtype=np.int64)
         self.ring_hole = np.array([r[1] for r in rings], dtype=bool)
-        edges = [(np.asarray(r[2], dtype=np.float64).reshape(-1, 2), i) for i, r in enumerate(rings)]
-        start = np.concatenate([e for e, _ in edges]) if edges else np.zeros((0, 2))
-        end = np.concatenate([np.roll(e, -1, axis=0) for e, _ in edges]) if edges else np.zeros((0, 2))
-        self.x0, self.y0, self.x1, self.y1 = start[:, 0], start[:, 1], end[:, 0], end[:, 1]
-        self.edge_ring = np.concatenate([np.full(len(e), i) for e, i in edges]) if edges else np.zeros(0, np.int64)
-        self.y_low, self.y_high = np.minimum(self.y0, self.y1), np.maximum(self.y0, self.y1)
+        self.rings = RingSet([r[2] for r in rings])
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -40,18 +35,7 @@ class LocalDrivable:
             return np.asarray(self.full(pts), dtype=bool).reshape(-1)
         if not self.n_rings or not len(pts):
             return np.zeros(len(pts), dtype=bool)
-        px, py = pts[:, 0:1], pts[:, 1:2]
-        # only an edge whose y-range meets the points' can straddle one of them (y_low <= y < y_high): the same
-        # (point, edge) pairs, in the same order, from far fewer comparisons
-        band = np.flatnonzero((self.y_low <= py.max()) & (self.y_high > py.min()))
-        straddle = (self.y0[band][None, :] > py) != (self.y1[band][None, :] > py)
-        pe, e = np.nonzero(straddle)
-        e = band[e]
-        t = (py[pe, 0] - self.y0[e]) / (self.y1[e] - self.y0[e])
-        crosses = px[pe, 0] < self.x0[e] + t * (self.x1[e] - self.x0[e])
-        counts = np.bincount(pe[crosses] * self.n_rings + self.edge_ring[e[crosses]],
-                             minlength=len(pts) * self.n_rings).reshape(len(pts), self.n_rings)
-        odd = counts % 2 == 1
+        odd = self.rings.parity(pts)  # (P, rings), every ring's edges in one crossing test
         in_exterior = odd[:, ~self.ring_hole]  # (P, polygons): exterior rings come first, one per polygon
         in_hole = np.zeros_like(in_exterior)
         if self.ring_hole.any():
