@@ -19,6 +19,7 @@ import numpy as np
 from . import stream
 from .cells import RECORD_VERSION, CellRecord
 from .constants import ADAPTIVE_METHOD, CAMERAS
+from .corruptions.derived import register as register_stable
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.content import content_fingerprint
 from .data.context import FrameContext
@@ -240,6 +241,7 @@ class RunContext:
             if self._decoded_bytes + image.nbytes <= self._decode_budget:
                 image.setflags(write=False)
                 self._decoded[key] = image
+                register_stable(image)  # kept read-only and never handed out: what is derived from it holds
                 self._decoded_bytes += image.nbytes
         return image
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .derived import derived
 from .kernels import blend, coverage_mask, scaled, smooth_field, to_alpha8, veiled
 from .registry import register
 
@@ -123,6 +124,14 @@ def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
     return map_x.reshape(gh, gw), map_y.reshape(gh, gw), shade.reshape(gh, gw), alpha.reshape(gh, gw)
 
 
+def _drop_source(image: np.ndarray, scale: float) -> np.ndarray:
+    """What every drop refracts: the frame at quarter resolution, defocused (the same at every severity, so a
+    run's decoded frames derive it once: `corruptions.derived`)."""
+    h, w = image.shape[:2]
+    small = cv2.resize(image, (max(1, w // 4), max(1, h // 4)), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(small, (0, 0), sigmaX=max(0.5, scaled(8.0, scale) / 4))
+
+
 @register("raindrop", group="contamination", axis="contamination", parameter="frame fraction under drops",
           unit="fraction", values=(0.03, 0.06, 0.10, 0.16, 0.25), random=True, spatial=True)
 def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale: float) -> np.ndarray:
@@ -133,8 +142,7 @@ def raindrop(image: np.ndarray, fraction: float, rng: np.random.Generator, scale
     h, w = image.shape[:2]
     step = max(1.0, scaled(_DROP_GRID, scale))
     map_x, map_y, shade, alpha = _drop_layer(_drop_params(rng, h, w, fraction, scale, step), step)
-    small = cv2.resize(image, (max(1, w // 4), max(1, h // 4)), interpolation=cv2.INTER_AREA)
-    source = cv2.GaussianBlur(small, (0, 0), sigmaX=max(0.5, scaled(8.0, scale) / 4))
+    source = derived(image, f"raindrop-source-{scale!r}", lambda clean: _drop_source(clean, scale))
     to_source = source.shape[1] / w
     view = cv2.remap(source, map_x * to_source, map_y * to_source, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REFLECT_101)

@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..constants import EGO_LENGTH, EGO_WIDTH, HORIZON_STEPS, REPORT_HORIZONS_S, STEP_SECONDS, VRU_CATEGORIES
+from ..corruptions.derived import derived
 from ..data.frame import AgentBoxes, Frame
 
 #: Step index (0-based, into the six waypoints) of each reported horizon: 1 s -> 1, 2 s -> 3, 3 s -> 5.
@@ -244,10 +245,14 @@ def bit1_density(images: Mapping[str, np.ndarray]) -> float:
     ones = 0
     total = 0
     for image in images.values():
-        raw = np.ascontiguousarray(image).view(np.uint8).reshape(-1)
-        ones += _ones(raw)
-        total += raw.size * 8
+        arr = np.ascontiguousarray(image)  # the array itself when it is one: a registered image stays itself
+        ones += derived(arr, "ones", _image_ones)  # a decoded clean image's count is kept (`corruptions.derived`)
+        total += arr.nbytes * 8
     return ones / total if total else 0.0
+
+
+def _image_ones(image: np.ndarray) -> int:
+    return _ones(image.view(np.uint8).reshape(-1))
 
 
 class FrameMetrics(TypedDict):
