@@ -20,6 +20,12 @@ _DROP_MAGNIFICATION = 2.6
 _DROP_GRID = 4.0
 #: A drop's opacity falls from 1 to 0 over its outer 1 / _DROP_EDGE of radius (its soft, defocused rim).
 _DROP_EDGE = 12.0
+#: rho^2 of `_covered`'s test, in float32 as the test multiplies it.
+_REACH2 = np.float32((1.0 - 0.5 / _DROP_EDGE) ** 2)
+#: `_DropGrid.paint_short` paints this many drops or more at once, and no fewer than one per this many covered
+#: cells (fewer go one by one, which is then cheaper than recounting the wet cells); either way the same grid.
+_BULK_DROPS = 24
+_BULK_CELLS_PER_DROP = 1000
 
 
 def _mean_drop_area(lo: float, hi: float) -> float:
@@ -29,38 +35,65 @@ def _mean_drop_area(lo: float, hi: float) -> float:
     return float(np.pi * mean_r2 * _DROP_ASPECT)
 
 
+def _inside(dx: np.ndarray, dy: np.ndarray, rx: np.ndarray, ry: np.ndarray) -> np.ndarray:
+    """float32 offsets (dx, dy) of cells from their drops' centres within the drop's ellipse (rx, ry) to rho <=
+    1 - 1 / (2 _DROP_EDGE), without a division: dx^2 ry^2 + dy^2 rx^2 <= rho^2 rx^2 ry^2, and rx > 0 (a wet
+    cell). `dx` and `dy` are overwritten (the same products in the same order, without temporaries)."""
+    rx2, ry2 = np.square(rx), np.square(ry)
+    dx *= dx
+    dx *= ry2
+    dy *= dy
+    dy *= rx2
+    dx += dy
+    reach = rx2 * _REACH2
+    reach *= ry2
+    inside = dx <= reach
+    inside &= rx2 > 0
+    return inside
+
+
 def _covered(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
     """Which cells of params[rows, cols] are under a drop at opacity >= 1/2 (what the fraction counts):
     inside their drop's ellipse to rho <= 1 - 1 / (2 _DROP_EDGE), with the alpha ramp of `_drop_layer`
-    (tested without a division: dx^2 ry^2 + dy^2 rx^2 <= rho^2 rx^2 ry^2)."""
+    (`_inside`)."""
     box = params[rows, cols]
     dx = np.arange(cols.start, cols.stop, dtype=np.float32) + 0.5 - box[..., 0]
     dy = np.arange(rows.start, rows.stop, dtype=np.float32)[:, None] + 0.5 - box[..., 1]
-    rx2, ry2 = np.square(box[..., 2]), np.square(box[..., 3])
-    inside = dx * dx * ry2 + dy * dy * rx2 <= (1.0 - 0.5 / _DROP_EDGE) ** 2 * rx2 * ry2
-    return inside & (rx2 > 0)
+    return _inside(dx, dy, box[..., 2], box[..., 3])
+
+
+class _Drops:
+    """A batch of drops (B, 4: cx, cy, rx, ry in grid units) as `cv2.ellipse` paints them: each one's colour
+    (the four values), centre and axes in whole cells (rounded half to even, as Python's round), and the cells
+    it can paint: its box, one cell of margin, cut to the grid, and their count."""
+
+    def __init__(self, drops: np.ndarray, gh: int, gw: int) -> None:
+        centre = np.round(drops[:, :2]).astype(np.int64)
+        axes = np.maximum(1, np.round(drops[:, 2:]).astype(np.int64))
+        lo, hi = np.maximum(0, centre - axes - 1), np.minimum([gw, gh], centre + axes + 2)
+        self.cells = np.prod(hi - lo, axis=1)
+        self.colour = [tuple(d) for d in drops.tolist()]
+        self.centre, self.axes = [tuple(c) for c in centre.tolist()], [tuple(a) for a in axes.tolist()]
+        self.box = [(slice(y0, y1), slice(x0, x1)) for (x0, y0), (x1, y1) in zip(lo.tolist(), hi.tolist())]
 
 
 class _DropGrid:
     """The drop grid being painted: `params` (each wet cell's drop, cx, cy, rx, ry in grid units; rx = 0 where
-    the lens is dry), which cells are covered (`_covered`) and how many."""
+    the lens is dry), which cells are covered (`_covered`) and how many. `covered` always equals `_covered` of
+    the whole grid: a drop changes only the cells of its box, which it recounts."""
 
     def __init__(self, gh: int, gw: int) -> None:
         self.params = np.zeros((gh, gw, 4), np.float32)
         self.covered = np.zeros((gh, gw), bool)
         self.area = 0
 
-    def paint(self, drop: np.ndarray, target: float) -> bool:
-        """Paint one drop over what is there (a drop over another's rim can also uncover a little, so the
-        covered cells are recounted in its bounding box). True once the covered cells reach `target`; the
-        drop that reaches it is taken back if stopping before it lands nearer to the target."""
-        cx, cy, ax, ay = (float(v) for v in drop)
-        centre, axes = (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay)))
-        box = (slice(max(0, centre[1] - axes[1] - 1), min(self.params.shape[0], centre[1] + axes[1] + 2)),
-               slice(max(0, centre[0] - axes[0] - 1), min(self.params.shape[1], centre[0] + axes[0] + 2)))
-        cells = (box[0].stop - box[0].start) * (box[1].stop - box[1].start)
-        held = self.params[box].copy() if self.area + cells >= target else None  # a gain is at most `cells`
-        cv2.ellipse(self.params, centre, axes, 0, 0, 360, (cx, cy, ax, ay), -1)
+    def paint(self, drops: _Drops, k: int, target: float) -> bool:
+        """Paint drop `k` over what is there (a drop over another's rim can also uncover a little, so the
+        covered cells are recounted in its box). True once the covered cells reach `target`; the drop that
+        reaches it is taken back if stopping before it lands nearer to the target."""
+        box = drops.box[k]
+        held = self.params[box].copy() if self.area + drops.cells[k] >= target else None  # gain <= cells
+        cv2.ellipse(self.params, drops.centre[k], drops.axes[k], 0, 0, 360, drops.colour[k], -1)
         now = _covered(self.params, *box)
         gain = int(np.count_nonzero(now)) - int(np.count_nonzero(self.covered[box]))
         if self.area + gain < target:
@@ -70,6 +103,26 @@ class _DropGrid:
         if held is not None and self.area + gain - target > target - self.area:  # further past than short
             self.params[box] = held
         return True
+
+    def paint_short(self, drops: _Drops, target: float) -> int:
+        """Paint the leading drops that cannot reach `target` whatever they cover (the covered cells plus their
+        boxes' cells stay short of it): the ellipses first, then the covered cells recounted once over the wet
+        cells, which is what painting them one by one leaves. Returns how many were painted: none when fewer
+        than _BULK_DROPS could be, or too few for the cells to recount (one by one is then cheaper)."""
+        count = int(np.searchsorted(self.area + np.cumsum(drops.cells), target, side="left"))
+        if count < _BULK_DROPS or count * _BULK_CELLS_PER_DROP < self.area:  # the recount would cost more
+            return 0
+        for k in range(count):
+            cv2.ellipse(self.params, drops.centre[k], drops.axes[k], 0, 0, 360, drops.colour[k], -1)
+        flat = self.params.reshape(-1, 4)
+        wet = np.flatnonzero(flat[:, 2] > 0)
+        row, col = np.divmod(wet, self.params.shape[1])
+        cells = flat[wet]
+        self.covered[...] = False
+        self.covered.reshape(-1)[wet] = _inside(col.astype(np.float32) + 0.5 - cells[:, 0],
+                                                row.astype(np.float32) + 0.5 - cells[:, 1], cells[:, 2], cells[:, 3])
+        self.area = int(np.count_nonzero(self.covered))
+        return count
 
 
 def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float,
@@ -92,10 +145,11 @@ def _drop_params(rng: np.random.Generator, h: int, w: int, fraction: float, scal
         batch = max(1, int((target - grid.area) / drop_cells))
         rx = np.maximum(1.0, np.exp(rng.uniform(lo, hi, batch)))
         new = np.stack([rng.uniform(0, w, batch), rng.uniform(0, h, batch), rx, rx * _DROP_ASPECT], axis=1) / step
-        for drop in new:
-            count += 1
-            if grid.paint(drop, target):
+        drops = _Drops(new, gh, gw)
+        for k in range(grid.paint_short(drops, target), batch):
+            if grid.paint(drops, k, target):
                 return grid.params
+        count += batch
     return grid.params
 
 

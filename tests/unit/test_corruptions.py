@@ -363,6 +363,65 @@ def test_raindrop_realisations_each_cover_the_fraction(severity):
         assert abs(share - fraction) <= half_drop, (seed, share)
 
 
+def _covered_before(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
+    """`contamination._covered` as it was written before issue 23's second pass."""
+    box = params[rows, cols]
+    dx = np.arange(cols.start, cols.stop, dtype=np.float32) + 0.5 - box[..., 0]
+    dy = np.arange(rows.start, rows.stop, dtype=np.float32)[:, None] + 0.5 - box[..., 1]
+    rx2, ry2 = np.square(box[..., 2]), np.square(box[..., 3])
+    return (dx * dx * ry2 + dy * dy * rx2 <= (1.0 - 0.5 / 12.0) ** 2 * rx2 * ry2) & (rx2 > 0)
+
+
+def _drops_one_by_one(rng: np.random.Generator, h: int, w: int, fraction: float, scale: float,
+                      step: float) -> np.ndarray:
+    """`contamination._drop_params` as the suite computed it before issue 23's second pass: every drop painted,
+    then its box's covered cells recounted, one at a time."""
+    from pytest_drivedegrade.corruptions import contamination as C  # noqa: N812 - C for the module
+
+    gh, gw = max(1, round(h / step)), max(1, round(w / step))
+    params, covered, area = np.zeros((gh, gw, 4), np.float32), np.zeros((gh, gw), bool), 0
+    target = fraction * gh * gw
+    lo, hi = np.log(C.scaled(C._DROP_RADIUS[0], scale)), np.log(C.scaled(C._DROP_RADIUS[1], scale))
+    drop_cells, count = C._mean_drop_area(lo, hi) / (step * step), 0
+    while count < 5000:
+        batch = max(1, int((target - area) / drop_cells))
+        rx = np.maximum(1.0, np.exp(rng.uniform(lo, hi, batch)))
+        new = np.stack([rng.uniform(0, w, batch), rng.uniform(0, h, batch), rx, rx * C._DROP_ASPECT], axis=1) / step
+        for drop in new:
+            count += 1
+            cx, cy, ax, ay = (float(v) for v in drop)
+            centre, axes = (round(cx), round(cy)), (max(1, round(ax)), max(1, round(ay)))
+            box = (slice(max(0, centre[1] - axes[1] - 1), min(gh, centre[1] + axes[1] + 2)),
+                   slice(max(0, centre[0] - axes[0] - 1), min(gw, centre[0] + axes[0] + 2)))
+            held = params[box].copy()
+            cv2.ellipse(params, centre, axes, 0, 0, 360, (cx, cy, ax, ay), -1)
+            now = _covered_before(params, *box)
+            gain = int(np.count_nonzero(now)) - int(np.count_nonzero(covered[box]))
+            if area + gain < target:
+                covered[box], area = now, area + gain
+                continue
+            if area + gain - target > target - area:
+                params[box] = held
+            return params
+    return params
+
+
+@pytest.mark.parametrize("shape", [(450, 800), (900, 1600), (37, 61), (3, 500)])
+def test_raindrops_painted_in_bulk_are_the_drops_painted_one_by_one(shape):
+    """The drops that cannot reach the fraction painted at once (`_DropGrid.paint_short`) leave the grid that
+    painting each and recounting its box leaves, bit for bit, at every severity's fraction and beyond."""
+    from pytest_drivedegrade.corruptions.contamination import _drop_params
+
+    h, w = shape
+    scale = w / 1600
+    step = max(1.0, 4.0 * scale)
+    for fraction in (*FAMILIES["raindrop"].values, 0.0, 0.5, 0.9):
+        for seed in range(3):
+            got = _drop_params(np.random.default_rng(seed), h, w, fraction, scale, step)
+            want = _drops_one_by_one(np.random.default_rng(seed), h, w, fraction, scale, step)
+            assert got.view(np.uint32).tobytes() == want.view(np.uint32).tobytes(), (fraction, seed)
+
+
 def _line_mean(image: np.ndarray, length: float, slope: float) -> np.ndarray:
     """Brute force: the area-sampled segment `length` rows long on the digital line through each pixel,
     advancing along axis 0: n = floor(length) whole samples (window [i - n//2, i + n - 1 - n//2]) and the
