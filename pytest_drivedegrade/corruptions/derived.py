@@ -27,7 +27,8 @@ T = TypeVar("T")
 #: 82 MiB: the budget holds most of a run's, and the decode cache's images themselves take up to 512 MiB).
 BUDGET_BYTES = 64 << 20
 
-_lock = threading.Lock()
+#: Reentrant: a garbage collection inside a locked block may free a registered image, whose `forget` then locks.
+_lock = threading.RLock()
 #: id(image) -> (a weak reference to it, its derived values by name)
 _stable: dict[int, tuple[weakref.ref[np.ndarray], dict[str, object]]] = {}
 _held = [0]  # bytes of derived arrays kept
