@@ -8,7 +8,7 @@ read-only, never handed to a planner (it gets a copy) and never changed, so a va
 value derived from it at any later time. Any other image derives its values each time. A value is a function of
 the image's pixels alone, so results are bit-identical with or without the memory; only time changes.
 
-Memory: at most `BUDGET_BYTES` of derived arrays per process (beyond it they are derived each time); an entry goes
+Memory: at most `BUDGET_BYTES` (96 MiB) of derived arrays per process (beyond it they are derived each time); an entry goes
 with its image (a weak reference), so a finished run's decode cache takes its derived values with it.
 """
 
@@ -23,9 +23,9 @@ import numpy as np
 
 T = TypeVar("T")
 
-#: The derived arrays one process keeps at most (raindrop's views of a 204-frame, six-camera run at 800 x 450 take
-#: 82 MiB: the budget holds most of a run's, and the decode cache's images themselves take up to 512 MiB).
-BUDGET_BYTES = 64 << 20
+#: The derived arrays one process keeps at most: raindrop's views of a 204-frame, six-camera run at 800 x 450
+#: take 82 MiB (the decode cache's images themselves, 1.08 MB each, up to 512 MiB).
+BUDGET_BYTES = 96 << 20
 
 #: Reentrant: a garbage collection inside a locked block may free a registered image, whose `forget` then locks.
 _lock = threading.RLock()
