@@ -8,8 +8,9 @@ read-only, never handed to a planner (it gets a copy) and never changed, so a va
 value derived from it at any later time. Any other image derives its values each time. A value is a function of
 the image's pixels alone, so results are bit-identical with or without the memory; only time changes.
 
-Memory: at most `BUDGET_BYTES` (96 MiB) of derived arrays per process (beyond it they are derived each time); an entry goes
-with its image (a weak reference), so a finished run's decode cache takes its derived values with it.
+Memory: at most `BUDGET_BYTES` (96 MiB) of derived arrays per process (beyond it they are derived each time);
+an entry goes with its image (a weak reference), so a finished run's decode cache takes its derived values with
+it.
 """
 
 from __future__ import annotations
