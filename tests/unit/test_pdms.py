@@ -451,3 +451,22 @@ def test_local_drivable_keeps_holes_and_overlapping_polygons():
     row = np.column_stack([np.linspace(-5.0, 45.0, 101), np.full(101, 15.0)])  # one line of y: a narrow edge band
     np.testing.assert_array_equal(P.LocalDrivable(area, (20.0, 20.0), half=60.0)(row), area.contains(row))
     assert P.LocalDrivable(area, (20.0, 20.0), half=60.0)(np.zeros((0, 2))).shape == (0,)
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 46), scale=st.sampled_from([0.5, 3.0, 6.0]),
+       on_bounds=st.booleans())
+def test_comfort_judged_stacked_equals_term_by_term(seed, n, scale, on_bounds):
+    """`within_comfort` rounds the six signals stacked and compares them at once: the verdict of rounding and
+    comparing each alone (as is_comfortable and the EPDMS' history comfort did), values on the bounds and on
+    the rounding grid's half steps included."""
+    from pytest_drivedegrade.metrics.pdms.motion import within_comfort
+
+    rng = np.random.default_rng(seed)
+    signals = {k: rng.normal(0.0, scale, n) for k in P.COMFORT_BOUNDS}
+    if on_bounds:
+        for k, (lo, hi) in P.COMFORT_BOUNDS.items():
+            signals[k][rng.integers(0, n)] = rng.choice([lo, hi, lo + 5e-9, hi - 5e-9, hi + 4.9e-9])
+    want = float(all(((np.round(v, 8) > P.COMFORT_BOUNDS[k][0]) & (np.round(v, 8) < P.COMFORT_BOUNDS[k][1])).all()
+                     for k, v in signals.items()))
+    assert within_comfort(signals) == want

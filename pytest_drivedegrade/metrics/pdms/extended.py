@@ -18,9 +18,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ...constants import PAST_STEPS, STEP_SECONDS
-from .constants import COMFORT_BOUNDS, HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
+from .constants import HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
 from .lanes import LaneQuery, LaneView
-from .motion import EgoStates, savgol
+from .motion import EgoStates, savgol, within_comfort
 
 #: PDMScorerConfig (v2): driving direction over a 1 s window, compliant below 2 m, violated from 6 m; lane keeping
 #: fails after 2 s continuously more than 0.5 m off the centreline.
@@ -128,8 +128,7 @@ def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> flo
     terms = {"lon_accel": lon_s, "lat_accel": lat_s, "jerk": savgol(np.round(mag, 8), min(15, n), 2, 1),
              "lon_jerk": savgol(np.round(lon_s, 8), min(15, n), 2, 1),
              "yaw_rate": savgol(heading, min(5, n), 2, 1), "yaw_accel": savgol(heading, min(5, n), 3, 2)}
-    return float(all(((np.round(v, 8) > lo) & (np.round(v, 8) < hi)).all()
-                     for k, v in terms.items() for lo, hi in [COMFORT_BOUNDS[k]]))
+    return within_comfort(terms)
 
 
 def history(past_xy: npt.ArrayLike, velocity: npt.ArrayLike,

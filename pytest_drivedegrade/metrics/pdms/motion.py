@@ -217,14 +217,11 @@ def savgol(y: np.ndarray, window: int, poly: int, deriv: int = 0) -> np.ndarray:
     return _savgol_operator(len(y), window, poly, deriv, SIM_DT) @ y
 
 
-def comfort_terms(states: EgoStates) -> dict[str, np.ndarray]:
-    """NAVSIM's comfort signals over the states (window sizes of pdm_comfort_metrics, capped at the 31 states):
-    accelerations fitted over all states (order 2); jerks as the derivative (order 2, all states) of the
-    accelerations smoothed over 8; yaw rate and yaw acceleration from the heading over 5 (orders 2 and 3)."""
+def _comfort_signals(states: EgoStates) -> dict[str, np.ndarray]:
     n = len(states.heading)
     lon, lat = states.lon_accel, states.lat_accel
     mag = np.hypot(states.accel[:, 0], states.accel[:, 1])
-    out = {
+    return {
         "lon_accel": savgol(lon, n, 2),
         "lat_accel": savgol(lat, n, 2),
         "jerk": savgol(savgol(mag, 8, 2), n, 2, 1),
@@ -232,10 +229,29 @@ def comfort_terms(states: EgoStates) -> dict[str, np.ndarray]:
         "yaw_accel": savgol(states.heading, 5, 3, 2),
         "yaw_rate": savgol(states.heading, 5, 2, 1),
     }
-    return {k: np.round(v, 8) for k, v in out.items()}
+
+
+def comfort_terms(states: EgoStates) -> dict[str, np.ndarray]:
+    """NAVSIM's comfort signals over the states (window sizes of pdm_comfort_metrics, capped at the 31 states):
+    accelerations fitted over all states (order 2); jerks as the derivative (order 2, all states) of the
+    accelerations smoothed over 8; yaw rate and yaw acceleration from the heading over 5 (orders 2 and 3),
+    rounded to 1e-8."""
+    return {k: np.round(v, 8) for k, v in _comfort_signals(states).items()}
+
+
+#: COMFORT_BOUNDS as a (terms, 2) array, in its order.
+_BOUNDS = np.array(list(COMFORT_BOUNDS.values()), dtype=np.float64)
+
+
+def within_comfort(signals: dict[str, np.ndarray]) -> float:
+    """1.0 when every signal (one per COMFORT_BOUNDS key, all of one length), rounded to 1e-8, stays strictly
+    within its bounds at every state, else 0.0. The signals are rounded and compared stacked, in one call each:
+    rounding is elementwise, so the same values as term by term."""
+    rounded = np.round(np.stack([signals[k] for k in COMFORT_BOUNDS]), 8)
+    return float(((rounded > _BOUNDS[:, :1]) & (rounded < _BOUNDS[:, 1:])).all())
 
 
 def is_comfortable(states: EgoStates) -> float:
-    """1.0 when every comfort signal stays strictly within its COMFORT_BOUNDS at every state, else 0.0."""
-    terms = comfort_terms(states)
-    return float(all(((terms[k] > lo) & (terms[k] < hi)).all() for k, (lo, hi) in COMFORT_BOUNDS.items()))
+    """1.0 when every comfort signal (`comfort_terms`) stays strictly within its COMFORT_BOUNDS at every state,
+    else 0.0."""
+    return within_comfort(_comfort_signals(states))
