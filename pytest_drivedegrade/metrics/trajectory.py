@@ -143,6 +143,22 @@ class FlatAgents:
                    np.array([c for b in steps for c in b.category], dtype=object))
 
     @cached_property
+    def step_start(self) -> np.ndarray:
+        """(HORIZON_STEPS + 1,) where each step's boxes start in the flat arrays (they are in step order)."""
+        return np.concatenate([[0], np.cumsum(np.bincount(self.step, minlength=HORIZON_STEPS))])
+
+    def pairs(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every (query, box) pair of queries at waypoint `step` (Q,) and that step's boxes, in (query, box)
+        order: what ``np.nonzero(step[:, None] == self.step[None, :])`` finds, without the Q x M comparison."""
+        start = self.step_start
+        first = start[step]
+        counts = start[step + 1] - first
+        total = int(counts.sum())
+        query = np.repeat(np.arange(len(step)), counts)
+        box = np.arange(total) + np.repeat(first - (np.cumsum(counts) - counts), counts)
+        return query, box
+
+    @cached_property
     def reach(self) -> np.ndarray:
         """(M,) the distance within which a box's centre may touch the ego box: both half diagonals."""
         return _EGO_RADIUS + np.hypot(self.sizes[:, 0], self.sizes[:, 1]) / 2 + 1e-6

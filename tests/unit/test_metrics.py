@@ -287,3 +287,18 @@ def test_overlap_pairs_per_coordinate_equals_the_vector_form(seed: int, n: int, 
     assert np.array_equal(got, _overlap_vector_form(c0, s0, y0, c1, s1, y1))
     if touching:
         assert got.all()  # end to end within the slack: touching counts
+
+
+@settings(max_examples=200, deadline=None)
+@given(counts=st.lists(st.integers(0, 9), min_size=0, max_size=6),
+       steps=st.lists(st.integers(0, 5), min_size=0, max_size=60))
+def test_the_pairs_by_step_are_those_of_the_full_comparison(counts, steps) -> None:
+    """`FlatAgents.pairs` gives the (query, box) pairs, in order, of comparing every query's step with every
+    box's (steps without boxes, and frames with fewer than six steps, included)."""
+    agents = [AgentBoxes(center=np.zeros((n, 2)), size=np.ones((n, 2)), yaw=np.zeros(n), category=("car",) * n)
+              for n in counts]
+    flat = metrics.FlatAgents.of(agents)
+    step = np.asarray(steps, dtype=np.int64)
+    query, box = flat.pairs(step)
+    want_q, want_b = np.nonzero(step[:, None] == flat.step[None, :])
+    assert query.tolist() == want_q.tolist() and box.tolist() == want_b.tolist()

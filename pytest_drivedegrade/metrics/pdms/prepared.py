@@ -143,7 +143,7 @@ class PreparedFrame:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
         flat agent) pairs that overlap or touch, in (query, agent) order."""
         b = self.boxes
-        q, a = np.nonzero(step[:, None] == b.step[None, :])
+        q, a = b.pairs(step)
         if len(q):
             near = np.hypot(*(b.centers[a] - xy[q]).T) <= self.reach[a]
             q, a = q[near], a[near]
