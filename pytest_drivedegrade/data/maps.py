@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ..errors import DataError
+from .geometry import wrap_angle
 from .tables import read_json
 
 #: Where a data root keeps the map expansion, one JSON file per location (the log table's `location`).
@@ -229,7 +230,7 @@ def arcline_poses(path: dict, step: float = CENTRELINE_STEP) -> np.ndarray:
         out[pick] = _advance(x, y, h, curvature, s[pick] - done)
         x, y, h = (float(v) for v in _advance(x, y, h, curvature, np.array([length]))[0])
         done += length
-    out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    out[:, 2] = wrap_angle(out[:, 2])
     return out
 
 

@@ -139,7 +139,7 @@ def waypoint_headings(points: np.ndarray) -> np.ndarray:
     angle[:, -1] += np.where(np.hypot(before[:, 0], before[:, 1]) >= STANDING_CHORD_M, turn_on, 0.0)
     out = np.zeros((len(points), HORIZON_STEPS + 1))
     for k in range(HORIZON_STEPS):
-        turn = (angle[:, k] - out[:, k] + np.pi) % (2 * np.pi) - np.pi
+        turn = _wrap(angle[:, k] - out[:, k])
         turn = np.where(np.abs(turn) > np.pi / 2, _wrap(turn - np.pi), turn)  # backwards: heading opposite
         out[:, k + 1] = np.where(moving[:, k], out[:, k] + turn, out[:, k])
     return out
@@ -188,7 +188,7 @@ def fit_profiles(poses: np.ndarray, params: LQRParams = NAVSIM_LQR) -> tuple[np.
     b, n = poses.shape[:2]
     m, dt = n - 1, SIM_DT
     disp = np.diff(poses, axis=1)
-    dheading = (disp[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    dheading = _wrap(disp[..., 2])
     tri = np.tril(np.ones((m, m)))
     direction = np.stack([np.cos(poses[:, :-1, 2]), np.sin(poses[:, :-1, 2])], axis=-1)  # (B, M, 2)
     a_vel = np.empty((b, m, 2, m))  # displacement k uses v_0 and a_0 .. a_{k-1}

@@ -24,7 +24,6 @@ class LocalDrivable:
                     and (p.exterior.min(0) <= self.hi).all() and (p.exterior.max(0) >= self.lo).all()]
         rings = [(k, False, p.exterior) for k, p in enumerate(polygons)]
         rings += [(k, True, h) for k, p in enumerate(polygons) for h in p.holes if len(h) >= 3]
-        self.n_polygons, self.n_rings = len(polygons), len(rings)
         self.ring_polygon = np.array([r[0] for r in rings], dtype=np.int64)
         self.ring_hole = np.array([r[1] for r in rings], dtype=bool)
         self.rings = RingSet([r[2] for r in rings])
@@ -33,7 +32,7 @@ class LocalDrivable:
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if not ((pts >= self.lo) & (pts <= self.hi)).all():
             return np.asarray(self.full(pts), dtype=bool).reshape(-1)
-        if not self.n_rings or not len(pts):
+        if not self.rings.count or not len(pts):
             return np.zeros(len(pts), dtype=bool)
         odd = self.rings.parity(pts)  # (P, rings), every ring's edges in one crossing test
         in_exterior = odd[:, ~self.ring_hole]  # (P, polygons): exterior rings come first, one per polygon
