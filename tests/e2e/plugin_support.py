@@ -121,6 +121,11 @@ class TestPlanner:
             plan[5, 0] = 1e200
         if fault == "write":
             images["CAM_FRONT"][0, 0, 0] = 7
+        if fault == "scribble":  # every image it reads, overwritten through raw memory (no flag stops that)
+            import ctypes
+
+            for cam in self.cameras:
+                ctypes.memset(images[cam].ctypes.data, 255, images[cam].nbytes)
         if fault == "hang":
             time.sleep(5)
         if fault == "exit" and os.path.exists(self.marker):

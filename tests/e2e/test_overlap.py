@@ -105,3 +105,29 @@ def test_a_run_without_clean_still_waits_for_the_floor_started_beside_its_cells(
     result.stdout.fnmatch_lines(["*no clean cell result*"])
     assert finished.is_set()
     assert not any(t.name == "drivedegrade-floor" for t in threading.enumerate())
+
+
+def test_a_planner_scribbling_over_its_images_cannot_poison_what_later_cells_derive(dd):
+    """Issue 23's derived values (raindrop's quarter-resolution view and the energy's bit count, kept per decoded
+    clean image for the process's later cells): a planner that overwrites every image it reads through raw
+    memory in frame_dropout-s1 (which delivers the decoded clean images themselves, held or current) fails that
+    cell naming the write, and every later cell of the same process, raindrop and its energy included, reads
+    exactly what a run without the scribbling reads."""
+    from plugin_support import by_cell, read_csv
+
+    rows, outputs = {}, {}
+    for name, fault in (("scribbled", "scribble"), ("plain", "nan")):
+        # both planners carry a fault (so neither is deterministic and no cell reuses clean's plans); the plain
+        # one's is in a cell this run does not have
+        target = "frame_dropout-s1" if fault == "scribble" else "jpeg-s5"
+        dd.write_planner(faults={target: (fault, None)})
+        result = dd.run("-p", "no:xdist", "--drivedegrade-prefetch", "0", report=name,
+                        families="frame_dropout,raindrop", severities="1,2")
+        rows[name] = by_cell(read_csv(dd.folder(report=name) / "cells.csv"))
+        outputs[name] = result.stdout.str()
+    for cell in ("clean", "frame_dropout-s2", "raindrop-s1", "raindrop-s2", "blind", "null"):
+        got, want = ({k: v for k, v in rows[run][cell].items() if k != "planner_fingerprint"}  # two planner files
+                     for run in ("scribbled", "plain"))
+        assert got == want, cell
+    assert rows["scribbled"]["frame_dropout-s1"]["conformance_errors"] != "0"
+    assert "frame_dropout-s1" in outputs["scribbled"] and "wrote into" in outputs["scribbled"]
