@@ -8,10 +8,12 @@ from __future__ import annotations
 import os
 import secrets
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from typing import Protocol
 
+import cv2
 import numpy as np
 
 from .cells import PDMS_FIELDS, RecordBuilder
@@ -156,6 +158,37 @@ def prefetch_depth(settings: RunSettings) -> int:
     if settings.prefetch is not None:
         return settings.prefetch
     return auto_prefetch(processes_here())
+
+
+#: OpenCV's own variable for its thread count: where the user set it, the run leaves OpenCV's threads alone.
+OPENCV_THREADS_ENV = "OPENCV_FOR_THREADS_NUM"
+
+
+def opencv_threads(cpus: int | None = None) -> int:
+    """The threads OpenCV may use in a process running cells: its share of the cores among the processes that
+    run cells on the machine (`processes_here`), at least one. OpenCV starts a thread per core in every process
+    by default, so under ``-n 2`` on two cores each worker's resize, blur or remap was split in two and half of
+    it waited for the core the other worker held. One process keeps every core: there a GPU planner's thread
+    leaves its core to the loading thread's OpenCV calls. OpenCV's results do not depend on its thread count."""
+    cpus = os.cpu_count() if cpus is None else cpus
+    return max(1, (cpus or 1) // processes_here())
+
+
+@contextmanager
+def opencv_share() -> Iterator[None]:
+    """OpenCV's thread count set to `opencv_threads` while a cell runs, and put back after it; left alone where
+    the user set $OPENCV_FOR_THREADS_NUM."""
+    if os.environ.get(OPENCV_THREADS_ENV):
+        yield
+        return
+    before, wanted = cv2.getNumThreads(), opencv_threads()
+    if wanted != before:
+        cv2.setNumThreads(wanted)
+    try:
+        yield
+    finally:
+        if wanted != before:
+            cv2.setNumThreads(before)
 
 
 def processes_here() -> int:

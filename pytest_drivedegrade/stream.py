@@ -27,7 +27,7 @@ from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
-from .pacing import PDMS_SPAN, CellPdms, Scorer, prefetch_depth, process_key
+from .pacing import PDMS_SPAN, CellPdms, Scorer, opencv_share, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
 
@@ -316,7 +316,7 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     clock = _Clock()
     overlap = prefetch_depth(source.settings) > 0
     cell_pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None, enabled=pdms)
-    with Scorer(overlap) as scorer:
+    with opencv_share(), Scorer(overlap) as scorer:
         for i, (sample, result) in enumerate(stream(source, planner, family, severity, frames, unread=unread,
                                                     seed=seed, clean=clean, history=history)):
             clock.delivered(sample)

@@ -31,7 +31,7 @@ from ..closedloop.results import RunResult
 from ..closedloop.routes import Route, load_routes
 from ..closedloop.simulate import Corruption, Timings, run_route
 from ..errors import DriveDegradeError, InvalidInput
-from ..pacing import closed_threads
+from ..pacing import closed_threads, opencv_share
 from ..planning import planner_name
 from ..report.junit import plain
 from ..run import AnyPlanner, PlannerElsewhere, RunContext
@@ -81,7 +81,7 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
         return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps,
                                 s.closed_agents)
     timings, out, threads = Timings(), [], closed_threads(s)
-    with ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
+    with opencv_share(), ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
         for route, seed in runs:
             out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
                                  plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents,

@@ -131,3 +131,57 @@ def test_a_planner_scribbling_over_its_images_cannot_poison_what_later_cells_der
         assert got == want, cell
     assert rows["scribbled"]["frame_dropout-s1"]["conformance_errors"] != "0"
     assert "frame_dropout-s1" in outputs["scribbled"] and "wrote into" in outputs["scribbled"]
+
+
+COUNTER = '''
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+
+class Counter:
+    """Straight ahead; notes OpenCV's thread count at each call (process id, count)."""
+
+    cameras = ("CAM_FRONT",)
+    name = "counter"
+
+    def predict(self, images, ego, cmd, context):
+        with open({log!r}, "a") as fh:
+            fh.write(f"{{os.getpid()}} {{cv2.getNumThreads()}}\\n")
+        plan = np.zeros((6, 2))
+        plan[:, 0] = np.arange(1, 7) + float(images["CAM_FRONT"][::16, ::16].mean()) / 255.0
+        return plan
+
+
+@pytest.fixture(scope="session")
+def planner():
+    return Counter()
+'''
+
+
+@pytest.mark.parametrize(("layout", "depth"), [("-n 2", "0"), ("-p no:xdist", "0"), ("-p no:xdist", "2")])
+def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, monkeypatch, layout, depth):
+    """Every call of every cell sees the OpenCV thread count `pacing.opencv_threads` gives its layout (under -n 2
+    each worker its half of the cores; one process, with or without a loading thread, all of them), and a run in
+    this process puts the count back afterwards."""
+    import os
+
+    import cv2
+
+    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV
+
+    monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
+    monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)  # this test's own xdist worker is not the run's
+    log = dd.pytester.path / f"threads{depth}{layout[1]}.txt"
+    dd.pytester.makepyfile(counter=COUNTER.format(log=str(log)))
+    before = cv2.getNumThreads()
+    dd.run(*layout.split(), "--drivedegrade-prefetch", depth, planner="counter.py", report=f"t{depth}{layout[1]}",
+           families="jpeg", severities="3").assert_outcomes(passed=4)
+    assert cv2.getNumThreads() == before
+    cpus, processes = os.cpu_count() or 1, 2 if layout == "-n 2" else 1
+    want = max(1, cpus // processes)
+    calls = [line.split() for line in log.read_text().splitlines()]
+    assert len(calls) >= 4 and {int(n) for _, n in calls} == {want}, calls
+    assert len({pid for pid, _ in calls}) == processes

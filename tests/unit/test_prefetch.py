@@ -272,3 +272,72 @@ def test_the_scorer_keeps_frame_order_and_holds_at_most_its_depth_beside_the_pla
     with Scorer(False) as serial:  # the serial path scores at once, in the caller's thread
         serial.submit(lambda: done.append(threading.current_thread().name))
     assert done == [threading.current_thread().name]
+
+
+@pytest.mark.parametrize(("workers_env", "cpus", "threads"),
+                         [("2", 2, 1), ("", 2, 2), ("", 16, 16), ("8", 16, 2), ("3", 2, 1), ("", 1, 1), ("2", 5, 2)])
+def test_opencv_gets_the_cores_a_process_has_to_itself(monkeypatch, workers_env, cpus, threads):
+    """OpenCV's threads in a process running cells: its share of the cores among the xdist workers, at least one:
+    the two workers of -n 2 on two cores get one each, one process keeps them all."""
+    from pytest_drivedegrade.pacing import opencv_threads
+
+    if workers_env:
+        monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", workers_env)
+    else:
+        monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)
+    assert opencv_threads(cpus) == threads
+
+
+def test_a_cell_sets_opencv_threads_while_it_runs_and_puts_them_back(monkeypatch):
+    """`opencv_share` sets the count for the cell's span only; where the user set $OPENCV_FOR_THREADS_NUM it is
+    left as the user made it."""
+    import cv2
+
+    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV, opencv_share
+
+    monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        with opencv_share():
+            assert cv2.getNumThreads() == 1
+        assert cv2.getNumThreads() == 3
+        with pytest.raises(RuntimeError), opencv_share():  # put back when the cell raises, too
+            raise RuntimeError
+        assert cv2.getNumThreads() == 3
+        monkeypatch.setenv(OPENCV_THREADS_ENV, "3")
+        with opencv_share():
+            assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
+
+
+def test_every_family_gives_the_same_bytes_whatever_opencv_threads():
+    """What makes `opencv_share` free of consequence for the results: every family at every severity, on a real
+    1600 x 900 nuScenes image and at the world's 800 x 450, delivers the same bytes with OpenCV on one thread as
+    on four (its parallel loops split rows, never a pixel's arithmetic)."""
+    from pathlib import Path
+
+    import cv2
+
+    from pytest_drivedegrade.corruptions.api import corrupt_sample
+    from pytest_drivedegrade.corruptions.ladder import FAMILIES
+    from pytest_drivedegrade.corruptions.preview import read_rgb
+
+    path = next((Path(__file__).resolve().parents[1] / "data" / "nuscenes").glob("*__CAM_FRONT__*.jpg"))
+    full = read_rgb(path)
+    images = {"CAM_FRONT": full, "CAM_BACK": cv2.resize(full, (800, 450), interpolation=cv2.INTER_AREA)}
+    before = cv2.getNumThreads()
+    got: dict[int, dict[tuple[str, int, str], bytes]] = {}
+    try:
+        for threads in (1, 4):
+            cv2.setNumThreads(threads)
+            got[threads] = {(family, severity, cam): image.tobytes()
+                            for family in FAMILIES for severity in range(1, 6)
+                            for cam, image in corrupt_sample(images, family, severity, seed=3, frame="f").items()}
+    finally:
+        cv2.setNumThreads(before)
+    assert len(got[1]) == len(FAMILIES) * 5 * 2
+    assert [k for k in got[1] if got[1][k] != got[4][k]] == []
