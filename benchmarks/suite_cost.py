@@ -115,6 +115,11 @@ def main() -> None:
         new = statistics.median(r[part] for r in runs["this"])
         ratio = f"{new / ref:.2f}" if ref else "-"
         print(f"  {part:8s} reference {ref:8.2f}  this {new:8.2f}  ratio {ratio}")
+    # each rep's two runs are back to back: their ratio cancels the drift of a shared machine between reps
+    paired = [t["suite"] / r["suite"] for t, r in zip(runs["this"], runs["reference"]) if r["suite"]]
+    if paired:
+        print(f"suite ratio per rep (this / reference, back to back): {', '.join(f'{x:.3f}' for x in paired)}; "
+              f"median {statistics.median(paired):.3f}")
 
 
 if __name__ == "__main__":
