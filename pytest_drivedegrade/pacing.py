@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import secrets
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -174,21 +175,32 @@ def opencv_threads(cpus: int | None = None) -> int:
     return max(1, (cpus or 1) // processes_here())
 
 
+#: (cells running now in this process, OpenCV's count before the first of them): the first cell in sets the
+#: count, the last one out puts it back, so cells overlapping on threads (the floor's beside a cell) never leave
+#: one cell's setting behind.
+_OPENCV_SHARED: list[int] = [0, 0]
+_OPENCV_LOCK = threading.Lock()
+
+
 @contextmanager
 def opencv_share() -> Iterator[None]:
-    """OpenCV's thread count set to `opencv_threads` while a cell runs, and put back after it; left alone where
-    the user set $OPENCV_FOR_THREADS_NUM."""
+    """OpenCV's thread count set to `opencv_threads` while cells run, and put back after the last of them; left
+    alone where the user set $OPENCV_FOR_THREADS_NUM."""
     if os.environ.get(OPENCV_THREADS_ENV):
         yield
         return
-    before, wanted = cv2.getNumThreads(), opencv_threads()
-    if wanted != before:
-        cv2.setNumThreads(wanted)
+    with _OPENCV_LOCK:
+        if _OPENCV_SHARED[0] == 0:
+            _OPENCV_SHARED[1] = cv2.getNumThreads()
+            cv2.setNumThreads(opencv_threads())
+        _OPENCV_SHARED[0] += 1
     try:
         yield
     finally:
-        if wanted != before:
-            cv2.setNumThreads(before)
+        with _OPENCV_LOCK:
+            _OPENCV_SHARED[0] -= 1
+            if _OPENCV_SHARED[0] == 0:
+                cv2.setNumThreads(_OPENCV_SHARED[1])
 
 
 def processes_here() -> int:

@@ -307,6 +307,12 @@ def test_a_cell_sets_opencv_threads_while_it_runs_and_puts_them_back(monkeypatch
         with pytest.raises(RuntimeError), opencv_share():  # put back when the cell raises, too
             raise RuntimeError
         assert cv2.getNumThreads() == 3
+        with opencv_share():  # overlapping cells (the floor's on a thread beside one): the last one out restores
+            inner = opencv_share()
+            inner.__enter__()
+        assert cv2.getNumThreads() == 1
+        inner.__exit__(None, None, None)
+        assert cv2.getNumThreads() == 3
         monkeypatch.setenv(OPENCV_THREADS_ENV, "3")
         with opencv_share():
             assert cv2.getNumThreads() == 3
