@@ -1,6 +1,7 @@
 """What runs beside the planner (`--drivedegrade-prefetch`, spec section 16): the scorer thread that scores frame
 k-1 while the planner computes frame k, a cell's PDMS scored in spans there (`CellPdms`), the prefetch depth the
-machine allows, and the process key under which the cost ledger records each process's wall and planner seconds.
+machine allows, OpenCV's share of its cores while cells run (`opencv_share`), and the process key under which the
+cost ledger records each process's wall and planner seconds.
 `stream` calls the planner; this module only keeps the threads and the bookkeeping around it."""
 
 from __future__ import annotations
