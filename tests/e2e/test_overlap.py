@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 pytest.register_assert_rewrite("plugin_support")
-from plugin_support import load_json, no_traceback  # noqa: E402
+from plugin_support import load_json, no_traceback, read_csv  # noqa: E402
 from test_shards import two_scene_world  # noqa: E402, F401 - 2 val scenes: the temporal planner resets between them
 
 PLANNERS = Path(__file__).resolve().parents[2] / "planners"
@@ -150,6 +150,8 @@ class Counter:
     def predict(self, images, ego, cmd, context):
         with open({log!r}, "a") as fh:
             fh.write(f"{{os.getpid()}} {{cv2.getNumThreads()}}\\n")
+        if {tamper!r}:  # a planner that sets OpenCV's threads itself, mid-cell
+            cv2.setNumThreads(7)
         plan = np.zeros((6, 2))
         plan[:, 0] = np.arange(1, 7) + float(images["CAM_FRONT"][::16, ::16].mean()) / 255.0
         return plan
@@ -175,7 +177,7 @@ def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, mo
     monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
     monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)  # this test's own xdist worker is not the run's
     log = dd.pytester.path / f"threads{depth}{layout[1]}.txt"
-    dd.pytester.makepyfile(counter=COUNTER.format(log=str(log)))
+    dd.pytester.makepyfile(counter=COUNTER.format(log=str(log), tamper=False))
     before = cv2.getNumThreads()
     dd.run(*layout.split(), "--drivedegrade-prefetch", depth, planner="counter.py", report=f"t{depth}{layout[1]}",
            families="jpeg", severities="3").assert_outcomes(passed=4)
@@ -185,3 +187,37 @@ def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, mo
     calls = [line.split() for line in log.read_text().splitlines()]
     assert len(calls) >= 4 and {int(n) for _, n in calls} == {want}, calls
     assert len({pid for pid, _ in calls}) == processes
+
+
+def test_a_planner_that_sets_opencvs_threads_itself_changes_no_figure_and_is_put_back(dd, monkeypatch):
+    """A planner calling cv2.setNumThreads(7) in every predict, in one process and under -n 2: every cells.csv
+    figure is the well-behaved planner's, every cell still starts on the run's count (the planner's setting lasts
+    to the end of the cell at most) and the count before the run is back after it."""
+    import cv2
+
+    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV, opencv_threads
+
+    monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
+    monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)
+    outside = cv2.getNumThreads()
+    before = opencv_threads() + 1  # a count no cell sets, so that only putting it back gives it again
+    cv2.setNumThreads(before)
+    try:
+        tables = {}
+        for tamper, layout in ((False, "-p no:xdist"), (True, "-p no:xdist"), (True, "-n 2")):
+            report = f"x{int(tamper)}{layout[1]}"
+            log = dd.pytester.path / f"{report}.txt"
+            dd.pytester.makepyfile(counter=COUNTER.format(log=str(log), tamper=tamper))
+            dd.run(*layout.split(), planner="counter.py", report=report, families="jpeg,gaussian_blur",
+                   severities="3").assert_outcomes(passed=5)
+            assert cv2.getNumThreads() == before
+            rows = read_csv(dd.pytester.path / report / "counter" / "cells.csv")
+            tables[report] = [{k: v for k, v in row.items() if k != "planner_fingerprint"} for row in rows]
+            if tamper:  # the first call of each cell sees the run's count; later ones the planner's 7
+                counts = {int(line.split()[1]) for line in log.read_text().splitlines()}
+                assert counts == {opencv_threads(), 7} if layout == "-p no:xdist" else 7 in counts, counts
+        assert len(tables["x0p"]) == 5
+        assert tables["x1p"] == tables["x0p"]  # every figure; only the planner file's fingerprint differs
+        assert tables["x1n"] == tables["x0p"]
+    finally:
+        cv2.setNumThreads(outside)
