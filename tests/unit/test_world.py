@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -203,6 +204,38 @@ def test_ensure_default_world_builds_once_atomically(tmp_path, monkeypatch):
     ensure_default_world(tmp_path, train_images=True)
     ensure_default_world(tmp_path, train_images=True)
     assert added == [first]
+
+
+UNGUARDED = """
+import sys, time
+from pytest_drivedegrade.data.world import build, tasks
+
+def quick(task):  # this process's share of the build: quick, so the test waits only for the workers' start
+    time.sleep(0.2)
+    return None
+
+tasks._here = quick
+build.ensure_default_world(sys.argv[1])  # at the top level, no main guard: the spawned workers re-run it
+print("BUILT")
+"""
+
+
+def test_a_script_without_a_main_guard_gets_the_reason_not_a_hang(tmp_path):
+    """The world's spawned build workers import the main script: one that builds the world (or calls pytest.main)
+    at its top level re-ran the build in each worker, which waited for ever on the lock its parent held. Now each
+    such worker stops saying why, and the parent's build fails naming the guard (it hung before the fix)."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(UNGUARDED)
+    proc = subprocess.run([sys.executable, str(script), str(tmp_path / "cache")], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[2])})
+    assert proc.returncode != 0 and "BUILT" not in proc.stdout
+    assert "this build worker stopped" in proc.stderr  # each worker's own line
+    assert "DriveDegradeError: a process building the embedded world stopped" in proc.stderr
+    assert 'if __name__ == "__main__":' in proc.stderr
+    assert not (tmp_path / "cache" / f"world-{build.GENERATOR_VERSION}-seed0").exists()  # nothing half-built kept
 
 
 def test_cli_world_writes_a_world(tmp_path, capsys, monkeypatch):

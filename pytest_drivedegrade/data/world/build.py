@@ -152,7 +152,9 @@ def default_world_dir(cache_root) -> Path:
 
 def ensure_default_world(cache_root, *, train_images: bool = False, progress: Sink | None = None) -> Path:
     """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed), its
-    progress on `progress` (None: one line on stderr)."""
+    progress on `progress` (None: one line on stderr). A build worker re-running a script's unguarded
+    ``pytest.main`` stops here, saying why (`tasks.stop_starting_worker`), rather than wait for this world."""
+    tasks.stop_starting_worker()
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
     target = default_world_dir(cache_root)

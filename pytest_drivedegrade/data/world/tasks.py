@@ -12,11 +12,15 @@ import hashlib
 import os
 from collections import deque
 from collections.abc import Callable
+import multiprocessing
+import sys
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
+from ...errors import DriveDegradeError
 from ..maps import expansion_path
 from . import export
 from .rig import Rig
@@ -99,6 +103,27 @@ def default_workers(tasks: int) -> int:
     return max(1, min(cores, MAX_WORKERS, tasks))
 
 
+#: Why a build worker that re-ran a script's top level stops, and what a build whose worker stopped says.
+UNGUARDED_MAIN = ("the embedded world is built on spawned processes, which import the main script: a script that "
+                  "calls pytest.main() at its top level must do it under `if __name__ == \"__main__\":`")
+
+
+def starting_worker() -> bool:
+    """Whether this process is a spawned worker still importing the main script (multiprocessing's own flag for
+    it, the one behind its 'bootstrapping phase' error). A script calling ``pytest.main`` without a main guard
+    re-runs it there, and the worker would wait forever for the world its parent is building."""
+    return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
+
+
+def stop_starting_worker() -> None:
+    """End a spawned worker that is re-running a script's pytest.main (`starting_worker`), saying why: its
+    parent's build then fails with `UNGUARDED_MAIN` instead of both waiting on the world's lock for ever."""
+    if starting_worker():
+        sys.stderr.write(f"drivedegrade: this build worker stopped: {UNGUARDED_MAIN}\n")
+        sys.stderr.flush()
+        os._exit(1)
+
+
 def _init_worker() -> None:
     """One OpenCV thread per worker: the workers already fill the cores (results do not depend on it)."""
     import cv2
@@ -141,6 +166,10 @@ def run_tasks(tasks: list[SceneTask], workers: int | None = None,
                 i = pending.pop(future)
                 results[i] = future.result()
                 note(tasks[i])
+    except BrokenProcessPool as exc:
+        raise DriveDegradeError(f"a process building the embedded world stopped before its scenes were done ({exc}). "
+                                f"If pytest runs from a script: {UNGUARDED_MAIN}. Otherwise the machine may have run "
+                                "out of memory: run again, and the build starts over") from None
     finally:  # on an error or an interrupt, the tasks not yet started are dropped, not waited for
         pool.shutdown(wait=True, cancel_futures=True)
     return [results[i] for i in range(len(tasks))]
