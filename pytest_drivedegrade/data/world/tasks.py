@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import multiprocessing
 import os
+import sys
 from collections import deque
 from collections.abc import Callable
-import multiprocessing
-import sys
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
