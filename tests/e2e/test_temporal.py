@@ -191,9 +191,12 @@ class Writer:
         return np.full((6, 2), float(images["CAM_FRONT"][::16, ::16].mean()) / 255.0)
 
 
+@pytest.mark.parametrize("prefetch", [0, 2])
 @pytest.mark.parametrize("how", ["setflags", "torch", "raw"])
-def test_writes_into_inputs_fail_the_frame_naming_camera_and_frame_and_reach_nothing_else(small_world, how):
-    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
+def test_writes_into_inputs_fail_the_frame_naming_camera_and_frame_and_reach_nothing_else(small_world, how,
+                                                                                           prefetch):
+    """Serially and with the write check beside the next frame's loading (`stream._WriteChecks`)."""
+    context = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0, prefetch=prefetch))
     fresh = RunContext.open(RunSettings(data=small_world, frames=4, timeout=0.0))
     target = context.frames[1].token
     honest = Writer("none", "")
@@ -205,6 +208,42 @@ def test_writes_into_inputs_fail_the_frame_naming_camera_and_frame_and_reach_not
         after = context.run_cell(honest, family, severity)  # the same process: the decode cache is warm
         reference = fresh.run_cell(honest, family, severity)
         assert after.plans.tobytes() == reference.plans.tobytes()  # the write reached no later cell
+
+
+class LateWriter:
+    """Keeps the front image it was given and writes into it during its next call: a write after the call that
+    received the image returned, which no check right after that call can see."""
+
+    cameras = ("CAM_FRONT",)
+
+    def __init__(self) -> None:
+        self.kept: np.ndarray | None = None
+
+    def predict(self, images: Any, ego: Any, cmd: Any) -> np.ndarray:
+        import ctypes
+        import time
+
+        if self.kept is not None:
+            ctypes.memset(self.kept.ctypes.data, 7, 4096)  # the last frame's image, as soon as this call starts
+            time.sleep(0.002)  # long enough for a check of the last frame running beside this call to see it
+        self.kept = images["CAM_FRONT"]
+        return np.full((6, 2), float(self.kept[::16, ::16].mean()) / 255.0)
+
+
+def test_a_write_into_an_earlier_frames_image_is_judged_the_same_with_the_check_beside_the_loader(small_world):
+    """With --drivedegrade-prefetch the last frame's write check runs beside the next frame's loading, and is
+    settled before the planner runs again: a planner writing into the image it kept from the last frame, in its
+    next call, meets the serial path's verdict (no frame fails: each frame's check saw its own images as the
+    call left them) whatever the threads' timing; a check still running during the next call would fail frames
+    at random."""
+    records = {}
+    for prefetch in (0, 2):
+        context = RunContext.open(RunSettings(data=small_world, frames=8, timeout=0.0, prefetch=prefetch))
+        records[prefetch] = [context.run_cell(LateWriter(), family, severity)
+                             for family, severity in (("clean", 0), ("jpeg", 3), ("frame_dropout", 5))]
+    for serial, beside in zip(records[0], records[2]):
+        assert serial.errors == beside.errors == []
+        assert serial.plans.tobytes() == beside.plans.tobytes() and np.isfinite(serial.plans).all()
 
 
 def test_ego_status_is_private_and_read_only(run_context: RunContext):
