@@ -80,17 +80,22 @@ def draw_background(pre: CameraPrecomp, shape, ground: GroundMap, sky: np.ndarra
                            [0, 1 / scale, -ground.origin[1] / scale - 0.5 + 0.5 / k], [0, 0, 1.0]])
         shift = np.array([[1.0, 0, 0], [0, 1.0, v0], [0, 0, 1.0]])
         m = to_map @ ego @ pre.ground_h @ shift
-        img[v0:v1] = cv2.warpPerspective(ground.levels[level], m, (w, v1 - v0), flags=cv2.INTER_LINEAR
-                                         | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+        cv2.warpPerspective(ground.levels[level], m, (w, v1 - v0), dst=img[v0:v1], flags=cv2.INTER_LINEAR
+                            | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=border)
     r0, weights = pre.haze_rows
-    if len(weights):
+    if len(weights):  # the band * (1 - w) + horizon * w of float32, in place, truncated into the image
         band = img[r0:r0 + len(weights)].astype(np.float32)
         wgt = weights[:, None, None]
-        img[r0:r0 + len(weights)] = (band * (1 - wgt) + style.sky_horizon.astype(np.float32) * wgt).astype(np.uint8)
-    if pre.horizon:
+        np.multiply(band, 1 - wgt, out=band)
+        band += style.sky_horizon.astype(np.float32) * wgt
+        img[r0:r0 + len(weights)] = band
+    if pre.horizon:  # the sky: row sky_y[r] at the columns the yaw turns to, copied by a nearest-pixel remap
         pw = sky.shape[1]
         cols = ((pre.sky_x + yaw / (2 * np.pi)) * pw).astype(np.int64) % pw
-        img[: pre.horizon] = sky[pre.sky_y[:, None], cols[None, :]]  # one gather: the rows' pixels at the columns
+        at = np.empty((pre.horizon, w, 2), np.int16)  # (x, y) of each pixel in the panorama (< 2**15 wide)
+        at[..., 0] = cols
+        at[..., 1] = pre.sky_y[:, None]
+        cv2.remap(sky, at, None, cv2.INTER_NEAREST, dst=img[: pre.horizon])
     return img
 
 
