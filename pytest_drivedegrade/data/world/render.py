@@ -95,7 +95,7 @@ def draw_background(pre: CameraPrecomp, shape, ground: GroundMap, sky: np.ndarra
         at = np.empty((pre.horizon, w, 2), np.int16)  # (x, y) of each pixel in the panorama (< 2**15 wide)
         at[..., 0] = cols
         at[..., 1] = pre.sky_y[:, None]
-        cv2.remap(sky, at, None, cv2.INTER_NEAREST, dst=img[: pre.horizon])
+        cv2.remap(sky, at, None, cv2.INTER_NEAREST, dst=img[: pre.horizon])  # type: ignore[call-overload]
     return img
 
 
