@@ -5,6 +5,10 @@ Ray actor. For each it prints the cells' wall time from the certificate's cost l
 predictions x 25 ms (1.00: the planner never waited), ``planner_busy``, and whether cells.csv is the same.
 
     python benchmarks/overlap.py [--frames 48] [--families jpeg,fog,...] [--prefetch 2] [--skip-ray] [--skip-local]
+                                 [--reps 1]
+
+With ``--reps N`` each layout runs N back-to-back pairs (serial, then prefetch) and ends with the median of each
+ratio: the shared machine moves single readings by a few hundredths.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import argparse
 import csv
 import io
 import json
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -76,6 +81,7 @@ def main() -> None:
     ap.add_argument("--prefetch", type=int, default=2)
     ap.add_argument("--skip-ray", action="store_true")
     ap.add_argument("--skip-local", action="store_true", help="only the Ray actor")
+    ap.add_argument("--reps", type=int, default=1, help="back-to-back pairs per layout (medians printed)")
     args = ap.parse_args()
     common = ["--drivedegrade-frames", str(args.frames), "--drivedegrade-families", args.families]
     layouts = [] if args.skip_local else [("-n 0", ["-n", "0"])]
@@ -85,13 +91,23 @@ def main() -> None:
         tmp = Path(name)
         (tmp / "sleepy.py").write_text(PLANNER)
         for n, (label, layout) in enumerate(layouts):  # fresh report folders: nothing is resumed from a store
-            serial, csv_serial = certify(tmp, f"serial{n}", [*common, *layout, "--drivedegrade-prefetch", "0"])
-            ahead, csv_ahead = certify(tmp, f"ahead{n}", [*common, *layout, "--drivedegrade-prefetch",
-                                                          str(args.prefetch)])
-            print(line(f"{label}, prefetch 0", serial))
-            print(line(f"{label}, prefetch {args.prefetch}", ahead))
-            print(f"{'':<28} cells.csv identical: {'yes' if csv_serial == csv_ahead else 'NO'}; wall ratio "
-                  f"prefetch / serial {ahead['wall'] / serial['wall']:.2f}")
+            ratios: dict[str, list[float]] = {"serial": [], "ahead": []}
+            for rep in range(args.reps):
+                serial, csv_serial = certify(tmp, f"serial{n}-{rep}", [*common, *layout, "--drivedegrade-prefetch",
+                                                                       "0"])
+                ahead, csv_ahead = certify(tmp, f"ahead{n}-{rep}", [*common, *layout, "--drivedegrade-prefetch",
+                                                                    str(args.prefetch)])
+                print(line(f"{label}, prefetch 0", serial))
+                print(line(f"{label}, prefetch {args.prefetch}", ahead))
+                print(f"{'':<28} cells.csv identical: {'yes' if csv_serial == csv_ahead else 'NO'}; wall ratio "
+                      f"prefetch / serial {ahead['wall'] / serial['wall']:.2f}")
+                for key, cost in (("serial", serial), ("ahead", ahead)):
+                    ratios[key].append(cost["wall"] / (cost["predictions"] * SLEEP_S))
+            if args.reps > 1:
+                print(f"{label}: median ratio over {args.reps} pairs: prefetch 0 "
+                      f"{statistics.median(ratios['serial']):.2f}, prefetch {args.prefetch} "
+                      f"{statistics.median(ratios['ahead']):.2f} (each: "
+                      f"{', '.join(f'{r:.2f}' for r in ratios['ahead'])})")
 
 
 if __name__ == "__main__":
