@@ -75,6 +75,30 @@ def test_a_cell_joined_from_its_scene_groups_is_the_cell_run_at_once(world, came
                            ctx.run_cell(camera_cnn, "jpeg", 1, span=spans[1])])
 
 
+def test_one_ray_actor_runs_each_cell_whole_and_more_actors_split_it_into_scene_groups(world):
+    """`RayPool.spans`: with one actor there is no other to balance against, so a cell is one group (each group
+    pays its own first frame's loading and last frames' scoring beside no planner call); with two, up to
+    GROUPS_PER_ACTOR groups per actor of whole scenes, in frame order, covering the span exactly."""
+    from pytest_drivedegrade.raypool import GROUPS_PER_ACTOR, RayOptions, RayPool
+    from pytest_drivedegrade.shards import scene_runs
+
+    frames = RunContext.open(RunSettings(data=world)).frames
+    scenes = len(scene_runs(frames))
+    assert scenes >= 2
+    pool = RayPool(None, RayOptions("local"), None, None, None, "p", frames)  # type: ignore[arg-type]
+    pool.slots = [object()]  # type: ignore[list-item]
+    assert pool.spans((0, len(frames))) == [(0, len(frames))]
+    assert pool.spans((2, 9)) == [(2, 9)]
+    pool.slots = [object(), object()]  # type: ignore[list-item]
+    groups = pool.spans((0, len(frames)))
+    assert len(groups) == min(scenes, 2 * GROUPS_PER_ACTOR)
+    assert groups[0][0] == 0 and groups[-1][1] == len(frames)
+    assert all(a[1] == b[0] for a, b in zip(groups, groups[1:]))  # contiguous, in order
+    starts = {frames[a].scene_token for a, _ in groups}
+    assert all(frames[a - 1].scene_token != frames[a].scene_token for a, _ in groups[1:])  # whole scenes
+    assert len(starts) == len(groups)
+
+
 class Faulty:
     """A stateless planner whose batch call fails, or returns too few plans, or one bad plan."""
 
