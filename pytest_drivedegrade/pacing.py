@@ -146,12 +146,21 @@ class Scorer:
 SPARE_CORE_PREFETCH = 2
 
 
+def cores() -> int:
+    """The cores this process may run on: its CPU affinity where the platform has one (a container or a CI job
+    pinned to some of a machine's cores sees only those), else the machine's count; at least 1. The one count
+    behind the prefetch depth, OpenCV's share and the world build's processes (`data.world.tasks`)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
 def auto_prefetch(processes: int, cpus: int | None = None) -> int:
-    """The default --drivedegrade-prefetch: `SPARE_CORE_PREFETCH` where the machine has more cores than the
-    `processes` that run cells on it (each process's planner keeps one busy, its loading and scoring threads
-    need another), else 0: the threads would only take cores from the other workers."""
-    cpus = os.cpu_count() if cpus is None else cpus
-    return SPARE_CORE_PREFETCH if (cpus or 1) > processes else 0
+    """The default --drivedegrade-prefetch: `SPARE_CORE_PREFETCH` where this process has more cores (`cores`)
+    than the `processes` that run cells on them (each process's planner keeps one busy, its loading and scoring
+    threads need another), else 0: the threads would only take cores from the other workers."""
+    return SPARE_CORE_PREFETCH if (cores() if cpus is None else cpus) > processes else 0
 
 
 def prefetch_depth(settings: RunSettings) -> int:
@@ -167,13 +176,12 @@ OPENCV_THREADS_ENV = "OPENCV_FOR_THREADS_NUM"
 
 
 def opencv_threads(cpus: int | None = None) -> int:
-    """The threads OpenCV may use in a process running cells: its share of the cores among the processes that
-    run cells on the machine (`processes_here`), at least one. OpenCV starts a thread per core in every process
-    by default, so under ``-n 2`` on two cores each worker's resize, blur or remap was split in two and half of
-    it waited for the core the other worker held. One process keeps every core: there a GPU planner's thread
+    """The threads OpenCV may use in a process running cells: its share of the cores (`cores`) among the
+    processes that run cells on the machine (`processes_here`), at least one. OpenCV starts a thread per core in
+    every process by default, so under ``-n 2`` on two cores each worker's resize, blur or remap was split in two
+    and half of it waited for the core the other worker held. One process keeps every core: there a GPU planner's thread
     leaves its core to the loading thread's OpenCV calls. OpenCV's results do not depend on its thread count."""
-    cpus = os.cpu_count() if cpus is None else cpus
-    return max(1, (cpus or 1) // processes_here())
+    return max(1, (cores() if cpus is None else cpus) // processes_here())
 
 
 #: (cells running now in this process, OpenCV's count before the first of them): the first cell in sets the

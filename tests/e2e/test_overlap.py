@@ -168,11 +168,10 @@ def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, mo
     """Every call of every cell sees the OpenCV thread count `pacing.opencv_threads` gives its layout (under -n 2
     each worker its half of the cores; one process, with or without a loading thread, all of them), and a run in
     this process puts the count back afterwards."""
-    import os
 
     import cv2
 
-    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV
+    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV, cores
 
     monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
     monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)  # this test's own xdist worker is not the run's
@@ -182,7 +181,7 @@ def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, mo
     dd.run(*layout.split(), "--drivedegrade-prefetch", depth, planner="counter.py", report=f"t{depth}{layout[1]}",
            families="jpeg", severities="3").assert_outcomes(passed=4)
     assert cv2.getNumThreads() == before
-    cpus, processes = os.cpu_count() or 1, 2 if layout == "-n 2" else 1
+    cpus, processes = cores(), 2 if layout == "-n 2" else 1
     want = max(1, cpus // processes)
     calls = [line.split() for line in log.read_text().splitlines()]
     assert len(calls) >= 4 and {int(n) for _, n in calls} == {want}, calls

@@ -228,7 +228,7 @@ def test_an_xdist_worker_counts_its_siblings_though_its_n_reads_none(monkeypatch
     workers of `-n 2` on two cores run no loading or scoring threads beside their planners."""
     from pytest_drivedegrade.plugin import options
 
-    monkeypatch.setattr("os.cpu_count", lambda: cpus)
+    monkeypatch.setattr("pytest_drivedegrade.pacing.cores", lambda: cpus)
     if workers_env:
         monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", workers_env)
     else:
@@ -288,6 +288,23 @@ def test_opencv_gets_the_cores_a_process_has_to_itself(monkeypatch, workers_env,
     assert opencv_threads(cpus) == threads
 
 
+def test_the_cores_counted_are_those_this_process_may_run_on(monkeypatch):
+    """A container or CI job pinned to 2 of a machine's 16 cores: the prefetch depth, OpenCV's share and the world
+    build's processes all count the 2 (`pacing.cores`), not the 16 `os.cpu_count` reports (which gave two -n 2
+    workers 8 OpenCV threads each and a prefetch depth of 2 on cores they did not have)."""
+    from pytest_drivedegrade.data.world.tasks import default_workers
+    from pytest_drivedegrade.pacing import cores, opencv_threads
+
+    monkeypatch.setattr("os.cpu_count", lambda: 16)
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: {3, 7}, raising=False)
+    monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
+    assert cores() == 2
+    assert opencv_threads() == 1 and auto_prefetch(2) == 0 and auto_prefetch(1) == 2
+    assert default_workers(100) == 2
+    monkeypatch.setattr("os.sched_getaffinity", lambda pid: set(), raising=False)
+    assert cores() == 1  # never 0
+
+
 def test_a_cell_sets_opencv_threads_while_it_runs_and_puts_them_back(monkeypatch):
     """`opencv_share` sets the count for the cell's span only; where the user set $OPENCV_FOR_THREADS_NUM it is
     left as the user made it."""
@@ -297,7 +314,7 @@ def test_a_cell_sets_opencv_threads_while_it_runs_and_puts_them_back(monkeypatch
 
     monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
     monkeypatch.setenv("PYTEST_XDIST_WORKER_COUNT", "2")
-    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.setattr("pytest_drivedegrade.pacing.cores", lambda: 2)
     before = cv2.getNumThreads()
     try:
         cv2.setNumThreads(3)

@@ -94,13 +94,11 @@ def run_task(task: SceneTask) -> SceneOutput:
 
 
 def default_workers(tasks: int) -> int:
-    """Worker processes for `tasks` tasks: the cores this process may run on (`os.sched_getaffinity`, else
-    `os.cpu_count()`), at most `MAX_WORKERS` and at most the tasks; 1 means in this process, no pool."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - macOS, Windows
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, MAX_WORKERS, tasks))
+    """Worker processes for `tasks` tasks: the cores this process may run on (`pacing.cores`), at most
+    `MAX_WORKERS` and at most the tasks; 1 means in this process, no pool."""
+    from ...pacing import cores  # here, not at the top: the spawned build workers never import the run's modules
+
+    return max(1, min(cores(), MAX_WORKERS, tasks))
 
 
 #: Why a build worker that re-ran a script's top level stops, and what a build whose worker stopped says.
