@@ -206,6 +206,20 @@ def test_ensure_default_world_builds_once_atomically(tmp_path, monkeypatch):
     assert added == [first]
 
 
+def test_a_process_still_importing_its_script_gets_a_built_world_and_stops_only_before_the_lock(tmp_path,
+                                                                                                   monkeypatch):
+    """`tasks.stop_starting_worker` runs only where the world is missing (the lock its parent holds would never
+    come): a spawned process of the user's own that reads a built world is not stopped."""
+    target = build.default_world_dir(tmp_path)
+    target.mkdir(parents=True)
+    (target / build.MANIFEST).write_text(json.dumps({"train_images": False}))
+    monkeypatch.setattr(tasks, "starting_worker", lambda: True)
+    monkeypatch.setattr(tasks.os, "_exit", lambda code: (_ for _ in ()).throw(SystemExit(code)))
+    assert ensure_default_world(tmp_path) == target
+    with pytest.raises(SystemExit):
+        ensure_default_world(tmp_path / "empty")
+
+
 UNGUARDED = """
 import sys, time
 from pytest_drivedegrade.data.world import build, tasks

@@ -153,8 +153,8 @@ def default_world_dir(cache_root) -> Path:
 def ensure_default_world(cache_root, *, train_images: bool = False, progress: Sink | None = None) -> Path:
     """The default world in `cache_root`, generated on first use (into a temporary folder, then renamed), its
     progress on `progress` (None: one line on stderr). A build worker re-running a script's unguarded
-    ``pytest.main`` stops here, saying why (`tasks.stop_starting_worker`), rather than wait for this world."""
-    tasks.stop_starting_worker()
+    ``pytest.main`` stops before the lock, saying why (`tasks.stop_starting_worker`), rather than wait there for
+    ever; a world already built is returned to any process, as before."""
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
     target = default_world_dir(cache_root)
@@ -167,6 +167,7 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
 
     if ready():
         return target
+    tasks.stop_starting_worker()  # the lock below is held by the parent building the world: it would never come
     with _locked(cache_root / ".world.lock"):
         if ready():
             return target
