@@ -114,20 +114,23 @@ def events(log: Path) -> dict[str, list[int]]:
     return out
 
 
-@pytest.mark.parametrize("planner, extra, groups", [
-    ("camera_cnn.py", ("--drivedegrade-seeds", "2"), None),  # the seeds loop through the pool too
-    ("temporal_cnn.py", (), 12),  # 6 cells x 2 scene groups: every cell split between the actors
+@pytest.mark.parametrize("planner, extra, actors, groups", [
+    ("camera_cnn.py", ("--drivedegrade-seeds", "2"), 2, None),  # the seeds loop through the pool too
+    ("temporal_cnn.py", (), 2, 12),  # 6 cells x 2 scene groups: every cell split between the actors
+    ("temporal_cnn.py", (), 1, 6),  # one actor: every cell whole, its two scenes' resets inside one call
 ])
-def test_a_ray_run_gives_the_cells_of_a_local_run(dd, two_scene_world, no_stray_ray, planner, extra, groups):
+def test_a_ray_run_gives_the_cells_of_a_local_run(dd, two_scene_world, no_stray_ray, planner, extra, actors,
+                                                  groups):
     kw = {"planner": str(PLANNERS / planner), "data": two_scene_world, "families": "jpeg,frame_dropout,gaussian_noise",
           "severities": "5"}
     dd.run("-p", "no:xdist", *FRAMES, *extra, report="local", **kw).assert_outcomes(passed=6)
-    result = dd.run(*RAY, *FRAMES, *extra, report="ray", subprocess=True, **kw)
+    result = dd.run(*RAY, "--drivedegrade-ray-actors", str(actors), *FRAMES, *extra, report="ray", subprocess=True,
+                    **kw)
     result.assert_outcomes(passed=6)
     name = planner.removesuffix(".py")
     local, ray = (dd.pytester.path / report / name / "cells.csv" for report in ("local", "ray"))
     assert ray.read_text() == local.read_text()  # bit-identical cells
-    result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster; * scene group(s) run*"])
+    result.stdout.fnmatch_lines([f"*ray: {actors} planner actor(s) on a local cluster; * scene group(s) run*"])
     run = int(re.search(r"(\d+) scene group\(s\) run", result.stdout.str()).group(1))
     assert run >= 12 if groups is None else run == groups
     assert "died" not in result.stdout.str()
