@@ -22,7 +22,7 @@ from .cells import PDMS_FIELDS, RecordBuilder
 from .data.frame import Frame
 from .metrics.pdms import EgoStates, PreparedFrame, tracked_states
 from .metrics.pdms.extended import EC_MAX_INTERVAL_S, epdms_score, extended_comfort
-from .settings import RunSettings
+from .settings import RunSettings, cores
 
 #: Frames whose PDMS the scoring thread scores together beside the planner (`CellPdms`): one tracker batch
 #: costs about as much for 1 plan as for 200, so a span trades CPU for not scoring the whole cell at its end.
@@ -144,16 +144,6 @@ class Scorer:
 
 #: The --drivedegrade-prefetch of a machine with a core to spare for the loading and scoring threads.
 SPARE_CORE_PREFETCH = 2
-
-
-def cores() -> int:
-    """The cores this process may run on: its CPU affinity where the platform has one (a container or a CI job
-    pinned to some of a machine's cores sees only those), else the machine's count; at least 1. The one count
-    behind the prefetch depth, OpenCV's share and the world build's processes (`data.world.tasks`)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - macOS, Windows
-        return max(1, os.cpu_count() or 1)
 
 
 def auto_prefetch(processes: int, cpus: int | None = None) -> int:

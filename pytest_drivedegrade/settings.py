@@ -9,6 +9,7 @@ a run with its baseline (`baseline_differences`), all read off one row of `TABLE
 
 from __future__ import annotations
 
+import os
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
@@ -356,3 +357,13 @@ def _text(value: object) -> str:
 def _shown(value: object) -> str:
     return repr(_encode(value))
 
+
+def cores() -> int:
+    """The cores this process may run on: its CPU affinity where the platform has one (a container or a CI job
+    pinned to some of a machine's cores sees only those), else the machine's count; at least 1. The one count
+    behind the default prefetch depth and OpenCV's share (`pacing`) and the world build's processes
+    (`data.world.tasks`)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)

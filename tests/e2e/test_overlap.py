@@ -171,7 +171,8 @@ def test_cells_run_with_opencvs_threads_set_to_the_cores_each_process_has(dd, mo
 
     import cv2
 
-    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV, cores
+    from pytest_drivedegrade.pacing import OPENCV_THREADS_ENV
+    from pytest_drivedegrade.settings import cores
 
     monkeypatch.delenv(OPENCV_THREADS_ENV, raising=False)
     monkeypatch.delenv("PYTEST_XDIST_WORKER_COUNT", raising=False)  # this test's own xdist worker is not the run's

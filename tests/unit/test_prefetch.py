@@ -290,10 +290,11 @@ def test_opencv_gets_the_cores_a_process_has_to_itself(monkeypatch, workers_env,
 
 def test_the_cores_counted_are_those_this_process_may_run_on(monkeypatch):
     """A container or CI job pinned to 2 of a machine's 16 cores: the prefetch depth, OpenCV's share and the world
-    build's processes all count the 2 (`pacing.cores`), not the 16 `os.cpu_count` reports (which gave two -n 2
+    build's processes all count the 2 (`settings.cores`), not the 16 `os.cpu_count` reports (which gave two -n 2
     workers 8 OpenCV threads each and a prefetch depth of 2 on cores they did not have)."""
     from pytest_drivedegrade.data.world.tasks import default_workers
-    from pytest_drivedegrade.pacing import cores, opencv_threads
+    from pytest_drivedegrade.pacing import opencv_threads
+    from pytest_drivedegrade.settings import cores
 
     monkeypatch.setattr("os.cpu_count", lambda: 16)
     monkeypatch.setattr("os.sched_getaffinity", lambda pid: {3, 7}, raising=False)

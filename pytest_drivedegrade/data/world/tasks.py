@@ -21,6 +21,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 from ...errors import DriveDegradeError
+from ...settings import cores
 from ..maps import expansion_path
 from . import export
 from .rig import Rig
@@ -94,10 +95,8 @@ def run_task(task: SceneTask) -> SceneOutput:
 
 
 def default_workers(tasks: int) -> int:
-    """Worker processes for `tasks` tasks: the cores this process may run on (`pacing.cores`), at most
+    """Worker processes for `tasks` tasks: the cores this process may run on (`settings.cores`), at most
     `MAX_WORKERS` and at most the tasks; 1 means in this process, no pool."""
-    from ...pacing import cores  # here, not at the top: the spawned build workers never import the run's modules
-
     return max(1, min(cores(), MAX_WORKERS, tasks))
 
 
