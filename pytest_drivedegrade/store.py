@@ -42,9 +42,10 @@ class ResultStore:
     def path(self, planner: str, cell: str) -> Path:
         return self.folder(planner) / "cells" / f"{cell}.json"
 
-    def write(self, payload: CellPayload) -> Path:
-        return atomic_write_text(self.path(payload.planner, payload.cell),
-                                 json.dumps(payload.to_builtins(), allow_nan=True))
+    def write(self, payload: CellPayload, text: str | None = None) -> Path:
+        """Store `payload`; `text`: its `CellPayload.to_json` already made (the text it was read from), written
+        as it is."""
+        return atomic_write_text(self.path(payload.planner, payload.cell), payload.to_json() if text is None else text)
 
     def read(self, planner: str, cell: str, key: Mapping[str, Any]) -> CellPayload | None:
         """The stored payload of `cell` when its run key equals `key`; None when absent, stale, unreadable or

@@ -15,7 +15,7 @@ import math
 import os
 import re
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -159,13 +159,23 @@ def epdms_unscored(analysis: RunAnalysis) -> dict[str, str]:
             if not math.isfinite(float(metrics.get(k, math.nan)))}
 
 
+def record_digests(records: Mapping[str, CellRecord], cells: Sequence[str],
+                   known: Mapping[str, str] | None = None) -> dict[str, str]:
+    """`cells.record_digest` of each of `cells` that has a record, in that order; those in `known` (checked when
+    their records were read) taken as they are, the others hashed."""
+    known = known or {}
+    return {c: known.get(c) or record_digest(records[c].to_builtins()) for c in cells if c in records}
+
+
 def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None,
-                      records: Mapping[str, CellRecord] | None = None) -> dict:
+                      records: Mapping[str, CellRecord] | None = None,
+                      digests: Mapping[str, str] | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
     run's `records`, each cell carries ``plans_digest`` (`CellRecord.plans_digest`), what `drivedegrade
     reproduce` compares a rerun with, and ``record_digests`` maps each cell to `cells.record_digest` of its record,
     what its stored cell file (``cells/<cell>.json``) must hash to. That digest covers the record's timings too,
-    so it sits beside the cells, not in them: the cells section stays the same on any layout and rerun."""
+    so it sits beside the cells, not in them: the cells section stays the same on any layout and rerun.
+    `digests`: those already known (checked when each record was read), taken as they are."""
     cells = [{k: row[k] for k in CERTIFICATE_CELL if k in row} for row in (s.flat() for s in analysis.summaries)]
     for cell in cells:
         if records is not None and cell["cell"] in records:
@@ -191,8 +201,8 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "tool": {"name": "pytest-drivedegrade", "version": provenance.tool_version, "command": provenance.command,
                  "versions": dict(provenance.versions)},
         "created": created or datetime.now(timezone.utc).replace(microsecond=0).isoformat(),
-        **({"record_digests": {c["cell"]: record_digest(records[c["cell"]].to_builtins()) for c in cells
-                               if c["cell"] in records}} if records is not None else {}),
+        **({"record_digests": record_digests(records, [c["cell"] for c in cells], digests)}
+           if records is not None else {}),
     }
 
 

@@ -192,7 +192,8 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
                        missing_cells=tuple(run.missing),
                        resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes),
-                       closed=closed, adaptive=adaptive)
+                       closed=closed, adaptive=adaptive,
+                       digests={c: p.digest for c, p in run.payloads.items() if p.digest})
 
 
 

@@ -272,7 +272,7 @@ class DriveDegradeSession:
         report = yield
         payload = item.stash.get(PAYLOAD_KEY, None)
         if report.when == "call" and payload is not None:
-            setattr(report, PAYLOAD_ATTR, payload.to_builtins())
+            setattr(report, PAYLOAD_ATTR, payload.to_json())
         closed = item.stash.get(CLOSED_KEY, None)
         if report.when == "call" and closed is not None:
             setattr(report, CLOSED_ATTR, closed.to_builtins())
@@ -287,12 +287,12 @@ class DriveDegradeSession:
             got = ClosedPayload.from_builtins(closed)
             self.closed_received[got.cell] = got
             write_stored(self.store, got)
-        data = getattr(report, PAYLOAD_ATTR, None)
-        if data is None:
+        text = getattr(report, PAYLOAD_ATTR, None)
+        if text is None:
             return
-        payload = CellPayload.from_builtins(data)
+        payload = CellPayload.from_json(text)
         self.received[payload.cell] = payload
-        self.store.write(payload)
+        self.store.write(payload, text)
 
     @pytest.hookimpl(tryfirst=True)
     def pytest_sessionfinish(self, session: pytest.Session, exitstatus: int) -> None:

@@ -23,20 +23,22 @@ def write_outputs(report_dir: Path, prov: Provenance, records: Mapping[str, Cell
                   completeness: Mapping[str, object] | None = None, cost: Mapping[str, Any] | None = None,
                   signing_key: Ed25519PrivateKey | None = None,
                   closed: ClosedRun | None = None,
-                  adaptive: Mapping[str, object] | None = None) -> tuple[dict[str, Any], str]:
+                  adaptive: Mapping[str, object] | None = None,
+                  digests: Mapping[str, str] | None = None) -> tuple[dict[str, Any], str]:
     """Write the three files (four with closed-loop cells) as one set (`atomic_write_set`: all rendered and
     written to temporaries first, the certificate renamed last, so a crash on the way leaves the previous set
     whole, issue 20 L1) and return (the sealed certificate, a line saying what was written). `missing`
     cells (a crash, Ctrl-C, -k) and `completeness` (missing shards) go into the certificate's completeness.
     `gt`: frame token -> ground truth (the trajectory panels). With `signing_key` the certificate is signed
-    before it is sealed, so its digest covers the signature."""
+    before it is sealed, so its digest covers the signature. `digests`: records' digests already known
+    (`FinishedRun.digests`)."""
     from ..atomic import atomic_write_set
     from ..certificate.seal import build_certificate, certificate_text, seal
     from .cells_csv import cells_csv_text
     from .html import render_report, trajectory_examples
 
     folder = Path(report_dir) / prov.planner_name
-    cert = build_certificate(analysis, prov, records=records)
+    cert = build_certificate(analysis, prov, records=records, digests=digests)
     cert["completeness"] = {"complete": not missing, "missing_cells": list(missing), **(completeness or {})}
     if cost is not None:
         cert["cost"] = dict(cost)

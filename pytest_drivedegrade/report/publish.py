@@ -103,7 +103,8 @@ def publish(run: FinishedRun, report_dir: Path, *, signing_key: Ed25519PrivateKe
     completeness = {"complete": False, "missing_shards": list(run.missing_shards)} if run.missing_shards else {}
     cert, written = write_outputs(report_dir, run.provenance, run.records, analysis, run.missing_cells,
                                   gt=run.gt, montage=front_montage(run), completeness=completeness, cost=cost,
-                                  signing_key=signing_key, closed=run.closed, adaptive=run.adaptive)
+                                  signing_key=signing_key, closed=run.closed, adaptive=run.adaptive,
+                                  digests=run.digests)
     lines = [*summary_lines(analysis, run.missing_cells, run.missing_advice), *run.notes]
     if run.closed is not None:
         from .closed_outputs import closed_lines

@@ -22,6 +22,7 @@ from pytest_drivedegrade.cells import (
     run_order,
 )
 from pytest_drivedegrade.constants import CAMERAS
+from pytest_drivedegrade.errors import InvalidInput
 from pytest_drivedegrade.plugin import checks
 from pytest_drivedegrade.plugin.controller import gate, gather
 from pytest_drivedegrade.plugin.options import parse
@@ -190,6 +191,35 @@ def test_store_reuses_only_the_same_run(tmp_path):
     assert store.read("demo", "fog-s2", KEY) is None
     path.write_text(json.dumps({**payload.to_builtins(), "record": 5}))  # wrong shape
     assert store.read("demo", "fog-s2", KEY) is None
+
+
+def test_the_payload_travels_as_the_stores_text_and_its_checked_digest_is_kept(tmp_path):
+    """A worker sends `to_json` (one string); the controller reads it back with its digest checked and kept, writes
+    that very text, and the certificate takes the kept digest: each equal to hashing the record again."""
+    from pytest_drivedegrade.cells import RecordDigestMismatch, record_digest
+    from pytest_drivedegrade.certificate.seal import record_digests
+
+    sent = CellPayload(KEY, "demo", record("fog-s2", _plans()))
+    assert sent.digest == ""  # a computed payload: hashed when asked
+    text = sent.to_json()
+    assert text == json.dumps(sent.to_builtins(), allow_nan=True)
+    got = CellPayload.from_json(text)
+    assert got.digest == record_digest(got.record.to_builtins()) == sent.record_digest_of()
+    assert got.to_json() == text and (got.key, got.cell) == (sent.key, sent.cell)
+    path = ResultStore(tmp_path).write(got, text)
+    assert path.read_text() == text == ResultStore(tmp_path / "again").write(got).read_text()
+    tampered = json.loads(text)
+    tampered["record"]["plans"][0][0][0] += 1.0
+    with pytest.raises(RecordDigestMismatch):
+        CellPayload.from_json(json.dumps(tampered))
+    with pytest.raises(InvalidInput, match="not JSON"):
+        CellPayload.from_json(text[:40])
+    # the certificate's record_digests: a known digest taken as it is (a wrong one would show), others hashed
+    records = {"fog-s2": got.record, "fog-s3": record("fog-s3", _plans())}
+    hashed = {c: record_digest(r.to_builtins()) for c, r in records.items()}
+    assert record_digests(records, ["fog-s3", "fog-s2", "jpeg-s1"], {"fog-s2": got.digest}) == {
+        "fog-s3": hashed["fog-s3"], "fog-s2": hashed["fog-s2"]}
+    assert record_digests(records, ["fog-s2"], {"fog-s2": "f" * 64}) == {"fog-s2": "f" * 64}
 
 
 # --- what a cell asserts, on a fake context ----------------------------------------------------------------
