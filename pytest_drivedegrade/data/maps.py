@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -282,6 +283,14 @@ class LaneMap:
     ped_crossings: tuple[MapArea, ...]
     road_segments: tuple[MapArea, ...]
     drivable: DrivableArea
+
+    @cached_property
+    def centreline_boxes(self) -> np.ndarray:
+        """(L, 4) each lane's centreline bounding box (x0, y0, x1, y1), global metres, in `lanes` order (an empty
+        centreline: NaN, a box no test keeps): what `LaneView.of_map` skips far lanes by."""
+        boxes = [(*lane.centreline[:, :2].min(0), *lane.centreline[:, :2].max(0)) if len(lane.centreline)
+                 else (np.nan,) * 4 for lane in self.lanes]
+        return np.array(boxes, dtype=np.float64).reshape(-1, 4)
 
     def closest_lane(self, x: float, y: float, radius: float = 5.0) -> Lane | None:
         """The lane or connector whose centreline passes closest to (x, y), if within `radius` m (the devkit's

@@ -236,3 +236,56 @@ def test_wrap_angle_has_the_bits_of_numpys_remainder(seed, size, spread, edges, 
         assert float(wrap_angle(2.5 * np.pi)) == float((2.5 * np.pi + np.pi) % (2 * np.pi) - np.pi)
         f32 = a.astype(np.float32)
         assert wrap_angle(f32).tobytes() == ((f32 + np.pi) % (2 * np.pi) - np.pi).tobytes()
+
+
+def of_map_transforming_every_lane(lane_map, pose, radius: float) -> LaneView:
+    """`LaneView.of_map` as the suite computed it before issue 23's third pass: every lane and junction of the
+    map turned into the ego frame, then kept when its box meets [-radius, radius]^2."""
+    x, y, yaw = pose
+    c, s = np.cos(yaw), np.sin(yaw)
+
+    def local(xy):
+        d = np.asarray(xy, dtype=np.float64)[:, :2] - [x, y]
+        return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+    def near(xy):
+        return bool(len(xy)) and bool(((xy.min(0) <= radius) & (xy.max(0) >= -radius)).all())
+
+    lanes = [(local(lane.centreline), None if lane.polygon is None else local(lane.polygon.exterior))
+             for lane in lane_map.lanes if len(lane.centreline)]
+    lanes = [(cl, poly) for cl, poly in lanes if near(cl)]
+    junctions = [local(a.polygon.exterior) for a in lane_map.road_segments if a.is_intersection]
+    return LaneView.of_centrelines([cl for cl, _ in lanes], [p for _, p in lanes], [j for j in junctions if near(j)])
+
+
+def view_bytes(v: LaneView) -> list[bytes]:
+    return [np.ascontiguousarray(a).tobytes() for a in (v.start, v.end, v.yaw, v.lane, *v.intersections)] + \
+        [b"-" if p is None else np.ascontiguousarray(p).tobytes() for p in v.polygons]
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), lanes=st.integers(0, 40), spread=st.sampled_from([30.0, 150.0, 2000.0]),
+       radius=st.sampled_from([5.0, 80.0]), far=st.booleans())
+def test_lanes_skipped_by_their_boxes_are_the_lanes_no_ego_frame_box_would_keep(seed, lanes, spread, radius, far):
+    """`of_map` skips a lane whose global box, turned into the ego frame, misses the window: the same view, byte
+    for byte, as turning every lane and junction and testing each (long lanes, lanes just at the window's edge,
+    empty centrelines, junctions and other road segments among them)."""
+    from pytest_drivedegrade.data.maps import DrivableArea, Lane, LaneMap, MapArea, MapPolygon
+
+    rng = np.random.default_rng(seed)
+    origin = rng.uniform(-5e5, 5e5, 2) if far else np.zeros(2)
+    pose = (*(origin + rng.uniform(-spread, spread, 2)), float(rng.uniform(-4.0, 4.0)))
+
+    def polyline() -> np.ndarray:
+        n = int(rng.integers(0, 30)) if rng.random() < 0.9 else 0
+        start = origin + rng.uniform(-spread, spread, 2)
+        steps = rng.normal(0.0, rng.choice([0.5, 5.0, 40.0]), (n, 2))
+        xy = start + np.cumsum(steps, axis=0)
+        return np.column_stack([xy, rng.uniform(-np.pi, np.pi, n)])
+
+    made = [Lane(f"l{k}", None if rng.random() < 0.3 else MapPolygon(polyline()[:, :2]), polyline())
+            for k in range(lanes)]
+    areas = tuple(MapArea(f"a{k}", MapPolygon(polyline()[:, :2]), bool(rng.random() < 0.7)) for k in range(8))
+    lane_map = LaneMap("somewhere", tuple(made), (), (), (), areas, DrivableArea([]))
+    got = LaneView.of_map(lane_map, pose, radius)
+    assert view_bytes(got) == view_bytes(of_map_transforming_every_lane(lane_map, pose, radius))

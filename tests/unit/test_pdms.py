@@ -375,6 +375,18 @@ def test_prepared_frame_scores_exactly_as_pdm_score(plan, expert, boxes, v, driv
                                                                                           drivable)
 
 
+@settings(max_examples=150, deadline=None)
+@given(waypoints, agent_steps(), st.tuples(st.floats(-2.0, 20.0), st.floats(-2.0, 2.0)), maps)
+def test_the_prepared_experts_own_judgement_is_the_references(expert, boxes, v, drivable):
+    """`prepare` judges the expert with the frame's vectorised contacts: the NC, TTC and multiplier `pdm_score`
+    (contacts found literally) gives the expert as a plan."""
+    frame = P.PreparedFrame.prepare(expert, boxes, v, drivable)
+    as_plan = P.pdm_score(expert, expert, boxes, v, drivable)
+    assert frame.human is not None
+    assert (frame.human.nc, frame.human.ttc, frame.human.dac) == (as_plan.nc, as_plan.ttc, as_plan.dac)
+    assert frame.expert_multiplier == as_plan.nc * as_plan.dac
+
+
 def test_prepared_frame_equals_pdm_score_on_the_world_with_a_local_map(tmp_path):
     """Every frame of a small world, the expert and noisy plans (some leaving the road, some hitting agents):
     the prepared frame (agents flattened, the map cut to the ego's surroundings) gives pdm_score's result."""

@@ -15,7 +15,7 @@ from functools import cached_property
 import numpy as np
 
 from ...data.geometry import wrap_angle as _wrap
-from ...data.maps import LaneMap, RingSet
+from ...data.maps import LaneMap, MapArea, RingSet
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
@@ -23,6 +23,13 @@ LANE_RADIUS_M: float = 80.0
 #: lane whose centreline is farther away cannot hold the ego (lanes are narrower), and lane keeping counts a state
 #: with no same-way centreline that near as off its lane either way.
 NEAR_M: float = 10.0
+
+
+def _ring_boxes(areas: Sequence[MapArea]) -> np.ndarray:
+    """(K, 4) the bounding box (x0, y0, x1, y1) of each area's exterior ring (an empty ring: NaN, never kept)."""
+    boxes = [(*a.polygon.exterior[:, :2].min(0), *a.polygon.exterior[:, :2].max(0)) if len(a.polygon.exterior)
+             else (np.nan,) * 4 for a in areas]
+    return np.array(boxes, dtype=np.float64).reshape(-1, 4)
 
 
 @dataclass(frozen=True)
@@ -70,10 +77,23 @@ class LaneView:
         def near(xy: np.ndarray) -> bool:
             return bool(len(xy)) and bool(((xy.min(0) <= radius) & (xy.max(0) >= -radius)).all())
 
+        def may_be_near(boxes: np.ndarray) -> np.ndarray:
+            """(K,) bool per global bounding box (K, 4: x0, y0, x1, y1): its points, in the ego frame, may have a
+            bounding box meeting [-radius, radius]^2. The box turned into the ego frame holds every point of
+            it, so one whose turned box (grown by a metre against rounding) misses cannot be `near`."""
+            mid = 0.5 * (boxes[:, :2] + boxes[:, 2:]) - [x, y]
+            hx, hy = 0.5 * (boxes[:, 2] - boxes[:, 0]), 0.5 * (boxes[:, 3] - boxes[:, 1])
+            u, v = c * mid[:, 0] + s * mid[:, 1], -s * mid[:, 0] + c * mid[:, 1]
+            reach = radius + 1.0
+            return ((np.abs(u) <= abs(c) * hx + abs(s) * hy + reach)
+                    & (np.abs(v) <= abs(s) * hx + abs(c) * hy + reach))
+
+        candidates = [lane for lane, ok in zip(lane_map.lanes, may_be_near(lane_map.centreline_boxes)) if ok]
         lanes = [(local(lane.centreline), None if lane.polygon is None else local(lane.polygon.exterior))
-                 for lane in lane_map.lanes if len(lane.centreline)]
+                 for lane in candidates if len(lane.centreline)]
         lanes = [(cl, poly) for cl, poly in lanes if near(cl)]
-        junctions = [local(a.polygon.exterior) for a in lane_map.road_segments if a.is_intersection]
+        areas = [a for a in lane_map.road_segments if a.is_intersection]
+        junctions = [local(a.polygon.exterior) for a, ok in zip(areas, may_be_near(_ring_boxes(areas))) if ok]
         return cls.of_centrelines([cl for cl, _ in lanes], [p for _, p in lanes],
                                   [j for j in junctions if near(j)])
 
