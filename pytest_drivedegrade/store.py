@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from .atomic import atomic_write_text
-from .cells import CellPayload, RecordDigestMismatch
 from .errors import InvalidInput
+from .payload import CellPayload, RecordDigestMismatch
 
 
 class ResultStore:

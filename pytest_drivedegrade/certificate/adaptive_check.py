@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cells import CellPayload, CellRecord, is_camera_ladder, record_digest
+from ..cells import CellRecord, is_camera_ladder
 from ..constants import DEFAULT_FLAT
 from ..errors import InvalidInput
+from ..payload import CellPayload, record_digest
 from ..scoring import sequential
 from ..scoring.verdict import FamilyGroups
 from .seal import canonicalize

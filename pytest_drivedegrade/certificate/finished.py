@@ -75,6 +75,6 @@ class FinishedRun:
     #: a merge of adaptive shards: each cell's stored file in the shard that owns it, copied into the merged
     #: report's cells/ (where `verify` recomputes the stops from the per-frame results)
     cell_files: Mapping[str, Path] | None = None
-    #: cell -> its record's `cells.record_digest` where already known (checked when the payload was read), so
+    #: cell -> its record's `payload.record_digest` where already known (checked when the payload was read), so
     #: the certificate's ``record_digests`` does not hash those records again; the others are hashed
     digests: Mapping[str, str] | None = None

@@ -18,8 +18,9 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellPayload, CellRecord, RecordDigestMismatch
+from ..cells import CellRecord
 from ..errors import DriveDegradeError
+from ..payload import CellPayload, RecordDigestMismatch
 from ..progress import Progress, Sink
 from ..scoring.sequential import summary_line
 from ..settings import RunSettings

@@ -33,9 +33,10 @@ from typing import Any
 
 import numpy as np
 
-from ..cells import DIAGNOSTIC, CellPayload, CellRecord, differing_frames
+from ..cells import DIAGNOSTIC, CellRecord, differing_frames
 from ..closedloop.cells import ClosedPayload
 from ..errors import DriveDegradeError, InvalidInput
+from ..payload import CellPayload
 from ..progress import Progress, Sink
 from ..settings import RunSettings
 from . import reproduce_closed as rc

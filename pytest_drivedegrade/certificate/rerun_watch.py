@@ -11,9 +11,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..cells import CellPayload
 from ..closedloop.cells import ClosedPayload
 from ..errors import DriveDegradeError
+from ..payload import CellPayload
 
 
 @dataclass

@@ -15,7 +15,7 @@ import math
 import os
 import re
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -24,8 +24,9 @@ from typing import Any, cast
 import numpy as np
 
 from ..atomic import atomic_write_text
-from ..cells import CellRecord, record_digest
+from ..cells import CellRecord
 from ..errors import DriveDegradeError
+from ..payload import record_digests
 from ..scoring.records import RunAnalysis, null_control_section
 from ..scoring.verdict import VERDICT_LABELS
 from ..settings import RunSettings
@@ -159,20 +160,12 @@ def epdms_unscored(analysis: RunAnalysis) -> dict[str, str]:
             if not math.isfinite(float(metrics.get(k, math.nan)))}
 
 
-def record_digests(records: Mapping[str, CellRecord], cells: Sequence[str],
-                   known: Mapping[str, str] | None = None) -> dict[str, str]:
-    """`cells.record_digest` of each of `cells` that has a record, in that order; those in `known` (checked when
-    their records were read) taken as they are, the others hashed."""
-    known = known or {}
-    return {c: known.get(c) or record_digest(records[c].to_builtins()) for c in cells if c in records}
-
-
 def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None,
                       records: Mapping[str, CellRecord] | None = None,
                       digests: Mapping[str, str] | None = None) -> dict:
     """The unsealed certificate of a run (``seal`` it before writing). `created` defaults to now, UTC. With the
     run's `records`, each cell carries ``plans_digest`` (`CellRecord.plans_digest`), what `drivedegrade
-    reproduce` compares a rerun with, and ``record_digests`` maps each cell to `cells.record_digest` of its record,
+    reproduce` compares a rerun with, and ``record_digests`` maps each cell to `payload.record_digest` of its record,
     what its stored cell file (``cells/<cell>.json``) must hash to. That digest covers the record's timings too,
     so it sits beside the cells, not in them: the cells section stays the same on any layout and rerun.
     `digests`: those already known (checked when each record was read), taken as they are."""

@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..cells import (
-    CellPayload,
     CellRecord,
     Property,
     cell_id,
@@ -22,6 +21,7 @@ from ..cells import (
     planned_in_both,
     rear_cameras,
 )
+from ..payload import CellPayload
 from ..planning import planner_name
 from ..report.columns import TESTCASE
 from ..report.junit import plain

@@ -13,10 +13,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pytest
 
-from ..cells import CellPayload, cell_id
+from ..cells import cell_id
 from ..certificate.finished import FinishedRun, FloorFigures
 from ..certificate.seal import Provenance, run_provenance
 from ..errors import DriveDegradeError
+from ..payload import CellPayload
 from ..run import RunContext
 from ..store import ResultStore
 from .closed import ClosedInput, closed_run

@@ -16,10 +16,11 @@ from typing import TYPE_CHECKING, cast
 
 import pytest
 
-from ..cells import CellPayload, run_order
+from ..cells import run_order
 from ..closedloop.cells import ClosedPayload, closed_id
 from ..closedloop.cells import selection as closed_selection
 from ..errors import DriveDegradeError
+from ..payload import CellPayload
 from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
 from . import SESSION_KEY, preflight

@@ -125,7 +125,8 @@ def test_adaptive_units_score_their_frames_bit_for_bit_as_the_full_run(dd):
     """Every frame an adaptive cell scored has the full run's row of that cell, bit for bit (but EC, see below):
     for frame_dropout too, whose held frame may come from before the unit (the span replays the scene's loss
     draws; without that, 30 % of this cell's plans differ)."""
-    from pytest_drivedegrade.cells import FRAME_ARRAYS, CellPayload
+    from pytest_drivedegrade.cells import FRAME_ARRAYS
+    from pytest_drivedegrade.payload import CellPayload
 
     dd.write_planner()
     kw = {"families": "frame_dropout,jpeg", "severities": "5"}

@@ -10,8 +10,8 @@ import pytest
 pytest.register_assert_rewrite("plugin_support")
 from plugin_support import load_json  # noqa: E402
 
-from pytest_drivedegrade.cells import record_digest  # noqa: E402
 from pytest_drivedegrade.cli import main  # noqa: E402
+from pytest_drivedegrade.payload import record_digest  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 

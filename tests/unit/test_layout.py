@@ -22,7 +22,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("corruptions",),
     ("data",),
     ("planning", "metrics"),  # the contract a plan must meet, and how one plan is scored
-    ("cells",),  # which cells exist, what one yields, bit-identity
+    ("cells", "payload"),  # which cells exist, what one yields, bit-identity; how a finished one travels
     # running a cell: decode and inject, the threads beside the planner, calling it, the run, stored cells, shards,
     # Ray actors; the ego-only floor
     ("loader", "pacing", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),

@@ -12,10 +12,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pytest_drivedegrade.cells import FRAME_ARRAYS, CellPayload, CellRecord, record_digest
+from pytest_drivedegrade.cells import FRAME_ARRAYS, CellRecord
 from pytest_drivedegrade.certificate.adaptive_check import check_adaptive
 from pytest_drivedegrade.certificate.seal import seal
 from pytest_drivedegrade.data.frame import Command, EgoStatus, Frame
+from pytest_drivedegrade.payload import CellPayload, record_digest
 from pytest_drivedegrade.scoring import sequential as sq
 from pytest_drivedegrade.scoring.verdict import FamilyGroups
 

@@ -13,7 +13,6 @@ import pytest
 
 from pytest_drivedegrade import FAMILIES
 from pytest_drivedegrade.cells import (
-    CellPayload,
     CellRecord,
     cell_id,
     differing_frames,
@@ -23,6 +22,7 @@ from pytest_drivedegrade.cells import (
 )
 from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.errors import InvalidInput
+from pytest_drivedegrade.payload import CellPayload
 from pytest_drivedegrade.plugin import checks
 from pytest_drivedegrade.plugin.controller import gate, gather
 from pytest_drivedegrade.plugin.options import parse
@@ -196,8 +196,7 @@ def test_store_reuses_only_the_same_run(tmp_path):
 def test_the_payload_travels_as_the_stores_text_and_its_checked_digest_is_kept(tmp_path):
     """A worker sends `to_json` (one string); the controller reads it back with its digest checked and kept, writes
     that very text, and the certificate takes the kept digest: each equal to hashing the record again."""
-    from pytest_drivedegrade.cells import RecordDigestMismatch, record_digest
-    from pytest_drivedegrade.certificate.seal import record_digests
+    from pytest_drivedegrade.payload import RecordDigestMismatch, record_digest, record_digests
 
     sent = CellPayload(KEY, "demo", record("fog-s2", _plans()))
     assert sent.digest == ""  # a computed payload: hashed when asked
