@@ -24,7 +24,7 @@ _DROP_EDGE = 12.0
 _REACH2 = np.float32((1.0 - 0.5 / _DROP_EDGE) ** 2)
 #: `_DropGrid.paint_short` paints this many drops or more at once, and no fewer than one per this many covered
 #: cells (fewer go one by one, which is then cheaper than recounting the wet cells); either way the same grid.
-_BULK_DROPS = 24
+_BULK_DROPS = 12
 _BULK_CELLS_PER_DROP = 1000
 
 
@@ -65,13 +65,21 @@ def _covered(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
 class _Drops:
     """A batch of drops (B, 4: cx, cy, rx, ry in grid units) as `cv2.ellipse` paints them: each one's colour
     (the four values), centre and axes in whole cells (rounded half to even, as Python's round), and the cells
-    it can paint: its box, one cell of margin, cut to the grid, and their count."""
+    it can paint: its box, one cell of margin, cut to the grid, and their count.
+
+    `gain`: at most how many cells painting it can add to the covered ones: the cells it paints that its own
+    ellipse covers (`_covered`), which are no more than its box's cells nor the cell centres inside the ellipse
+    (rx, ry), at most pi rx ry + 2 (rx + ry) + 1 (the unit squares round those centres are disjoint and lie in the
+    ellipse grown by half a cell each way, whose area that is; `_covered` tests the smaller ellipse of rho <=
+    1 - 1 / (2 _DROP_EDGE), 8 % less area, which far outweighs float32 rounding), rounded up."""
 
     def __init__(self, drops: np.ndarray, gh: int, gw: int) -> None:
         centre = np.round(drops[:, :2]).astype(np.int64)
         axes = np.maximum(1, np.round(drops[:, 2:]).astype(np.int64))
         lo, hi = np.maximum(0, centre - axes - 1), np.minimum([gw, gh], centre + axes + 2)
-        self.cells = np.prod(hi - lo, axis=1)
+        self.cells = np.prod(np.maximum(hi - lo, 0), axis=1)  # none for a box off the grid
+        rx, ry = drops[:, 2].astype(np.float64), drops[:, 3].astype(np.float64)
+        self.gain = np.minimum(self.cells, np.ceil(np.pi * rx * ry + 2.0 * (rx + ry) + 1.0).astype(np.int64))
         self.colour = [tuple(d) for d in drops.tolist()]
         self.centre, self.axes = [tuple(c) for c in centre.tolist()], [tuple(a) for a in axes.tolist()]
         self.box = [(slice(y0, y1), slice(x0, x1)) for (x0, y0), (x1, y1) in zip(lo.tolist(), hi.tolist())]
@@ -92,7 +100,7 @@ class _DropGrid:
         covered cells are recounted in its box). True once the covered cells reach `target`; the drop that
         reaches it is taken back if stopping before it lands nearer to the target."""
         box = drops.box[k]
-        held = self.params[box].copy() if self.area + drops.cells[k] >= target else None  # gain <= cells
+        held = self.params[box].copy() if self.area + drops.gain[k] >= target else None  # its gain <= .gain
         cv2.ellipse(self.params, drops.centre[k], drops.axes[k], 0, 0, 360, drops.colour[k], -1)
         now = _covered(self.params, *box)
         gain = int(np.count_nonzero(now)) - int(np.count_nonzero(self.covered[box]))
@@ -105,11 +113,12 @@ class _DropGrid:
         return True
 
     def paint_short(self, drops: _Drops, target: float) -> int:
-        """Paint the leading drops that cannot reach `target` whatever they cover (the covered cells plus their
-        boxes' cells stay short of it): the ellipses first, then the covered cells recounted once over the wet
-        cells, which is what painting them one by one leaves. Returns how many were painted: none when fewer
-        than _BULK_DROPS could be, or too few for the cells to recount (one by one is then cheaper)."""
-        count = int(np.searchsorted(self.area + np.cumsum(drops.cells), target, side="left"))
+        """Paint the leading drops that cannot reach `target` whatever they cover (the covered cells plus the
+        most each can add, `_Drops.gain`, stay short of it): the ellipses first, then the covered cells recounted
+        once over the wet cells, which is what painting them one by one leaves. Returns how many were painted:
+        none when fewer than _BULK_DROPS could be, or too few for the cells to recount (one by one is then
+        cheaper)."""
+        count = int(np.searchsorted(self.area + np.cumsum(drops.gain), target, side="left"))
         if count < _BULK_DROPS or count * _BULK_CELLS_PER_DROP < self.area:  # the recount would cost more
             return 0
         for k in range(count):
@@ -117,7 +126,7 @@ class _DropGrid:
         flat = self.params.reshape(-1, 4)
         wet = np.flatnonzero(flat[:, 2] > 0)
         row, col = np.divmod(wet, self.params.shape[1])
-        cells = flat[wet]
+        cells = np.take(flat, wet, axis=0)
         self.covered[...] = False
         self.covered.reshape(-1)[wet] = _inside(col.astype(np.float32) + 0.5 - cells[:, 0],
                                                 row.astype(np.float32) + 0.5 - cells[:, 1], cells[:, 2], cells[:, 3])
@@ -161,7 +170,7 @@ def _drop_layer(params: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray
     gh, gw = params.shape[:2]
     cells = params.reshape(-1, 4)
     wet = np.flatnonzero(cells[:, 2] > 0)
-    cx, cy, rx, ry = cells[wet].T
+    cx, cy, rx, ry = np.take(cells, wet, axis=0).T  # the rows gathered by take: 10x faster than cells[wet]
     row, col = np.divmod(wet, gw)
     dx = (col.astype(np.float32) + 0.5 - cx) / rx
     dy = (row.astype(np.float32) + 0.5 - cy) / ry

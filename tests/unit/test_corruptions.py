@@ -422,6 +422,29 @@ def test_raindrops_painted_in_bulk_are_the_drops_painted_one_by_one(shape):
             assert got.view(np.uint32).tobytes() == want.view(np.uint32).tobytes(), (fraction, seed)
 
 
+@settings(max_examples=300, deadline=None)
+@given(cx=st.floats(-3.0, 43.0), cy=st.floats(-3.0, 33.0), rx=st.floats(0.25, 14.0), aspect=st.floats(0.5, 2.0),
+       under=st.integers(0, 3), seed=st.integers(0, 1000))
+def test_a_drops_gain_bound_is_never_below_what_it_adds(cx, cy, rx, aspect, under, seed):
+    """`_Drops.gain` is an upper bound on how many covered cells painting the drop adds, whatever it is painted
+    over (`paint_short` relies on it to paint in bulk only drops that cannot reach the fraction): drops of any
+    size and place, edges and other drops under it included. A bound without the lattice's margin fails here
+    (a drop of radius 1 centred on a cell corner covers four cells, more than pi)."""
+    from pytest_drivedegrade.corruptions.contamination import _DropGrid, _Drops
+
+    gh, gw = 30, 40
+    rng = np.random.default_rng(seed)
+    grid = _DropGrid(gh, gw)
+    others = np.stack([rng.uniform(0, gw, under), rng.uniform(0, gh, under), rng.uniform(1, 9, under),
+                       rng.uniform(1, 9, under)], axis=1) if under else np.zeros((0, 4))
+    drops = _Drops(np.vstack([others, [[cx, cy, rx, rx * aspect]]]).astype(np.float64), gh, gw)
+    for k in range(under):
+        grid.paint(drops, k, np.inf)  # never reaches an infinite target: painted and counted
+    before = grid.area
+    grid.paint(drops, under, np.inf)
+    assert grid.area - before <= drops.gain[under], (grid.area - before, drops.gain[under])
+
+
 def _line_mean(image: np.ndarray, length: float, slope: float) -> np.ndarray:
     """Brute force: the area-sampled segment `length` rows long on the digital line through each pixel,
     advancing along axis 0: n = floor(length) whole samples (window [i - n//2, i + n - 1 - n//2]) and the
