@@ -43,7 +43,9 @@ class CellPayload:
     in which a stored result of the cell differed, so it was recomputed (e.g. ``dataset_fingerprint``).
     `digest` is the record's `record_digest` when already known: `from_builtins` sets it once it has checked it,
     so whoever reads the payload next (the store, the certificate) does not hash the record again; empty
-    otherwise (computed when asked, `record_digest_of`).
+    otherwise (computed when asked, `record_digest_of`). Not an argument: only `from_builtins` may vouch for
+    a digest, and a payload made with ``dataclasses.replace`` (another record, say) starts without one rather
+    than carry its source's.
     """
 
     key: Mapping[str, Any]
@@ -53,7 +55,7 @@ class CellPayload:
     resumed: bool = False
     recomputed: str = ""
     stale: str = ""
-    digest: str = field(default="", compare=False, repr=False)
+    digest: str = field(default="", init=False, compare=False, repr=False)
 
     @property
     def cell(self) -> str:
@@ -94,8 +96,10 @@ class CellPayload:
                                        f"{record_digest(record)[:16]}..., not to its recorded digest "
                                        f"{str(recorded)[:16]}...: it was edited or corrupted on disk")
         props = tuple((str(p[0]), p[1]) for p in data.get("properties", []))
-        return cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)),
-                   str(data.get("recomputed", "")), str(data.get("stale", "")), digest=str(recorded))
+        payload = cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)),
+                      str(data.get("recomputed", "")), str(data.get("stale", "")))
+        object.__setattr__(payload, "digest", str(recorded))  # checked above (frozen, and not an argument)
+        return payload
 
     def to_json(self) -> str:
         """The payload as the store's file holds it: what a worker sends the controller, one string (execnet

@@ -221,6 +221,25 @@ def test_the_payload_travels_as_the_stores_text_and_its_checked_digest_is_kept(t
     assert record_digests(records, ["fog-s2"], {"fog-s2": "f" * 64}) == {"fog-s2": "f" * 64}
 
 
+def test_a_payload_remade_with_another_record_never_carries_the_old_digest():
+    """Only `from_builtins` vouches for a digest: a payload made from a read one with ``dataclasses.replace``
+    (another record, say) hashes its own record, so its store file and the certificate's record_digests match
+    what it holds, not what it was made from; and no caller can pass a digest in."""
+    import dataclasses
+
+    from pytest_drivedegrade.payload import record_digest
+
+    got = CellPayload.from_json(CellPayload(KEY, "demo", record("fog-s2", _plans())).to_json())
+    other = record("fog-s2", _plans() + 1.0)
+    remade = dataclasses.replace(got, record=other)
+    assert got.digest and remade.digest == ""
+    assert remade.record_digest_of() == record_digest(other.to_builtins()) != got.digest
+    assert json.loads(remade.to_json())["record_digest"] == record_digest(other.to_builtins())
+    assert CellPayload.from_json(remade.to_json()).digest == remade.record_digest_of()  # reads back, checked
+    with pytest.raises(TypeError):
+        CellPayload(KEY, "demo", other, digest="f" * 64)  # type: ignore[call-arg]
+
+
 # --- what a cell asserts, on a fake context ----------------------------------------------------------------
 
 
