@@ -272,6 +272,13 @@ class MapArea:
     is_intersection: bool = False
 
 
+def bounding_boxes(rings: Sequence[np.ndarray]) -> np.ndarray:
+    """(K, 4) each point set's bounding box (x0, y0, x1, y1) over its first two columns, global metres; an empty
+    one NaN (a box no overlap test keeps)."""
+    boxes = [(*r[:, :2].min(0), *r[:, :2].max(0)) if len(r) else (np.nan,) * 4 for r in rings]
+    return np.array(boxes, dtype=np.float64).reshape(-1, 4)
+
+
 @dataclass(frozen=True)
 class LaneMap:
     """The lane-level layers of one location (map expansion 1.3), with its drivable area."""
@@ -286,11 +293,20 @@ class LaneMap:
 
     @cached_property
     def centreline_boxes(self) -> np.ndarray:
-        """(L, 4) each lane's centreline bounding box (x0, y0, x1, y1), global metres, in `lanes` order (an empty
-        centreline: NaN, a box no test keeps): what `LaneView.of_map` skips far lanes by."""
-        boxes = [(*lane.centreline[:, :2].min(0), *lane.centreline[:, :2].max(0)) if len(lane.centreline)
-                 else (np.nan,) * 4 for lane in self.lanes]
-        return np.array(boxes, dtype=np.float64).reshape(-1, 4)
+        """(L, 4) each lane's centreline bounding box (`bounding_boxes`), in `lanes` order: what `LaneView.of_map`
+        skips far lanes by."""
+        return bounding_boxes([lane.centreline for lane in self.lanes])
+
+    @cached_property
+    def intersections(self) -> tuple[MapArea, ...]:
+        """The road segments flagged as intersections (junctions), in map order."""
+        return tuple(a for a in self.road_segments if a.is_intersection)
+
+    @cached_property
+    def intersection_boxes(self) -> np.ndarray:
+        """(K, 4) the bounding box of each intersection's exterior ring (`bounding_boxes`), in `intersections`
+        order."""
+        return bounding_boxes([a.polygon.exterior for a in self.intersections])
 
     def closest_lane(self, x: float, y: float, radius: float = 5.0) -> Lane | None:
         """The lane or connector whose centreline passes closest to (x, y), if within `radius` m (the devkit's

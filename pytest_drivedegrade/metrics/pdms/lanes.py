@@ -15,7 +15,7 @@ from functools import cached_property
 import numpy as np
 
 from ...data.geometry import wrap_angle as _wrap
-from ...data.maps import LaneMap, MapArea, RingSet
+from ...data.maps import LaneMap, RingSet
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
@@ -23,13 +23,6 @@ LANE_RADIUS_M: float = 80.0
 #: lane whose centreline is farther away cannot hold the ego (lanes are narrower), and lane keeping counts a state
 #: with no same-way centreline that near as off its lane either way.
 NEAR_M: float = 10.0
-
-
-def _ring_boxes(areas: Sequence[MapArea]) -> np.ndarray:
-    """(K, 4) the bounding box (x0, y0, x1, y1) of each area's exterior ring (an empty ring: NaN, never kept)."""
-    boxes = [(*a.polygon.exterior[:, :2].min(0), *a.polygon.exterior[:, :2].max(0)) if len(a.polygon.exterior)
-             else (np.nan,) * 4 for a in areas]
-    return np.array(boxes, dtype=np.float64).reshape(-1, 4)
 
 
 @dataclass(frozen=True)
@@ -92,8 +85,8 @@ class LaneView:
         lanes = [(local(lane.centreline), None if lane.polygon is None else local(lane.polygon.exterior))
                  for lane in candidates if len(lane.centreline)]
         lanes = [(cl, poly) for cl, poly in lanes if near(cl)]
-        areas = [a for a in lane_map.road_segments if a.is_intersection]
-        junctions = [local(a.polygon.exterior) for a, ok in zip(areas, may_be_near(_ring_boxes(areas))) if ok]
+        junctions = [local(a.polygon.exterior)
+                     for a, ok in zip(lane_map.intersections, may_be_near(lane_map.intersection_boxes)) if ok]
         return cls.of_centrelines([cl for cl, _ in lanes], [p for _, p in lanes],
                                   [j for j in junctions if near(j)])
 
