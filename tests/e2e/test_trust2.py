@@ -246,3 +246,44 @@ def test_item5_a_changed_imported_module_is_not_reused_and_no_resume_recomputes(
     fresh, fourth = certify("--drivedegrade-no-resume")
     assert fourth["cost"]["resumed_cells"] == [] and "stored cell(s)" not in fresh.stdout.str()
     assert fourth["planner"]["fingerprint"] == third["planner"]["fingerprint"]
+
+
+def test_stop32_under_xdist_every_record_digest_is_its_files_and_a_forged_store_cell_is_caught(dd, capsys):
+    """Issue 23's third pass sends each cell to the controller as its store text and seals the digest checked on
+    receipt. Attacked under -n 2: (1) every certificate record digest equals the hash of the record in its cell
+    file, computed cells and reused ones alike; (2) a store cell edited without its digest is recomputed, and the
+    certificate then seals the recomputed file, not the edited one; (3) a forger who also rewrites the digest gets
+    the cell reused (the seal is integrity only, and says so), but `drivedegrade reproduce` reruns it and names it
+    DIFFERENT rather than report the run identical."""
+    planner = dd.write_planner()
+
+    def run_and_check(*extra: str) -> dict:
+        result = dd.run("-n", "2", *extra, families="jpeg", severities="1")
+        result.assert_outcomes(passed=4)
+        cert = load_json(dd.folder() / "certificate.json")
+        files = {p.stem: json.loads(p.read_text()) for p in (dd.folder() / "cells").glob("*.json")}
+        assert sorted(cert["record_digests"]) == sorted(files) == ["blind", "clean", "jpeg-s1", "null"]
+        for cell, stored in files.items():
+            assert cert["record_digests"][cell] == record_digest(stored["record"]) == stored["record_digest"], cell
+        assert main(["verify", str(dd.folder() / "certificate.json")]) == 0
+        return files
+
+    original = run_and_check()
+    path = dd.folder() / "cells" / "jpeg-s1.json"
+    edited = json.loads(path.read_text())
+    edited["record"]["plans"][0][0][0] += 3.0
+    path.write_text(json.dumps(edited))
+    again = run_and_check()
+    assert again["jpeg-s1"]["record"]["plans"] == original["jpeg-s1"]["record"]["plans"]
+
+    forged = json.loads(path.read_text())
+    forged["record"]["plans"][0][0][0] += 3.0
+    forged["record_digest"] = record_digest(forged["record"])
+    path.write_text(json.dumps(forged))
+    reused = run_and_check()
+    assert reused["jpeg-s1"]["record"]["plans"] == forged["record"]["plans"]  # resumed as stored: integrity only
+    assert "jpeg-s1" in load_json(dd.folder() / "certificate.json")["cost"]["resumed_cells"]
+    capsys.readouterr()
+    assert main(["reproduce", str(dd.folder() / "certificate.json"), str(planner), "--seed", "0"]) == 1
+    out = capsys.readouterr().out
+    assert "] jpeg-s1: DIFFERENT" in out and "] clean: identical" in out, out
