@@ -120,7 +120,9 @@ class LaneView:
         x, y, segment = self._ends_by_x
         first, stop = np.searchsorted(x, lo[0], side="left"), np.searchsorted(x, hi[0], side="right")
         ys = y[first:stop]
-        return np.unique(segment[first:stop][(ys >= lo[1]) & (ys <= hi[1])])
+        marked = np.zeros(len(self.start), dtype=bool)  # a mark per segment, in place of np.unique's sort
+        marked[segment[first:stop][(ys >= lo[1]) & (ys <= hi[1])]] = True
+        return np.flatnonzero(marked)
 
     def _distances(self, pts: np.ndarray, segments: np.ndarray) -> np.ndarray:
         """(N, len(segments)) distance of each point to each of `segments`: each entry from its point and segment
