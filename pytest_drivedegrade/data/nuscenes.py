@@ -258,11 +258,10 @@ class NuScenesReader:
         fut_idx = [k + i for i in range(1, HORIZON_STEPS + 1)]
         valid = np.array([i < len(tokens) for i in fut_idx])
         future = np.zeros((HORIZON_STEPS, 2))
-        agents = []
-        for step, i in enumerate(fut_idx):
-            if valid[step]:
-                future[step] = geo.se2_to_ego(xy[i], xy[k], yaw[k])[0]
-                agents.append(self._agents(tokens[i], xy[k], yaw[k]))
+        ahead = [i for i in fut_idx if i < len(tokens)]  # the valid steps come first
+        if ahead:  # every step in one call: each row is its own point's arithmetic, the same bits
+            future[: len(ahead)] = geo.se2_to_ego(xy[ahead], xy[k], yaw[k])
+        agents = [self._agents(tokens[i], xy[k], yaw[k]) for i in ahead]
         command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
         if not valid.all():
             self.skipped[UNSCORED] += 1

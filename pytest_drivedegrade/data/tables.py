@@ -166,8 +166,8 @@ def confined(root: Path, name: str, where: str) -> Path:
     if "\x00" in name or not name.isprintable() or _not_utf8(name):
         raise DataError(f"{where}: filename {name!r} holds a NUL, a control character or bytes that are not UTF-8; "
                         "file names in sample_data must be printable UTF-8: re-extract or regenerate the data")
-    normal = os.path.normpath(name)
-    if not name.strip() or Path(name).is_absolute() or Path(name).drive or Path(normal).parts[:1] == ("..",):
+    normal = Path(os.path.normpath(name))  # normpath keeps a root and a drive: they are tested on it
+    if not name.strip() or normal.is_absolute() or normal.drive or normal.parts[:1] == ("..",):
         raise DataError(f"{where}: filename {name!r} leaves the data root {root}; file names in sample_data must "
                         "be relative paths inside it")
     return root / normal
