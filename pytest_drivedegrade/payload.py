@@ -91,10 +91,11 @@ class CellPayload:
         if recorded is None and isinstance(record, Mapping):
             raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record has no record_digest, so it "
                                        "cannot be checked: it was edited or written by hand")
-        if isinstance(record, Mapping) and record_digest(record) != recorded:
-            raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record hashes to "
-                                       f"{record_digest(record)[:16]}..., not to its recorded digest "
-                                       f"{str(recorded)[:16]}...: it was edited or corrupted on disk")
+        found = record_digest(record) if isinstance(record, Mapping) else None  # not a record: its own error below
+        if found is not None and found != recorded:
+            raise RecordDigestMismatch(f"cell {record.get('cell')!r}: the stored record hashes to {found[:16]}..., "
+                                       f"not to its recorded digest {str(recorded)[:16]}...: it was edited or "
+                                       "corrupted on disk")
         props = tuple((str(p[0]), p[1]) for p in data.get("properties", []))
         payload = cls(dict(key), planner, CellRecord.from_builtins(record), props, bool(data.get("resumed", False)),
                       str(data.get("recomputed", "")), str(data.get("stale", "")))

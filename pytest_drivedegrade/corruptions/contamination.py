@@ -65,7 +65,7 @@ def _covered(params: np.ndarray, rows: slice, cols: slice) -> np.ndarray:
 class _Drops:
     """A batch of drops (B, 4: cx, cy, rx, ry in grid units) as `cv2.ellipse` paints them: each one's colour
     (the four values), centre and axes in whole cells (rounded half to even, as Python's round), and the cells
-    it can paint: its box, one cell of margin, cut to the grid, and their count.
+    it can paint: its box, one cell of margin, cut to the grid.
 
     `gain`: at most how many cells painting it can add to the covered ones: the cells it paints that its own
     ellipse covers (`_covered`), which are no more than its box's cells nor the cell centres inside the ellipse
@@ -77,9 +77,9 @@ class _Drops:
         centre = np.round(drops[:, :2]).astype(np.int64)
         axes = np.maximum(1, np.round(drops[:, 2:]).astype(np.int64))
         lo, hi = np.maximum(0, centre - axes - 1), np.minimum([gw, gh], centre + axes + 2)
-        self.cells = np.prod(np.maximum(hi - lo, 0), axis=1)  # none for a box off the grid
+        cells = np.prod(np.maximum(hi - lo, 0), axis=1)  # none for a box off the grid
         rx, ry = drops[:, 2].astype(np.float64), drops[:, 3].astype(np.float64)
-        self.gain = np.minimum(self.cells, np.ceil(np.pi * rx * ry + 2.0 * (rx + ry) + 1.0).astype(np.int64))
+        self.gain = np.minimum(cells, np.ceil(np.pi * rx * ry + 2.0 * (rx + ry) + 1.0).astype(np.int64))
         self.colour = [tuple(d) for d in drops.tolist()]
         self.centre, self.axes = [tuple(c) for c in centre.tolist()], [tuple(a) for a in axes.tolist()]
         self.box = [(slice(y0, y1), slice(x0, x1)) for (x0, y0), (x1, y1) in zip(lo.tolist(), hi.tolist())]

@@ -255,10 +255,9 @@ class NuScenesReader:
             return None
         xy, yaw, stamps, full = poses
         ego = _ego_status(xy, yaw, stamps, k, can)
-        fut_idx = [k + i for i in range(1, HORIZON_STEPS + 1)]
-        valid = np.array([i < len(tokens) for i in fut_idx])
+        ahead = list(range(k + 1, min(k + 1 + HORIZON_STEPS, len(tokens))))  # the future keyframes there are
+        valid = np.arange(HORIZON_STEPS) < len(ahead)  # the steps they fill, the first ones
         future = np.zeros((HORIZON_STEPS, 2))
-        ahead = [i for i in fut_idx if i < len(tokens)]  # the valid steps come first
         if ahead:  # every step in one call: each row is its own point's arithmetic, the same bits
             future[: len(ahead)] = geo.se2_to_ego(xy[ahead], xy[k], yaw[k])
         agents = [self._agents(tokens[i], xy[k], yaw[k]) for i in ahead]
