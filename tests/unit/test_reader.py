@@ -10,6 +10,8 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pytest_drivedegrade.constants import CAMERAS
 from pytest_drivedegrade.data.frame import Command
@@ -322,3 +324,39 @@ def test_malformed_table_rows_are_named_by_table_and_token_at_start_up(fixture_r
     _edit(fixture_root, table, edit)
     with pytest.raises(DataError, match=problem):
         NuScenesReader(fixture_root, split="all")
+
+
+def _confined_before(root, name):
+    """`tables.confined`'s test as written before issue 23's fourth pass (three paths parsed from the name)."""
+    import os
+    from pathlib import Path
+
+    normal = os.path.normpath(name)
+    if not name.strip() or Path(name).is_absolute() or Path(name).drive or Path(normal).parts[:1] == ("..",):
+        return None
+    return root / normal
+
+
+_PARTS = ["..", ".", "", "samples", "CAM_FRONT", "a.jpg", "/", "//", " ", "~", "C:", "..a", "a..", "\\..\\"]
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.sampled_from(_PARTS), min_size=1, max_size=7).map("/".join) | st.text(min_size=1, max_size=12))
+def test_confinement_refuses_exactly_what_it_refused_before_its_rewrite(name):
+    """Attack on the rewritten `confined` (one path parsed instead of three): for hostile names (``..`` chains,
+    absolute and doubled roots, drives, blanks) it refuses exactly the names the earlier form refused and
+    returns the same path for the others, and whatever it returns stays under the root."""
+    import os
+    from pathlib import Path
+
+    from pytest_drivedegrade.data.tables import confined
+
+    root = Path("/data/root")
+    expected = _confined_before(root, name) if name.isprintable() and "\x00" not in name else None
+    try:
+        got = confined(root, name, "sample_data.json: the record with token 't'")
+    except DataError:
+        got = None
+    assert got == expected
+    if got is not None:
+        assert os.path.normpath(got).startswith(str(root) + os.sep) or os.path.normpath(got) == str(root)

@@ -416,3 +416,37 @@ def test_gate_fails_on_what_a_weak_baseline_leaves_uncompared():
         ["baseline: 0 cell and 0 axis regression(s) beyond tolerance 0.02"], False)
     lines, failed = gate(cert, {**cert, "dataset": {"fingerprint": "d", "frames": 6}}, 0.02)
     assert failed and "scored frames: baseline 6, this run 8 (--drivedegrade-frames)" in lines[0]
+
+
+@pytest.mark.parametrize("forge", ["digest of another record", "digest removed", "digest null", "record not an object",
+                                   "record a list", "digest rewritten to match an edit"])
+def test_a_forged_payload_text_is_refused_or_carries_the_digest_of_what_it_holds(forge):
+    """A hostile store file or worker text: a digest that is not its record's, none, or a record that is not an
+    object is refused with the project's own error (never a bare TypeError, never a payload vouching for a digest
+    it does not hold); a digest rewritten to match an edited record reads back, and then the digest it carries is
+    that record's own, so the certificate's record_digests seal what is there and `reproduce` compares it."""
+    from pytest_drivedegrade.payload import RecordDigestMismatch, record_digest
+
+    data = json.loads(CellPayload(KEY, "demo", record("fog-s2", _plans())).to_json())
+    other = CellPayload(KEY, "demo", record("fog-s2", _plans() + 1.0)).to_builtins()
+    if forge == "digest of another record":
+        data["record_digest"] = other["record_digest"]
+    elif forge == "digest removed":
+        del data["record_digest"]
+    elif forge == "digest null":
+        data["record_digest"] = None
+    elif forge == "record not an object":
+        data["record"] = 5
+    elif forge == "record a list":
+        data["record"] = [data["record"]]
+    else:
+        data["record"]["plans"][0][0][0] += 1.0
+        data["record_digest"] = record_digest(data["record"])
+        got = CellPayload.from_json(json.dumps(data))
+        assert got.digest == record_digest(got.record.to_builtins()) == got.record_digest_of()
+        assert got.record.plans[0][0][0] == data["record"]["plans"][0][0][0]
+        return
+    with pytest.raises(InvalidInput) as err:
+        CellPayload.from_json(json.dumps(data))
+    if forge in ("digest of another record", "digest removed", "digest null"):
+        assert isinstance(err.value, RecordDigestMismatch) and "fog-s2" in str(err.value)
