@@ -194,13 +194,14 @@ class TrainSplit(Protocol):
 
     def fingerprint(self) -> str: ...
 
-    def scorable_frames(self) -> Sequence[Frame]: ...
+    def scorable_frames(self, *, agents: bool = True) -> Sequence[Frame]: ...
 
 
 def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int = 0) -> EgoMLP:
     """The floor for a train split: loaded from `cache_dir` when trained before on the same data, else trained.
 
-    `reader_train` is a ``NuScenesReader`` on the train split (``fingerprint()`` and ``scorable_frames()``).
+    `reader_train` is a ``NuScenesReader`` on the train split (``fingerprint()`` and ``scorable_frames()``, read
+    without the agents' boxes, which the floor never looks at).
     """
     path = Path(cache_dir) / f"ego_mlp-{cache_key(reader_train.fingerprint(), seed)}.pt"
     if path.is_file():
@@ -210,6 +211,6 @@ def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int 
             return model.eval()
         except Exception:  # noqa: BLE001 - a corrupt cache entry is retrained, not fatal
             pass
-    model = train_floor(list(reader_train.scorable_frames()), seed=seed)
+    model = train_floor(list(reader_train.scorable_frames(agents=False)), seed=seed)
     save_atomic(model, path)
     return model

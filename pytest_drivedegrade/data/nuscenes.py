@@ -135,9 +135,10 @@ class NuScenesReader:
         return [s for s in self.scenes if s["name"] in names]
 
     # -- public API ---------------------------------------------------------------------------------
-    def frames(self) -> Iterator[Frame]:
+    def frames(self, *, agents: bool = True) -> Iterator[Frame]:
         """Every keyframe of the split's scenes, in scene order (scorable or not). Each pass recounts
-        `skipped` and `problems`."""
+        `skipped` and `problems`. `agents=False` reads no annotation: each future step's boxes are empty (the
+        ego-only floor trains on ego status, command and logged future alone; the boxes were half its read)."""
         self.skipped, self.problems = Counter(), []
         for scene in self.split_scenes:
             tokens = self._scene_samples(scene)
@@ -149,14 +150,15 @@ class NuScenesReader:
                 continue
             can = self._can_bus(scene["name"])
             for k in range(len(tokens)):
-                frame = self._frame(scene, tokens, poses, k, can)
+                frame = self._frame(scene, tokens, poses, k, can, agents)
                 if frame is not None:
                     yield frame
 
-    def scorable_frames(self, limit: int | None = None) -> list[Frame]:
+    def scorable_frames(self, limit: int | None = None, *, agents: bool = True) -> list[Frame]:
         """Frames with six future keyframes, scene by scene in timestamp order; with `limit`, a deterministic
-        subset of `limit` frames made of one contiguous run per scene (see `contiguous_subset`)."""
-        frames = [f for f in self.frames() if f.scorable]
+        subset of `limit` frames made of one contiguous run per scene (see `contiguous_subset`); `agents` as
+        in `frames`."""
+        frames = [f for f in self.frames(agents=agents) if f.scorable]
         if limit is not None and 0 < limit < len(frames):
             frames = contiguous_subset(frames, limit)
         return frames
@@ -247,7 +249,7 @@ class NuScenesReader:
         return load_can_bus(path) or None
 
     def _frame(self, scene: dict, tokens: list[str], poses: Sequence[np.ndarray], k: int,
-               can: list[dict] | None) -> Frame | None:
+               can: list[dict] | None, with_agents: bool = True) -> Frame | None:
         token = tokens[k]
         cameras, problem = self._cameras(token)
         if problem:
@@ -260,7 +262,7 @@ class NuScenesReader:
         future = np.zeros((HORIZON_STEPS, 2))
         if ahead:  # every step in one call: each row is its own point's arithmetic, the same bits
             future[: len(ahead)] = geo.se2_to_ego(xy[ahead], xy[k], yaw[k])
-        agents = [self._agents(tokens[i], xy[k], yaw[k]) for i in ahead]
+        agents = [self._agents(tokens[i], xy[k], yaw[k]) if with_agents else AgentBoxes.empty() for i in ahead]
         command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
         if not valid.all():
             self.skipped[UNSCORED] += 1

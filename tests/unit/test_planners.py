@@ -104,13 +104,14 @@ class FakeReader:
     """The part of NuScenesReader the floor uses."""
 
     def __init__(self, frames: list[Frame], fingerprint: str) -> None:
-        self._frames, self._fingerprint, self.calls = frames, fingerprint, 0
+        self._frames, self._fingerprint, self.calls, self.agents = frames, fingerprint, 0, []
 
     def fingerprint(self) -> str:
         return self._fingerprint
 
-    def scorable_frames(self, limit=None):
+    def scorable_frames(self, limit=None, *, agents=True):
         self.calls += 1
+        self.agents.append(agents)
         return [f for f in self._frames if f.scorable]
 
 
@@ -120,6 +121,7 @@ def test_floor_is_cached_by_dataset_fingerprint(tmp_path: Path, monkeypatch: pyt
     first = floor.load_or_train_floor(reader, tmp_path)
     second = floor.load_or_train_floor(reader, tmp_path)
     assert reader.calls == 1  # the second call loaded the cache
+    assert reader.agents == [False]  # the floor reads no boxes (`test_reader`: the same training arrays)
     assert state_bytes(first) == state_bytes(second)
     assert [p.name.endswith(".pt") for p in tmp_path.iterdir()] == [True]  # no temporary files left
     other = FakeReader(synthetic_frames(100, seed=5), "data-B")

@@ -132,6 +132,26 @@ def test_turning_scene_gives_left_command_and_yaw_rate(fixture_root):
     assert np.hypot(*frame.ego.velocity) == pytest.approx(chord / 0.5, rel=1e-6)
 
 
+def test_an_ego_only_read_is_the_full_read_without_boxes_and_trains_the_same_floor(fixture_root):
+    """The floor reads its train split with `agents=False`: every frame is the full read's with empty boxes, and
+    the floor's training arrays are the same bytes (so its weights are); the fixture's frames do carry boxes."""
+    import dataclasses
+    import pickle
+
+    from pytest_drivedegrade.data.frame import AgentBoxes
+    from pytest_drivedegrade.floor import frames_to_arrays
+
+    reader = NuScenesReader(fixture_root, split="all")
+    full, bare = reader.scorable_frames(), reader.scorable_frames(agents=False)
+    assert any(len(boxes) for f in full for boxes in f.agents)  # the full read has boxes to leave out
+    assert all(len(boxes) == 0 for f in bare for boxes in f.agents)
+    assert [pickle.dumps(dataclasses.replace(f, agents=tuple(AgentBoxes.empty() for _ in f.agents))) for f in full] \
+        == [pickle.dumps(f) for f in bare]
+    for a, b in zip(frames_to_arrays(full), frames_to_arrays(bare)):
+        assert a.tobytes() == b.tobytes()
+    assert len(list(reader.frames(agents=False))) == len(list(reader.frames()))
+
+
 def test_limit_gives_one_contiguous_run_per_scene_stable(fixture_root):
     reader = NuScenesReader(fixture_root, split="all")
     full = reader.scorable_frames()  # two scenes of two scorable frames each
