@@ -9,7 +9,14 @@ processes, the controller, the workers), the least wall time that CPU allows on 
 cores: where the wall sits near it the run is bound by its work, not by waiting), and the cost ledger's planner
 and suite seconds; with `--against CSV`, whether the run's cells.csv equals that file byte for byte.
 
+With `--reference REV` it times REV's first run too, alternating (REV, COMMIT, REV, COMMIT, ...), and prints the
+ratio of the median walls, COMMIT / REV: this machine's speed changes from day to day (the same commit's first
+run took 80.4 s on 2026-11-27 and 119.4 s on 2026-11-28), so a first-run figure is compared with a reference
+measured in the same session. `--reference-wall S` (REV's first run when it was the figure to beat, e.g. the
+issue's 176 s for 49bcd6e) also prints S x ratio: COMMIT's first run at the machine's speed of that day.
+
     python benchmarks/first_run.py [--commit HEAD] [--reps 1] [-n 2] [--against reports/camera_cnn/cells.csv]
+                                   [--reference 49bcd6e --reference-wall 176]
 """
 
 from __future__ import annotations
@@ -50,6 +57,28 @@ def first_run(tree: Path, planner: str, workers: int) -> dict[str, float]:
             "predictions": float(cost.get("predictions", 0))}
 
 
+def _timed(commit: str, planner: str, workers: int, against: Path | None, cores: int, label: str) -> dict[str, float]:
+    """One first run of `commit` in a fresh copy, printed as it ends."""
+    with tempfile.TemporaryDirectory(prefix="ddfirst-") as tmp:
+        tree = reference_tree(commit, Path(tmp))
+        run = first_run(tree, planner, workers)
+        same = ""
+        if against is not None:
+            csv = next(iter(sorted(tree.glob("reports/*/cells.csv"))), None)
+            same = ", cells.csv " + ("identical" if csv is not None and csv.read_bytes() ==
+                                      against.read_bytes() else "DIFFERENT")
+    least = run["cpu"] / cores
+    print(f"{label}: wall {run['wall']:.1f} s (world {run['world']:.1f} s); CPU {run['cpu']:.1f} s, so at "
+          f"least {least:.1f} s on {cores} cores (wall / that {run['wall'] / least:.2f}); "
+          f"ledger: planner {run['planner']:.1f} s, suite {run['suite']:.1f} s over {int(run['predictions'])} "
+          f"predictions{same}", flush=True)
+    return run
+
+
+def _medians(runs: list[dict[str, float]]) -> dict[str, float]:
+    return {k: statistics.median(r[k] for r in runs) for k in ("wall", "world", "cpu", "planner", "suite")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--commit", default="HEAD", help="the commit whose first run is timed")
@@ -57,27 +86,32 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=1, help="fresh copies, one run each")
     ap.add_argument("-n", type=int, default=2, help="xdist workers (the README's main command: 2)")
     ap.add_argument("--against", type=Path, help="a cells.csv the run's must equal byte for byte")
+    ap.add_argument("--reference", help="a commit timed the same way, alternating, for the ratio COMMIT / it")
+    ap.add_argument("--reference-wall", type=float, help="the reference's first-run seconds on the day it was "
+                    "measured: prints COMMIT's at that day's speed")
     args = ap.parse_args()
+    if args.reference_wall is not None and args.reference is None:
+        ap.error("--reference-wall needs --reference (the commit whose first run it was)")
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    runs = []
+    runs, refs = [], []
     for rep in range(args.reps):
-        with tempfile.TemporaryDirectory(prefix="ddfirst-") as tmp:
-            tree = reference_tree(args.commit, Path(tmp))
-            run = first_run(tree, args.planner, args.n)
-            same = ""
-            if args.against is not None:
-                csv = next(iter(sorted(tree.glob("reports/*/cells.csv"))), None)
-                same = ", cells.csv " + ("identical" if csv is not None and csv.read_bytes() ==
-                                          args.against.read_bytes() else "DIFFERENT")
-        runs.append(run)
-        least = run["cpu"] / cores
-        print(f"run {rep + 1}: wall {run['wall']:.1f} s (world {run['world']:.1f} s); CPU {run['cpu']:.1f} s, so at "
-              f"least {least:.1f} s on {cores} cores (wall / that {run['wall'] / least:.2f}); "
-              f"ledger: planner {run['planner']:.1f} s, suite {run['suite']:.1f} s over {int(run['predictions'])} "
-              f"predictions{same}", flush=True)
+        if args.reference is not None:
+            refs.append(_timed(args.reference, args.planner, args.n, None, cores,
+                               f"run {rep + 1}, reference {args.reference}"))
+        runs.append(_timed(args.commit, args.planner, args.n, args.against, cores, f"run {rep + 1}, {args.commit}"))
+    mine = _medians(runs)
     if len(runs) > 1:
-        print(f"medians over {len(runs)} runs: " + ", ".join(
-            f"{k} {statistics.median(r[k] for r in runs):.1f} s" for k in ("wall", "world", "cpu", "planner", "suite")))
+        print(f"medians over {len(runs)} runs of {args.commit}: "
+              + ", ".join(f"{k} {v:.1f} s" for k, v in mine.items()))
+    if refs:
+        theirs = _medians(refs)
+        ratio = mine["wall"] / theirs["wall"]
+        print(f"medians of {args.reference} (the reference): " + ", ".join(f"{k} {v:.1f} s" for k, v in theirs.items()))
+        print(f"first run {args.commit} / {args.reference}: wall {ratio:.3f}, CPU {mine['cpu'] / theirs['cpu']:.3f}, "
+              f"world {mine['world'] / theirs['world']:.3f}")
+        if args.reference_wall is not None:
+            print(f"at the speed of the day {args.reference} took {args.reference_wall:.1f} s: {args.commit} would "
+                  f"take {args.reference_wall * ratio:.1f} s")
 
 
 if __name__ == "__main__":
