@@ -13,8 +13,8 @@ With `--reference REV` it times REV's first run too, alternating (REV, COMMIT, R
 ratio of the median walls, COMMIT / REV: this machine's speed changes from day to day (the same commit's first
 run took 80.4 s on 2026-11-27 and 119.4 s on 2026-11-28), so a first-run figure is compared with a reference
 measured in the same session. `--reference-wall S` (REV's first run when it was the figure to beat, e.g. the
-issue's 176 s for 718c852, the tree before this round) also prints S x ratio: COMMIT's first run at the machine's
-speed of that day.
+issue's 176 s, measured on the tree before this round, 718c852) also prints S x ratio: COMMIT's first run at
+the machine's speed of that day.
 
     python benchmarks/first_run.py [--commit HEAD] [--reps 1] [-n 2] [--against reports/camera_cnn/cells.csv]
                                    [--reference 718c852 --reference-wall 176]

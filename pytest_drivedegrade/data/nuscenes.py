@@ -138,7 +138,8 @@ class NuScenesReader:
     def frames(self, *, agents: bool = True) -> Iterator[Frame]:
         """Every keyframe of the split's scenes, in scene order (scorable or not). Each pass recounts
         `skipped` and `problems`. `agents=False` reads no annotation: each future step's boxes are empty (the
-        ego-only floor trains on ego status, command and logged future alone; the boxes were half its read)."""
+        ego-only floor trains on ego status, command and logged future alone; the boxes were over a third of its
+        read)."""
         self.skipped, self.problems = Counter(), []
         for scene in self.split_scenes:
             tokens = self._scene_samples(scene)
