@@ -173,11 +173,12 @@ def cache_key(dataset_fingerprint: str, seed: int = 0) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
-def save_atomic(model: nn.Module, path: Path) -> None:
-    """Write a state_dict to `path` atomically (see `atomic.atomic_write_bytes`)."""
+def save_atomic(model: nn.Module, path: Path) -> bytes:
+    """Write a state_dict to `path` atomically (see `atomic.atomic_write_bytes`); returns the bytes written."""
     buffer = io.BytesIO()
     torch.save(model.state_dict(), buffer)
     atomic_write_bytes(path, buffer.getvalue())
+    return buffer.getvalue()
 
 
 def train_split_for(split: str) -> str:
@@ -201,16 +202,27 @@ def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int 
     """The floor for a train split: loaded from `cache_dir` when trained before on the same data, else trained.
 
     `reader_train` is a ``NuScenesReader`` on the train split (``fingerprint()`` and ``scorable_frames()``, read
-    without the agents' boxes, which the floor never looks at).
+    without the agents' boxes, which the floor never looks at). The cached file is loaded only when its bytes hash
+    to the sha256 written beside it (`_floor_digest_path`): a file edited into other weights, cut short or left
+    without its digest is retrained, so the floor that judges blind and the removal axis is the one the data
+    trains (integrity only, as the store's record digests: whoever rewrites both files is not stopped here).
     """
     path = Path(cache_dir) / f"ego_mlp-{cache_key(reader_train.fingerprint(), seed)}.pt"
     if path.is_file():
         model = EgoMLP(SETTINGS["hidden"])
         try:
-            model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-            return model.eval()
-        except Exception:  # noqa: BLE001 - a corrupt cache entry is retrained, not fatal
+            data = path.read_bytes()
+            if _floor_digest_path(path).read_text().strip() == hashlib.sha256(data).hexdigest():
+                model.load_state_dict(torch.load(io.BytesIO(data), map_location="cpu", weights_only=True))
+                return model.eval()
+        except Exception:  # noqa: BLE001 - a corrupt or unchecked cache entry is retrained, not fatal
             pass
     model = train_floor(list(reader_train.scorable_frames(agents=False)), seed=seed)
-    save_atomic(model, path)
+    data = save_atomic(model, path)  # the weights first: a digest never vouches for a file not yet written
+    atomic_write_bytes(_floor_digest_path(path), hashlib.sha256(data).hexdigest().encode())
     return model
+
+
+def _floor_digest_path(path: Path) -> Path:
+    """The sha256 (hex) of a cached floor file's bytes, beside it."""
+    return path.with_suffix(".sha256")

@@ -123,14 +123,37 @@ def test_floor_is_cached_by_dataset_fingerprint(tmp_path: Path, monkeypatch: pyt
     assert reader.calls == 1  # the second call loaded the cache
     assert reader.agents == [False]  # the floor reads no boxes (`test_reader`: the same training arrays)
     assert state_bytes(first) == state_bytes(second)
-    assert [p.name.endswith(".pt") for p in tmp_path.iterdir()] == [True]  # no temporary files left
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".pt", ".sha256"]  # the floor, its digest, no temporary
     other = FakeReader(synthetic_frames(100, seed=5), "data-B")
     floor.load_or_train_floor(other, tmp_path)
-    assert other.calls == 1 and len(list(tmp_path.iterdir())) == 2
+    assert other.calls == 1 and len(list(tmp_path.iterdir())) == 4
     # A corrupt cache entry is retrained, not fatal.
     for p in tmp_path.iterdir():
         p.write_bytes(b"garbage")
     assert state_bytes(floor.load_or_train_floor(reader, tmp_path)) == state_bytes(first)
+
+
+def test_a_floor_cache_file_edited_into_other_weights_is_retrained_not_trusted(tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """Attack on the floor's cache: its file replaced by other, well-formed weights (a floor that would put blind's
+    L2 below or above it at will, and so steer the floor comparison and the memo check) must not be loaded. The
+    file's bytes are checked against the sha256 written beside it; a file whose digest does not match, or that has
+    none, is retrained, so the run's floor is the one its data trains, byte for byte."""
+    monkeypatch.setattr(floor, "SETTINGS", FAST)
+    reader = FakeReader(synthetic_frames(100), "data-A")
+    honest = state_bytes(floor.load_or_train_floor(reader, tmp_path))
+    (cached,) = tmp_path.glob("*.pt")
+    assert {p.name for p in tmp_path.iterdir()} == {cached.name, cached.with_suffix(".sha256").name}
+    forged = {k: v + 1.0 if v.is_floating_point() else v for k, v in torch.load(cached, weights_only=True).items()}
+    buf = io.BytesIO()
+    torch.save(forged, buf)
+    cached.write_bytes(buf.getvalue())  # loads cleanly: only its digest gives it away
+    assert state_bytes(floor.load_or_train_floor(reader, tmp_path)) == honest
+    assert reader.calls == 2  # retrained, and the cache holds the honest floor again
+    assert state_bytes(floor.load_or_train_floor(reader, tmp_path)) == honest and reader.calls == 2
+    cached.write_bytes(buf.getvalue())
+    cached.with_suffix(".sha256").unlink()  # no digest at all: retrained as well
+    assert state_bytes(floor.load_or_train_floor(reader, tmp_path)) == honest and reader.calls == 3
 
 
 # --- reference planners --------------------------------------------------------------------------------------
