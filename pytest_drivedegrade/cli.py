@@ -1,5 +1,5 @@
 """The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate,
-closed-loop import.
+closed-loop import, analyse, ladder.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
 only when that subcommand runs. A user mistake prints one `drivedegrade: error: ...` line and exits 2.
@@ -85,6 +85,7 @@ def _verify(args: argparse.Namespace) -> int:
                  "integrity only")
     else:
         level = f"{UNSIGNED_TEXT}: the digest catches an accidental edit, not a deliberate one"
+    level = _imported_level(cert, level)
     missing = incompleteness(cert)
     if missing is not None:
         print(f"drivedegrade: verify: INCOMPLETE: {args.file}: intact and consistent, but the run is incomplete "
@@ -94,6 +95,13 @@ def _verify(args: argparse.Namespace) -> int:
     print(f"{args.file}: OK, digest {cert['digest']} verifies, thresholds, axes and verdict agree with its cells "
           f"({what}); {level}")
     return 0
+
+
+def _imported_level(cert: dict, level: str) -> str:
+    """What an imported certificate proves, before its seal's level (unchanged for a run's certificate)."""
+    from .certificate.fields import IMPORTED_TEXT, is_imported
+
+    return f"{IMPORTED_TEXT} (from {cert['provenance'].get('table')}); {level}" if is_imported(cert) else level
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -174,6 +182,7 @@ def _compare(args: argparse.Namespace) -> int:
     for row in df.itertuples():
         flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
         flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"
+        flag += "  IMPORTED (metrics as given, plans not seen)" if getattr(row, "imported", False) else ""
         print(f"{row.planner}: clean L2 {row.clean_l2:.3f} (rank {row.rank_clean_l2}), mean retention rank "
               f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}{flag}")
     print(f"wrote {csv_path} and {html_path}", file=sys.stderr)
@@ -233,6 +242,66 @@ def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
                    help=f"retention at or above which an axis counts as flat (default {DEFAULT_FLAT}; the plugin's "
                         "--drivedegrade-flat)")
     q.set_defaults(func=_closed_loop_import)
+
+
+def _analyse(args: argparse.Namespace) -> int:
+    """A per-cell table computed by a model's own evaluator through the suite's analysis, per model."""
+    from .report.table_import import analyse_table
+
+    for line in analyse_table(args.table, args.out, convention=args.convention, flat=args.flat, metric=args.metric,
+                              floor=args.floor, floor_l2=args.floor_l2, models=args.model or (), split=args.split,
+                              signing_key=_merge_signing_key(args)):
+        print(line)
+    return 0
+
+
+def _ladder(args: argparse.Namespace) -> int:
+    """Print the cells a certification needs, for a model's own evaluation under patch_loader."""
+    from .foreign.ladder import ladder_cells, render
+
+    families = [f for f in args.families.split(",") if f] if args.families else None
+    severities = [int(s) for s in args.severities.split(",") if s] if args.severities else None
+    sys.stdout.write(render(list(ladder_cells(args.set, families=families, severities=severities, seed=args.seed,
+                                              seeds=args.seeds)), args.format))
+    return 0
+
+
+def _add_foreign_commands(sub: argparse._SubParsersAction) -> None:
+    """analyse and ladder: the paper's workflow, a model's own evaluator run once per cell."""
+    from .constants import DEFAULT_FLAT
+
+    p = sub.add_parser("analyse", help="analyse a per-cell table from a model's own evaluator: cells.csv, "
+                                       "report.html and an imported certificate per model")
+    p.add_argument("table", metavar="TABLE", help="the per-cell CSV (docs/how-to/foreign-evaluator.md)")
+    p.add_argument("--out", required=True, help="output folder: writes <out>/<model>/cells.csv, report.html and "
+                                                "certificate.json")
+    p.add_argument("--convention", choices=("stp3", "uniad"),
+                   help="the L2 convention to analyse (default: stp3 when the table gives it, else uniad)")
+    p.add_argument("--metric", choices=("l2", "pdms", "epdms"),
+                   help="the retention the verdict is put on (default: L2 when clean has it, else PDMS, else EPDMS)")
+    p.add_argument("--flat", type=float, default=DEFAULT_FLAT, metavar="F",
+                   help=f"retention at or above which an axis counts as flat (default {DEFAULT_FLAT})")
+    p.add_argument("--floor", metavar="MODEL", help="a model of the table whose clean L2 is the ego-only floor")
+    p.add_argument("--floor-l2", type=float, metavar="M", help="the ego-only floor's clean L2 (metres)")
+    p.add_argument("--model", action="append", metavar="MODEL", help="analyse only this model (repeatable)")
+    p.add_argument("--split", default="as given", help="the split the figures were computed on (recorded)")
+    p.add_argument("--sign-key", metavar="PATH", help="sign the certificates with this Ed25519 private key "
+                                                       "(default: $DRIVEDEGRADE_SIGNING_KEY)")
+    p.set_defaults(func=_analyse)
+
+    p = sub.add_parser("ladder", help="print the cells (family, severity, seed) a model's own evaluation must run "
+                                      "under patch_loader, one per line")
+    p.add_argument("--set", choices=("full", "axes", "slice"), default="full",
+                   help="full: every family at S1..S5; axes: every family at S5 (the verdict); slice: the paper's "
+                        "seven-cell slice (default full)")
+    p.add_argument("--families", metavar="LIST", help="comma-separated families to keep")
+    p.add_argument("--severities", metavar="LIST", help="comma-separated severities to keep (1..5)")
+    p.add_argument("--seed", type=int, default=0, help="the first corruption seed (default 0)")
+    p.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds per random family (default 1)")
+    p.add_argument("--format", choices=("text", "csv", "json", "shell"), default="text",
+                   help="text (aligned), csv (the table's key columns), json, or shell ('CELL FAMILY SEVERITY "
+                        "SEED' per line, for `while read`)")
+    p.set_defaults(func=_ladder)
 
 
 def _add_input_commands(sub: argparse._SubParsersAction) -> None:
@@ -335,6 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run_commands(sub)
     _add_certificate_commands(sub)
     _add_closed_loop_commands(sub)
+    _add_foreign_commands(sub)
     return parser
 
 

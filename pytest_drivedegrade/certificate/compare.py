@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 from ..atomic import atomic_write_text
 from ..errors import DriveDegradeError
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds
+from .fields import IMPORTED_TEXT, is_imported
 from .seal import verify
 
 if TYPE_CHECKING:
@@ -64,6 +65,7 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
         "ego_label": verdict.get("ego_label"),
         "verdict_metric": verdict.get("metric", "l2"),
         "floor_l2": _section(cert, "floor").get("l2_avg"),
+        "imported": is_imported(cert),
     }
     for fam, entry in sorted(_section(cert, "thresholds").items()):
         row.update((f"{fam}_{key}", t.value) for key, t in FamilyThresholds.from_builtins(entry).levels.items())
@@ -182,6 +184,8 @@ def _html(df: pd.DataFrame, warnings: Sequence[str]) -> str:
     notes = "".join(f"<li>{html.escape(str(r.planner))}: better on one ranking, worse on the other, against "
                     f"{html.escape(str(r.reversed_with))}</li>" for r in flagged.itertuples())
     warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
+    warn += "".join(f"<p class='warn'>IMPORTED: {html.escape(str(r.certificate))}: {IMPORTED_TEXT}</p>"
+                    for r in df.itertuples() if r.imported)
     warn += "".join(f"<p class='warn'>INCOMPLETE, compared as it is: {html.escape(str(r.certificate))}: "
                     f"{html.escape(str(r.status))}</p>" for r in df.itertuples() if r.status != "complete")
     return f"""<!DOCTYPE html>

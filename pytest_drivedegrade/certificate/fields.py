@@ -34,3 +34,14 @@ EPDMS: tuple[str, ...] = ("epdms", "ddc", "tlc", "lk", "hc", "ec", "epdms_retent
 #: The certificate's per-cell fields (cells.csv carries every metric; key order is irrelevant in sealed JSON).
 CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"),
                                      *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored", *EPDMS)
+
+#: What a certificate made by `drivedegrade analyse` from a per-cell table proves, as its ``provenance``
+#: section says it (``kind`` IMPORTED_KIND) and `verify`, `reproduce` and `compare` repeat it.
+IMPORTED_KIND = "imported"
+IMPORTED_TEXT = "imported: metrics as given, arithmetic recomputed, plans not seen"
+
+
+def is_imported(cert: object) -> bool:
+    """Whether a certificate was made from a table by `drivedegrade analyse` (its provenance kind)."""
+    prov = cert.get("provenance") if isinstance(cert, dict) else None
+    return isinstance(prov, dict) and prov.get("kind") == IMPORTED_KIND

@@ -216,6 +216,17 @@ def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
     return cells
 
 
+def refuse_imported(cert: Mapping[str, Any], path: Path) -> None:
+    """DriveDegradeError for a certificate made from a per-cell table (`drivedegrade analyse`): its figures were
+    computed by another evaluator, so there are no plans to rerun against."""
+    from .fields import IMPORTED_TEXT, is_imported
+
+    if is_imported(cert):
+        raise DriveDegradeError(f"{path}: cannot be reproduced: {IMPORTED_TEXT} (from "
+                                f"{cert['provenance'].get('table')}); `drivedegrade verify` checks its arithmetic, "
+                                "and reproducing it means rerunning the evaluator that made the table")
+
+
 def consistent(cert: Mapping[str, object], path: Path) -> None:
     """DriveDegradeError when the certificate's thresholds, axes or verdict contradict its cells (verify's
     arithmetic, `consistency.check_consistency`): a resealed certificate is not worth a rerun."""
@@ -265,6 +276,7 @@ def reproduce(cert_path: Path, planner: Path, *, n: int = DEFAULT_SAMPLED, data:
         raise DriveDegradeError(f"planner file {planner} does not exist or is not a .py file: give the file the "
                                 "certificate was made with")
     cert, proof = verified(cert_path, public_key)
+    refuse_imported(cert, cert_path)
     consistent(cert, cert_path)
     drawn = "given" if salt is not None else "fresh randomness"  # (the rerun: one progress line on `bar_sink`)
     salt = fresh_seed() if salt is None else salt
