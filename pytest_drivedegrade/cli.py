@@ -250,7 +250,7 @@ def _analyse(args: argparse.Namespace) -> int:
 
     for line in analyse_table(args.table, args.out, convention=args.convention, flat=args.flat, metric=args.metric,
                               floor=args.floor, floor_l2=args.floor_l2, models=args.model or (), split=args.split,
-                              signing_key=_merge_signing_key(args)):
+                              null_identical=args.null_identical, signing_key=_merge_signing_key(args)):
         print(line)
     return 0
 
@@ -285,6 +285,9 @@ def _add_foreign_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--floor-l2", type=float, metavar="M", help="the ego-only floor's clean L2 (metres)")
     p.add_argument("--model", action="append", metavar="MODEL", help="analyse only this model (repeatable)")
     p.add_argument("--split", default="as given", help="the split the figures were computed on (recorded)")
+    p.add_argument("--null-identical", action="store_true",
+                   help="blackout-s3 must give every figure clean gives (models that read no rear camera): a "
+                        "difference fails the null control and makes the verdict undetermined")
     p.add_argument("--sign-key", metavar="PATH", help="sign the certificates with this Ed25519 private key "
                                                        "(default: $DRIVEDEGRADE_SIGNING_KEY)")
     p.set_defaults(func=_analyse)

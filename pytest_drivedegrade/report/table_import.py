@@ -27,7 +27,7 @@ from ..certificate.seal import Provenance
 from ..constants import DEFAULT_FLAT
 from ..errors import DataError
 from ..foreign.records import ModelCells, model_cells
-from ..foreign.table import RETENTION_OF, Table, read_table
+from ..foreign.table import RETENTION_OF, Table, Value, read_table
 from ..scoring.records import RunAnalysis, format_value
 
 if TYPE_CHECKING:
@@ -80,7 +80,9 @@ def blank_not_given(analysis: RunAnalysis, mc: ModelCells) -> None:
 
 def agreement_notes(analysis: RunAnalysis, mc: ModelCells) -> list[str]:
     """Each given figure the analysis recomputes (a retention beside its metric, a row's figure beside its
-    per-frame file's mean) that differs by more than its own rounding plus 1e-9."""
+    per-frame file's mean) that differs from it by more than its own rounding plus 1e-9: 'beyond the rounding'
+    when the rounding of the figures it is computed from cannot explain it either, else 'within the rounding of
+    the inputs' (consistent with the printed figures, and not checkable further from them)."""
     notes = []
     by_cell = {s.cell: s for s in analysis.summaries}
     for cell, rows in mc.rows.items():
@@ -89,14 +91,38 @@ def agreement_notes(analysis: RunAnalysis, mc: ModelCells) -> list[str]:
             continue
         for col, key in (*_COMPARED.items(), *((c, c) for c in _row_figures(mc))):
             given = rows[0].values.get(col)
-            if given is None or (col in RETENTION_OF and f"{RETENTION_OF[col][0]}" not in _have(mc, cell)):
+            if given is None or (col in RETENTION_OF and RETENTION_OF[col][0] not in _have(mc, cell)):
                 continue
             got = s.retention if key == "retention" else s.metrics.get(key, math.nan)
-            if math.isfinite(got) and abs(got - given.value) > given.half_unit + 1e-9:
-                notes.append(f"{cell}: {col} given {given.value:g}, the suite computes {got:.6f} from the table's "
-                             f"figures (off by {abs(got - given.value):.2g}, beyond the given figure's rounding "
-                             f"{given.half_unit:g})")
+            off = abs(got - given.value)
+            if not math.isfinite(got) or off <= given.half_unit + 1e-9:
+                continue
+            spread = _input_rounding(mc, cell, col, got)
+            how = (f"within the rounding of the figures it is computed from (+-{spread:.2g}): consistent with them, "
+                   "not checkable further" if off <= given.half_unit + spread + 1e-9 else
+                   f"beyond the rounding of the given figures (+-{given.half_unit:g}) and of those it is computed "
+                   f"from (+-{spread:.2g})")
+            notes.append(f"{cell}: {col} given {given.value:g}, the suite computes {got:.6f} from the table's "
+                         f"figures: {how}")
     return notes
+
+
+def _input_rounding(mc: ModelCells, cell: str, col: str, value: float) -> float:
+    """How far a retention recomputed from printed figures can move within their rounding: r (h_a / a + h_b / b)
+    for a ratio of a cell's and clean's figures (0 for a figure that is not a retention, or from per-frame files)."""
+    if col not in RETENTION_OF or mc.per_frame:
+        return 0.0
+    metric = RETENTION_OF[col][0]
+    name = f"l2_avg_{mc.convention}" if metric == "l2_avg" else metric
+    total = 0.0
+    for c in (cell, "clean"):
+        row = mc.rows[c][0]
+        cols = [name] if name in row.values else [f"l2_{h}s_{mc.convention}" for h in (1, 2, 3)]
+        got = [row.values[k] for k in cols if k in row.values]
+        if got:
+            mean = math.fsum(v.value for v in got) / len(got)
+            total += max(v.half_unit for v in got) / mean if mean > 0 else 0.0
+    return abs(value) * total
 
 
 def _row_figures(mc: ModelCells) -> tuple[str, ...]:
@@ -114,6 +140,38 @@ def _have(mc: ModelCells, cell: str) -> set[str]:
     return out - {"l2_avg" if d.startswith("l2_avg") else d for d in derived}
 
 
+def identical_null(analysis: RunAnalysis, mc: ModelCells, null_cell: str = "blackout-s3") -> None:
+    """``--null-identical``: the null cell (blackout S3: the rear views a front-only model never reads) must give
+    every figure clean gives, equal; a difference fails the null control and makes the verdict undetermined, as
+    the plugin's bit-identity check does with plans. DataError when the table has no such row."""
+    from ..scoring.records import NullControl
+    from ..scoring.verdict import undetermined_by_null_control
+
+    if null_cell not in mc.rows:
+        raise DataError(f"--null-identical: model {mc.model!r} has no {null_cell} row to compare with clean")
+    clean, null = mc.rows["clean"][0].values, mc.rows[null_cell][0].values
+    shared = sorted(set(clean) & set(null))
+    if not shared:
+        raise DataError(f"--null-identical: model {mc.model!r}: {null_cell} and clean give no figure in common")
+    differ = [(k, null[k], clean[k]) for k in shared if null[k].value != clean[k].value]
+    nc = NullControl(passed=not differ, max_abs_diff=max((abs(a.value - b.value) for _, a, b in differ), default=0.0),
+                     max_l2_change=0.0, frames_changed=int(bool(differ)), frames_compared=1)
+    analysis.null_control = nc
+    if differ:
+        what = ", ".join(f"{k} {_printed(a)} against clean's {_printed(b)}" for k, a, b in differ)
+        reason = (f"the null control failed: {null_cell}, which a model reading no rear camera cannot tell from "
+                  f"clean, gives other figures ({what})")
+        v = undetermined_by_null_control(analysis.verdict, nc)
+        analysis.verdict = replace(v, reason=reason, text=f"Undetermined: {reason}. The axes give "
+                                   f"{v.computed_label}, but a verdict is not sealed on figures that move with no "
+                                   "corruption the model can see.")
+
+
+def _printed(v: Value) -> str:
+    """A given figure as it was printed (its decimals recovered from its rounding)."""
+    return f"{v.value:.{max(0, round(-math.log10(2 * v.half_unit)))}f}"
+
+
 def fingerprint(table: Table, model: str) -> str:
     """The model's fingerprint: a digest of its rows' given figures (what it was certified on)."""
     rows = [(r.cell, r.seed, r.frames, sorted((k, v.value) for k, v in r.values.items())) for r in table.of(model)]
@@ -122,7 +180,7 @@ def fingerprint(table: Table, model: str) -> str:
 
 def analyse_model(table: Table, model: str, *, convention: str | None = None, flat: float = DEFAULT_FLAT,
                   metric: str | None = None, floor_l2: float | None = None, seed: int = 0,
-                  split: str = "as given") -> ImportedRun:
+                  split: str = "as given", null_identical: bool = False) -> ImportedRun:
     """One model's imported analysis (the module docstring)."""
     from ..corruptions.ladder import SPEC_VERSION
     from ..scoring.analyse import analyse_run
@@ -135,6 +193,8 @@ def analyse_model(table: Table, model: str, *, convention: str | None = None, fl
                            n_resamples=RESAMPLES if mc.per_frame else 0, intervals=mc.per_frame,
                            metric=choose_metric(mc, metric), floor_l2=floor_l2, seeds=n_seeds)
     analysis.null_control = None
+    if null_identical:
+        identical_null(analysis, mc)
     blank_not_given(analysis, mc)
     analysis.settings["seed_values"] = sorted({r.seed for runs in mc.rows.values() for r in runs})
     clean = mc.rows["clean"][0]
@@ -209,7 +269,8 @@ def summary_line(run: ImportedRun, folder: Path) -> str:
     """One terminal line per model: the verdict, the axes and where the outputs went."""
     a, v = run.analysis, run.analysis.verdict
     axes = {"pdms": a.axes_pdms, "epdms": a.axes_epdms}.get(v.metric) or a.axes
-    flag = " NEGATIVE GAP" if v.negative_gap else ""
+    flag = (" NEGATIVE GAP" if v.negative_gap else "") + (f" (axes: {v.computed_label})"
+                                                          if v.label != v.computed_label else "")
     return (f"{run.provenance.planner_name}: {v.label}{flag} (on {v.metric}: quality {format_value(axes.quality)}, "
             f"removal {format_value(axes.removal)}, gap {format_value(axes.gap)}, mean {format_value(axes.mean)}); "
             f"wrote {folder}/cells.csv, report.html and certificate.json ({IMPORTED_TEXT})")
@@ -234,7 +295,7 @@ def floor_of(table: Table, floor: str | None, floor_l2: float | None, convention
 
 def analyse_table(path: str | Path, out: str | Path, *, convention: str | None = None, flat: float = DEFAULT_FLAT,
                   metric: str | None = None, floor: str | None = None, floor_l2: float | None = None,
-                  models: Sequence[str] = (), split: str = "as given",
+                  models: Sequence[str] = (), split: str = "as given", null_identical: bool = False,
                   signing_key: Ed25519PrivateKey | None = None) -> list[str]:
     """Analyse every model of the table (or those `models` names) into `out`; the terminal lines."""
     table = read_table(path)
@@ -248,8 +309,24 @@ def analyse_table(path: str | Path, out: str | Path, *, convention: str | None =
              + (f"; ignored columns: {', '.join(table.ignored)}" if table.ignored else "")]
     for model in chosen:
         run = analyse_model(table, model, convention=convention, flat=flat, metric=metric,
-                            floor_l2=None if model == floor else base, split=split)
+                            floor_l2=None if model == floor else base, split=split, null_identical=null_identical)
         _, folder = write_model(table, run, Path(out), signing_key)
         lines.append(summary_line(run, folder))
-        lines += [f"  derived: {d}" for d in run.cells.derived] + [f"  NOTE: {n}" for n in run.notes]
+        lines += detail_lines(run)
     return lines
+
+
+def detail_lines(run: ImportedRun) -> list[str]:
+    """What the terminal says under a model's line: the figures derived from a given retention (counted), the
+    null control when one was checked, and every agreement note."""
+    lines = []
+    if run.cells.derived:
+        cells = [d.split(" (seed")[0] for d in run.cells.derived]
+        lines.append(f"  derived from a given retention: {len(cells)} figure(s) ({', '.join(cells[:4])}"
+                     f"{', ...' if len(cells) > 4 else ''}); the certificate lists each")
+    nc = run.analysis.null_control
+    if nc is not None:
+        lines.append("  null control (blackout-s3 against clean): " + (
+            "passed, every figure equal" if nc.passed else
+            f"FAILED: {str(run.analysis.verdict.reason).removeprefix('the null control failed: ')}"))
+    return lines + [f"  NOTE: {n}" for n in run.notes]
