@@ -99,9 +99,9 @@ def _verify(args: argparse.Namespace) -> int:
 
 def _imported_level(cert: dict, level: str) -> str:
     """What an imported certificate proves, before its seal's level (unchanged for a run's certificate)."""
-    from .certificate.fields import IMPORTED_TEXT, is_imported
+    from .certificate.fields import IMPORTED_TEXT, imported_source, is_imported
 
-    return f"{IMPORTED_TEXT} (from {cert['provenance'].get('table')}); {level}" if is_imported(cert) else level
+    return f"{IMPORTED_TEXT} (from {imported_source(cert)}); {level}" if is_imported(cert) else level
 
 
 def _reproduce(args: argparse.Namespace) -> int:

@@ -45,3 +45,9 @@ def is_imported(cert: object) -> bool:
     """Whether a certificate was made from a table by `drivedegrade analyse` (its provenance kind)."""
     prov = cert.get("provenance") if isinstance(cert, dict) else None
     return isinstance(prov, dict) and prov.get("kind") == IMPORTED_KIND
+
+
+def imported_source(cert: object) -> str:
+    """The table an imported certificate's figures came from ("" for any other certificate)."""
+    prov = cert.get("provenance") if isinstance(cert, dict) else None
+    return str(prov.get("table", "")) if isinstance(prov, dict) else ""

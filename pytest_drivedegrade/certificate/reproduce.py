@@ -216,14 +216,14 @@ def usable(cert: Mapping[str, Any], path: Path) -> list[str]:
     return cells
 
 
-def refuse_imported(cert: Mapping[str, Any], path: Path) -> None:
+def refuse_imported(cert: Mapping[str, object], path: Path) -> None:
     """DriveDegradeError for a certificate made from a per-cell table (`drivedegrade analyse`): its figures were
     computed by another evaluator, so there are no plans to rerun against."""
-    from .fields import IMPORTED_TEXT, is_imported
+    from .fields import IMPORTED_TEXT, imported_source, is_imported
 
-    if is_imported(cert):
+    if is_imported(dict(cert)):
         raise DriveDegradeError(f"{path}: cannot be reproduced: {IMPORTED_TEXT} (from "
-                                f"{cert['provenance'].get('table')}); `drivedegrade verify` checks its arithmetic, "
+                                f"{imported_source(dict(cert))}); `drivedegrade verify` checks its arithmetic, "
                                 "and reproducing it means rerunning the evaluator that made the table")
 
 

@@ -20,7 +20,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from ..certificate.fields import IMPORTED_KIND, IMPORTED_TEXT
 from ..certificate.seal import Provenance
@@ -28,7 +28,7 @@ from ..constants import DEFAULT_FLAT
 from ..errors import DataError
 from ..foreign.records import ModelCells, model_cells
 from ..foreign.table import RETENTION_OF, Table, Value, read_table
-from ..scoring.records import RunAnalysis, format_value
+from ..scoring.records import Builtins, RunAnalysis, format_value
 
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
@@ -213,7 +213,7 @@ def _tool_version() -> str:
     return str(__version__)
 
 
-def provenance_section(table: Table, run: ImportedRun) -> dict[str, Any]:
+def provenance_section(table: Table, run: ImportedRun) -> Builtins:
     """The certificate's ``provenance``: what it proves and where the figures came from."""
     return {"kind": IMPORTED_KIND, "statement": IMPORTED_TEXT, "table": str(table.path),
             "table_sha256": table.sha256, "rows": len(table.of(run.provenance.planner_name)),
@@ -228,18 +228,19 @@ def folder_name(model: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", model).strip("_") or "model"
 
 
-def imported_fragment(section: dict[str, Any]) -> str:
+def imported_fragment(table: Table, run: ImportedRun) -> str:
     """The report's section saying what an imported certificate is (after the plugin's sections)."""
-    items = "".join(f"<li>{html.escape(str(x))}</li>" for x in [*section["derived"], *section["notes"]])
+    items = "".join(f"<li>{html.escape(x)}</li>" for x in [*run.cells.derived, *run.notes])
+    intervals = "paired frame bootstrap of the per-frame files" if run.cells.per_frame else "none (per-cell figures)"
     return (f"<section><h2>Imported results</h2><p><strong>{html.escape(IMPORTED_TEXT)}.</strong> Figures from "
-            f"<code>{html.escape(section['table'])}</code> (sha256 {section['table_sha256'][:16]}...), L2 under the "
-            f"{html.escape(section['convention'])} convention; intervals: {html.escape(section['intervals'])}. "
-            "The trajectories, the null control and the montage need the plans and images, which the table does "
-            f"not carry.</p>{'<ul>' + items + '</ul>' if items else ''}</section>")
+            f"<code>{html.escape(str(table.path))}</code> (sha256 {table.sha256[:16]}...), L2 under the "
+            f"{html.escape(run.cells.convention)} convention; intervals: {intervals}. The trajectories, the null "
+            "control on plans and the montage need the plans and images, which the table does not carry.</p>"
+            f"{'<ul>' + items + '</ul>' if items else ''}</section>")
 
 
 def write_model(table: Table, run: ImportedRun, out: Path,
-                signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, Any], Path]:
+                signing_key: Ed25519PrivateKey | None = None) -> tuple[Builtins, Path]:
     """cells.csv, report.html and certificate.json of one model in ``out/<model>/``, written as one set."""
     from ..atomic import atomic_write_set
     from ..certificate.seal import build_certificate, certificate_text, seal
@@ -248,8 +249,7 @@ def write_model(table: Table, run: ImportedRun, out: Path,
 
     folder = out / folder_name(run.provenance.planner_name)
     cert = build_certificate(run.analysis, run.provenance)
-    section = provenance_section(table, run)
-    cert["provenance"] = section
+    cert["provenance"] = provenance_section(table, run)
     cert["completeness"] = {"complete": True, "missing_cells": []}
     if signing_key is not None:
         from ..certificate.signing import sign
@@ -257,7 +257,7 @@ def write_model(table: Table, run: ImportedRun, out: Path,
         cert = sign(cert, signing_key)
     cert = seal(cert)
     page = render_report(run.analysis, replace(run.provenance), created=cert.get("created", ""),
-                         digest=cert["digest"], closed_html=imported_fragment(section),
+                         digest=cert["digest"], closed_html=imported_fragment(table, run),
                          signed_by=str((cert.get("signature") or {}).get("public_key_fingerprint", "")))
     atomic_write_set({folder / "cells.csv": cells_csv_text(run.analysis, run.provenance).encode("utf-8"),
                       folder / "report.html": page.encode("utf-8"),

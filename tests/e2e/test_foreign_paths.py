@@ -63,7 +63,8 @@ def test_plugin_and_own_loop_agree(dd, small_world, tmp_path):
     for cell, own in own_rows.items():
         for col in COMPARED:
             a, b = _number(own[col]), _number(plugin_rows[cell][col])
-            assert (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-9, (cell, col, own[col], plugin_rows[cell][col])
+            assert (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-9, (cell, col, own[col],
+                                                                             plugin_rows[cell][col])
 
     mine, theirs = load_json(out / "navsim_style" / "certificate.json"), load_json(plugin_dir / "certificate.json")
     assert mine["verdict"]["label"] == theirs["verdict"]["label"]

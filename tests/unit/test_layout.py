@@ -27,6 +27,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     # Ray actors; the ego-only floor
     ("loader", "pacing", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),
     ("closedloop",),  # the closed loop: routes of the world, simulator, run and cell scores (spec 13)
+    ("foreign",),  # a model's own evaluator: the cells it runs (ladder), its per-cell table read into cell records
     ("scoring",),  # statistics over finished cells
     ("certificate",),  # the certificate: seal, sign, verify, merge, reproduce, compare, estimate; a FinishedRun
     ("report",),  # rendering: the one end of a run (publish), cells.csv, certificate.json, HTML, JUnit, terminal
