@@ -18,6 +18,7 @@ _LAZY = {
     "inject_loader": "pytest_drivedegrade.corruptions.hooks",
     "patch_loader": "pytest_drivedegrade.corruptions.hooks",
     "Injection": "pytest_drivedegrade.corruptions.hooks",
+    "ladder_cells": "pytest_drivedegrade.foreign.ladder",
 }
 
 __all__ = ["__version__", *_LAZY]
@@ -26,6 +27,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from .corruptions.api import corrupt, corrupt_sample
     from .corruptions.hooks import Injection, inject_loader, patch_loader
     from .corruptions.ladder import FAMILIES, SPEC_VERSION
+    from .foreign.ladder import ladder_cells
 
 
 def __getattr__(name: str) -> Any:

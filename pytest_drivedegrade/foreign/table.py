@@ -4,7 +4,7 @@
 Columns (a header row; ``#`` lines are comments; an empty value, ``-``, ``--``, ``n/a`` or ``nan`` is "not
 given"):
 
-- ``model`` (required) and ``cell`` (``clean``, ``blind``, ``gaussian_blur-s3``, ...) or ``family`` and
+- ``model`` (required; ``planner`` is read when there is no ``model``, so a suite's cells.csv is a table) and ``cell`` (``clean``, ``blind``, ``gaussian_blur-s3``, ...) or ``family`` and
   ``severity``; ``seed`` (default 0), ``frames`` (the frames the figures average over), ``frames_file`` (a
   per-frame CSV of this cell, relative to the table: ``frame`` and the same metric columns), ``note``.
 - L2 under a named convention, as the suite's cells.csv names it: ``l2_1s_stp3``, ``l2_2s_stp3``,
@@ -225,7 +225,8 @@ def read_table(path: str | Path) -> Table:
     """Read and check a per-cell table (module docstring); DataError naming file, row and column otherwise."""
     path = Path(path)
     header, raw_rows = csv_rows(path)
-    if "model" not in header:
+    model_col = "model" if "model" in header else "planner"  # a suite's own cells.csv names it planner
+    if model_col not in header:
         raise DataError(f"{path}: no model column: each row names the model it measured (one table may hold "
                         "several)")
     if "cell" not in header and "family" not in header:
@@ -235,9 +236,9 @@ def read_table(path: str | Path) -> Table:
     seen: dict[tuple[str, str, int], str] = {}
     for n, raw in raw_rows:
         where = f"{path}:{n}"
-        model = raw.get("model", "").strip()
+        model = raw.get(model_col, "").strip()
         if not model:
-            raise DataError(f"{where}: column model: empty: name the model the row measured")
+            raise DataError(f"{where}: column {model_col}: empty: name the model the row measured")
         cell, fam, sev = resolve_cell(raw.get("cell", "").strip(), raw.get("family", "").strip(),
                                       raw.get("severity", "").strip(), where)
         seed = _integer(raw["seed"], where, "seed") if raw.get("seed", "").strip() else 0

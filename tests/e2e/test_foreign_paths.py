@@ -74,6 +74,15 @@ def test_plugin_and_own_loop_agree(dd, small_world, tmp_path):
     assert {f: t["s10"] for f, t in mine["thresholds"].items()} == \
         {f: t["s10"] for f, t in theirs["thresholds"].items()}
     assert mine["provenance"]["statement"] == "imported: metrics as given, arithmetic recomputed, plans not seen"
+    # the plugin's own cells.csv is a table too: analysed, it gives the plugin's axes and label back (to the
+    # 6 decimals cells.csv keeps)
+    again = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "analyse", str(plugin_dir / "cells.csv"),
+                            "--out", str(tmp_path / "roundtrip")], capture_output=True, text=True, check=False)
+    assert again.returncode == 0, again.stderr
+    back = load_json(tmp_path / "roundtrip" / "navsim_style" / "certificate.json")
+    assert back["verdict"]["label"] == theirs["verdict"]["label"]
+    for axis in ("quality", "removal", "gap"):
+        assert back["axes"][axis] == pytest.approx(theirs["axes"][axis], abs=5e-6), axis
     check = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify",
                             str(out / "navsim_style" / "certificate.json")], capture_output=True, text=True)
     assert check.returncode == 0 and "imported: metrics as given" in check.stdout, check.stdout + check.stderr
