@@ -4,9 +4,10 @@
 Columns (a header row; ``#`` lines are comments; an empty value, ``-``, ``--``, ``n/a`` or ``nan`` is "not
 given"):
 
-- ``model`` (required; ``planner`` is read when there is no ``model``, so a suite's cells.csv is a table) and ``cell`` (``clean``, ``blind``, ``gaussian_blur-s3``, ...) or ``family`` and
-  ``severity``; ``seed`` (default 0), ``frames`` (the frames the figures average over), ``frames_file`` (a
-  per-frame CSV of this cell, relative to the table: ``frame`` and the same metric columns), ``note``.
+- ``model`` (required; ``planner`` is read when there is no ``model``, so a suite's cells.csv is a table) and
+  ``cell`` (``clean``, ``blind``, ``gaussian_blur-s3``, ...) or ``family`` and ``severity``; ``seed`` (default
+  0), ``frames`` (the frames the figures average over), ``frames_file`` (a per-frame CSV of this cell, relative
+  to the table: ``frame`` and the same metric columns), ``note``.
 - L2 under a named convention, as the suite's cells.csv names it: ``l2_1s_stp3``, ``l2_2s_stp3``,
   ``l2_3s_stp3`` and/or ``l2_avg_stp3`` (``_uniad`` for the at-the-horizon convention); collision rates
   (fractions 0..1) ``collision_1s_stp3`` ... and ``vru_1s_stp3`` ...; ``jerk``.
