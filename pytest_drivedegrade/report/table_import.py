@@ -140,15 +140,18 @@ def _have(mc: ModelCells, cell: str) -> set[str]:
     return out - {"l2_avg" if d.startswith("l2_avg") else d for d in derived}
 
 
-def identical_null(analysis: RunAnalysis, mc: ModelCells, null_cell: str = "blackout-s3") -> None:
-    """``--null-identical``: the null cell (blackout S3: the rear views a front-only model never reads) must give
-    every figure clean gives, equal; a difference fails the null control and makes the verdict undetermined, as
-    the plugin's bit-identity check does with plans. DataError when the table has no such row."""
+def identical_null(analysis: RunAnalysis, mc: ModelCells) -> None:
+    """``--null-identical``: the null cell (the table's ``null`` row, else blackout S3: the rear views a
+    front-only model never reads) must give every figure clean gives, equal; a difference fails the null control
+    and makes the verdict undetermined, as the plugin's bit-identity check does with plans. DataError when the
+    table has neither row."""
     from ..scoring.records import NullControl
     from ..scoring.verdict import undetermined_by_null_control
 
+    null_cell = "null" if "null" in mc.rows else "blackout-s3"
+
     if null_cell not in mc.rows:
-        raise DataError(f"--null-identical: model {mc.model!r} has no {null_cell} row to compare with clean")
+        raise DataError(f"--null-identical: model {mc.model!r} has no null or blackout-s3 row to compare with clean")
     clean, null = mc.rows["clean"][0].values, mc.rows[null_cell][0].values
     shared = sorted(set(clean) & set(null))
     if not shared:
@@ -159,8 +162,8 @@ def identical_null(analysis: RunAnalysis, mc: ModelCells, null_cell: str = "blac
     analysis.null_control = nc
     if differ:
         what = ", ".join(f"{k} {_printed(a)} against clean's {_printed(b)}" for k, a, b in differ)
-        reason = (f"the null control failed: {null_cell}, which a model reading no rear camera cannot tell from "
-                  f"clean, gives other figures ({what})")
+        reason = (f"the null control failed: {null_cell}, which the model cannot tell from clean, gives other "
+                  f"figures ({what})")
         v = undetermined_by_null_control(analysis.verdict, nc)
         analysis.verdict = replace(v, reason=reason, text=f"Undetermined: {reason}. The axes give "
                                    f"{v.computed_label}, but a verdict is not sealed on figures that move with no "
@@ -304,6 +307,12 @@ def analyse_table(path: str | Path, out: str | Path, *, convention: str | None =
     if unknown:
         raise DataError(f"--model {unknown[0]!r}: no such model in {table.path} (models: "
                         f"{', '.join(table.models())})")
+    folders: dict[str, str] = {}
+    for model in chosen:
+        other = folders.setdefault(folder_name(model), model)
+        if other != model:
+            raise DataError(f"models {other!r} and {model!r} would share the output folder {folder_name(model)}: "
+                            "rename one in the table")
     base = floor_of(table, floor, floor_l2, convention)
     lines = [f"analyse: {table.path}: {len(table.rows)} rows, {len(chosen)} model(s)"
              + (f"; ignored columns: {', '.join(table.ignored)}" if table.ignored else "")]
@@ -326,7 +335,7 @@ def detail_lines(run: ImportedRun) -> list[str]:
                      f"{', ...' if len(cells) > 4 else ''}); the certificate lists each")
     nc = run.analysis.null_control
     if nc is not None:
-        lines.append("  null control (blackout-s3 against clean): " + (
+        lines.append("  null control (against clean): " + (
             "passed, every figure equal" if nc.passed else
             f"FAILED: {str(run.analysis.verdict.reason).removeprefix('the null control failed: ')}"))
     return lines + [f"  NOTE: {n}" for n in run.notes]

@@ -185,3 +185,34 @@ def test_ladder_cli_csv_is_the_tables_key_columns(capsys):
     assert main(["ladder", "--set", "axes", "--families", "jpeg,snow", "--seeds", "2", "--format", "csv"]) == 0
     assert capsys.readouterr().out == ("cell,family,severity,seed\nclean,clean,0,0\njpeg-s5,jpeg,5,0\n"
                                        "snow-s5,snow,5,0\nsnow-s5,snow,5,1\n")
+
+
+def test_null_identical_reads_the_null_row_first(tmp_path):
+    text = ("model,cell,l2_avg_stp3\nF,clean,1.000\nF,null,1.000\nF,blackout-s3,1.010\n"
+            "G,clean,1.000\nG,null,1.001\n")
+    table = read_table(write(tmp_path, text))
+    ok = analyse_model(table, "F", null_identical=True).analysis
+    assert ok.null_control is not None and ok.null_control.passed is True  # blackout-s3 is not the null here
+    bad = analyse_model(table, "G", null_identical=True).analysis
+    assert bad.null_control is not None and bad.null_control.passed is False
+    assert bad.verdict.label == "undetermined" and "l2_avg_stp3 1.001 against clean's 1.000" in str(bad.verdict.reason)
+    with pytest.raises(DataError, match="no null or blackout-s3 row"):
+        analyse_model(read_table(write(tmp_path, "model,cell,pdms\nH,clean,0.9\n", "h.csv")), "H",
+                      null_identical=True)
+
+
+def test_models_sharing_a_folder_are_refused(tmp_path):
+    text = "model,cell,l2_avg_stp3\na b,clean,1\na_b,clean,1\n"
+    with pytest.raises(DataError, match="would share the output folder a_b"):
+        analyse_table(write(tmp_path, text), tmp_path / "out")
+
+
+def test_signed_imported_certificate(tmp_path, capsys):
+    key = tmp_path / "k"
+    assert main(["keygen", str(key)]) == 0
+    out = tmp_path / "out"
+    assert main(["analyse", str(curve_table(tmp_path)), "--out", str(out), "--sign-key", f"{key}.key"]) == 0
+    capsys.readouterr()
+    assert main(["verify", str(out / "A" / "certificate.json"), "--public-key", f"{key}.pub"]) == 0
+    said = capsys.readouterr().out
+    assert IMPORTED_TEXT in said and "signature verifies" in said
