@@ -216,3 +216,14 @@ def test_signed_imported_certificate(tmp_path, capsys):
     assert main(["verify", str(out / "A" / "certificate.json"), "--public-key", f"{key}.pub"]) == 0
     said = capsys.readouterr().out
     assert IMPORTED_TEXT in said and "signature verifies" in said
+
+
+def test_row_figures_are_checked_against_their_per_frame_file(tmp_path):
+    write(tmp_path, "frame,l2_avg_stp3\nf0,1.0\nf1,2.0\n", "c.csv")
+    write(tmp_path, "frame,l2_avg_stp3\nf1,4.0\nf0,2.0\n", "j.csv")
+    text = "model,cell,l2_avg_stp3,frames_file\nM,clean,1.5,c.csv\nM,jpeg-s5,3.5,j.csv\n"
+    run = analyse_model(read_table(write(tmp_path, text)), "M")
+    by = {s.cell: s for s in run.analysis.summaries}
+    assert by["jpeg-s5"].l2_avg == pytest.approx(3.0) and by["jpeg-s5"].retention == pytest.approx(0.5)
+    (note,) = run.notes  # the row says 3.5, its frames average 3.0
+    assert note.startswith("jpeg-s5: l2_avg_stp3 given 3.5, the suite computes 3.000000") and "beyond" in note
