@@ -182,11 +182,13 @@ def exact_sign(xs: np.ndarray, m: float, population: int, level: float) -> Settl
 
 def distinct_so_far(xs: np.ndarray) -> np.ndarray:
     """After each unit, how many distinct values (to 1e-12) the units so far hold (capped at MIN_DISTINCT)."""
-    out = np.zeros(len(xs), dtype=int)
+    out = np.full(len(xs), MIN_DISTINCT, dtype=int)
     seen: list[float] = []
     for i, v in enumerate(xs):
-        if len(seen) < MIN_DISTINCT and all(abs(v - u) > 1e-12 for u in seen):
+        if all(abs(v - u) > 1e-12 for u in seen):
             seen.append(float(v))
+            if len(seen) == MIN_DISTINCT:
+                return out
         out[i] = len(seen)
     return out
 

@@ -277,10 +277,8 @@ def cell_outcome(plan: UnitPlan, clean: np.ndarray, record: CellRecord, levels: 
 
 
 def family_plan(outcomes: Mapping[int, Outcome]) -> tuple[int | None, tuple[int, ...], str, tuple[str, ...]]:
-    """(next severity to visit or None, skipped severities, the assumption, violations seen) of a camera family
-    from the outcomes of its visited severities. Every severity is visited (S5 first, then downwards): skipping one
-    rested on monotone retention, which a planner bad only at S4 breaks unseen (issue 36), so nothing is skipped
-    and monotonicity is never assumed; violations seen among the intervals are reported."""
+    """(next severity or None, skipped, assumption, violations seen) of a camera family from its visited cells:
+    every severity, S5 first (monotonicity is not assumed: a planner bad only at S4 broke it unseen, issue 36)."""
     visited = {s: {d.level: d.side for d in o.decisions} for s, o in outcomes.items()}
     spans = {s: o.interval for s, o in outcomes.items() if o.interval is not None}
     todo = [s for s in sorted(SEVERITIES, reverse=True) if s not in outcomes]
@@ -299,17 +297,14 @@ def threshold_spans(outcomes: Mapping[int, Outcome]) -> dict[str, list[float | N
     return {k: [tolerance_threshold(low, c), tolerance_threshold(high, c)] for k, c in THRESHOLD_LEVELS.items()}
 
 
-def _settlement(d: Settlement) -> dict[str, object]:
-    return {"side": d.side, "units": d.units, "how": d.how}
-
-
 def cell_entry(record: CellRecord, outcome: Outcome, population: int) -> dict[str, object]:
     """One cell's row of the ``adaptive`` section."""
     entry: dict[str, object] = {"units": outcome.units, "population": population, "stop": outcome.reason,
                                 "passes": int(record.passes or 0)}
     if outcome.interval is not None:
         entry["interval"] = list(outcome.interval)
-        entry["decisions"] = {f"{d.level:g}": _settlement(d) for d in outcome.decisions}
+        entry["decisions"] = {f"{d.level:g}": {"side": d.side, "units": d.units, "how": d.how}
+                             for d in outcome.decisions}
     if outcome.beyond:  # the stated bound failed on a unit seen: the cell ran every unit and is exact
         entry["beyond_bound_units"] = outcome.beyond
     if outcome.units != int(record.units or 0):
@@ -446,5 +441,8 @@ def summary_line(section: Mapping[str, object]) -> str:
     passes, full = section.get("passes"), section.get("full_passes")
     share = f" ({passes / full:.1%})" if isinstance(passes, int) and isinstance(full, int) and full else ""
     how = ", ".join(f"{n} {reason}" for reason, n in sorted(stops.items()))
+    partial = section.get("partial_cells")
+    note = f"; {len(partial)} partial cell(s): the axes and verdict above are point figures on the units they ran, " \
+        "NOT certified" if isinstance(partial, list) and partial else ""
     return (f"adaptive (alpha {section.get('alpha')}, {section.get('method')}): {passes} forward passes against "
-            f"{full} for a full run{share}; cells: {how}")
+            f"{full} for a full run{share}; cells: {how}{note}")

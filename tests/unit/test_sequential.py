@@ -266,6 +266,27 @@ def test_a_context_planner_without_reset_gets_whole_scenes() -> None:
     assert sq.UnitPlan.matching(fr, 0, 105, "fp").kind == "frames"
 
 
+def test_a_gate_runs_certificate_marks_its_partial_cells_and_its_point_figures(tmp_path: Path) -> None:
+    """Issue 36: a gate run's axes and "stable" verdict were computed from the few units the gate needed (removal
+    0.709 against the full run's 0.919) without saying so. Now the section lists the partial cells, its guarantee
+    says the point figures are not certified, and the terminal's line says it too."""
+    rng = np.random.default_rng(3)
+    fr = frames([100, 100])
+    plan = sq.UnitPlan.drawn(fr, 0, "fp", "base", temporal=False, scenes=False)
+    clean = rng.uniform(0.3, 1.0, len(fr))
+    ran = {i for u in plan.units[:12] for i in u.scored}
+    cut = np.where([i in ran for i in range(len(fr))], clean / 0.93, np.nan)  # 12 units: nothing settled yet
+    recs = {"clean": record("clean", "clean", 0, clean, plan.population),
+            **{f"jpeg-s{s}": record(f"jpeg-s{s}", "jpeg", s, cut, 12) for s in range(1, 6)}}
+    section = sq.adaptive_section(recs, plan, CELLS, alpha=0.05, flat=0.95, quality=("jpeg",), removal="blackout",
+                                  rule="gate")
+    assert section["partial_cells"] == [f"jpeg-s{s}" for s in range(1, 6)]
+    assert "NOT certified" in str(section["guarantee"]) and "5 cell(s) are partial" in str(section["guarantee"])
+    assert "5 partial cell(s)" in sq.summary_line(section)
+    whole = sq.adaptive_section(recs, plan, CELLS, alpha=0.05, flat=0.95, quality=("jpeg",), removal="blackout")
+    assert "partial_cells" not in whole  # a certify run's cells stop only when settled: verify checks that
+
+
 def test_the_union_bound_counts_stopping_cells() -> None:
     cells = [("clean", 0), ("null", 0), ("blind", 0), *(("jpeg", s) for s in range(1, 6))]
     assert sq.stopping_cells(cells) == 6
