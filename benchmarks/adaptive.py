@@ -106,7 +106,7 @@ def noise_for(r: float, model: str) -> float:
 
 
 def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.random.Generator,
-                 method: str, model: str) -> tuple[float, int, int]:
+                 method: str, model: str, skip: bool = False) -> tuple[float, int, int]:
     """(share of the full run's passes, cells visited, monotonicity flags) of one simulated adaptive run: each
     family scheduled (`schedule_family`), each cell stopped by `run_cell` on the two thresholds, then the axes'
     S5 cells extended until `axis_settled` clears the flat line (or the data run out)."""
@@ -114,7 +114,7 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
 
     from pytest_drivedegrade.constants import DEFAULT_FLAT
     from pytest_drivedegrade.corruptions.ladder import QUALITY_FAMILIES
-    from pytest_drivedegrade.scoring.adaptive import run_cell, schedule_family
+    from pytest_drivedegrade.scoring.adaptive import run_cell, schedule_family, violations
 
     n = len(passes)
     # the plugin's union bound: over the C stopping cells' two-sided sequences, alpha / (2 C) per side
@@ -126,14 +126,16 @@ def certify_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: 
     flags = 0
     for fam, curve in profile.items():
         seen: dict[int, dict[float, str]] = {}
-        while (plan := schedule_family(seen)).next_severity is not None:
-            s = plan.next_severity
+        # the plugin visits every severity since issue 36 (`sequential.family_plan`); `skip` replays the former
+        # bisection schedule (`schedule_family`) for comparison
+        order = iter(range(5, 0, -1))
+        while (s := (schedule_family(seen).next_severity if skip else next(order, None))) is not None:
             clean, cell = population(rng, n, curve[s], noise_for(curve[s], model), clean=base)
             stop = run_cell(clean, cell, (0.9, 0.75), alpha=alpha, method=method)
             seen[s], used[fam, s] = {d.level: d.side for d in stop.decisions}, stop.units
             if s == 5:
                 s5[fam] = (clean, cell)
-        flags += bool(plan.violations)
+        flags += bool(violations(seen))
     for axis in (QUALITY_FAMILIES, ("blackout",)):
         extend_axis(axis, s5, used, alpha, method)
     # charged as the plugin runs them: unit by unit, each window with its warm-up (a cell that needs every unit
@@ -188,7 +190,8 @@ def gate_once(profile: dict[str, dict[int, float]], passes: np.ndarray, rng: np.
     return cost / (CELLS * FRAMES)
 
 
-def extrapolate(reps: int, seed: int) -> None:
+def extrapolate(reps: int, seed: int, methods: tuple[str, ...] = ("betting", "asymptotic", "asymptotic-wor"),
+                skip: bool = False) -> None:
     profile = uniad_profile()
     passes = np.asarray(nuscenes_units(seed))
     print(f"\n3. nuScenes-val size, simulated: {FRAMES} frames, {SCENES} scenes, {len(passes)} windows of {WINDOW} "
@@ -198,9 +201,9 @@ def extrapolate(reps: int, seed: int) -> None:
     print(f"{'method':<14} {'noise':<7} {'certify share':>13} {'(max)':>6} {'cells visited':>13} {'flags':>5} "
           f"{'gate share':>10} {'(max)':>6}")
     for model in ("scaled", "flat"):
-        for method in ("betting", "asymptotic", "asymptotic-wor"):
+        for method in methods:
             rng = np.random.default_rng(seed)
-            runs = [certify_once(profile, passes, rng, method, model) for _ in range(reps)]
+            runs = [certify_once(profile, passes, rng, method, model, skip) for _ in range(reps)]
             gates = [gate_once(profile, passes, rng, method, model) for _ in range(reps)]
             shares = [r[0] for r in runs]
             print(f"{method:<14} {model:<7} {np.mean(shares):>13.1%} {max(shares):>6.1%} "
@@ -286,6 +289,8 @@ def main() -> None:
     parser.add_argument("--reports", default="/tmp/drivedegrade-adaptive-bench")
     parser.add_argument("--workers", default="2")
     parser.add_argument("--plugin-only", action="store_true")
+    parser.add_argument("--methods", default="betting,asymptotic,asymptotic-wor")
+    parser.add_argument("--skip-severities", action="store_true", help="the former bisection schedule (pre issue 36)")
     args = parser.parse_args()
     if args.plugin or args.plugin_only:
         plugin_table(tuple(args.planners.split(",")), Path(args.reports), args.workers)
@@ -294,7 +299,7 @@ def main() -> None:
     if not args.skip_study:
         study(args.runs, args.seed)
     nonmonotone(args.seed)
-    extrapolate(args.reps, args.seed)
+    extrapolate(args.reps, args.seed, tuple(args.methods.split(",")), args.skip_severities)
 
 
 if __name__ == "__main__":

@@ -43,4 +43,4 @@ DEFAULT_TOLERANCE: float = 0.02
 EGO_NOISE, EGO_BLIND = "ego_noise", "ego_blind"
 #: The confidence sequence adaptive cells stop on (`scoring.sequential.METHOD`): part of an adaptive run's key,
 #: so a changed stopping rule never reuses cells a former rule stopped.
-ADAPTIVE_METHOD = "asymptotic-wor"
+ADAPTIVE_METHOD = "betting"

@@ -4,7 +4,8 @@ results (``cells/<cell>.json`` beside the certificate), with the rule the run st
 
 It fails a cell that stopped before its own figures settled it (running on, for the sequential gate, only
 tightens an anytime-valid interval), a family whose visited
-severities are not the ones the schedule visits, a unit plan that is not the seeded draw order, and any field of
+severities are not the ones the schedule visits, a unit plan that is not the seeded draw order or whose seed is not
+the one the planner's fingerprint and the baseline's digest give (`sequential.draw_seed`), and any field of
 the section (intervals, decisions, stop reasons, the guarantee) that differs from the recomputation.
 """
 
@@ -107,7 +108,10 @@ def check_adaptive(cert: Mapping[str, object], folder: Path | None, groups: Fami
         plan = sequential.UnitPlan.from_builtins(section.get("plan") or {})
     except (TypeError, ValueError) as exc:
         return [f"adaptive: plan: {exc}"]
-    problems = [f"adaptive: plan: {p}" for p in [plan.draw_order_problem()] if p]
+    planner, gate = cert.get("planner"), section.get("gate")
+    baseline = gate.get("baseline_digest") if isinstance(gate, Mapping) else None
+    seed_why = plan.seed_problem(planner.get("fingerprint") if isinstance(planner, Mapping) else None, baseline)
+    problems = [f"adaptive: plan: {p}" for p in [plan.draw_order_problem(), seed_why] if p]
     rows = cert.get("cells")
     cells = [(str(c.get("cell")), str(c.get("family")), int(c.get("severity") or 0))
              for c in (rows if isinstance(rows, list) else []) if isinstance(c, Mapping)]
@@ -160,6 +164,7 @@ def gate_problems(gate: object, records: Mapping[str, CellRecord], plan: sequent
         try:
             level, mean = float.fromhex(str(part["level"])), float.fromhex(str(part["mean"]))
             diffs = unpack(str(part["differences"]))
+            lo, hi = (float.fromhex(str(v)) for v in part["range"])
         except (KeyError, ValueError, TypeError) as exc:
             problems.append(f"adaptive: cell {cell}: its gate test's parts are unreadable ({exc})")
             continue
@@ -168,7 +173,7 @@ def gate_problems(gate: object, records: Mapping[str, CellRecord], plan: sequent
                             f"cell ran {units}")
             continue
         a, b = sequential.unit_sums(plan, clean, record.l2_avg_per_frame(), units)
-        got = gate_settlement(a, b, level, mean, diffs, plan.population, alpha)
+        got = gate_settlement(a, b, level, mean, diffs, plan.population, alpha, (lo, hi))
         said = (part.get("side"), part.get("units"), part.get("how"))
         if said != (got.side, got.units, got.how):
             problems.append(f"adaptive: cell {cell}: the gate's test says {said}, its cells give "

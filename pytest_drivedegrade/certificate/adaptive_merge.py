@@ -22,11 +22,12 @@ if TYPE_CHECKING:
 
 
 def adaptive_manifest(run_cells: Sequence[tuple[str, int]], shard: Shard, frames: Sequence[Frame],
-                      seed: int) -> dict[str, object]:
+                      seed: int, fingerprint: str) -> dict[str, object]:
     """What an adaptive shard's manifest adds for the merge: the cells it owns, the run's cells (the union bound
     counts them) and the unit plans a run of these frames may use (single frames, windows: `UnitPlan.matching`
     picks by clean's unit count)."""
-    plans = (sequential.UnitPlan.of(frames, seed, temporal=False), sequential.UnitPlan.of(frames, seed))
+    plans = tuple(sequential.UnitPlan.drawn(frames, seed, fingerprint, None, temporal=t, scenes=s)
+                  for t, s in ((False, False), (True, False), (False, True)))
     return {"owned": [cell_id(f, s) for f, s in adaptive_owned(run_cells, shard)],
             "run_cells": [[f, s] for f, s in run_cells], "plans": [p.to_builtins() for p in plans]}
 
@@ -87,7 +88,7 @@ def merged_section(shards: Sequence[ShardResult], records: Mapping[str, CellReco
     plans = [sequential.UnitPlan.from_builtins(p) for p in raw if isinstance(p, Mapping)] if isinstance(raw, list) \
         else []
     units = int(records["clean"].units or 0)
-    plan = next((p for p in plans if p.population == units), plans[-1] if plans else None)
+    plan = next((p for p in plans if p.population == units), plans[min(1, len(plans) - 1)] if plans else None)
     run_cells = part.get("run_cells")
     if plan is None or not isinstance(run_cells, list):
         raise DriveDegradeError(f"{shards[0].folder}: the shard manifest lacks the run's unit plans; rerun it "

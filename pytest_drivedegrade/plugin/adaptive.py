@@ -34,6 +34,18 @@ from ..scoring.sequential import (
 )
 from ..scoring.verdict import FamilyGroups
 
+
+def baseline_digest(path: Path) -> str | None:
+    """The baseline certificate's digest (None when it cannot be read: the gate reports that itself)."""
+    import json
+
+    try:
+        got = json.loads(path.read_text()).get("digest")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return got if isinstance(got, str) else None
+
+
 #: A finished cell's stored record of this run (None: not stored yet).
 Stored = Callable[[str], "CellRecord | None"]
 
@@ -50,8 +62,10 @@ class AdaptiveRunner:
     def __init__(self, context: RunContext, planner: AnyPlanner, cells: list[tuple[str, int]],
                  severities: tuple[int, ...], stored: Stored) -> None:
         self.context, self.planner, self.stored = context, planner, stored
-        self.warm = style_of(planner).resets  # a planner without reset keeps no scene state: single frames
-        self.plan = UnitPlan.of(context.frames, context.seed, temporal=self.warm)
+        style = style_of(planner)
+        self.warm = style.resets  # a planner with neither reset nor context keeps no scene state: single frames
+        self.scenes = style.takes_context and not style.resets  # its memory is not cut mid-scene: whole scenes
+        self.plan = self.draw(context, planner, None)
         self.alpha = alpha_side(context.settings.alpha, cells)
         groups = FamilyGroups.from_registry()
         self.axis_families = (*groups.quality, groups.removal)
@@ -65,6 +79,18 @@ class AdaptiveRunner:
         self.baseline_cells: Path | None = None
         self.tolerance = 0.0
         self._baseline: dict[str, GateBaseline | None] = {}
+
+    def draw(self, context: RunContext, planner: AnyPlanner, baseline: str | None) -> UnitPlan:
+        """The run's unit plan under its draw seed (`sequential.draw_seed`: the corruption seed, the planner's
+        fingerprint, the baseline's digest in a gate run)."""
+        return UnitPlan.drawn(context.frames, context.seed, context.planner_info(planner).fingerprint, baseline,
+                              temporal=self.warm, scenes=self.scenes)
+
+    def gate_against(self, baseline_path: Path, tolerance: float) -> None:
+        """A gate run: cells also stop on the sequential gate's test against the baseline's per-frame results
+        (its cells/ beside it), and the draw order depends on the baseline's digest too."""
+        self.baseline_cells, self.tolerance = baseline_path.parent / "cells", tolerance
+        self.plan = self.draw(self.context, self.planner, baseline_digest(baseline_path))
 
     # --- units ---------------------------------------------------------------------------------------------------
 
@@ -207,7 +233,7 @@ class AdaptiveRunner:
         if not self.scheduled or self.baseline_cells is not None:  # a gate run gates every severity
             return {s: self._visit(family, s) for s in self.severities}
         outcomes: dict[int, Outcome] = {}
-        while (nxt := family_plan(outcomes)[0]) is not None:
+        while (nxt := family_plan(outcomes)[0]) is not None:  # every severity, S5 first (none skipped)
             outcomes[nxt] = self.outcome(self._visit(family, nxt))
         return {s: self._done[cell_id(family, s)] if s in outcomes else self.skipped(family, s)
                 for s in self.severities}

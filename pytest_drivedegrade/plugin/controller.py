@@ -210,7 +210,7 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
 
     groups = FamilyGroups.from_registry()
     records = {c: p.record for c, p in run.payloads.items()}
-    plan = sequential.UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    plan = run_plan(options, context, run)
     cells = run_order(options.families, options.severities, ego=options.ego)
     section = sequential.adaptive_section(
         records, plan, cells, alpha=options.settings.alpha, flat=options.settings.flat, quality=groups.quality,
@@ -219,6 +219,17 @@ def adaptive_section(options: RunOptions, context: RunContext, run: Gathered,
         section["gate"] = gate_part(options, records, plan, 2 * sequential.alpha_side(options.settings.alpha, cells))
     notes.append(sequential.summary_line(section))
     return section
+
+
+def run_plan(options: RunOptions, context: RunContext, run: Gathered) -> UnitPlan:
+    """The unit plan the run's cells used: the kind read off clean's unit count, the draw seed from the planner's
+    fingerprint (the run key's) and, in a gate run, the baseline's digest (`sequential.draw_seed`)."""
+    from ..scoring.sequential import UnitPlan
+    from .adaptive import baseline_digest
+
+    units = int(run.payloads["clean"].record.units or 0)
+    base = None if options.baseline_path is None else baseline_digest(options.baseline_path)
+    return UnitPlan.matching(context.frames, context.seed, units, str(run.key.get("planner_fingerprint", "")), base)
 
 
 def gate_part(options: RunOptions, records: Mapping[str, CellRecord], plan: UnitPlan,
@@ -282,7 +293,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
     if options.settings.adaptive:  # the shard owns whole families' cells, on every frame (`adaptive_merge`)
         from ..certificate.adaptive_merge import adaptive_manifest
 
-        manifest["adaptive"] = adaptive_manifest(expected, shard, context.frames, context.seed)
+        manifest["adaptive"] = adaptive_manifest(expected, shard, context.frames, context.seed,
+                                                 str(run.key.get("planner_fingerprint", "")))
         owned = set(manifest["adaptive"]["owned"])
         run = replace(run, missing=[c for c in run.missing if c in owned])
         manifest["missing_cells"] = run.missing
@@ -367,7 +379,6 @@ def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cer
     per-frame results (`scoring.seqgate`), read from the cells/ folder beside the baseline; (lines, failed)."""
     from ..certificate.adaptive_check import load_records
     from ..scoring.seqgate import gate_lines, sequential_gate
-    from ..scoring.sequential import UnitPlan
 
     why = incompatible(cert, baseline)
     if why:
@@ -379,6 +390,6 @@ def sequential_gate(options: RunOptions, context: RunContext, run: Gathered, cer
     if "clean" not in base:
         return [f"baseline: FAILED: the sequential gate pairs with the baseline's per-frame results, and {folder} "
                 "has no clean cell of it; gate against a report folder with its cells/"], True
-    plan = UnitPlan.matching(context.frames, context.seed, int(records["clean"].units or 0))
+    plan = run_plan(options, context, run)
     result = sequential_gate(records, base, plan, tolerance=options.tolerance, alpha=options.settings.alpha)
     return gate_lines(result, options.tolerance, options.settings.alpha), result.failed

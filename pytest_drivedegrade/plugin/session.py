@@ -243,8 +243,7 @@ class DriveDegradeSession:
             self.runner = AdaptiveRunner(context, chosen, self.cells, self.options.severities,
                                          stored_reader(context, chosen, self.store))
             if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
-                self.runner.baseline_cells = self.options.baseline_path.parent / "cells"
-                self.runner.tolerance = self.options.tolerance
+                self.runner.gate_against(self.options.baseline_path, self.options.tolerance)
         return self.runner
 
     def _next_cell(self, item: CellItem) -> tuple[str, int] | None:

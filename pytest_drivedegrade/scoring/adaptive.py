@@ -24,10 +24,15 @@ meets issue 22's targets).
 Why betting and not a ratio CS: a confidence sequence for the ratio needs a delta-method (asymptotic) argument;
 the linearised sign test is exact, nonasymptotic and uses the pairing (per-unit difficulty cancels in x_u).
 
-**Assumption (stated):** every unit's mean L2 lies in [0, B], B fixed before the run (`DEFAULT_BOUND`); a unit
-above B is clipped to B, which changes the estimand to the retention of clipped L2 (identical when nothing is
-clipped; `clipped` counts it). The bound sets the cost: a bet can never risk more than a unit at the bound
-could take, so a loose B slows every decision.
+**Assumption (stated and checked):** every unit's figure lies in the stated range [lo, hi] (per-unit mean L2 in
+[0, B], B fixed before the run, `DEFAULT_BOUND`). Nothing is clipped: a unit seen outside the range voids the
+sequence for that decision (the bets assumed the range), so it settles only when every unit has run, from the
+population's exact value (`settle_mean`: `out_of_range`). The bound sets the cost: a bet can never risk more than
+a unit at the bound could take, so a loose B slows every decision.
+
+**No decision on a degenerate prefix.** Evidence settles a decision only once the units seen hold at least
+MIN_DISTINCT distinct values: a prefix of identical figures (a gate's paired differences all zero because the
+changed frames were not drawn yet) carries no information about the units left, whatever a bet would say.
 
 **Error control.** Of the two one-sided tests of a decision at most one null is false-and-harmful (on the
 boundary only "below" is wrong), so each side runs at the decision's level a_d and the decision errs with
@@ -49,7 +54,7 @@ from ..constants import DEFAULT_FLAT
 from ..data.frame import Frame
 from .retention import THRESHOLD_LEVELS
 
-#: Default clip bound B on a unit's mean L2, metres (a stated assumption; see the module docstring).
+#: The stated bound B on a unit's mean L2, metres (checked on every unit seen; see the module docstring).
 DEFAULT_BOUND = 5.0
 #: The share of the admissible bet ever staked (Waudby-Smith & Ramdas use 1/2 to 3/4).
 BET_CAP = 0.5
@@ -61,6 +66,8 @@ ASYMPTOTIC_TSTAR = 100.0
 ASYMPTOTIC_MIN_UNITS = 10
 #: The share of its level the without-replacement asymptotic sequence spends (a margin for small samples).
 WOR_LEVEL_SHARE = 0.5
+#: Evidence settles nothing before the units seen hold this many distinct values (see the module docstring).
+MIN_DISTINCT = 3
 
 
 @dataclass(frozen=True)
@@ -116,12 +123,14 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
     each in [lo, hi]), at error level `alpha` per decision; "open" when neither test crossed yet. `method`
     "betting" (nonasymptotic, the default) or "asymptotic" (`_asymptotic_hits`: needs finite variance only,
     valid as the units grow; exhaustion still uses [lo, hi])."""
-    xs = np.clip(np.asarray(x, dtype=float), lo, hi)
+    xs = np.asarray(x, dtype=float)
     n, width = len(xs), hi - lo
     if n == 0:
         return Settlement(level, "open", 0, "")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if out_of_range(xs, lo, hi):  # the range the bets assumed does not hold: only the whole population decides
+        return exact_sign(xs, m, population, level)
     clt = None if method == "betting" else _asymptotic_hits(xs, m, alpha, population if method != "asymptotic" else 0)
     z, mz0 = (xs - lo) / width, (m - lo) / width
     t = np.arange(1, n + 1, dtype=float)
@@ -133,6 +142,7 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
     var = (0.25 + sq) / t
     est_z = np.clip((population * mean_prev - seen) / left, 0.0, 1.0)
     threshold = math.log(1.0 / alpha)
+    informative = distinct_so_far(xs) >= MIN_DISTINCT
     first: dict[str, tuple[int, str]] = {}
     for side in ("below", "above"):
         below = side == "below"
@@ -145,7 +155,7 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
         total = seen + z  # sum of z through unit t; the best / worst the rest can add is (N - t) or 0
         slack = 1e-9 * population  # rounding never settles a population that sits on the line
         certain = (total + (population - t)) < population * mz0 - slack if below else total >= population * mz0 + slack
-        hit_e, hit_c = np.flatnonzero(crossed), np.flatnonzero(certain)
+        hit_e, hit_c = np.flatnonzero(crossed & informative), np.flatnonzero(certain)
         cands = [(int(hit_e[0]) + 1, "evidence")] if len(hit_e) else []
         cands += [(int(hit_c[0]) + 1, "exhausted")] if len(hit_c) else []
         if cands:
@@ -156,6 +166,33 @@ def settle_mean(x: Sequence[float] | np.ndarray, m: float, lo: float, hi: float,
     return Settlement(level, side, *first[side])
 
 
+def out_of_range(xs: np.ndarray, lo: float, hi: float) -> bool:
+    """Whether a figure lies outside the stated range (a small rounding margin allowed)."""
+    slack = 1e-9 * max(1.0, hi - lo)
+    return bool(np.any(xs < lo - slack) or np.any(xs > hi + slack) or not np.all(np.isfinite(xs)))
+
+
+def exact_sign(xs: np.ndarray, m: float, population: int, level: float) -> Settlement:
+    """The decision when only the whole population can settle it: open before every unit has run, then the
+    population mean's side of `m` (exact; "above" includes the line)."""
+    if len(xs) < population or not np.all(np.isfinite(xs)):
+        return Settlement(level, "open", len(xs), "")
+    return Settlement(level, "below" if float(np.mean(xs)) < m else "above", population, "exhausted")
+
+
+def distinct_so_far(xs: np.ndarray) -> np.ndarray:
+    """After each unit, how many distinct values (to 1e-12) the units so far hold (capped at MIN_DISTINCT)."""
+    out = np.full(len(xs), MIN_DISTINCT, dtype=int)
+    seen: list[float] = []
+    for i, v in enumerate(xs):
+        if all(abs(v - u) > 1e-12 for u in seen):
+            seen.append(float(v))
+            if len(seen) == MIN_DISTINCT:
+                return out
+        out[i] = len(seen)
+    return out
+
+
 def clip_units(values: Sequence[float] | np.ndarray, bound: float = DEFAULT_BOUND) -> tuple[np.ndarray, int]:
     """Per-unit mean L2 clipped to [0, bound], and how many units were clipped."""
     v = np.asarray(values, dtype=float)
@@ -164,9 +201,9 @@ def clip_units(values: Sequence[float] | np.ndarray, bound: float = DEFAULT_BOUN
 
 def settle_retention(clean: np.ndarray, cell: np.ndarray, level: float, *, population: int, alpha: float,
                      bound: float = DEFAULT_BOUND, method: str = "betting") -> Settlement:
-    """Settle r < level ("below") or r >= level ("above") from paired per-unit mean L2 in draw order."""
-    a, _ = clip_units(clean, bound)
-    b, _ = clip_units(cell, bound)
+    """Settle r < level ("below") or r >= level ("above") from paired per-unit mean L2 in draw order (not clipped:
+    a unit outside [0, bound] leaves the decision to the whole population, `settle_mean`)."""
+    a, b = np.asarray(clean, dtype=float), np.asarray(cell, dtype=float)
     if len(a) == population and population > 0:  # all data: the full run's own comparison decides a tie
         exact = "below" if float(np.mean(a)) / float(np.mean(b)) < level else "above"
         got = settle_mean(a - level * b, 0.0, -level * bound, bound, population, alpha, level, method)
@@ -366,16 +403,41 @@ def gate_cell(clean: np.ndarray, cell: np.ndarray, baseline: GateBaseline, order
 
     With k = r_base - tolerance, r_now < k <=> mean(clean - k cell) < 0. The baseline's own difference on the
     same unit is a control variate whose population mean is known from the full baseline, so the test runs on
-    e_u = (clean_u - k cell_u) - (base_clean_u - k base_cell_u) against m = -mean(base_clean - k base_cell): an
-    unchanged planner gives e_u = 0 and settles "no regression" at the bound's speed. `order` lists the units
-    drawn (indices into the population arrays `clean`, `cell` and the baseline's).
+    e_u = (clean_u - k cell_u) - (base_clean_u - k base_cell_u) against m = -mean(base_clean - k base_cell). A
+    prefix of e_u all equal (an unchanged planner, or a change on frames not drawn yet) settles nothing
+    (MIN_DISTINCT), so "no regression" is said only when the betting bound itself excludes a drop beyond the
+    tolerance, or every unit has run. `order` lists the units drawn (indices into the population arrays `clean`,
+    `cell` and the baseline's).
     """
     k = baseline.retention() - tolerance
-    bc, _ = clip_units(baseline.clean, bound)
-    bx, _ = clip_units(baseline.cell, bound)
+    bc, bx = np.asarray(baseline.clean, dtype=float), np.asarray(baseline.cell, dtype=float)
     idx = np.asarray(order[: len(order) if max_units is None else max_units], dtype=int)
-    a, _ = clip_units(np.asarray(clean)[idx], bound)
-    b, _ = clip_units(np.asarray(cell)[idx], bound)
-    e = (a - k * b) - (bc[idx] - k * bx[idx])
-    reach = (1.0 + abs(k)) * bound
-    return settle_mean(e, -float(np.mean(bc - k * bx)), -reach, reach, len(bc), alpha, k, method)
+    a, b = np.asarray(clean, dtype=float)[idx], np.asarray(cell, dtype=float)[idx]
+    return gate_test(a, b, k, bc - k * bx, idx, alpha, bound, method)
+
+
+def gate_range(k: float, base: np.ndarray, bound: float = DEFAULT_BOUND) -> tuple[float, float]:
+    """The range of e_u = (clean_u - k cell_u) - d_u when this run's figures lie in [0, bound]: d_u (the baseline's
+    control variates) are known before the run, so the range holds them as they are, clipped nowhere."""
+    return (-abs(k) * bound - float(np.max(base, initial=0.0)),
+            (1.0 + abs(k)) * bound - float(np.min(base, initial=0.0)))
+
+
+def gate_test(a: np.ndarray, b: np.ndarray, k: float, base: np.ndarray, idx: np.ndarray, alpha: float,
+              bound: float = DEFAULT_BOUND, method: str = "betting") -> Settlement:
+    """The gate's test from its parts: this run's figures `a`, `b` on the units `idx` drawn, the level k and the
+    baseline's control variates `base` (d_u = base_clean_u - k base_cell_u) over the whole population."""
+    return gate_settle(a, b, k, base[idx], float(np.mean(base)), len(base), alpha, gate_range(k, base, bound),
+                       bound, method)
+
+
+def gate_settle(a: np.ndarray, b: np.ndarray, k: float, diffs: np.ndarray, mean: float, population: int,
+                alpha: float, span: tuple[float, float], bound: float = DEFAULT_BOUND,
+                method: str = "betting") -> Settlement:
+    """`gate_test` from what a certificate records: the control variates on the units run, their population
+    mean and the range (`gate_range`). A unit of this run outside [0, bound] leaves the test to the whole
+    population (the range assumed it)."""
+    e, m = (a - k * b) - diffs, -mean
+    if out_of_range(a, 0.0, bound) or out_of_range(b, 0.0, bound):
+        return exact_sign(e, m, population, k)
+    return settle_mean(e, m, span[0], span[1], population, alpha, k, method)

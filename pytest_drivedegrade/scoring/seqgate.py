@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..cells import CellRecord
-from .adaptive import DEFAULT_BOUND, GateBaseline, Settlement, clip_units, gate_cell, settle_mean
+from .adaptive import GateBaseline, Settlement, gate_cell, gate_range, gate_settle
 from .sequential import FULL_CELLS, METHOD, UnitPlan, unit_sums
 
 
@@ -99,14 +99,11 @@ def unpack(text: str) -> np.ndarray:
 
 
 def gate_settlement(a: np.ndarray, b: np.ndarray, level: float, mean: float, differences: np.ndarray,
-                    population: int, alpha: float) -> Settlement:
+                    population: int, alpha: float, span: tuple[float, float]) -> Settlement:
     """`gate_cell`'s test from its parts: this run's per-unit figures `a`, `b` (clean, cell; draw order), the level
-    k = r_base - tolerance, and the baseline's control variates d_u = base_clean_u - k base_cell_u on those units
-    with their population mean (both clipped as `gate_cell` clips them)."""
-    x, _ = clip_units(a)
-    y, _ = clip_units(b)
-    reach = (1.0 + abs(level)) * DEFAULT_BOUND
-    return settle_mean((x - level * y) - differences, -mean, -reach, reach, population, alpha, level, METHOD)
+    k = r_base - tolerance, the baseline's control variates d_u = base_clean_u - k base_cell_u on those units with
+    their population mean, and the test's range (`adaptive.gate_range`)."""
+    return gate_settle(a, b, level, differences, mean, population, alpha, span, method=METHOD)
 
 
 def gate_record(current: Mapping[str, CellRecord], baseline: Mapping[str, CellRecord], plan: UnitPlan, *,
@@ -127,12 +124,12 @@ def gate_record(current: Mapping[str, CellRecord], baseline: Mapping[str, CellRe
             continue
         ref = GateBaseline(*unit_sums(plan, base_clean.l2_avg_per_frame(), base.l2_avg_per_frame(), n))
         level = ref.retention() - tolerance
-        bc, _ = clip_units(ref.clean)
-        bx, _ = clip_units(ref.cell)
-        d = bc - level * bx
+        d = ref.clean - level * ref.cell
+        span = gate_range(level, d)
         a, b = unit_sums(plan, clean, record.l2_avg_per_frame(), units)
-        got = gate_settlement(a, b, level, float(np.mean(d)), d[:units], n, alpha)
+        got = gate_settlement(a, b, level, float(np.mean(d)), d[:units], n, alpha, span)
         out[cell] = {"baseline_retention": ref.retention(), "level": level.hex(), "mean": float(np.mean(d)).hex(),
+                     "range": [span[0].hex(), span[1].hex()],
                      "differences": _pack(d[:units]), "side": got.side, "units": got.units, "how": got.how}
     return out
 

@@ -26,8 +26,10 @@ SAME = ("cells", "thresholds", "axes", "verdict", "floor", "null_control", "sett
 
 @pytest.mark.parametrize("temporal", [False, True], ids=["frames", "scenes"])
 def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, temporal):
-    """Single-frame units (a planner without reset) and whole scenes (the temporal test planner: a run of fewer
-    than SCENE_UNITS_BELOW scenes)."""
+    """Whole scenes both ways: the test planner takes `context` without `reset` (issue 36: such a planner gets
+    whole scenes, not single frames), the temporal one has `reset` on a run of fewer than SCENE_UNITS_BELOW
+    scenes. Single-frame units across processes: `test_adaptive_ray.py` (camera_cnn) and -n 2 in
+    `test_adaptive_run.py`."""
     if temporal:
         from test_temporal import TEMPORAL
 
@@ -55,7 +57,7 @@ def test_two_adaptive_shards_merge_to_the_unsharded_run_and_verify(dd, capsys, t
     assert (merged / "cells.csv").read_text() == (full / "cells.csv").read_text()
     assert stored_records(merged) == stored_records(full) and len(stored_records(full)) == 13
     plan = b["adaptive"]["plan"]
-    assert (plan["window"], plan["warmup"]) == ((12, 0) if temporal else (1, 2))  # one 12-frame scene; frames
+    assert (plan["window"], plan["warmup"]) == (12, 0)  # one 12-frame scene
     done = verify_cli(merged / "certificate.json")
     assert done.returncode == 0, done.stderr
     if not temporal:  # a merged adaptive certificate reruns, unsharded, bit for bit

@@ -93,9 +93,13 @@ def error_rates(r: float, level: float, runs: int, n: int, seed: int, method: st
 # -- known answers ----------------------------------------------------------------------------------------------
 
 def test_a_constant_stream_settles_and_the_exhausted_population_is_exact() -> None:
-    # x = 1 everywhere, null mean 0: the betting test crosses 1/alpha after a few units.
-    d = settle_mean(np.ones(200), 0.0, -1.0, 1.0, 200, 0.05)
+    # x varied in [0.5, 1], null mean 0: the betting test crosses 1/alpha after a few units.
+    d = settle_mean(np.random.default_rng(0).uniform(0.5, 1.0, 200), 0.0, -1.0, 1.0, 200, 0.05)
     assert (d.side, d.how) == ("above", "evidence") and d.units < 20
+    # x = 1 everywhere: a degenerate prefix carries no information about the units left, so no evidence settles
+    # it (issue 36); only exhaustion does, once the 99 units left cannot pull the sum below 0.
+    d = settle_mean(np.ones(200), 0.0, -1.0, 1.0, 200, 0.05)
+    assert (d.side, d.how, d.units) == ("above", "exhausted", 101)
     # mean exactly 0 (a tie): no test settles it, and exhaustion does not either (rounding must not decide).
     x = np.tile([1.0, -1.0], 50)
     assert settle_mean(x, 0.0, -1.0, 1.0, 100, 1e-6).side == "open"
@@ -236,12 +240,50 @@ def test_gate_settles_an_unchanged_planner_and_catches_a_regression() -> None:
     clean, cell = population(rng, 400, 0.8)
     base = GateBaseline(clean, cell)
     order = list(rng.permutation(400))
-    same = gate_cell(clean, cell, base, order, tolerance=0.02, alpha=0.01, method="asymptotic")
-    assert same.side == "above" and same.units <= 20
+    # unchanged: every paired difference 0, no information, so "no regression" only once the data run out
+    same = gate_cell(clean, cell, base, order, tolerance=0.02, alpha=0.01)
+    assert (same.side, same.how) == ("above", "exhausted") and same.units == 399
+    better = cell * rng.lognormal(0, 0.02, 400) * 0.97  # changed, a little better: the bound settles it
+    got = gate_cell(clean, better, base, order, tolerance=0.02, alpha=0.01)
+    assert (got.side, got.how) == ("above", "evidence") and got.units < 400
     worse = cell.copy()
-    worse[:200] *= 1.3  # retention drops by far more than the tolerance
+    worse[:200] = np.minimum(worse[:200] * 1.3, BOUND)  # retention drops by far more than the tolerance
     caught = gate_cell(clean, worse, base, order, tolerance=0.02, alpha=0.01)
     assert caught.side == "below" and caught.units < 400
+    worse[0] = BOUND * 1.3  # a unit beyond the stated bound: nothing clipped, the test waits for every unit
+    assert gate_cell(clean, worse, base, order, tolerance=0.02, alpha=0.01).units == 400
+
+
+@pytest.mark.parametrize("method", ["betting", "asymptotic-wor"])
+def test_a_quiet_prefix_never_settles_no_regression(method: str) -> None:
+    """Issue 36: a regression on 10 of 204 units not among the first drawn gave paired differences all 0, the
+    plug-in variance 0, and the old gate settled "no regression" at unit 10 whatever the regression's size."""
+    rng = np.random.default_rng(4)
+    clean, cell = population(rng, 204, 0.8)
+    base = GateBaseline(clean, cell)
+    order = list(rng.permutation(204))
+    worse = cell.copy()
+    worse[order[-10:]] = np.minimum(cell[order[-10:]] * 4, BOUND)  # the changed units come last in the draw
+    for k in (10, 50, 150, 194):
+        got = gate_cell(clean, worse, base, order, tolerance=0.02, alpha=2.9e-4, max_units=k, method=method)
+        assert got.side == "open", (k, got)
+    end = gate_cell(clean, worse, base, order, tolerance=0.02, alpha=2.9e-4, method=method)
+    assert end.side == "below" and end.units > 194
+
+
+def test_a_regression_on_five_percent_of_units_is_not_passed_by_betting() -> None:
+    """The asymptotic sequence passes this one ("above" after 382 of 400 units: its variance estimate trusts the
+    units seen); betting with the bound stated does not."""
+    rng = np.random.default_rng(7)
+    clean, cell = population(rng, 400, 0.8)
+    base = GateBaseline(clean, cell)
+    order = list(rng.permutation(400))
+    worse = cell.copy()
+    bad = np.array(order[-20:])
+    worse[bad] = np.minimum(worse[bad] * 3, BOUND)
+    assert float(clean.sum() / worse.sum()) < base.retention() - 0.05
+    assert gate_cell(clean, worse, base, order, tolerance=0.02, alpha=0.01).side == "below"
+    assert gate_cell(clean, worse, base, order, tolerance=0.02, alpha=0.01, method="asymptotic-wor").side == "above"
 
 
 # -- the simulation study ---------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from pytest_drivedegrade.cells import run_order
 from pytest_drivedegrade.errors import DriveDegradeError
-from pytest_drivedegrade.scoring.adaptive import GateBaseline, clip_units, gate_cell
+from pytest_drivedegrade.scoring.adaptive import GateBaseline, gate_cell, gate_range
 from pytest_drivedegrade.scoring.seqgate import _pack, gate_settlement, interval_gate, unpack
 from pytest_drivedegrade.scoring.sequential import METHOD
 from pytest_drivedegrade.settings import Shard
@@ -48,9 +48,10 @@ def test_the_gate_rebuilt_from_its_recorded_parts_is_gate_cell(seed, n, drop, un
     ref = GateBaseline(base_clean, base_cell)
     want = gate_cell(clean, cell, ref, list(range(units)), tolerance=0.02, alpha=0.01, method=METHOD)
     level = ref.retention() - 0.02
-    d = clip_units(base_clean)[0] - level * clip_units(base_cell)[0]
+    d = base_clean - level * base_cell  # nothing clipped: the baseline's units are known, the range holds them
+    span = tuple(float.fromhex(v.hex()) for v in gate_range(level, d))
     parts = float.fromhex(level.hex()), float.fromhex(float(np.mean(d)).hex()), unpack(_pack(d[:units]))
-    assert gate_settlement(clean[:units], cell[:units], *parts, n, 0.01) == want
+    assert gate_settlement(clean[:units], cell[:units], *parts, n, 0.01, span) == want
 
 
 def test_a_full_run_is_gated_on_the_adaptive_baseline_s_intervals():

@@ -328,4 +328,4 @@ def test_an_adaptive_runs_key_holds_its_stopping_rule_and_a_full_runs_key_does_n
 
     full = RunContext.open(RunSettings(data=world, timeout=0.0)).run_key(camera_cnn)
     adaptive = RunContext.open(RunSettings(data=world, timeout=0.0, adaptive=True)).run_key(camera_cnn)
-    assert "adaptive_method" not in full and adaptive["adaptive_method"] == METHOD == "asymptotic-wor"
+    assert "adaptive_method" not in full and adaptive["adaptive_method"] == METHOD == "betting"

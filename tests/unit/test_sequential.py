@@ -60,13 +60,47 @@ def test_a_planner_with_reset_gets_whole_scenes_when_the_run_has_few() -> None:
     assert sq.UnitPlan.of(frames([20, 9, 3]), seed=4, temporal=False).kind == "frames"
 
 
-def test_a_cell_equal_to_clean_settles_above_both_thresholds_at_ten_units() -> None:
+def test_a_cell_equal_to_clean_settles_above_both_thresholds_on_the_betting_bound() -> None:
+    """Betting, nonasymptotic: a cell equal to clean (paired differences 0.1 a_u, in a range of about 9.5 m)
+    settles 0.75 after 118 units and 0.9 after 256 of 400 at alpha 0.01; the asymptotic sequence settled both at
+    unit 10 (issue 36: valid only as the units grow)."""
     rng = np.random.default_rng(0)
-    a = rng.uniform(0.5, 1.5, 40)
-    got = sq.stop_at(a[:10], a[:10], (0.9, 0.75), population=40, alpha=0.01)
-    assert got is not None and got.reason == "settled" and got.units == 10
-    assert [d.side for d in got.decisions] == ["above", "above"]
-    assert sq.stop_at(a[:9], a[:9], (0.9, 0.75), population=40, alpha=0.01) is None  # the CLT needs 10
+    rng.uniform(0.5, 1.5, 40)
+    a = rng.uniform(0.5, 1.5, 400)
+    got = sq.stop_at(a[:256], a[:256], (0.9, 0.75), population=400, alpha=0.01)
+    assert got is not None and got.reason == "settled" and got.units == 256
+    assert [(d.side, d.units, d.how) for d in got.decisions] == [("above", 256, "evidence"), ("above", 118, "evidence")]
+    assert sq.stop_at(a[:255], a[:255], (0.9, 0.75), population=400, alpha=0.01) is None
+    assert sq.METHOD == "betting"
+
+
+def test_a_cell_that_ran_every_unit_reports_the_population_value_exactly() -> None:
+    """Issue 36: a cell whose units all ran reports the full run's retention (the interval holds it, to 1e-4
+    rounded outwards) and decides from it; nothing is clipped, even with units beyond the stated bound."""
+    rng = np.random.default_rng(5)
+    fr = frames([30, 30])
+    plan = sq.UnitPlan.of(fr, seed=1, temporal=False)
+    clean = rng.uniform(0.3, 1.0, len(fr))
+    cell = clean / 0.7536
+    cell[:3] = [9.0, 12.0, 7.5]  # three frames beyond the 5 m bound (the old clip moved the answer)
+    truth = float(np.sum(clean) / np.sum(cell))
+    got = sq.cell_outcome(plan, clean, record("fog-s4", "fog", 4, cell, plan.population), (0.9, 0.75), alpha=1e-3)
+    assert got.interval is not None and got.interval[0] <= truth <= got.interval[1]
+    assert got.interval[1] - got.interval[0] <= 2.01e-4 and got.beyond == 3
+    assert [d.side for d in got.decisions] == ["below", "below" if truth < 0.75 else "above"]
+    assert all(d.how == "exhausted" and d.units == plan.population for d in got.decisions)
+
+
+def test_a_unit_beyond_the_bound_makes_its_cell_run_every_unit() -> None:
+    """The bound is checked, never clipped: once a unit beyond it is seen, no evidence settles the cell."""
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0.5, 1.5, 200)
+    b = a / 0.5
+    assert sq.stop_at(a[:100], b[:100], (0.9, 0.75), population=200, alpha=0.01) is not None  # fine without
+    b[0] = 6.0
+    for k in (50, 100, 199):
+        assert sq.stop_at(a[:k], b[:k], (0.9, 0.75), population=200, alpha=0.01) is None
+    assert sq.stop_at(a, b, (0.9, 0.75), population=200, alpha=0.01).reason == "data"  # type: ignore[union-attr]
 
 
 def test_a_cell_on_the_line_runs_out_of_data_and_the_answer_is_exact() -> None:
@@ -127,36 +161,43 @@ def test_threshold_intervals_bound_skipped_severities_by_monotone_retention() ->
     assert spans["s25"][0] == pytest.approx(4 + 0.10 / 0.15) and spans["s25"][1] is None
 
 
-def test_a_family_flat_at_s5_visits_s5_alone() -> None:
-    above = sq.Outcome(10, "settled", tuple(sq.Settlement(c, "above", 10, "evidence") for c in (0.9, 0.75)),
-                       (0.97, 0.99))
-    nxt, skipped, assumption, seen = sq.family_plan({5: above})
-    assert nxt is None and skipped == (1, 2, 3, 4) and "non-increasing" in assumption and seen == ()
-    below = sq.Outcome(10, "settled", tuple(sq.Settlement(c, "below", 10, "evidence") for c in (0.9, 0.75)),
-                       (0.5, 0.6))
-    assert sq.family_plan({5: below})[0] == 2  # bisection of S1..S5 from below S5
+def test_every_severity_is_visited_so_a_planner_bad_only_at_s4_is_seen() -> None:
+    """Issue 36: skipping severities assumed monotone retention, and a planner bad only at S4 was certified "never
+    crosses". Now no severity is skipped (S5 first, then downwards), and the violation is reported."""
+    def outcome(side: str, span: tuple[float, float]) -> sq.Outcome:
+        return sq.Outcome(10, "settled", tuple(sq.Settlement(c, side, 10, "evidence") for c in (0.9, 0.75)), span)
+
+    above, below = outcome("above", (0.97, 0.99)), outcome("below", (0.3, 0.4))
+    seen: dict[int, sq.Outcome] = {}
+    truth = {5: above, 4: below, 3: above, 2: above, 1: above}
+    while (nxt := sq.family_plan(seen)[0]) is not None:
+        seen[nxt] = truth[nxt]
+    assert sorted(seen) == [1, 2, 3, 4, 5]
+    _, skipped, assumption, violated = sq.family_plan(seen)
+    assert skipped == () and assumption == "" and any("S4" in v and "S5" in v for v in violated)
+    assert sq.threshold_spans(seen)["s10"][0] is not None  # crosses: at S4, not "never"
 
 
 def synthetic_run(tmp_path: Path) -> tuple[dict[str, object], Path]:
     """A sealed adaptive certificate of one family (jpeg) plus clean, with its cells/ folder."""
     rng = np.random.default_rng(1)
-    fr = frames([48, 48, 40])
-    plan = sq.UnitPlan.of(fr, seed=0, temporal=False)  # single frames: enough units to settle a cell early
+    fr = frames([100, 100, 100])
+    plan = sq.UnitPlan.drawn(fr, 0, "fp", None, temporal=False, scenes=False)  # single frames
     clean_m = rng.uniform(0.3, 1.0, len(fr))
     recs = {"clean": record("clean", "clean", 0, clean_m, plan.population)}
-    for s in range(1, 6):
-        recs[f"jpeg-s{s}"] = record(f"jpeg-s{s}", "jpeg", s, np.full(len(fr), np.nan), 0)
-    cell = clean_m / 0.99 * rng.lognormal(0, 0.02, len(fr))
-    k = run_rule(plan, clean_m, cell, sq.levels_of("jpeg", 5, ("jpeg",), 0.95), sq.alpha_side(0.05, CELLS))
-    ran = {i for u in plan.units[:k] for i in u.scored}
-    recs["jpeg-s5"] = record("jpeg-s5", "jpeg", 5, np.where([i in ran for i in range(len(fr))], cell, np.nan), k)
+    for s in range(1, 6):  # every severity visited (none skipped), each stopping on its own decisions
+        cell = clean_m / (0.99 - 0.12 * s) * rng.lognormal(0, 0.02, len(fr))
+        k = run_rule(plan, clean_m, cell, sq.levels_of("jpeg", s, ("jpeg",), 0.95), sq.alpha_side(0.05, CELLS))
+        ran = {i for u in plan.units[:k] for i in u.scored}
+        recs[f"jpeg-s{s}"] = record(f"jpeg-s{s}", "jpeg", s,
+                                    np.where([i in ran for i in range(len(fr))], cell, np.nan), k)
     section = sq.adaptive_section(recs, plan, CELLS, alpha=0.05, flat=0.95, quality=("jpeg",), removal="blackout")
     folder = tmp_path / "cells"
     folder.mkdir()
     for c, r in recs.items():
         (folder / f"{c}.json").write_text(json.dumps(CellPayload({}, "p", r, ()).to_builtins()))
     cert = {"cells": [{"cell": c, "family": r.family, "severity": r.severity} for c, r in recs.items()],
-            "settings": {"flat": 0.95}, "adaptive": section,
+            "settings": {"flat": 0.95}, "adaptive": section, "planner": {"fingerprint": "fp"},
             "record_digests": {c: record_digest(r.to_builtins()) for c, r in recs.items()}}
     return seal(cert), folder
 
@@ -169,8 +210,8 @@ def test_verify_recomputes_the_section_and_catches_a_tampered_stop(tmp_path: Pat
     cert, folder = synthetic_run(tmp_path)
     section = cert["adaptive"]
     assert isinstance(section, dict)
-    assert section["cells"]["jpeg-s5"]["stop"] == "settled" and section["cells"]["jpeg-s1"]["stop"] == "skipped"
-    assert section["families"]["jpeg"]["skipped"] == [1, 2, 3, 4]
+    assert section["cells"]["jpeg-s5"]["stop"] == "settled" and section["families"]["jpeg"]["skipped"] == []
+    assert section["families"]["jpeg"]["visited"] == [1, 2, 3, 4, 5]
     assert "label is wrong with probability at most 0.05" in str(section["guarantee"])
     assert check_adaptive(cert, folder, GROUPS) == []
     tampered = json.loads(json.dumps(cert))
@@ -193,6 +234,57 @@ def test_verify_catches_a_cell_stopped_before_its_rule_settled(tmp_path: Path) -
     problems = check_adaptive(seal(forged), folder, GROUPS)
     assert any("jpeg-s5: stopped after" in p and "open" in p for p in problems)
     assert any("outside" in p for p in problems)
+
+
+def test_the_draw_order_follows_the_planners_fingerprint_and_the_baseline_and_verify_checks_it(
+        tmp_path: Path) -> None:
+    """Issue 36: the order followed the corruption seed alone (0 by default), so whoever wrote the planner knew
+    which units a gate reads first. Now the seed hashes the planner's fingerprint and the baseline's digest, the
+    plan records both, and verify recomputes it."""
+    fr = frames([40, 40, 40])
+    one = sq.UnitPlan.drawn(fr, 0, "fp-a", None, temporal=False, scenes=False)
+    assert one.seed == sq.draw_seed(0, "fp-a") and one.seed != 0
+    others = [sq.UnitPlan.drawn(fr, 0, fp, base, temporal=False, scenes=False)
+              for fp, base in (("fp-b", None), ("fp-a", "digest-1"), ("fp-a", "digest-2"))]
+    firsts = {tuple(u.scored for u in p.units[:10]) for p in (one, *others)}
+    assert len(firsts) == 4  # each candidate / baseline draws its own order
+    assert sq.UnitPlan.from_builtins(one.to_builtins()).seed_problem("fp-a", None) is None
+    assert "planner fingerprint fp-a" in (one.seed_problem("fp-b", None) or "")
+    cert, folder = synthetic_run(tmp_path)
+    forged = json.loads(json.dumps(cert))
+    forged["adaptive"]["plan"]["draw"]["planner_fingerprint"] = "someone-else"
+    assert any("draw seed came from planner fingerprint someone-else" in p
+               for p in check_adaptive(seal(forged), folder, GROUPS))
+
+
+def test_a_context_planner_without_reset_gets_whole_scenes() -> None:
+    """Issue 36: it got single frames, which cut its memory (frame_dropout S5 1.031 against the full run's 0.439)."""
+    fr = frames([40, 35, 30])
+    plan = sq.UnitPlan.drawn(fr, 0, "fp", None, temporal=False, scenes=True)
+    assert plan.kind == "scenes" and sorted(len(u.scored) for u in plan.units) == [30, 35, 40]
+    assert sq.UnitPlan.matching(fr, 0, 3, "fp").kind == "scenes"
+    assert sq.UnitPlan.matching(fr, 0, 105, "fp").kind == "frames"
+
+
+def test_a_gate_runs_certificate_marks_its_partial_cells_and_its_point_figures(tmp_path: Path) -> None:
+    """Issue 36: a gate run's axes and "stable" verdict were computed from the few units the gate needed (removal
+    0.709 against the full run's 0.919) without saying so. Now the section lists the partial cells, its guarantee
+    says the point figures are not certified, and the terminal's line says it too."""
+    rng = np.random.default_rng(3)
+    fr = frames([100, 100])
+    plan = sq.UnitPlan.drawn(fr, 0, "fp", "base", temporal=False, scenes=False)
+    clean = rng.uniform(0.3, 1.0, len(fr))
+    ran = {i for u in plan.units[:12] for i in u.scored}
+    cut = np.where([i in ran for i in range(len(fr))], clean / 0.93, np.nan)  # 12 units: nothing settled yet
+    recs = {"clean": record("clean", "clean", 0, clean, plan.population),
+            **{f"jpeg-s{s}": record(f"jpeg-s{s}", "jpeg", s, cut, 12) for s in range(1, 6)}}
+    section = sq.adaptive_section(recs, plan, CELLS, alpha=0.05, flat=0.95, quality=("jpeg",), removal="blackout",
+                                  rule="gate")
+    assert section["partial_cells"] == [f"jpeg-s{s}" for s in range(1, 6)]
+    assert "NOT certified" in str(section["guarantee"]) and "5 cell(s) are partial" in str(section["guarantee"])
+    assert "5 partial cell(s)" in sq.summary_line(section)
+    whole = sq.adaptive_section(recs, plan, CELLS, alpha=0.05, flat=0.95, quality=("jpeg",), removal="blackout")
+    assert "partial_cells" not in whole  # a certify run's cells stop only when settled: verify checks that
 
 
 def test_the_union_bound_counts_stopping_cells() -> None:
