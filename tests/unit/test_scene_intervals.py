@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from test_analysis import synthetic_run
 
-from pytest_drivedegrade.certificate.compare import certificate_row, interval_basis
+from pytest_drivedegrade.certificate.compare import certificate_row
 from pytest_drivedegrade.errors import InvalidInput
 from pytest_drivedegrade.report.terminal import interval_lines
 from pytest_drivedegrade.scoring import intervals as iv
@@ -131,6 +131,8 @@ def test_scene_intervals_are_deterministic_and_need_every_frames_scene() -> None
 
 
 def test_compare_shows_the_basis_and_reads_a_spec4_certificate() -> None:
+    from pytest_drivedegrade.certificate.compare import interval_basis
+
     recs, _ = synthetic_run(n_frames=24)
     cert = analyse_run(recs, n_resamples=100, scenes=scenes_of(24, 6)).to_builtins()
     assert interval_basis(cert) == "scene-cluster bootstrap, 6 scenes"
