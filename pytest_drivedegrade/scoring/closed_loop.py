@@ -180,15 +180,16 @@ def _interval_corners(ax: _AxisDraws, draws: rs.RouteDraws, flat: float) -> list
 def _separation(cells: Sequence[CellFigures], groups: FamilyGroups, axes: Mapping[str, float | None],
                 ax: _AxisDraws, draws: rs.RouteDraws) -> dict[str, float | bool | None]:
     """The availability-versus-quality separation: removal's DS under quality's, held only when the paired
-    route-level interval of the gap clears 0 (complete case; under every assignment: the worst one's)."""
+    route-level interval of the gap clears 0 (complete case; under every assignment: the worst one's); None
+    where there is no interval (a cell missing, or fewer than two routes)."""
     quality_cells = [c for c in cells if c.severity == 5 and c.family in groups.quality]
     quality_ds = _mean([c.mean for c in quality_cells]) if quality_cells else None
     removal_ds = next((c.mean for c in cells if c.severity == 5 and c.family == groups.removal), None)
     gap = None if "point" not in ax.gap else draws.interval(ax.gap["point"])
     worst = None if "low" not in ax.gap else draws.interval(ax.gap["low"])
-    return {"holds": None if quality_ds is None or removal_ds is None else gap is not None and gap[0] > 0,
+    return {"holds": None if quality_ds is None or removal_ds is None or gap is None else gap[0] > 0,
             "holds_under_every_assignment": None if axes["quality_ds_low"] is None or axes["removal_ds_high"] is None
-            else worst is not None and worst[0] > 0,
+            or worst is None else worst[0] > 0,
             "quality_ds": quality_ds, "removal_ds": removal_ds, "quality_ds_low": axes["quality_ds_low"],
             "removal_ds_high": axes["removal_ds_high"], "gap_ds_ci_low": None if gap is None else gap[0],
             "gap_ds_ci_high": None if gap is None else gap[1], "gap_ds_worst_ci_low": None if worst is None
