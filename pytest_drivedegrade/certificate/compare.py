@@ -74,10 +74,11 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
     return row
 
 
-def interval_basis(cert: Mapping[str, Any]) -> str:
+def interval_basis(cert: Mapping[str, object]) -> str:
     """What the certificate's intervals resample, in words (`scoring.intervals.Basis`); a certificate from before
     the basis was written (spec 4) resampled frames as if independent, and says its scheme only."""
-    iv = _section(_section(cert, "settings"), "intervals")
+    settings = cert.get("settings")
+    iv = _section(settings, "intervals") if isinstance(settings, Mapping) else {}
     if not iv.get("computed", True):
         return "no intervals"
     return str(iv.get("basis") or f"frame bootstrap ({iv.get('scheme', 'paired frames')}; frames treated as "

@@ -226,8 +226,7 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         prov = replace(prov, data_source=first["data_source"])
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
-                       scenes=_scenes(shards),
-                       missing_cells=tuple(c for c in cells if c not in records),
+                       scenes=_scenes(shards), missing_cells=tuple(c for c in cells if c not in records),
                        missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells),
                        closed=closed, adaptive=adaptive, cell_files=files,
                        notes=(summary_line(adaptive),) if adaptive is not None else ())

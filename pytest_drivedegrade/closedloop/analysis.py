@@ -58,6 +58,13 @@ class RunRow:
             (other.route, other.seed, other.trace, other.ds, other.end)
 
 
+def distinct_runs(rows: Sequence[RunRow]) -> int:
+    """How many of the runs are distinct: runs of one route with the same trace digest, DS and end replay one
+    another (a deterministic cell under two seeds) and count once; a run without a trace digest counts alone."""
+    seen = {(r.route, r.trace, r.ds, r.end) for r in rows if r.trace}
+    return len(seen) + sum(1 for r in rows if not r.trace)
+
+
 def _mean(values: Sequence[float]) -> float | None:
     return float(np.mean(values)) if values else None
 
@@ -118,8 +125,6 @@ class CellFigures:
         low, high = self.bounds
         kinds: dict[str, Json] = dict(self.infractions)
         rows: list[Json] = [r.to_list() for r in self.rows]
-        from .routestats import distinct_runs
-
         rci, dci = self.retention_ci or (None, None), self.difference_ci or (None, None)
         return {"cell": self.cell, "family": self.family, "severity": self.severity, "runs": len(self.rows),
                 "n": distinct_runs(self.rows), "routes": len({r.route for r in self.rows}),

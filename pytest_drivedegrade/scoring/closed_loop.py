@@ -19,11 +19,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..closedloop import routestats as rs
 from ..closedloop.analysis import CLEAN, NULL, CellFigures, NullFigures, RunRow, null_figures
 from ..closedloop.cells import Json, as_float, as_list, as_map, parse_id
 from ..closedloop.results import RunResult
 from ..constants import DEFAULT_FLAT
+from . import routestats as rs
 from .records import Axes
 from .verdict import VERDICT_LABELS, FamilyGroups, verdict
 

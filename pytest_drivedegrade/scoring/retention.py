@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 
 from ..cells import EPDMS_FIELDS, PDMS_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
+from .clusters import cluster_counts, percentile_interval, scene_clusters
 from .records import CellSummary, finite_mean, horizon_metrics
 
 #: Retention levels of the two tolerance thresholds s*10 and s*25.
@@ -43,8 +44,8 @@ def bootstrap_retention_ci(clean: ArrayLike, cell: ArrayLike, *, kind: str = "er
     so per-frame difficulty cancels. Frames not finite in both are dropped first. The generator is seeded
     with `seed` only, so every cell of a run sees the same resamples and the result is order-independent.
     Vectorised in chunks of about `chunk_elems` indices. (NaN, NaN) when no frame is usable. With scenes, each
-    resample draws the scenes with replacement and takes their frames whole (`intervals.scene_clusters`), and
-    the bounds are read at the expanded levels for that many scenes (`intervals.expanded_tail`).
+    resample draws the scenes with replacement and takes their frames whole (`clusters.scene_clusters`), and
+    the bounds are read at the expanded levels for that many scenes (`clusters.expanded_tail`).
     """
     a, b = np.asarray(clean, dtype=float), np.asarray(cell, dtype=float)
     if scenes is not None:
@@ -71,8 +72,6 @@ def bootstrap_retention_ci(clean: ArrayLike, cell: ArrayLike, *, kind: str = "er
 def _cluster_ci(a: np.ndarray, b: np.ndarray, scenes: Sequence[str], *, kind: str, n_resamples: int, seed: int,
                 confidence: float) -> tuple[float, float]:
     """`bootstrap_retention_ci` over scenes (falls back to frames when the frames span fewer than two scenes)."""
-    from .intervals import cluster_counts, percentile_interval, scene_clusters
-
     labels, basis = scene_clusters(scenes, len(a))
     ok = np.isfinite(a) & np.isfinite(b)
     if labels is None or not ok.any() or n_resamples < 1:

@@ -120,10 +120,10 @@ def test_seeds_run_only_where_they_change_the_inputs() -> None:
 
 
 def test_n_counts_distinct_runs() -> None:
-    from pytest_drivedegrade.closedloop import routestats as rs
+    from pytest_drivedegrade.closedloop.analysis import distinct_runs
 
     replayed = rows([80.0, 60.0, 90.0, 50.0, 70.0, 85.0], seeds=2, trace="same")
-    assert rs.distinct_runs(replayed) == 6 and len(replayed) == 12
+    assert distinct_runs(replayed) == 6 and len(replayed) == 12
     got = analyse_rows({"closed-clean": replayed}).figures()
     cell = got["cells"][0]
     assert (cell["runs"], cell["n"], cell["routes"]) == (12, 6, 6)
@@ -163,7 +163,7 @@ def test_a_spec4_closed_section_is_still_read() -> None:
 
 @pytest.mark.parametrize("values", [[80.0] * 6, [0.0, 100.0, 50.0, 20.0, 70.0, 90.0]])
 def test_the_band_of_a_null_that_equals_clean_is_zero(values: list[float]) -> None:
-    from pytest_drivedegrade.closedloop import routestats as rs
+    from pytest_drivedegrade.scoring import routestats as rs
 
     draws = rs.RouteDraws.of(ROUTES)
     v = np.asarray(values)

@@ -5,7 +5,7 @@ deterministic cell's seeds replay one another, so neither runs nor seeds are ind
 here is first reduced to one value per route (the mean DS over that route's runs), then compared with clean
 **on the same routes** (paired), and its interval comes from resampling the routes with replacement, one set of
 route draws shared by every cell (so the axes, the separation and the null band are paired across cells too),
-read at the expanded percentile levels for that many routes (`scoring.intervals.expanded_tail`: as wide as a t
+read at the expanded percentile levels for that many routes (`clusters.expanded_tail`: as wide as a t
 interval with G - 1 degrees of freedom for a mean).
 
 Unscored runs are handled by assignment: ``point`` leaves them out (complete case; a route none of whose runs
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..scoring.intervals import cluster_counts, percentile_interval
-from .analysis import RunRow
+from ..closedloop.analysis import RunRow
+from .clusters import cluster_counts, percentile_interval
 
 #: Route resamples drawn (one set for the whole closed-loop analysis), and the stream they are drawn from.
 ROUTE_RESAMPLES = 2000
@@ -145,10 +145,3 @@ def per_route(cells: Mapping[str, Sequence[RunRow]], routes: Sequence[str]) -> d
 def clean_values(rows: Sequence[RunRow], routes: Sequence[str]) -> dict[str, np.ndarray]:
     """Clean's per-route DS under each assignment (its unscored runs at the pair's second value)."""
     return {a: route_values(rows, routes, v[1]) for a, v in ASSIGNMENTS.items()}
-
-
-def distinct_runs(rows: Sequence[RunRow]) -> int:
-    """How many of the runs are distinct: runs of one route with the same trace digest, DS and end replay one
-    another (a deterministic cell under two seeds) and count once; a run without a trace digest counts alone."""
-    seen = {(r.route, r.trace, r.ds, r.end) for r in rows if r.trace}
-    return len(seen) + sum(1 for r in rows if not r.trace)
