@@ -140,3 +140,17 @@ def test_compare_shows_the_basis_and_reads_a_spec4_certificate() -> None:
     assert row["interval_basis"] == "scene-cluster bootstrap, 6 scenes" and row["verdict_confidence"] is None
     spec4 = {"settings": {"intervals": {"computed": True, "scheme": "paired frames", "percentile": "linear"}}}
     assert interval_basis(spec4) == "frame bootstrap (paired frames; frames treated as independent)"
+
+
+def test_a_merge_joins_the_shards_scenes_and_an_older_manifest_says_scenes_unknown() -> None:
+    from pathlib import Path
+
+    from pytest_drivedegrade.certificate.merge import ShardResult, _scenes
+    from pytest_drivedegrade.settings import RunSettings
+
+    def shard(scenes: dict[str, str] | None) -> ShardResult:
+        return ShardResult(Path("."), {"scenes": scenes} if scenes is not None else {}, RunSettings(), {})
+
+    got = _scenes([shard({"t0": "a", "t1": "a"}), shard({"t2": "b"})])
+    assert got == {"t0": "a", "t1": "a", "t2": "b"}
+    assert _scenes([shard({"t0": "a"}), shard(None)]) is None  # a manifest from before scenes were written
