@@ -108,4 +108,21 @@ def check_closed_loop(cert: Mapping[str, object]) -> list[str]:
         return []
     verdict = cert.get("verdict")
     label = verdict.get("label") if isinstance(verdict, Mapping) and cert.get("cells") else None
-    return check_section(section, label if label in (*VERDICT_LABELS, "undetermined") else None)
+    return check_flat(cert, section) + check_section(section, label if label in (*VERDICT_LABELS, "undetermined")
+                                                     else None)
+
+
+def check_flat(cert: Mapping[str, object], section: Mapping[str, object]) -> list[str]:
+    """The closed section's flat line is the run's (``settings.flat``, the line the open verdict is drawn at):
+    a certificate resealed with another closed flat line would otherwise carry another closed label that its
+    own rows recompute (issue 37)."""
+    settings, closed_verdict = cert.get("settings"), section.get("verdict")
+    flat = settings.get("flat") if isinstance(settings, Mapping) else None
+    mine = closed_verdict.get("flat") if isinstance(closed_verdict, Mapping) else None
+    if flat is None:
+        return []
+    if not isinstance(mine, (int, float)) or isinstance(mine, bool) or not isinstance(flat, (int, float)) \
+            or float(mine) != float(flat):
+        return [f"closed_loop.verdict.flat: certificate says {mine!r}, but the run's settings.flat is {flat!r}; "
+                "the closed label is drawn at the run's flat line"]
+    return []

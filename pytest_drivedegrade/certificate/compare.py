@@ -66,12 +66,25 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
         "verdict_metric": verdict.get("metric", "l2"),
         "floor_l2": _section(cert, "floor").get("l2_avg"),
         "imported": is_imported(cert),
+        "verdict_confidence": verdict.get("confidence"),
+        "interval_basis": interval_basis(cert),
     }
     for fam, entry in sorted(_section(cert, "thresholds").items()):
         row.update((f"{fam}_{key}", t.value) for key, t in FamilyThresholds.from_builtins(entry).levels.items())
     row.update(spec_version=cert.get("spec_version"), dataset_fingerprint=_section(cert, "dataset").get(
         "fingerprint"), certificate=source)
     return row
+
+
+def interval_basis(cert: Mapping[str, object]) -> str:
+    """What the certificate's intervals resample, in words (`scoring.intervals.Basis`); a certificate from before
+    the basis was written (spec 4) resampled frames as if independent, and says its scheme only."""
+    settings = cert.get("settings")
+    iv = _section(settings, "intervals") if isinstance(settings, Mapping) else {}
+    if not iv.get("computed", True):
+        return "no intervals"
+    return str(iv.get("basis") or f"frame bootstrap ({iv.get('scheme', 'paired frames')}; frames treated as "
+                                  "independent)")
 
 
 #: What else makes two certificates' retentions the same quantity, besides the settings table's SAME rows

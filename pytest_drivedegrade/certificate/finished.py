@@ -78,3 +78,5 @@ class FinishedRun:
     #: cell -> its record's `payload.record_digest` where already known (checked when the payload was read), so
     #: the certificate's ``record_digests`` does not hash those records again; the others are hashed
     digests: Mapping[str, str] | None = None
+    #: frame token -> its scene token: the scene-cluster intervals' basis (None: unknown, frames independent)
+    scenes: Mapping[str, str] | None = None

@@ -226,10 +226,22 @@ def merge_shards(folders: Sequence[Path], *, allow_incomplete: bool = False, com
         prov = replace(prov, data_source=first["data_source"])
     gt = {t: np.asarray(v, dtype=float) for s in shards for t, v in s.manifest.get("gt", {}).items()}
     return FinishedRun(records, prov, settings, floor, gt, _front_image(shards[0].manifest.get("front")),
-                       missing_cells=tuple(c for c in cells if c not in records),
+                       scenes=_scenes(shards), missing_cells=tuple(c for c in cells if c not in records),
                        missing_shards=tuple(missing_shards), missing_advice=missing_advice(shards, cells),
                        closed=closed, adaptive=adaptive, cell_files=files,
                        notes=(summary_line(adaptive),) if adaptive is not None else ())
+
+
+def _scenes(shards: Sequence[ShardResult]) -> dict[str, str] | None:
+    """Each frame's scene over the shards (the scene-cluster intervals' basis); None when a shard's manifest is
+    from before the scenes were written (the merged run then says its intervals treat frames as independent)."""
+    out: dict[str, str] = {}
+    for s in shards:
+        got = s.manifest.get("scenes")
+        if not isinstance(got, Mapping):
+            return None
+        out.update({str(t): str(v) for t, v in got.items()})
+    return out
 
 
 def missing_advice(shards: Sequence[ShardResult], cells: Sequence[str]) -> str:
@@ -284,7 +296,7 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
                    settings: RunSettings, frames_total: int, cells: Sequence[str], missing: Sequence[str],
                    floor_l2: Sequence[float] | None, floor_ego_blind_l2: Sequence[float] | None,
                    gt: Mapping[str, Any], data_root: str,
-                   front: tuple[str, str] | None = None) -> dict[str, Any]:
+                   front: tuple[str, str] | None = None, scenes: Mapping[str, str] | None = None) -> dict[str, Any]:
     """What a shard run writes beside its cells for the merge (the settings as `RunSettings.to_builtins`; the
     provenance's split, seed, data source, frames asked for and timeout are settings, read back from there)."""
     return {"schema": SHARD_SCHEMA, "index": index, "count": count, "planner": planner, "key": dict(key),
@@ -298,4 +310,5 @@ def shard_manifest(*, index: int, count: int, planner: str, key: Mapping[str, An
             "floor_l2": None if floor_l2 is None else [float(v) for v in floor_l2],
             "floor_ego_blind_l2": None if floor_ego_blind_l2 is None else [float(v) for v in floor_ego_blind_l2],
             "gt": {t: np.asarray(v, dtype=float).tolist() for t, v in gt.items()}, "data_root": data_root,
-            "front": list(front) if front else None}
+            "front": list(front) if front else None,
+            "scenes": None if scenes is None else {str(t): str(s) for t, s in scenes.items()}}

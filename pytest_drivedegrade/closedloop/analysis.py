@@ -58,6 +58,13 @@ class RunRow:
             (other.route, other.seed, other.trace, other.ds, other.end)
 
 
+def distinct_runs(rows: Sequence[RunRow]) -> int:
+    """How many of the runs are distinct: runs of one route with the same trace digest, DS and end replay one
+    another (a deterministic cell under two seeds) and count once; a run without a trace digest counts alone."""
+    seen = {(r.route, r.trace, r.ds, r.end) for r in rows if r.trace}
+    return len(seen) + sum(1 for r in rows if not r.trace)
+
+
 def _mean(values: Sequence[float]) -> float | None:
     return float(np.mean(values)) if values else None
 
@@ -74,6 +81,9 @@ class CellFigures:
     retention_low: float | None = None
     retention_high: float | None = None
     separable_from_null: bool | None = None
+    #: paired route-level 95 % intervals (`routestats`): of retention, and of the mean DS difference from clean
+    retention_ci: tuple[float, float] | None = None
+    difference_ci: tuple[float, float] | None = None
 
     @property
     def scored(self) -> list[float]:
@@ -115,8 +125,12 @@ class CellFigures:
         low, high = self.bounds
         kinds: dict[str, Json] = dict(self.infractions)
         rows: list[Json] = [r.to_list() for r in self.rows]
+        rci, dci = self.retention_ci or (None, None), self.difference_ci or (None, None)
         return {"cell": self.cell, "family": self.family, "severity": self.severity, "runs": len(self.rows),
-                "unscored": self.unscored, "ds_mean": self.mean, "ds_std": self.std, "ds_low": low, "ds_high": high,
+                "n": distinct_runs(self.rows), "routes": len({r.route for r in self.rows}),
+                "unscored": self.unscored, "retention_ci_low": rci[0], "retention_ci_high": rci[1],
+                "ds_difference_ci_low": dci[0], "ds_difference_ci_high": dci[1], "ds_mean": self.mean,
+                "ds_std": self.std, "ds_low": low, "ds_high": high,
                 "completion": self.completion, "infractions": kinds, "retention": self.retention,
                 "retention_low": self.retention_low, "retention_high": self.retention_high,
                 "separable_from_null": self.separable_from_null, "run_rows": rows}
@@ -155,12 +169,15 @@ class NullFigures:
     low: float | None = None
     high: float | None = None
     rows: tuple[RunRow, ...] = ()
+    #: the null band (`routestats.band`): the interval of the null's paired DS difference from clean, with 0
+    band: tuple[float, float] | None = None
 
     def figures(self) -> dict[str, Json]:
         rows: list[Json] = [r.to_list() for r in self.rows]
+        band = self.band or (None, None)
         return {"mode": self.mode, "passed": self.passed, "first_route": self.first_route,
                 "first_seed": self.first_seed, "first_step": self.first_step, "wander": self.wander,
-                "low": self.low, "high": self.high, "run_rows": rows}
+                "low": self.low, "high": self.high, "band_low": band[0], "band_high": band[1], "run_rows": rows}
 
 
 def null_figures(cells: Mapping[str, CellFigures], reads_rear: bool, null_rows: Sequence[RunRow],

@@ -26,7 +26,7 @@ SLICE: tuple[tuple[str, int], ...] = (("clean", 0), ("gaussian_blur", 3), ("gaus
 #: The null control's cell: blackout S3 darkens exactly the rear three cameras.
 NULL_CELL = ("blackout", 3)
 #: Version of a stored closed cell (part of its run key).
-CLOSED_RECORD_VERSION = 1
+CLOSED_RECORD_VERSION = 2
 #: The plan rates the loop supports: 10 Hz sim steps divide evenly into planner calls.
 HZ_CHOICES = (1, 2, 5, 10)
 #: JSON as builtins: what a stored closed cell, a Ray actor's result and the certificate section hold.
@@ -105,9 +105,22 @@ def selection(text: str) -> list[tuple[str, int]]:
     return [("clean", 0), *rest, *([NULL_CELL] if NULL_CELL in cells else [])]
 
 
-def run_list(routes: Sequence[str], seeds: Sequence[int]) -> list[tuple[str, int]]:
-    """A cell's runs, route-major: (route, seed) for every route under every seed."""
-    return [(r, s) for r in routes for s in seeds]
+def run_list(routes: Sequence[str], seeds: Sequence[int], family: str | None = None) -> list[tuple[str, int]]:
+    """A cell's runs, route-major: (route, seed) for every route under every seed of `cell_seeds` (every seed
+    given when `family` is None)."""
+    chosen = list(seeds) if family is None else cell_seeds(family, seeds)
+    return [(r, s) for r in routes for s in chosen]
+
+
+def cell_seeds(family: str, seeds: Sequence[int]) -> list[int]:
+    """The corruption seeds a closed cell runs under: every one for a random family (the seed draws its noise,
+    drops or occluders, so each seed gives other images), the first alone for clean and every deterministic
+    family (another seed gives the same inputs: its runs would replay the first's and count as evidence they are
+    not; issue 36)."""
+    from ..corruptions.registry import REGISTERED
+
+    got = REGISTERED.get(family)
+    return list(seeds) if got is not None and got.random else list(seeds[:1])
 
 
 def shard_runs(runs: Sequence[tuple[str, int]], index: int, count: int) -> list[tuple[str, int]]:

@@ -74,7 +74,7 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
     """Every run of the cell this process drives (a shard's share of them), in run order."""
     s = context.settings
     routes = {r.name: r for r in state.route_list(context)}  # the names; actors build their own routes
-    runs = run_list(list(routes), [s.seed + k for k in range(s.closed_seeds)])
+    runs = run_list(list(routes), [s.seed + k for k in range(s.closed_seeds)], family)
     if s.shard is not None:
         runs = shard_runs(runs, s.shard.index, s.shard.count)
     if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own

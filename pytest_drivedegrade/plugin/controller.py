@@ -191,6 +191,7 @@ def finished_run(config: pytest.Config, options: RunOptions, context: RunContext
                        provenance=provenance(config, options, context, run, planner_file),
                        settings=options.settings, floor=FloorFigures() if floor is None else floor.figures(),
                        gt={f.token: f.gt_future for f in context.frames}, front=front_image(context),
+                       scenes={f.token: f.scene_token for f in context.frames},
                        missing_cells=tuple(run.missing),
                        resumed_cells=tuple(c for c, p in run.payloads.items() if p.resumed), notes=tuple(notes),
                        closed=closed, adaptive=adaptive,
@@ -287,7 +288,8 @@ def finish_shard(config: pytest.Config, options: RunOptions, context: RunContext
                               missing=run.missing, floor_l2=None if floor is None else list(floor.clean),
                               floor_ego_blind_l2=None if floor is None else floor.blind_list(),
                               gt={f.token: f.gt_future for f in context.frames}, data_root=str(context.reader.root),
-                              front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path))
+                              front=(context.frames[0].token, context.frames[0].cameras["CAM_FRONT"].path),
+                              scenes={f.token: f.scene_token for f in context.frames})
     if closed is not None and closed[1]:  # the closed cells this shard drove its share of runs of (SPEC 13)
         manifest["closed_cells"] = list(closed[1])
     if options.settings.adaptive:  # the shard owns whole families' cells, on every frame (`adaptive_merge`)

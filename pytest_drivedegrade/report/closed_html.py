@@ -118,8 +118,10 @@ def _null_text(analysis: ClosedAnalysis, imported: bool, imported_null: str = "b
            "agent never reads) against clean:" if imported and imported_null == "blackout S3" else
            "The agent reads a rear camera, so the null is a clean rerun:" if imported else
            "The planner reads a rear camera, so the null is a clean rerun:")
-    return (f"{why} it wanders by {_f(null.wander, 3)} DS; cells whose bounds overlap [{_f(null.low)}, "
-            f"{_f(null.high)}] are not separable from the null.")
+    band = null.band or (None, None)
+    return (f"{why} it wanders by {_f(null.wander, 3)} DS; its paired per-route differences from clean give the "
+            f"null band [{_f(band[0])}, {_f(band[1])}] DS, and a cell whose paired route-level interval of its DS "
+            "difference from clean reaches into the band is not separable from the null.")
 
 
 def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> str:
@@ -138,7 +140,8 @@ def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None, imported_nu
                     f"<td>{e(sep)}</td></tr>")
     separation = analysis.separation
     traces = None if run is None else trace_panels(divergent(run))
-    also = "" if analysis.robust else f" (the bounds also allow {', '.join(sorted(set(analysis.labels)))})"
+    also = (f" ({analysis.reason})" if analysis.reason else "") + ("" if analysis.robust else
+            f" (the bounds and route intervals also allow {', '.join(sorted(set(analysis.labels)))})")
     return (
         "<section id='closed-loop'><h2>Closed loop</h2>"
         f"<p class='lead'>{e(_lead(run))}</p>"

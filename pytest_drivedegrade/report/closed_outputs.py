@@ -12,6 +12,7 @@ from ..atomic import atomic_write_text
 from ..certificate.closed import ClosedRun
 from ..closedloop.analysis import RunRow
 from ..scoring.closed_loop import ClosedAnalysis
+from ..scoring.verdict import VERDICT_LABELS
 
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
@@ -70,11 +71,15 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null:
         what = "the planner reads a rear camera; a clean rerun" if run is not None else \
             "the agent reads a rear camera; a clean rerun against clean" if imported_null == "a clean rerun" else \
             f"the simulator is not deterministic; {imported_null} against clean"
+        band = null.band or (None, None)
         lines.append(f"closed null control: {what} wanders by {_fmt(null.wander, 3)} DS (null bounds "
-                     f"[{_fmt(null.low)}, {_fmt(null.high)}])")
+                     f"[{_fmt(null.low)}, {_fmt(null.high)}]); null band of its paired route differences "
+                     f"[{_fmt(band[0])}, {_fmt(band[1])}] DS")
     sep = analysis.separation
-    lines.append(f"closed-loop verdict: {analysis.label}" + ("" if analysis.robust else
-                 f" (not robust: the bounds allow {', '.join(sorted(set(analysis.labels)))})") +
+    lines.append(f"closed-loop verdict: {analysis.label}" + (f" ({analysis.reason})" if analysis.reason else "")
+                 + ("" if analysis.robust or analysis.label not in VERDICT_LABELS else
+                    f" (not robust: the bounds and route intervals allow {', '.join(sorted(set(analysis.labels)))})")
+                 +
                  f"; availability-vs-quality separation {sep.get('holds')}, under every assignment of the unscored "
                  f"runs {sep.get('holds_under_every_assignment')}; agrees with the open loop: {analysis.agrees}")
     if run is not None and run.missing:

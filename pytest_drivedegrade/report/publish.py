@@ -38,7 +38,8 @@ def analyse(run: FinishedRun) -> RunAnalysis:
     settings = run.settings
     analysis = analyse_run(run.records.values(), flat=settings.flat, seed=run.provenance.seed,
                            floor_l2=run.floor.l2, seeds=settings.seeds, metric=settings.metric,
-                           floor_ego_removal=run.floor.extra.get("ego_removal"), floor_frames=run.floor.per_frame)
+                           floor_ego_removal=run.floor.extra.get("ego_removal"), floor_frames=run.floor.per_frame,
+                           scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     return analysis
 

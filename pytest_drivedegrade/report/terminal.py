@@ -24,8 +24,14 @@ def interval_lines(analysis: RunAnalysis) -> list[str]:
         return []
     n = analysis.settings.get("n_resamples")
     seeds = analysis.settings.get("seeds", 1)
-    how = f"{n} paired resamples" + (f" over frames and {seeds} seeds" if seeds and seeds > 1 else " of frames")
-    lines = ["axes 95% intervals: " + "  ".join(f"{k} {format_interval(ax.interval(k))}" for k in AXES)]
+    basis = analysis.settings.get("intervals", {}).get("basis")
+    unit = "scenes" if str(basis).startswith("scene") else "frames"
+    how = f"{n} paired resamples" + (f" over {unit} and {seeds} seeds" if seeds and seeds > 1 else f" of {unit}")
+    lines = ["axes 95% intervals: " + "  ".join(f"{k} {format_interval(ax.interval(k))}" for k in AXES),
+             f"interval basis: {basis or 'frame bootstrap'}"]
+    reason = analysis.settings.get("intervals", {}).get("confidence_reason")
+    if verdict.confidence is None and reason:
+        lines.append(f"verdict confidence: not stated ({reason})")
     if verdict.confidence is not None:
         state = "BORDERLINE" if verdict.borderline else "stable"
         lines.append(f"verdict confidence: {verdict.confidence:.3f} ({state}; share of {how} giving this label)")

@@ -38,7 +38,8 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
                 convention: str = "stp3", kind: str = "error", flat: float = DEFAULT_FLAT, seed: int = 0,
                 n_resamples: int = DEFAULT_RESAMPLES, floor_l2: float | None = None, seeds: int = 1,
                 intervals: bool = True, metric: str = "l2", floor_ego_removal: float | None = None,
-                floor_frames: Sequence[float] | None = None) -> RunAnalysis:
+                floor_frames: Sequence[float] | None = None,
+                scenes: Mapping[str, str] | None = None) -> RunAnalysis:
     """Every figure of a run from its cell records (in any order; the result does not depend on it).
 
     Retention and its CI use the frames finite in both the cell and clean (a frame that failed conformance
@@ -55,16 +56,22 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     verdict get their intervals from one joint bootstrap of every ladder cell (``scoring.intervals``); without,
     those fields are None. The axes are computed on L2 retention (``axes``, with the ego axis) and on PDMS
     retention (``axes_pdms``); `metric` ("l2" or "pdms") says which one the verdict is put on.
+
+    `scenes` maps each frame token to its scene: every interval is then a scene-cluster bootstrap (SPEC section
+    17; ``settings.intervals.basis`` says which basis was used, and the verdict states a confidence only on
+    `intervals.MIN_SCENES_FOR_CONFIDENCE` scenes or more). Without it, frames are treated as independent.
     """
     if metric not in VERDICT_METRICS:
         raise InvalidInput(f"metric must be one of {', '.join(VERDICT_METRICS)}, got {metric!r}")
     by_cell = cells_by_id(records)
     groups = groups or FamilyGroups.from_registry()
     clean = by_cell["clean"]
-    res = resample(by_cell, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed) \
-        if intervals and n_resamples > 0 else None
+    frame_scenes = scene_labels(clean.frames, scenes)
+    _, basis = iv.scene_clusters(frame_scenes, len(clean.frames))
+    res = resample(by_cell, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed,
+                   scenes=frame_scenes) if intervals and n_resamples > 0 else None
     summaries = summarise(by_cell, res, groups, convention=convention, kind=kind, n_resamples=n_resamples,
-                          seed=seed)
+                          seed=seed, scenes=frame_scenes)
     nc = null_control(clean.plans, by_cell["null"].plans) if "null" in by_cell else None
     separate_from_null(summaries, nc)
     failed = failed_cells(by_cell.values(), groups.order)
@@ -74,14 +81,16 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
     ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
     ax_epdms = replace(run_axes(summaries, groups, "epdms"), partial=partial)
-    v = run_verdict({"pdms": ax_pdms, "epdms": ax_epdms}.get(metric, ax), per, metric=metric, flat=flat)
+    v = run_verdict({"pdms": ax_pdms, "epdms": ax_epdms}.get(metric, ax), per, metric=metric, flat=flat,
+                    basis=basis)
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
-                                         n_resamples=n_resamples, metric=metric, res=res), axes_pdms=ax_pdms,
+                                         n_resamples=n_resamples, metric=metric, res=res, basis=basis),
+                       axes_pdms=ax_pdms,
                        axes_epdms=ax_epdms)
 
 
@@ -94,8 +103,20 @@ def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, 
     return by_cell
 
 
+def scene_labels(frames: Sequence[str], scenes: Mapping[str, str] | None) -> list[str] | None:
+    """Each frame's scene from `scenes` (token -> scene); None when not given. A frame the map lacks is an
+    error naming it: the intervals' basis must cover every frame."""
+    if scenes is None:
+        return None
+    missing = [f for f in frames if f not in scenes]
+    if missing:
+        raise InvalidInput(f"no scene for {len(missing)} scored frame(s) (first {missing[0]!r}): the scene-cluster "
+                           "intervals need every frame's scene")
+    return [str(scenes[f]) for f in frames]
+
+
 def resample(by_cell: Mapping[str, CellRecord], *, convention: str, kind: str, n_resamples: int,
-             seed: int) -> iv.Resamples | None:
+             seed: int, scenes: Sequence[str] | None = None) -> iv.Resamples | None:
     """The joint bootstrap of every ladder cell against clean (None when there is no ladder cell)."""
     clean = by_cell["clean"]
     ladder = [r for r in by_cell.values() if r.family not in DIAGNOSTIC]
@@ -103,15 +124,16 @@ def resample(by_cell: Mapping[str, CellRecord], *, convention: str, kind: str, n
         return None
     return iv.resample_cells(clean.l2_avg_per_frame(convention),
                              {r.cell: [run.l2_avg_per_frame(convention) for run in r.runs()] for r in ladder},
-                             kind=kind, n_resamples=n_resamples, seed=seed)
+                             kind=kind, n_resamples=n_resamples, seed=seed, scenes=scenes)
 
 
 def summarise(by_cell: Mapping[str, CellRecord], res: iv.Resamples | None, groups: FamilyGroups, *,
-              convention: str, kind: str, n_resamples: int, seed: int) -> list[CellSummary]:
-    """Every cell's summary against clean, in report order."""
+              convention: str, kind: str, n_resamples: int, seed: int,
+              scenes: Sequence[str] | None = None) -> list[CellSummary]:
+    """Every cell's summary against clean, in report order (one-run CIs over `scenes` when given)."""
     clean = by_cell["clean"]
     summaries = [summarise_cell(r, clean, convention=convention, kind=kind, n_resamples=n_resamples, seed=seed,
-                                ci=_seed_ci(res, r)) for r in by_cell.values()]
+                                ci=_seed_ci(res, r), scenes=scenes) for r in by_cell.values()]
     summaries.sort(key=lambda s: report_order(s.family, s.severity, groups.order))
     return summaries
 
@@ -155,13 +177,19 @@ def axis_resamples(summaries: Sequence[CellSummary], res: iv.Resamples | None,
     return iv.axes_per_resample(res, s5, groups.quality, groups.removal, groups.core)
 
 
-def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float) -> Verdict:
+def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float,
+                basis: iv.Basis | None = None) -> Verdict:
     """The label from the axes the verdict is put on (`on`), with the ego label and, on L2, its confidence
-    (the resamples are of L2 retention) and a borderline flag."""
+    (the resamples are of L2 retention) and a borderline flag; no confidence where the `basis` cannot support
+    one (too few scenes: `Basis.confidence_reason`, said in the text)."""
     v = verdict(on, flat)
     text = {"pdms": "On PDMS retention: ", "epdms": "On EPDMS retention: "}.get(metric, "") + v.text
     confidence = iv.verdict_confidence(v.label, per.quality, per.removal, flat) \
         if per.quality is not None and metric == "l2" else None
+    withheld = None if basis is None or confidence is None else basis.confidence_reason
+    if withheld is not None:
+        confidence = None
+        text += f" No confidence is stated: {withheld}."
     borderline = confidence is not None and confidence < iv.BORDERLINE
     if borderline and confidence is not None:
         text += iv.borderline_text(confidence)
@@ -170,22 +198,31 @@ def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float) ->
 
 
 def analysis_settings(*, convention: str, kind: str, flat: float, seed: int, seeds: int, n_resamples: int,
-                      metric: str, res: iv.Resamples | None) -> dict[str, Any]:
+                      metric: str, res: iv.Resamples | None, basis: iv.Basis | None = None) -> dict[str, Any]:
     """The settings the figures were computed under, as the certificate records them."""
     return {"seed": int(seed), "convention": convention, "metric": "l2_avg", "kind": kind, "flat": float(flat),
             "n_resamples": int(n_resamples), "confidence": 0.95, "threshold_levels": dict(THRESHOLD_LEVELS),
             "tolerance_default": DEFAULT_TOLERANCE, "verdict_metric": metric, "seeds": int(seeds),
             "seed_values": [int(seed) + k for k in range(int(seeds))],
-            "intervals": {"computed": res is not None,
-                          "scheme": "seeds then frames" if res is not None and res.n_seeds > 1 else "paired frames",
-                          "percentile": "linear", "never": "+inf (null bound)"}}
+            "intervals": {"computed": res is not None, "scheme": _scheme(res, basis),
+                          "percentile": "linear" if basis is None or basis.clusters is None else
+                          "linear, expanded levels (Hesterberg 2015) for the scene count",
+                          "never": "+inf (null bound)", **({} if basis is None else basis.to_builtins())}}
+
+
+def _scheme(res: iv.Resamples | None, basis: iv.Basis | None) -> str:
+    """How a resample is drawn, in words: the seeds level (several seeds) then scenes or frames."""
+    unit = "scenes (frames whole)" if basis is not None and basis.units == "scenes" else "paired frames"
+    if res is not None and res.n_seeds > 1:
+        return "seeds then " + ("scenes (frames whole)" if unit.startswith("scenes") else "frames")
+    return unit
 
 
 def _seed_ci(res: iv.Resamples | None, record: CellRecord) -> tuple[float, float] | None:
     """A multi-seed cell's CI from the two-level bootstrap (None for a one-run cell: it keeps its own)."""
     if not record.seed_runs or res is None or record.cell not in res.retention:
         return None
-    got = iv.percentile_interval(res.retention[record.cell])
+    got = iv.percentile_interval(res.retention[record.cell], clusters=res.clusters)
     if got is None:
         return math.nan, math.nan
     return (math.nan if got[0] is None else got[0]), (math.inf if got[1] is None else got[1])

@@ -1,8 +1,18 @@
 """Intervals on what the verdict rests on: one joint bootstrap of every cell, from which the thresholds, the axes
-and the verdict get their 95 % intervals and the verdict its confidence (SPEC section 12).
+and the verdict get their 95 % intervals and the verdict its confidence (SPEC sections 12 and 17).
 
-One set of frame-index resamples (R x F) is drawn once and shared by every cell, so in each resample the whole
-retention curve of a family, and both axes, are computed on the same frames (paired). Cells run under several
+**The sampling unit is the scene** (SPEC section 17, issue 36). Frames of one scene share the road, the traffic
+and the planner's state, so they are not independent draws; the estimand is the planner on scenes like these.
+When the run knows each frame's scene, each resample draws the run's G scenes with replacement and keeps each
+drawn scene's frames whole (a pairs cluster bootstrap; `Basis`); only without that knowledge (a caller that gives
+no scenes) are frames resampled as if independent, and the certificate's ``settings.intervals.basis`` says which.
+With few clusters the percentile interval is too narrow (the bootstrap's variance is (G-1)/G of the plug-in's,
+and the t quantile with G-1 degrees of freedom exceeds the normal one), so the cluster intervals use Hesterberg's
+*expanded* percentile levels (`expanded_tail`); under `MIN_SCENES_FOR_CONFIDENCE` scenes the verdict states no
+confidence at all (`Basis.confidence_reason`).
+
+One set of resamples (R x F counts) is drawn once and shared by every cell, so in each resample the whole
+retention curve of a family, and both axes, are computed on the same scenes and frames (paired). Cells run under several
 corruption seeds (``--drivedegrade-seeds``) add a first level: each resample also draws the seeds with
 replacement, and a cell's retention in that resample is the mean over the drawn seeds of its per-seed retention
 on the drawn frames (a two-level bootstrap: seeds, then frames).
@@ -19,23 +29,35 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .clusters import (  # noqa: F401 - re-exported: the intervals' callers read them here
+    CONFIDENCE,
+    MIN_SCENES,
+    MIN_SCENES_FOR_CONFIDENCE,
+    Basis,
+    cluster_counts,
+    expanded_tail,
+    percentile_interval,
+    scene_clusters,
+)
 from .records import AXES, AxisIntervals, Interval
 from .retention import THRESHOLD_LEVELS, retention, tolerance_threshold
 
 #: Where the interval resamples' generator starts, apart from the per-cell CI's stream (seeded with `seed` alone).
 STREAM = 15
-CONFIDENCE = 0.95
 #: Under this verdict confidence the verdict's text says "Borderline".
 BORDERLINE = 0.95
-
-
 @dataclass(frozen=True)
 class Resamples:
     """Each cell's retention in every resample: cell id -> (R,) (NaN where a resample left it no frame)."""
 
     retention: dict[str, np.ndarray]
     n_resamples: int
-    n_seeds: int  # the most seeds any cell ran under (1: a frame bootstrap only)
+    n_seeds: int  # the most seeds any cell ran under (1: no seed level)
+    basis: Basis | None = None  #: None: frames, scenes unknown
+
+    @property
+    def clusters(self) -> int | None:
+        return None if self.basis is None else self.basis.clusters
 
 
 def frame_counts(rng: np.random.Generator, n_resamples: int, n_frames: int) -> np.ndarray:
@@ -48,20 +70,25 @@ def frame_counts(rng: np.random.Generator, n_resamples: int, n_frames: int) -> n
 
 
 def resample_cells(clean: np.ndarray, cells: Mapping[str, Sequence[np.ndarray]], *, kind: str = "error",
-                   n_resamples: int = 1000, seed: int = 0) -> Resamples:
+                   n_resamples: int = 1000, seed: int = 0, scenes: Sequence[str] | None = None) -> Resamples:
     """Every cell's retention per resample from per-frame M values.
 
     `clean` is clean's per-frame M (F,); `cells` maps cell id -> one (F,) array per seed run. A frame counts for
     a (cell, seed) column only where both it and clean are finite (NaN frames drop out of that comparison only).
+    `scenes` (each frame's scene) makes the draws a scene-cluster bootstrap (`scene_clusters`).
     """
     m_clean = np.asarray(clean, dtype=float)
     n = len(m_clean)
     rng = np.random.default_rng((int(seed), STREAM))
-    counts = frame_counts(rng, n_resamples, n) if n else np.zeros((n_resamples, 0))
+    labels, basis = scene_clusters(scenes, n)
+    if labels is not None:
+        counts = cluster_counts(rng, n_resamples, labels)
+    else:
+        counts = frame_counts(rng, n_resamples, n) if n else np.zeros((n_resamples, 0))
     names = list(cells)
     columns = [np.asarray(run, dtype=float) for name in names for run in cells[name]]
     if not columns:
-        return Resamples({}, n_resamples, 1)
+        return Resamples({}, n_resamples, 1, basis)
     values = np.stack(columns, axis=1)  # (F, K)
     ok = np.isfinite(values) & np.isfinite(m_clean)[:, None]
     okf = ok.astype(float)
@@ -81,7 +108,7 @@ def resample_cells(clean: np.ndarray, cells: Mapping[str, Sequence[np.ndarray]],
         block = per_column[:, start:start + k]
         out[name] = block[:, 0] if k == 1 else np.einsum("rk,rk->r", block, weights[k])
         start += k
-    return Resamples(out, n_resamples, n_seeds)
+    return Resamples(out, n_resamples, n_seeds, basis)
 
 
 def _seed_weights(rng: np.random.Generator, n_resamples: int, n_seeds: int) -> np.ndarray:
@@ -115,26 +142,6 @@ def thresholds_per_resample(severities: Sequence[int], curve: np.ndarray, level:
     return out
 
 
-def percentile_interval(values: np.ndarray, confidence: float = CONFIDENCE) -> Interval | None:
-    """[low, high]: linear-interpolated percentiles (numpy's default) at (1 - confidence)/2 and its mirror.
-
-    +inf ("never") sorts above every number; a bound that touches an infinite order statistic is +inf and is
-    written None. NaN resamples are left out; None when no resample is left."""
-    v = np.sort(np.asarray(values, dtype=float)[~np.isnan(values)])
-    if len(v) == 0:
-        return None
-    tail = (1.0 - confidence) / 2.0
-    out: list[float | None] = []
-    for q in (tail, 1.0 - tail):
-        pos = q * (len(v) - 1)
-        lo, hi = math.floor(pos), math.ceil(pos)
-        if not math.isfinite(v[hi]):
-            out.append(None)
-        else:
-            out.append(float(v[lo] + (v[hi] - v[lo]) * (pos - lo)))
-    return out[0], out[1]
-
-
 def threshold_intervals(res: Resamples, curves: Mapping[str, Mapping[int, str]]) \
         -> dict[str, dict[str, tuple[Interval | None, float]]]:
     """family -> level (s10, s25) -> (95 % interval, never) from the resampled curves.
@@ -150,7 +157,7 @@ def threshold_intervals(res: Resamples, curves: Mapping[str, Mapping[int, str]])
         entry: dict[str, tuple[Interval | None, float]] = {}
         for key, level in THRESHOLD_LEVELS.items():
             t = thresholds_per_resample(sev, curve, level)
-            entry[key] = (percentile_interval(t), float(np.isinf(t).mean()))
+            entry[key] = (percentile_interval(t, clusters=res.clusters), float(np.isinf(t).mean()))
         out[fam] = entry
     return out
 
@@ -163,6 +170,7 @@ class AxisResamples:
     removal: np.ndarray | None = None
     gap: np.ndarray | None = None
     mean: np.ndarray | None = None
+    clusters: int | None = None  #: the scene count of a cluster bootstrap (None: frames)
 
     def of(self, axis: str) -> np.ndarray | None:
         got: np.ndarray | None = getattr(self, axis)
@@ -181,13 +189,13 @@ def axes_per_resample(res: Resamples, s5: Mapping[str, str], quality: Sequence[s
     """quality, removal, gap and mean in every resample (`s5` maps family -> its S5 cell id)."""
     q, r = _mean_of(res, s5, quality), _mean_of(res, s5, (removal,))
     return AxisResamples(quality=q, removal=r, gap=None if q is None or r is None else q - r,
-                         mean=_mean_of(res, s5, core))
+                         mean=_mean_of(res, s5, core), clusters=res.clusters)
 
 
 def axis_intervals(per_resample: AxisResamples) -> AxisIntervals:
     """The axes' 95 % intervals (None for an axis without resamples)."""
-    return AxisIntervals(**{name: None if (v := per_resample.of(name)) is None else percentile_interval(v)
-                            for name in AXES})
+    return AxisIntervals(**{name: None if (v := per_resample.of(name)) is None
+                            else percentile_interval(v, clusters=per_resample.clusters) for name in AXES})
 
 
 #: Label codes of the vectorised verdict; -1 is "undetermined".

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 
 from ..cells import EPDMS_FIELDS, PDMS_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
+from .clusters import cluster_counts, percentile_interval, scene_clusters
 from .records import CellSummary, finite_mean, horizon_metrics
 
 #: Retention levels of the two tolerance thresholds s*10 and s*25.
@@ -35,15 +36,20 @@ def retention(m_clean: ArrayLike, m_cell: ArrayLike, kind: str = "error") -> Any
 
 def bootstrap_retention_ci(clean: ArrayLike, cell: ArrayLike, *, kind: str = "error",
                            n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, confidence: float = 0.95,
-                           chunk_elems: int = 2_000_000) -> tuple[float, float]:
-    """Paired frame-level percentile bootstrap CI of retention.
+                           chunk_elems: int = 2_000_000, scenes: Sequence[str] | None = None) -> tuple[float, float]:
+    """Paired percentile bootstrap CI of retention: over scenes when `scenes` (each frame's scene, two or more
+    scenes) is given, else over frames.
 
     Each resample draws frame indices with replacement and applies the *same* indices to clean and the cell,
     so per-frame difficulty cancels. Frames not finite in both are dropped first. The generator is seeded
     with `seed` only, so every cell of a run sees the same resamples and the result is order-independent.
-    Vectorised in chunks of about `chunk_elems` indices. (NaN, NaN) when no frame is usable.
+    Vectorised in chunks of about `chunk_elems` indices. (NaN, NaN) when no frame is usable. With scenes, each
+    resample draws the scenes with replacement and takes their frames whole (`clusters.scene_clusters`), and
+    the bounds are read at the expanded levels for that many scenes (`clusters.expanded_tail`).
     """
     a, b = np.asarray(clean, dtype=float), np.asarray(cell, dtype=float)
+    if scenes is not None:
+        return _cluster_ci(a, b, scenes, kind=kind, n_resamples=n_resamples, seed=seed, confidence=confidence)
     ok = np.isfinite(a) & np.isfinite(b)
     a, b = a[ok], b[ok]
     n = len(a)
@@ -61,6 +67,23 @@ def bootstrap_retention_ci(clean: ArrayLike, cell: ArrayLike, *, kind: str = "er
     tail = 100.0 * (1.0 - confidence) / 2.0
     low, high = np.percentile(r, [tail, 100.0 - tail])
     return float(low), float(high)
+
+
+def _cluster_ci(a: np.ndarray, b: np.ndarray, scenes: Sequence[str], *, kind: str, n_resamples: int, seed: int,
+                confidence: float) -> tuple[float, float]:
+    """`bootstrap_retention_ci` over scenes (falls back to frames when the frames span fewer than two scenes)."""
+    labels, basis = scene_clusters(scenes, len(a))
+    ok = np.isfinite(a) & np.isfinite(b)
+    if labels is None or not ok.any() or n_resamples < 1:
+        return bootstrap_retention_ci(a, b, kind=kind, n_resamples=n_resamples, seed=seed, confidence=confidence)
+    counts = cluster_counts(np.random.default_rng(seed), n_resamples, labels)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = counts @ ok.astype(float)
+        r = retention((counts @ np.where(ok, a, 0.0)) / den, (counts @ np.where(ok, b, 0.0)) / den, kind)
+    got = percentile_interval(np.where(den > 0, r, np.nan), confidence, clusters=basis.clusters)
+    if got is None:
+        return math.nan, math.nan
+    return (math.nan if got[0] is None else got[0]), (math.inf if got[1] is None else got[1])
 
 
 def paired_retention(m_clean: np.ndarray, m_cell: np.ndarray, kind: str = "error") -> float:
@@ -85,11 +108,12 @@ def _seed_mean(values: Iterable[dict[str, float]]) -> dict[str, float]:
 
 def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "stp3", kind: str = "error",
                    n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0,
-                   ci: tuple[float, float] | None = None) -> CellSummary:
+                   ci: tuple[float, float] | None = None, scenes: Sequence[str] | None = None) -> CellSummary:
     """A cell's metrics, its retention against `clean` and the paired bootstrap CI.
 
     A cell run under several seeds reports the mean over its seed runs of every metric and of retention, and
-    takes its CI from `ci` (the two-level bootstrap of ``intervals``); `frames` counts the frames finite in
+    takes its CI from `ci` (the two-level bootstrap of ``intervals``); `scenes` (each frame's scene) makes the
+    one-run CIs scene-cluster bootstraps; `frames` counts the frames finite in
     every run, `conformance_errors` and `data_errors` the failures of all runs. A cell with no scored frame has
     no retention (NaN), the clean cell included: 1.0 over 0 frames would claim what was never measured.
     """
@@ -112,19 +136,19 @@ def summarise_cell(record: CellRecord, clean: CellRecord, *, convention: str = "
     metrics = horizon_metrics(record)
     metrics["endpoint_shift"] = finite_mean(record.endpoint_shift(clean))
     metrics["energy"] = float(retention(finite_mean(clean.bit1), finite_mean(record.bit1), "reward"))
-    metrics.update(pdms_metrics(record, clean, n_resamples=n_resamples, seed=seed))
+    metrics.update(pdms_metrics(record, clean, n_resamples=n_resamples, seed=seed, scenes=scenes))
     if record.cell == clean.cell:
         r, ci = (1.0, (1.0, 1.0)) if np.isfinite(m_clean).any() else (math.nan, (math.nan, math.nan))
     else:
         r = paired_retention(m_clean, m_cell, kind)
-        ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed)
+        ci = bootstrap_retention_ci(m_clean, m_cell, kind=kind, n_resamples=n_resamples, seed=seed, scenes=scenes)
     return CellSummary(record.cell, record.family, record.severity, int(np.isfinite(m_cell).sum()),
                        finite_mean(m_cell), r, ci[0], ci[1], metrics, conformance_errors=len(record.errors),
                        data_errors=len(record.data_errors))
 
 
 def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DEFAULT_RESAMPLES,
-                 seed: int = 0) -> dict[str, float]:
+                 seed: int = 0, scenes: Sequence[str] | None = None) -> dict[str, float]:
     """A cell's mean PDMS-like score and sub-scores (spec 3), the share of frames scored with a map
     (``map_scored``), and PDMS retention M(cell) / M(clean) (a reward) with its paired bootstrap CI
     (``pdms_retention``, ``pdms_retention_ci_low``, ``pdms_retention_ci_high``); the same for the EPDMS (spec
@@ -137,7 +161,8 @@ def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DE
             r, ci = (1.0, (1.0, 1.0)) if np.isfinite(theirs).any() else (math.nan, (math.nan, math.nan))
         else:
             r = paired_retention(theirs, mine, "reward")
-            ci = bootstrap_retention_ci(theirs, mine, kind="reward", n_resamples=n_resamples, seed=seed)
+            ci = bootstrap_retention_ci(theirs, mine, kind="reward", n_resamples=n_resamples, seed=seed,
+                                        scenes=scenes)
         out.update({f"{name}_retention": r, f"{name}_retention_ci_low": ci[0], f"{name}_retention_ci_high": ci[1]})
     return out
 

@@ -70,12 +70,13 @@ def test_closed_loop_csv_is_the_same_under_n0_n2_and_two_shards_merged(dd):
     folder = dd.folder("driver")
     text = (folder / "closed_loop.csv").read_text()
     rows = read_csv(folder / "closed_loop.csv")
-    assert [(r["cell"], r["seed"]) for r in rows] == [(c, s) for c in ("closed-clean", "closed-blackout-s5",
-                                                                       "closed-blackout-s3") for s in ("0", "1")]
+    # deterministic families run the first seed only: a second would replay it (issue 36)
+    assert [(r["cell"], r["seed"]) for r in rows] == [(c, "0") for c in ("closed-clean", "closed-blackout-s5",
+                                                                         "closed-blackout-s3")]
     assert all(r["end"] == "scene_end" and r["steps"] == "4" for r in rows)
     # blackout S3 is clean's run for run (the planner reads the front camera only); blackout S5 drives slower
-    assert [r["trace_digest"] for r in rows[4:]] == [r["trace_digest"] for r in rows[:2]]
-    assert float(rows[2]["ds"]) < float(rows[0]["ds"])
+    assert [r["trace_digest"] for r in rows[2:]] == [r["trace_digest"] for r in rows[:1]]
+    assert float(rows[1]["ds"]) < float(rows[0]["ds"])
     cert = load_json(folder / "certificate.json")
     section = cert["closed_loop"]
     assert section["null_control"]["mode"] == "identical" and section["null_control"]["passed"] is True
@@ -136,11 +137,11 @@ def test_a_planner_that_raises_leaves_its_runs_unscored_and_the_bounds_widen(dd)
     result.stdout.fnmatch_lines(["*run scene-* (seed 0) unscored: step 2: RuntimeError: no front image*"])
     cells = {c["cell"]: c for c in load_json(dd.folder("driver") / "certificate.json")["closed_loop"]["cells"]}
     dark = cells["closed-blackout-s5"]
-    assert dark["unscored"] == 2 and dark["ds_mean"] is None
+    assert dark["unscored"] == 1 and dark["ds_mean"] is None  # blackout is deterministic: one seed
     assert (dark["ds_low"], dark["ds_high"]) == (0.0, 100.0)
     assert dark["retention_low"] == 0.0 and dark["retention_high"] > 1.0
     rows = read_csv(dd.folder("driver") / "closed_loop.csv")
-    assert [r["end"] for r in rows if r["cell"] == "closed-blackout-s5"] == ["unscored", "unscored"]
+    assert [r["end"] for r in rows if r["cell"] == "closed-blackout-s5"] == ["unscored"]
 
 
 @pytest.mark.xdist_group("ray")
