@@ -39,7 +39,7 @@ from .extended import (
     lane_keeping,
     lane_query,
 )
-from .lanes import LaneView
+from .lanes import LaneView, astray
 from .local_map import LocalDrivable
 from .motion import (
     EgoPose,
@@ -47,10 +47,10 @@ from .motion import (
     expert_path,
     is_comfortable,
     off_road,
-    out_of_lane,
     progress_along,
     waypoints,
 )
+from .route import route_centreline
 from .rules import Contact, collision_score, pdms_result, ttc_score
 from .tracked import initial_state, tracked_states
 
@@ -98,12 +98,14 @@ class PreparedFrame:
     def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
                 ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
                 ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
-                lanes: LaneView | None = None, expert_states: EgoStates | None = None) -> PreparedFrame:
+                lanes: LaneView | None = None, expert_states: EgoStates | None = None,
+                past_motion: npt.ArrayLike | None = None) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
         polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
         and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
         terms for the human filter (`lanes`: the lanes around the ego, in its frame). `expert_states`: the
-        expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states."""
+        expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states.
+        `past_motion`: the past keyframes' motion (`Frame.past_motion`) for history comfort (None: hc 1)."""
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents)
         ids, velocities = agent_tracks(steps)
@@ -114,11 +116,12 @@ class PreparedFrame:
         es = tracked_states(expert_arr[None], [start])[0] if expert_states is None else expert_states
         expert_off = off_road(es, drivable, ego_pose)
         path = expert_path(expert_arr, float(es.heading[-1]))
-        expert_astray = expert_off | out_of_lane(es, path)
+        expert_astray, expert_ttc_astray = astray(es, expert_off, path, lanes)
         boxes = FlatAgents.of(steps)
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
-        past = history(ego.past_xy, ego.velocity, ego.acceleration) if isinstance(ego, EgoStatus) else None
+        past = history(past_motion, ego.acceleration) if isinstance(ego, EgoStatus) and past_motion is not None \
+            else None
         # the frame without the expert's own judgement, whose vectorised contacts then judge the expert as they
         # judge a plan (`score_tracked`): the reference's contacts in the reference's order, 6x cheaper
         bare = cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
@@ -128,8 +131,8 @@ class PreparedFrame:
         dac = 0.0 if expert_off.any() else 1.0
         query = lane_query(es, lanes)
         human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), float("nan"), 1.0,
-                              ttc_score(es, bare.projections(es), expert_astray),
-                              lane_keeping(es, lanes, query), history_comfort(es, past))
+                              ttc_score(es, bare.projections(es), expert_ttc_astray),
+                              lane_keeping(es, lanes, query), 1.0)  # NAVSIM scores the human without a past
         return replace(bare, expert_multiplier=expert_nc * dac, human=human)
 
     @classmethod
@@ -138,9 +141,13 @@ class PreparedFrame:
            expert_states: EgoStates | None = None) -> PreparedFrame:
         """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS;
         `expert_states`: its expert's from `tracked_experts`)."""
-        lanes = LaneView.of_map(lane_map, frame.pose) if lane_map is not None and frame.pose is not None else None
+        lanes = None
+        if lane_map is not None and frame.pose is not None:
+            lanes = replace(LaneView.of_map(lane_map, frame.pose),
+                            route=route_centreline(lane_map, frame.pose, frame.gt_future[frame.gt_valid]))
         return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
-                           static_categories=static_categories, lanes=lanes, expert_states=expert_states)
+                           static_categories=static_categories, lanes=lanes, expert_states=expert_states,
+                           past_motion=frame.past_motion)
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -188,9 +195,9 @@ class PreparedFrame:
     def score_tracked(self, plan: np.ndarray, ps: EgoStates) -> PDMSResult:
         """The PDMS of a plan (6, 2) whose tracked states `ps` are already simulated from `initial`."""
         plan_off = off_road(ps, self.drivable, self.ego_pose)
-        astray = plan_off | out_of_lane(ps, self.path)
-        nc = collision_score(ps, self.collisions(ps), astray, static_categories=self.static_categories)
-        ttc = ttc_score(ps, self.projections(ps), astray)
+        side, ttc_side = astray(ps, plan_off, self.path, self.lanes)
+        nc = collision_score(ps, self.collisions(ps), side, static_categories=self.static_categories)
+        ttc = ttc_score(ps, self.projections(ps), ttc_side)
         dac = 0.0 if plan_off.any() else 1.0
         return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, ps.xy[-1]),
                            self.expert_m, self.expert_multiplier, self.drivable is not None)

@@ -13,13 +13,13 @@ import numpy.typing as npt
 from ...data.frame import AgentBoxes, EgoStatus, Frame
 from .agents import agent_steps, agent_tracks, first_seen, hits
 from .constants import KEY_STATES, STATIC_CATEGORIES, TTC_SCHEDULE, TTC_STOPPED_SPEED, DrivableQuery, PDMSResult
+from .lanes import LaneView, astray
 from .motion import (
     EgoPose,
     EgoStates,
     expert_path,
     is_comfortable,
     off_road,
-    out_of_lane,
     progress_along,
     waypoints,
 )
@@ -70,14 +70,15 @@ def time_to_collision_within_bound(states: EgoStates, agents: Sequence[AgentBoxe
 def pdm_score(plan: npt.ArrayLike, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
               ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
               ego_pose: EgoPose | None = None, *,
-              static_categories: Sequence[str] = STATIC_CATEGORIES) -> PDMSResult:
+              static_categories: Sequence[str] = STATIC_CATEGORIES, lanes: LaneView | None = None) -> PDMSResult:
     """The PDMS of one plan (see the package docstring and spec/README.md) on its tracked states.
 
     plan, expert: (6, 2) waypoints in the ego frame, each tracked alone from `ego` (the frame's `EgoStatus`,
     an `InitialState`, or a bare (vx, vy) m/s at t = 0); agents: one AgentBoxes per waypoint time (missing
     steps are empty); drivable: a vectorised query points (K, 2) -> bool in the map's frame, or None (no map:
     dac 1, `map_scored` False); ego_pose: the ego's (x, y, yaw) in the map's frame (None: the query takes
-    ego-frame points).
+    ego-frame points); lanes: the lanes around the ego (`PreparedFrame`'s), which decide "in multiple lanes"
+    and TTC's intersection clause (None: the former stand-in, half a lane from the expert's path).
     """
     plan_arr, expert_arr = waypoints(plan, "plan"), waypoints(expert, "expert")
     steps = agent_steps(agents)
@@ -87,11 +88,11 @@ def pdm_score(plan: npt.ArrayLike, expert: npt.ArrayLike, agents: Sequence[Agent
     ps, es = tracked_states(plan_arr[None], [start])[0], tracked_states(expert_arr[None], [start])[0]
     path = expert_path(expert_arr, float(es.heading[-1]))
     plan_off, expert_off = off_road(ps, drivable, ego_pose), off_road(es, drivable, ego_pose)
-    astray = plan_off | out_of_lane(ps, path)  # off the road or across a lane line: side contacts count
-    nc = no_at_fault_collisions(ps, steps, ids, seen, astray, static_categories=static_categories)
-    ttc = time_to_collision_within_bound(ps, steps, ids, astray)
+    side, ttc_side = astray(ps, plan_off, path, lanes)  # off the road or in two lanes: side contacts count
+    nc = no_at_fault_collisions(ps, steps, ids, seen, side, static_categories=static_categories)
+    ttc = time_to_collision_within_bound(ps, steps, ids, ttc_side)
     dac = 0.0 if plan_off.any() else 1.0
-    expert_nc = no_at_fault_collisions(es, steps, ids, seen, expert_off | out_of_lane(es, path),
+    expert_nc = no_at_fault_collisions(es, steps, ids, seen, astray(es, expert_off, path, lanes)[0],
                                        static_categories=static_categories)
     return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(path, ps.xy[-1]),
                        progress_along(path, es.xy[-1]), expert_nc * (0.0 if expert_off.any() else 1.0),
