@@ -70,6 +70,21 @@ def _chains(lanes: dict[str, Lane], start: str, reach: float) -> list[list[str]]
     return out
 
 
+#: The last lane maps' token indexes, by the map's id (the map kept beside it, so the id cannot be reused).
+_BY_TOKEN: dict[int, tuple[LaneMap, dict[str, Lane]]] = {}
+
+
+def _lanes_by_token(lane_map: LaneMap) -> dict[str, Lane]:
+    """The map's lanes with a centreline, by token; built once per map (a real map has thousands)."""
+    found = _BY_TOKEN.get(id(lane_map))
+    if found is None or found[0] is not lane_map:
+        if len(_BY_TOKEN) >= 8:
+            _BY_TOKEN.clear()
+        found = _BY_TOKEN[id(lane_map)] = (lane_map, {lane.token: lane for lane in lane_map.lanes
+                                                      if len(lane.centreline) >= 2})
+    return found[1]
+
+
 def route_centreline(lane_map: LaneMap, pose: Sequence[float], logged: npt.ArrayLike) -> np.ndarray | None:
     """The route centreline (K, 2) in the ego frame at global `pose` (x, y, yaw), for the logged future
     `logged` (M, 2, ego frame): see the module docstring. None when no lane holds the ego."""
@@ -78,7 +93,7 @@ def route_centreline(lane_map: LaneMap, pose: Sequence[float], logged: npt.Array
     pts = np.asarray(logged, dtype=np.float64).reshape(-1, 2)
     world = np.stack([x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]], axis=1)
     world = np.vstack([[x, y], world])
-    by_token = {lane.token: lane for lane in lane_map.lanes if len(lane.centreline) >= 2}
+    by_token = _lanes_by_token(lane_map)
     box = lane_map.centreline_boxes
     near = (box[:, 0] <= x + NEAR_BOX_M) & (box[:, 2] >= x - NEAR_BOX_M) & (box[:, 1] <= y + NEAR_BOX_M) \
         & (box[:, 3] >= y - NEAR_BOX_M)
