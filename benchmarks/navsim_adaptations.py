@@ -34,7 +34,7 @@ from pytest_drivedegrade.data.frame import AgentBoxes
 from pytest_drivedegrade.metrics import pdms, tracking
 from pytest_drivedegrade.metrics.pdms import extended as X  # noqa: N812
 from pytest_drivedegrade.metrics.pdms.agents import agent_tracks, hits
-from pytest_drivedegrade.metrics.pdms.constants import EGO_SIZE
+from pytest_drivedegrade.metrics.pdms.constants import EGO_BOXES, EGO_SIZE
 
 SIGMAS: tuple[float, ...] = (0.0, 0.3, 1.0)
 STEPS = 8  # NAVSIM's 4 s of 0.5 s poses
@@ -148,15 +148,18 @@ def study(data: list[Expert], sigma: float, draws: int) -> dict[str, float]:
 #: The EPDMS's variants (issue 39): the suite as it scores (NAVSIM v2.2's terms where the data allow) and each
 #: remaining adaptation, or a former rule, swapped in.
 EPDMS_VARIANTS: tuple[str, ...] = ("as scored", "no route (nearest same-way lane)", "hc filtered (former rule)",
-                                   "no past before the scene's 4th keyframe (hc 1)", "side rule without lanes")
+                                   "no past before the scene's 4th keyframe (hc 1)", "side rule without lanes",
+                                   "NAVSIM's Pacifica box (centred)")
 
 
 #: The lane change plan: the expert moved this far left (m), reached at 1 s and held.
 LANE_CHANGE_M: float = 3.5
 
 
-def epdms_variants(prepared: pdms.PreparedFrame, index: int, plan: np.ndarray) -> dict[str, float]:
-    """One plan's EPDMS (ec not scored, a one-frame figure) under each of EPDMS_VARIANTS."""
+def epdms_variants(prepared: pdms.PreparedFrame, pacifica: pdms.PreparedFrame, index: int,
+                   plan: np.ndarray) -> dict[str, float]:
+    """One plan's EPDMS (ec not scored, a one-frame figure) under each of EPDMS_VARIANTS (`pacifica`: the same
+    frame prepared with NAVSIM's box)."""
     ps = pdms.tracked_states(plan[None], [prepared.initial])[0]
     result = prepared.score_tracked(plan, ps)
     human = prepared.human
@@ -175,7 +178,8 @@ def epdms_variants(prepared: pdms.PreparedFrame, index: int, plan: np.ndarray) -
             "hc filtered (former rule)": score(prepared, result, human_hc),
             "no past before the scene's 4th keyframe (hc 1)":
                 score(replace(prepared, past=None) if index < X.PAST_HC else prepared, result, human),
-            "side rule without lanes": score(prepared, bare.score_tracked(plan, ps), human)}
+            "side rule without lanes": score(prepared, bare.score_tracked(plan, ps), human),
+            "NAVSIM's Pacifica box (centred)": score(pacifica, pacifica.score_tracked(plan, ps), pacifica.human)}
 
 
 def epdms_study(scenes: int, seed: int, sigmas: tuple[float, ...], draws: int) -> None:
@@ -188,20 +192,22 @@ def epdms_study(scenes: int, seed: int, sigmas: tuple[float, ...], draws: int) -
                                         val_images=False), split="all")
     frames = reader.scorable_frames()
     prepared = [pdms.PreparedFrame.of(f, reader.drivable_area(f), lane_map=reader.lane_map(f)) for f in frames]
+    pacifica = [pdms.PreparedFrame.of(f, reader.drivable_area(f), lane_map=reader.lane_map(f),
+                                      ego_size=EGO_BOXES["pacifica"]) for f in frames]
     means: dict[float, dict[str, float]] = {}
     for sigma in sigmas:
         rows: dict[str, list[float]] = {v: [] for v in EPDMS_VARIANTS}
         for d in range(draws if sigma else 1):
             rng = np.random.default_rng(d)
-            for f, p in zip(frames, prepared):
+            for f, p, q in zip(frames, prepared, pacifica):
                 plan = f.gt_future + rng.normal(0.0, sigma, f.gt_future.shape)
-                for key, value in epdms_variants(p, f.index, plan).items():
+                for key, value in epdms_variants(p, q, f.index, plan).items():
                     rows[key].append(value)
         means[sigma] = {k: float(np.nanmean(v)) for k, v in rows.items()}
     change: dict[str, list[float]] = {v: [] for v in EPDMS_VARIANTS}
     shift = np.minimum(np.arange(1, 7) * 0.5, 1.0)[:, None] * [0.0, LANE_CHANGE_M]  # 3.5 m left by 1 s, held
-    for f, p in zip(frames, prepared):
-        for key, value in epdms_variants(p, f.index, f.gt_future + shift).items():
+    for f, p, q in zip(frames, prepared, pacifica):
+        for key, value in epdms_variants(p, q, f.index, f.gt_future + shift).items():
             change[key].append(value)
     print(f"\nEPDMS (ec not scored) of {len(frames)} frames' expert plans + N(0, sigma^2); retention: over sigma 0")
     print("| variant | " + " | ".join(f"EPDMS {s:g} m" for s in sigmas)

@@ -233,3 +233,26 @@ def test_the_readers_past_motion_is_each_past_keyframes_own_logged_state(small_w
                 assert tuple(row[2:]) == scene[i].ego.acceleration
                 checked += 1
     assert checked >= 4 * 20
+
+
+# -- the ego box as a scoring setting ----------------------------------------------------------------------------
+
+def parked(y: float) -> list[AgentBoxes]:
+    """A car standing at (10, y), 4 m x 1.8 m, at every waypoint time."""
+    return [AgentBoxes(np.array([[10.0, y]]), np.array([[4.0, 1.8]]), np.zeros(1), ("vehicle",)) for _ in T]
+
+
+@pytest.mark.parametrize("box,expected", [("nuscenes", (1.0, 1.0)), ("pacifica", (0.0, 0.0))])
+def test_the_ego_box_is_a_scoring_setting(box, expected):
+    # a car parked with its near side 1.1 m from the ego's path: the nuScenes box (half width 0.925 m) passes it,
+    # NAVSIM's Pacifica (half width 1.1485 m) scrapes it; a standing agent is always the ego's fault (NC 0) and
+    # the projected boxes meet it ahead (TTC 0)
+    from pytest_drivedegrade.metrics.pdms.constants import EGO_BOXES
+
+    expert = np.stack([10.0 * T, np.zeros(6)], 1)
+    size = EGO_BOXES[box]
+    result = P.PreparedFrame.prepare(expert, parked(2.0), EGO, ego_size=size).score(expert)
+    assert (result.nc, result.ttc) == expected
+    assert P.pdm_score(expert, expert, parked(2.0), EGO, ego_size=size) == result
+    assert P.PreparedFrame.prepare(expert, parked(2.0), EGO).score(expert) == \
+        P.PreparedFrame.prepare(expert, parked(2.0), EGO, ego_size=EGO_BOXES["nuscenes"]).score(expert)

@@ -16,6 +16,7 @@ import numpy as np
 
 from ...data.geometry import wrap_angle as _wrap
 from ...data.maps import LaneMap, RingSet
+from .constants import EGO_SIZE
 from .motion import EgoStates, box_corners, out_of_lane
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
@@ -197,14 +198,14 @@ class LaneQuery:
     in_intersection: np.ndarray
 
 
-def astray(states: EgoStates, off: np.ndarray, path: np.ndarray, lanes: LaneView | None
-           ) -> tuple[np.ndarray, np.ndarray]:
+def astray(states: EgoStates, off: np.ndarray, path: np.ndarray, lanes: LaneView | None,
+           size: np.ndarray = EGO_SIZE) -> tuple[np.ndarray, np.ndarray]:
     """Per state (N,) the masks NAVSIM's side-contact rules read: for NC, "in multiple lanes or in non-drivable
     area" (`off`: a corner off the drivable area; multiple lanes from the lane polygons, `LaneView.multiple_lanes`;
     without lanes, a corner more than half a lane from the expert's path stands in); for TTC, the same or the
     ego's tracked point inside an intersection (NAVSIM's intersection clause, read at its rear axle)."""
     if lanes is None or not len(lanes.start):
-        nc = off | out_of_lane(states, path)
+        nc = off | out_of_lane(states, path, size)
         return nc, nc
-    nc = off | lanes.multiple_lanes(box_corners(states.xy, states.heading))
+    nc = off | lanes.multiple_lanes(box_corners(states.xy, states.heading, size))
     return nc, nc | lanes.in_intersection(states.xy)
