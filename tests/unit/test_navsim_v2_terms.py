@@ -256,3 +256,15 @@ def test_the_ego_box_is_a_scoring_setting(box, expected):
     assert P.pdm_score(expert, expert, parked(2.0), EGO, ego_size=size) == result
     assert P.PreparedFrame.prepare(expert, parked(2.0), EGO).score(expert) == \
         P.PreparedFrame.prepare(expert, parked(2.0), EGO, ego_size=EGO_BOXES["nuscenes"]).score(expert)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_route_fit_over_nearby_segments_equals_the_fit_over_all(seed):
+    rng = np.random.default_rng(seed)
+    route = np.cumsum(rng.normal(0.0, 4.0, (rng.integers(2, 200), 2)), axis=0)
+    pts = rng.uniform(-30.0, 30.0, (31, 2)) * rng.choice([0.1, 1.0, 5.0])
+    view = road(1.0)
+    view = LaneView(view.start, view.end, view.yaw, view.lane, view.polygons, view.intersections, route)
+    got = view._route_fit(pts)
+    want = LaneView._segments_fit(pts, route[:-1], route[1:])
+    assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes()

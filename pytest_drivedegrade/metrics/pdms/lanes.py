@@ -142,9 +142,23 @@ class LaneView:
         return np.sqrt(dx * dx + dy * dy)
 
     def _route_fit(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N,) each point's distance to the route centreline and the route's direction at its nearest point."""
+        """(N,) each point's distance to the route centreline and the route's direction at its nearest point.
+        Only the route segments whose bounding box meets the points' grown by NEAR_M are measured (a segment
+        that misses it lies farther than NEAR_M from every point); where a point has none of them within NEAR_M,
+        every segment is: the same nearest segment either way."""
         assert self.route is not None
         a, b = self.route[:-1], self.route[1:]
+        lo, hi = pts.min(0) - NEAR_M, pts.max(0) + NEAR_M
+        meets = ((np.maximum(a, b) >= lo) & (np.minimum(a, b) <= hi)).all(axis=1)
+        if meets.any():
+            d, heading = self._segments_fit(pts, a[meets], b[meets])
+            if (d <= NEAR_M).all():
+                return d, heading
+        return self._segments_fit(pts, a, b)
+
+    @staticmethod
+    def _segments_fit(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`_route_fit` over the segments a -> b (K, 2 each)."""
         ab = b - a
         t = np.clip(((pts[:, None, :] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
         d = np.hypot(*(a[None] + t[..., None] * ab[None] - pts[:, None, :]).transpose(2, 0, 1))
