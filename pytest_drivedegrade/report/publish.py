@@ -39,8 +39,8 @@ def analyse(run: FinishedRun) -> RunAnalysis:
     analysis = analyse_run(run.records.values(), flat=settings.flat, seed=run.provenance.seed,
                            floor_l2=run.floor.l2, seeds=settings.seeds, metric=settings.metric,
                            floor_ego_removal=run.floor.extra.get("ego_removal"), floor_frames=run.floor.per_frame)
-    analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device,
-                             ego_box=settings.ego_box)
+    analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
+    analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
     return analysis
 
 
