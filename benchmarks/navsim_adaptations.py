@@ -16,21 +16,25 @@ way:
 A contact is any overlap of the ego box with an agent box (not NAVSIM's at-fault rule): the count of plans the
 adaptation can change, an upper bound on how many no-collision verdicts move.
 
-    python benchmarks/navsim_adaptations.py [--scenes 2 --seed 7] [--draws 3] [--sigmas 0,0.3,1]
+Then (issue 39) the EPDMS's remaining adaptations, each swapped for its alternative on the same plans: mean
+EPDMS and retention per sigma (`epdms_study`; `--epdms-only` for that table alone, the quick mode).
+
+    python benchmarks/navsim_adaptations.py [--scenes 2 --seed 7] [--draws 3] [--sigmas 0,0.3,1] [--epdms-only]
 """
 
 from __future__ import annotations
 
 import argparse
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from pytest_drivedegrade.data.frame import AgentBoxes
-from pytest_drivedegrade.metrics import tracking
+from pytest_drivedegrade.metrics import pdms, tracking
+from pytest_drivedegrade.metrics.pdms import extended as X  # noqa: N812
 from pytest_drivedegrade.metrics.pdms.agents import agent_tracks, hits
-from pytest_drivedegrade.metrics.pdms.constants import EGO_SIZE
+from pytest_drivedegrade.metrics.pdms.constants import EGO_BOXES, EGO_SIZE
 
 SIGMAS: tuple[float, ...] = (0.0, 0.3, 1.0)
 STEPS = 8  # NAVSIM's 4 s of 0.5 s poses
@@ -141,14 +145,93 @@ def study(data: list[Expert], sigma: float, draws: int) -> dict[str, float]:
     return {k: float(np.mean(v)) for k, v in rows.items()}
 
 
+#: The EPDMS's variants (issue 39): the suite as it scores (NAVSIM v2.2's terms where the data allow) and each
+#: remaining adaptation, or a former rule, swapped in.
+EPDMS_VARIANTS: tuple[str, ...] = ("as scored", "no route (nearest same-way lane)", "hc filtered (former rule)",
+                                   "no past before the scene's 4th keyframe (hc 1)", "side rule without lanes",
+                                   "NAVSIM's Pacifica box (centred)")
+
+
+#: The lane change plan: the expert moved this far left (m), reached at 1 s and held.
+LANE_CHANGE_M: float = 3.5
+
+
+def epdms_variants(prepared: pdms.PreparedFrame, pacifica: pdms.PreparedFrame, index: int,
+                   plan: np.ndarray) -> dict[str, float]:
+    """One plan's EPDMS (ec not scored, a one-frame figure) under each of EPDMS_VARIANTS (`pacifica`: the same
+    frame prepared with NAVSIM's box)."""
+    ps = pdms.tracked_states(plan[None], [prepared.initial])[0]
+    result = prepared.score_tracked(plan, ps)
+    human = prepared.human
+    assert human is not None
+
+    def score(frame: pdms.PreparedFrame, res: pdms.PDMSResult, hum: X.ExtendedTerms) -> float:
+        return X.epdms_score(frame.extended(ps, res).filtered(hum), float("nan"))
+
+    lanes = prepared.lanes
+    no_route = replace(prepared, lanes=None if lanes is None else replace(lanes, route=None), memo={})
+    expert = pdms.tracked_states(prepared.expert[None], [prepared.initial])[0]
+    human_hc = replace(human, hc=X.history_comfort(expert, prepared.past))
+    bare = replace(prepared, lanes=None, memo={})
+    return {"as scored": score(prepared, result, human),
+            "no route (nearest same-way lane)": score(no_route, result, human),
+            "hc filtered (former rule)": score(prepared, result, human_hc),
+            "no past before the scene's 4th keyframe (hc 1)":
+                score(replace(prepared, past=None) if index < X.PAST_HC else prepared, result, human),
+            "side rule without lanes": score(prepared, bare.score_tracked(plan, ps), human),
+            "NAVSIM's Pacifica box (centred)": score(pacifica, pacifica.score_tracked(plan, ps), pacifica.human)}
+
+
+def epdms_study(scenes: int, seed: int, sigmas: tuple[float, ...], draws: int) -> None:
+    """Mean EPDMS and its retention (mean at sigma over mean at 0) of the world's noisy expert plans under each
+    variant: what each adaptation moves."""
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.data.world import write_world
+
+    reader = NuScenesReader(write_world(tempfile.mkdtemp(prefix="ddepdms-"), scenes=scenes, seed=seed,
+                                        val_images=False), split="all")
+    frames = reader.scorable_frames()
+    prepared = [pdms.PreparedFrame.of(f, reader.drivable_area(f), lane_map=reader.lane_map(f)) for f in frames]
+    pacifica = [pdms.PreparedFrame.of(f, reader.drivable_area(f), lane_map=reader.lane_map(f),
+                                      ego_size=EGO_BOXES["pacifica"]) for f in frames]
+    means: dict[float, dict[str, float]] = {}
+    for sigma in sigmas:
+        rows: dict[str, list[float]] = {v: [] for v in EPDMS_VARIANTS}
+        for d in range(draws if sigma else 1):
+            rng = np.random.default_rng(d)
+            for f, p, q in zip(frames, prepared, pacifica):
+                plan = f.gt_future + rng.normal(0.0, sigma, f.gt_future.shape)
+                for key, value in epdms_variants(p, q, f.index, plan).items():
+                    rows[key].append(value)
+        means[sigma] = {k: float(np.nanmean(v)) for k, v in rows.items()}
+    change: dict[str, list[float]] = {v: [] for v in EPDMS_VARIANTS}
+    shift = np.minimum(np.arange(1, 7) * 0.5, 1.0)[:, None] * [0.0, LANE_CHANGE_M]  # 3.5 m left by 1 s, held
+    for f, p, q in zip(frames, prepared, pacifica):
+        for key, value in epdms_variants(p, q, f.index, f.gt_future + shift).items():
+            change[key].append(value)
+    print(f"\nEPDMS (ec not scored) of {len(frames)} frames' expert plans + N(0, sigma^2); retention: over sigma 0")
+    print("| variant | " + " | ".join(f"EPDMS {s:g} m" for s in sigmas)
+          + " | " + " | ".join(f"retention {s:g} m" for s in sigmas if s) + " | EPDMS, lane change left |")
+    print("|---|" + "---|" * (2 * len(sigmas) - (0.0 in sigmas) + 1))
+    base = sigmas[0]
+    for v in EPDMS_VARIANTS:
+        print(f"| {v} | " + " | ".join(f"{means[s][v]:.4f}" for s in sigmas) + " | "
+              + " | ".join(f"{means[s][v] / means[base][v]:.4f}" for s in sigmas if s)
+              + f" | {np.nanmean(change[v]):.4f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--draws", type=int, default=3)
     ap.add_argument("--sigmas", default=",".join(f"{x:g}" for x in SIGMAS), help="noise sigmas (m), comma-separated")
+    ap.add_argument("--epdms-only", action="store_true", help="only the EPDMS variants (issue 39)")
     args = ap.parse_args()
     sigmas = tuple(float(x) for x in args.sigmas.split(","))
+    epdms_study(args.scenes, args.seed, sigmas, args.draws)
+    if args.epdms_only:
+        return
     data = experts(args.scenes, args.seed)
     print(f"world: {args.scenes} scenes, seed {args.seed}: {len(data)} expert plans with 4 s of future, "
           f"{args.draws} noise draws per sigma (share of plans)")

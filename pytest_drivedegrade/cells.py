@@ -28,8 +28,9 @@ EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
 #: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
 #: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
-#: 5: the tracker's velocity fit as NAVSIM's code does it (spec 4.2).
-RECORD_VERSION = 5
+#: 5: the tracker's velocity fit as NAVSIM's code does it (spec 4.2). 6: the EPDMS terms and NC/TTC's side rule as
+#: NAVSIM v2.2's code (issue 39).
+RECORD_VERSION = 6
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The per-frame EPDMS arrays (spec 4.1, NAVSIM v2): its own terms (before the human filter) and the score; NaN

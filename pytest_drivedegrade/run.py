@@ -27,6 +27,7 @@ from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DriveDegradeError
 from .metrics.pdms import EgoStates, PreparedFrame, tracked_experts
+from .metrics.pdms.constants import EGO_BOXES
 from .metrics.trajectory import FrameTruth
 from .pacing import processes_here
 from .planning import CallStyle, Planner, call_style, planner_cameras, planner_fingerprint
@@ -293,7 +294,8 @@ class RunContext:
                 self._experts = tracked_experts(self.frames)
             found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
                                                                lane_map=self.reader.lane_map(frame),
-                                                               expert_states=self._experts.get(frame.token))
+                                                               expert_states=self._experts.get(frame.token),
+                                                               ego_size=EGO_BOXES[self.settings.ego_box])
         return found
 
     def frame_truth(self, frame: Frame) -> FrameTruth:

@@ -89,6 +89,7 @@ class RunSettings:
     timeout: float = 60.0  #: seconds one predict() may take (0: no limit)
     metric: str = "l2"  #: the retention the verdict is put on (l2, pdms or epdms)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
+    ego_box: str = "nuscenes"  #: the ego box the PDMS and EPDMS score with (`metrics.pdms.constants.EGO_BOXES`)
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
     adaptive: bool = False  #: cells stop when their anytime-valid interval settles their decisions (spec 14)
@@ -277,6 +278,8 @@ TABLE: tuple[Setting, ...] = (
             "verdict is put on another retention"),
     Setting("flat", "flat line", "--drivedegrade-flat", (("settings", "flat"),), _F, "the gate compares "
             "retentions, which the flat line only labels"),
+    Setting("ego_box", "ego box", "--drivedegrade-ego-box", (("settings", "ego_box"),), _S, "another ego box "
+            "scores other collisions, TTC and drivable-area verdicts", keyed=lambda s: s.ego_box != "nuscenes"),
     Setting("shard", "shard", "--drivedegrade-shard", (), _F, "each shard scores its own part of a run; a "
             "certificate is of a whole run", rerun="never", per_shard=True),
     Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "

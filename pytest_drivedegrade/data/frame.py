@@ -114,6 +114,12 @@ class Frame:
     location: str = ""  # the log's location, which names its map ("" when the data has no log table)
     pose: tuple[float, float, float] | None = None  # global (x, y, yaw) of the ego at this keyframe
     lidar_file: str = ""  # the keyframe's LIDAR_TOP sweep (.pcd.bin), "" when the data set has none
+    #: The past keyframes' logged motion, for NAVSIM's history comfort (scoring only, never a planner input):
+    #: (PAST_STEPS, 4) oldest first, each (time relative to this keyframe in microseconds, heading relative to
+    #: this keyframe's (rad), that keyframe's own acceleration (ax, ay) m/s^2 in its body frame, as its
+    #: `EgoStatus` has it). A keyframe before the scene's first repeats the first's motion 0.5 s further back.
+    #: None where the data give no past (a closed-loop frame).
+    past_motion: np.ndarray | None = None
 
     def to_global(self, xy: np.ndarray) -> np.ndarray:
         """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""

@@ -16,7 +16,7 @@ import copy
 import hashlib
 import os
 from collections import Counter, defaultdict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -275,7 +275,8 @@ class NuScenesReader:
         return Frame(token, scene["token"], int(self.samples[token]["timestamp"]), cameras, ego, command,
                      future, valid, tuple(agents), scene["name"], index=k, ego_pose=pose,
                      lidar=self._lidar(token), can=can_record, location=self.locations.get(scene["token"], ""),
-                     pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])), lidar_file=self._lidar_file(token))
+                     pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])), lidar_file=self._lidar_file(token),
+                     past_motion=_past_motion(yaw, stamps, k, lambda i: _ego_status(xy, yaw, stamps, i, can)))
 
     def _lidar(self, token: str) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
         """LIDAR_TOP's calibrated_sensor (rotation, translation) at keyframe `token`, or None without one."""
@@ -351,6 +352,20 @@ def _ego_status(xy: np.ndarray, yaw: np.ndarray, stamps: np.ndarray, k: int, can
             -np.asarray(velocity, dtype=float) * n * STEP_SECONDS
     return EgoStatus((float(velocity[0]), float(velocity[1])), (float(accel[0]), float(accel[1])),
                      float(yaw_rate), past)
+
+
+def _past_motion(yaw: np.ndarray, stamps: np.ndarray, k: int, status: Callable[[int], EgoStatus]) -> np.ndarray:
+    """`Frame.past_motion` of keyframe k: each past keyframe's time (us) and heading relative to k and its own
+    logged acceleration (`status(i)`, the keyframe's `EgoStatus`); before the scene's first keyframe, the first
+    keyframe's motion repeated 0.5 s further back per missing keyframe (NAVSIM never scores such a frame)."""
+    out = np.zeros((PAST_STEPS, 4))
+    for n in range(1, PAST_STEPS + 1):
+        i = max(k - n, 0)
+        missing = n - (k - i)
+        out[PAST_STEPS - n] = (float(stamps[i] - stamps[k]) - missing * STEP_SECONDS * 1e6,
+                               float(geo.wrap_angle(yaw[i] - yaw[k])), *status(i).acceleration)
+    out.setflags(write=False)
+    return out
 
 
 def _nearest(records: list[dict], utime: int) -> dict:

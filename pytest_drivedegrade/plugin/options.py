@@ -98,6 +98,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "M = mean L2), pdms (the PDMS-like score) or epdms (NAVSIM v2's extended score); all are always "
                "computed and reported",
                {"metavar": "METRIC"}),
+    OptionSpec("--drivedegrade-ego-box", "drivedegrade_ego_box", "the ego box the PDMS and EPDMS score with: "
+               "nuscenes (default, 4.084 x 1.85 m) or pacifica (NAVSIM's, 5.176 x 2.297 m)", {"metavar": "BOX"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
     OptionSpec("--drivedegrade-prefetch", "drivedegrade_prefetch", "frames decoded and corrupted ahead of the "
@@ -278,6 +280,7 @@ def _device(config: pytest.Config) -> str:
 def _settings(config: pytest.Config, here: Path) -> RunSettings:
     """The run's settings (`RunSettings`), each checked."""
     from ..data.nuscenes import SPLITS
+    from ..metrics.pdms.constants import EGO_BOXES
 
     data = value(config, "drivedegrade_data")
     split = str(value(config, "drivedegrade_split") or DEFAULTS.split)
@@ -291,6 +294,9 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
     if metric not in ("l2", "pdms", "epdms"):
         raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms, epdms")
+    ego_box = str(value(config, "drivedegrade_ego_box") or DEFAULTS.ego_box).strip().lower()
+    if ego_box not in EGO_BOXES:
+        raise _fail("drivedegrade_ego_box", f"unknown ego box {ego_box!r}; valid boxes: {', '.join(EGO_BOXES)}")
     return _closed(config, RunSettings(
         data=(here / data).resolve() if data else None,
         split=split,
@@ -303,6 +309,7 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         timeout=_timeout(config),
         metric=metric,
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
+        ego_box=ego_box,
         shard=shard,
         prefetch=_prefetch(config),
         adaptive=_adaptive(config),

@@ -41,6 +41,7 @@ def analyse(run: FinishedRun) -> RunAnalysis:
                            floor_ego_removal=run.floor.extra.get("ego_removal"), floor_frames=run.floor.per_frame,
                            scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
+    analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
     return analysis
 
 

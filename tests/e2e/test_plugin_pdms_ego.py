@@ -101,3 +101,15 @@ def test_an_unknown_metric_is_a_usage_error(dd):
     result = dd.run("--drivedegrade-metric", "mse")
     assert result.ret == pytest.ExitCode.USAGE_ERROR
     result.stderr.fnmatch_lines(["*--drivedegrade-metric: unknown metric 'mse'*"])
+
+
+def test_the_ego_box_is_recorded_and_an_unknown_one_is_a_usage_error(dd):
+    dd.write_planner()
+    result = dd.run("--drivedegrade-ego-box", "lorry")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    result.stderr.fnmatch_lines(["*--drivedegrade-ego-box: unknown ego box 'lorry'; valid boxes: nuscenes, pacifica*"])
+    result = dd.run("--drivedegrade-ego-box", "pacifica", families="blackout", severities="5")
+    no_traceback(result)
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["settings"]["ego_box"] == "pacifica"
+    assert verify_cli(dd.folder() / "certificate.json").returncode == 0

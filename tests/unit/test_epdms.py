@@ -71,12 +71,13 @@ def test_lane_keeping_fails_after_two_seconds_off_the_centreline():
 # -- hc and ec --------------------------------------------------------------------------------------------------
 
 def test_history_comfort_pads_the_plan_with_the_past():
-    steady = X.history(np.stack([-10.0 * np.arange(4, 0, -1) * 0.5, np.zeros(4)], 1), (10.0, 0.0))
-    assert len(steady[0]) == 15 and np.allclose(steady[1:], 0.0, atol=1e-9)
+    # keyframes 1.5, 1.0, 0.5 s back, as NAVSIM reads them (times us, heading, ax, ay); the -2 s row is unread
+    steady = X.history(np.array([[-2e6, 0, 0, 0], [-1.5e6, 0, 0, 0], [-1e6, 0, 0, 0], [-0.5e6, 0, 0, 0]]))
+    assert len(steady[0]) == 14 and np.allclose(steady, 0.0, atol=1e-12)
     assert X.history_comfort(straight(10.0), steady) == 1.0
     assert X.history_comfort(straight(10.0, accel=-6.0), steady) == 0.0  # braking beyond -4.05 m/s^2
-    # a hard stop in the past is still in the padded window: the plan alone would pass
-    stop = X.history(np.stack([[-16.0, -9.0, -4.0, -1.0], np.zeros(4)], 1), (0.5, 0.0))
+    # a hard stop in the past is still in the padded window: the plan alone would pass (NAVSIM: 1 without a past)
+    stop = X.history(np.array([[-2e6, 0, -6, 0], [-1.5e6, 0, -6, 0], [-1e6, 0, -6, 0], [-0.5e6, 0, -6, 0]]))
     assert X.history_comfort(straight(0.5), None) == 1.0 and X.history_comfort(straight(0.5), stop) == 0.0
 
 

@@ -177,7 +177,7 @@ def query_one_ring_at_a_time(lanes: LaneView, xy: np.ndarray, heading: np.ndarra
     dist = lanes._distances(pts, near) if len(near) else np.zeros((len(pts), 0))
     along = np.abs(_wrap(lanes.yaw[near][None, :] - head[:, None])) < np.pi / 2
     deviation = np.where(along, dist, np.inf).min(axis=1) if len(near) else np.full(len(pts), np.inf)
-    inside_any, along_any = np.zeros(len(pts), bool), np.zeros(len(pts), bool)
+    along_any = np.zeros(len(pts), bool)
     lane_of = lanes.lane[near]
     for k in np.unique(lane_of).tolist():
         if lanes.polygons[k] is None:
@@ -187,12 +187,11 @@ def query_one_ring_at_a_time(lanes: LaneView, xy: np.ndarray, heading: np.ndarra
             continue
         columns = np.flatnonzero(lane_of == k)
         seg = near[columns[dist[:, columns].argmin(axis=1)]]
-        inside_any |= inside
         along_any |= inside & (np.abs(_wrap(lanes.yaw[seg] - head)) < np.pi / 2)
     junction = np.zeros(len(pts), bool)
     for ring in lanes.intersections:
         junction |= ring_one_point_at_a_time(ring, pts)
-    return deviation.tolist(), (inside_any & ~along_any).tolist(), junction.tolist()
+    return deviation.tolist(), (~along_any).tolist(), junction.tolist()  # off every lane: oncoming (NAVSIM)
 
 
 @settings(max_examples=200, deadline=None)

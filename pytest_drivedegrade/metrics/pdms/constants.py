@@ -60,6 +60,10 @@ HEADING_MIN_SPEED: float = 0.5
 MAX_AGENT_SPEED: float = 40.0  # m/s
 SIZE_MATCH_M: float = 0.05
 
+#: The ego boxes a run can score with (`--drivedegrade-ego-box`; length along the heading, width, m): the nuScenes
+#: ego (a Renault Zoe, the default) and NAVSIM's (nuPlan's `get_pacifica_parameters`: front 4.049 + rear 1.127 m
+#: long, 2.297 m wide), each centred on the tracked point (NAVSIM centres its 1.461 m ahead of the rear axle).
+EGO_BOXES: dict[str, tuple[float, float]] = {"nuscenes": (EGO_LENGTH, EGO_WIDTH), "pacifica": (5.176, 2.297)}
 #: The ego box (length along the heading, width), centred on the waypoint ...
 EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
 #: ... its front edge, a box of no length across the ego's nose (a front contact is the ego's fault) ...

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from ...constants import PAST_STEPS, STEP_SECONDS
-from .constants import HEADING_MIN_SPEED, PROGRESS_DISTANCE_THRESHOLD, SIM_DT
+from ...constants import STEP_SECONDS
+from .constants import PROGRESS_DISTANCE_THRESHOLD, SIM_DT
 from .lanes import LaneQuery, LaneView
 from .motion import EgoStates, savgol, within_comfort
 
@@ -29,13 +29,15 @@ LK_DEVIATION_M, LK_WINDOW_S = 0.5, 2.0
 #: Weights of the averaged terms (EP 5, TTC 5, LK 2, HC 2, EC 2) and the multiplied terms.
 EPDMS_WEIGHTS: dict[str, float] = {"ep": 5.0, "ttc": 5.0, "lk": 2.0, "hc": 2.0, "ec": 2.0}
 EPDMS_MULTIPLIERS: tuple[str, ...] = ("nc", "dac", "ddc", "tlc")
-#: The terms the human filter looks at (not ec: NAVSIM scores the human on one frame).
+#: The terms of a plan's `ExtendedTerms`. The human filter looks at each of them, but NAVSIM scores the human
+#: without a past, so its hc is always 1 and hc is never filtered; ec is not a term of one frame.
 FILTERED: tuple[str, ...] = ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc")
 #: Two-frame extended comfort: RMS of the difference of consecutive plans' features, at most these
 #: (acceleration m/s^2, jerk m/s^3, yaw rate rad/s, yaw acceleration rad/s^2), over their overlap.
 EC_THRESHOLDS: tuple[float, float, float, float] = (0.7, 0.5, 0.1, 0.1)
-#: History comfort pads the plan with the ego's last 1.5 s at 10 Hz (NAVSIM's past human trajectory).
-HISTORY_S: float = 1.5
+#: History comfort pads the plan with the ego's past keyframes 1.5, 1.0 and 0.5 s back (NAVSIM's
+#: ``get_ego_past_trajectory(0, 1.5)``: three past 2 Hz frames) and the current one.
+PAST_HC: int = 3
 #: Consecutive frames at most this far apart (s) are "the previous frame" for EC (NAVSIM asserts < 0.55 s).
 EC_MAX_INTERVAL_S: float = 0.55
 
@@ -131,37 +133,36 @@ def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> flo
     return within_comfort(terms)
 
 
-def history(past_xy: npt.ArrayLike, velocity: npt.ArrayLike,
-            acceleration: npt.ArrayLike = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The ego's last HISTORY_S at 10 Hz (t = -1.5 .. -0.1 s) from its past keyframe positions (PAST_STEPS,
-    oldest first, 0.5 s apart): the cubic through the origin with the current velocity and acceleration
-    (continuous with the plan's t = 0 state) whose constant jerk fits the past positions best (least squares).
-    NAVSIM has the logged 10 Hz states; from 2 Hz positions a curve through each knot would invent jerks between
-    them. Returns heading (held at 0 below HEADING_MIN_SPEED), longitudinal and lateral acceleration (H,)."""
-    knots = np.asarray(past_xy, dtype=np.float64).reshape(PAST_STEPS, 2)
-    v0 = np.asarray(velocity, dtype=np.float64).reshape(2)
+def history(past_motion: npt.ArrayLike, acceleration: npt.ArrayLike = (0.0, 0.0)
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ego's past as NAVSIM v2's history comfort pads the plan with it: the ego states of the keyframes
+    1.5, 1.0 and 0.5 s back and of this one (`Frame.past_motion`'s last PAST_HC rows, then this keyframe at time
+    0, heading 0, `acceleration`), linearly interpolated (nuPlan's `InterpolatedTrajectory`: heading unwrapped,
+    the body-frame accelerations as logged) at every 0.1 s from the first keyframe's time while before this
+    one's, less the last sample (NAVSIM's ``history_time_us[:-1]``): 14 states, -1.5 .. -0.2 s, which the plan's
+    t = 0 state then follows as if 0.1 s later. Returns heading, longitudinal and lateral acceleration (H,)."""
+    rows = np.asarray(past_motion, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 4 or len(rows) < PAST_HC:
+        raise ValueError(f"past motion of shape {rows.shape}: expected ({PAST_HC} or more, 4) rows of (time us, "
+                         f"heading, ax, ay), oldest first (`Frame.past_motion`)")
+    rows = rows[-PAST_HC:]
     a0 = np.asarray(acceleration, dtype=np.float64).reshape(2)
-    tk = -np.arange(PAST_STEPS, 0, -1) * STEP_SECONDS
-    basis = tk**3 / 6.0
-    rest = knots - tk[:, None] * v0 - 0.5 * tk[:, None] ** 2 * a0
-    jerk = (basis[:, None] * rest).sum(0) / (basis**2).sum()
-    t = -np.arange(round(HISTORY_S / SIM_DT), 0, -1)[:, None] * SIM_DT  # -1.5 .. -0.1
-    vel = v0 + a0 * t + 0.5 * jerk * t**2
-    acc = a0 + jerk * t
-    speed = np.hypot(vel[:, 0], vel[:, 1])
-    heading = np.where(speed >= HEADING_MIN_SPEED, np.arctan2(vel[:, 1], vel[:, 0]), 0.0)
-    heading = np.unwrap(heading)
-    heading -= 2 * np.pi * np.round(heading[-1] / (2 * np.pi))
-    c, s = np.cos(heading), np.sin(heading)
-    return heading, c * acc[:, 0] + s * acc[:, 1], -s * acc[:, 0] + c * acc[:, 1]
+    knots = np.vstack([rows, [0.0, 0.0, a0[0], a0[1]]])
+    t_us = knots[:, 0].astype(np.int64)
+    if np.any(np.diff(t_us) <= 0):
+        raise ValueError(f"past keyframe times {t_us.tolist()} (us) do not increase to this keyframe's 0")
+    samples = np.arange(t_us[0], t_us[-1], round(SIM_DT * 1e6), dtype=np.int64)[:-1]
+    heading = np.unwrap(knots[:, 1])
+    t = samples.astype(np.float64)
+    return (np.interp(t, t_us, heading), np.interp(t, t_us, knots[:, 2]), np.interp(t, t_us, knots[:, 3]))
 
 
 def history_comfort(states: EgoStates, past: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> float:
-    """HC in {0, 1}: NAVSIM v2's comfort over the ego's past 1.5 s followed by the plan's tracked states; without
-    a past (NAVSIM then gives 1) the plan's own states are judged."""
-    lon, lat = _body_accel(states)
+    """HC in {0, 1}: NAVSIM v2's comfort over the ego's past (`history`) followed by the plan's tracked states;
+    1 without a past, as NAVSIM gives it (its human-filter run is scored so, hence HC is never filtered)."""
     if past is None:
-        return comfortable_v2(states.heading, lon, lat)
+        return 1.0
+    lon, lat = _body_accel(states)
     return comfortable_v2(np.concatenate([past[0], states.heading]), np.concatenate([past[1], lon]),
                           np.concatenate([past[2], lat]))
 

@@ -16,6 +16,8 @@ import numpy as np
 
 from ...data.geometry import wrap_angle as _wrap
 from ...data.maps import LaneMap, RingSet
+from .constants import EGO_SIZE
+from .motion import EgoStates, box_corners, out_of_lane
 
 #: Lanes, connectors and intersections whose bounding box comes within this of the ego are kept (m).
 LANE_RADIUS_M: float = 80.0
@@ -37,6 +39,9 @@ class LaneView:
     lane: np.ndarray
     polygons: tuple[np.ndarray | None, ...]
     intersections: tuple[np.ndarray, ...]
+    #: the route centreline (K, 2) (`route.route_centreline`), what lane keeping and the driving direction read
+    #: as NAVSIM does; None: no lane holds the ego, and the nearest same-way lane stands in (the former rule)
+    route: np.ndarray | None = None
 
     @classmethod
     def of_centrelines(cls, centrelines: Sequence[np.ndarray], polygons: Sequence[np.ndarray | None] = (),
@@ -136,16 +141,54 @@ class LaneView:
         dx, dy = ax + t * bx - px, ay + t * by - py
         return np.sqrt(dx * dx + dy * dy)
 
+    def _route_fit(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N,) each point's distance to the route centreline and the route's direction at its nearest point.
+        Only the route segments whose bounding box meets the points' grown by NEAR_M are measured (a segment
+        that misses it lies farther than NEAR_M from every point); where a point has none of them within NEAR_M,
+        every segment is: the same nearest segment either way."""
+        assert self.route is not None
+        a, b = self.route[:-1], self.route[1:]
+        lo, hi = pts.min(0) - NEAR_M, pts.max(0) + NEAR_M
+        meets = ((np.maximum(a, b) >= lo) & (np.minimum(a, b) <= hi)).all(axis=1)
+        if meets.any():
+            d, heading = self._segments_fit(pts, a[meets], b[meets])
+            if (d <= NEAR_M).all():
+                return d, heading
+        return self._segments_fit(pts, a, b)
+
+    @staticmethod
+    def _segments_fit(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`_route_fit` over the segments a -> b (K, 2 each)."""
+        ab = b - a
+        t = np.clip(((pts[:, None, :] - a[None]) * ab[None]).sum(-1) / np.maximum((ab * ab).sum(1), 1e-12), 0, 1)
+        d = np.hypot(*(a[None] + t[..., None] * ab[None] - pts[:, None, :]).transpose(2, 0, 1))
+        k = d.argmin(axis=1)
+        return d[np.arange(len(pts)), k], np.arctan2(ab[k, 1], ab[k, 0])
+
+    def multiple_lanes(self, corners: np.ndarray) -> np.ndarray:
+        """(N,) bool for ego boxes' corners (N, 4, 2): NAVSIM's "in multiple lanes", more than one lane polygon
+        holds a corner and none holds all four."""
+        pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+        lanes = np.unique(self.lane[self._near(pts, NEAR_M)]) if len(self.start) else np.zeros(0, int)
+        if not len(lanes):
+            return np.zeros(len(pts) // 4, dtype=bool)
+        held = self._lane_set.contains(pts, lanes).reshape(-1, 4, len(lanes)).sum(axis=1)  # (N, lanes)
+        return np.asarray(((held > 0).sum(axis=1) > 1) & ~(held == 4).any(axis=1), dtype=bool)
+
     def query(self, xy: np.ndarray, heading: np.ndarray) -> LaneQuery:
-        """The lane figures DDC and LK read for states at `xy` (N, 2) heading `heading` (N,), computed together:
-        the centreline segments within NEAR_M of the points and their distances once (`deviation`, `oncoming`)."""
+        """The lane figures DDC and LK read for states at `xy` (N, 2) heading `heading` (N,), computed together.
+        With a route (NAVSIM's): `deviation` is the distance to the route centreline, and a state is oncoming
+        when its centre lies in no lane running the route's way at its nearest route point (off every lane
+        too, as NAVSIM's "not in an on-route lane"). Without one: the nearest centreline running the state's
+        own way, and the state's heading, stand in."""
         pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         head = np.asarray(heading, dtype=np.float64).reshape(-1)
         near = self._near(pts, NEAR_M)
         dist = self._distances(pts, near) if len(near) else np.zeros((len(pts), 0))
         along = np.abs(_wrap(self.yaw[near][None, :] - head[:, None])) < np.pi / 2
         deviation = np.where(along, dist, np.inf).min(axis=1) if len(near) else np.full(len(pts), np.inf)
-        inside_any = np.zeros(len(pts), dtype=bool)
+        if self.route is not None and len(self.route) >= 2:
+            deviation, head = self._route_fit(pts)
         along_any = np.zeros(len(pts), dtype=bool)
         lane_of = self.lane[near]
         lanes = np.unique(lane_of)
@@ -153,17 +196,30 @@ class LaneView:
         for j in np.flatnonzero(inside.any(axis=0)).tolist():
             columns = np.flatnonzero(lane_of == lanes[j])
             seg = near[columns[dist[:, columns].argmin(axis=1)]]
-            inside_any |= inside[:, j]
             along_any |= inside[:, j] & (np.abs(_wrap(self.yaw[seg] - head)) < np.pi / 2)
-        return LaneQuery(deviation, inside_any & ~along_any, self.in_intersection(pts))
+        return LaneQuery(deviation, ~along_any, self.in_intersection(pts))
 
 
 @dataclass(frozen=True)
 class LaneQuery:
-    """States against the lanes (`LaneView.query`): each state's distance to the nearest centreline running its
-    way (`deviation`, inf where none within NEAR_M), whether it drives in oncoming lanes only (`oncoming`), and
+    """States against the lanes (`LaneView.query`): each state's distance to the route centreline (or the
+    nearest centreline running its way; `deviation`, inf where none within NEAR_M), whether its centre lies in
+    no lane running the route's way (`oncoming`, NAVSIM's "not in an on-route lane": off every lane counts), and
     whether it is inside an intersection (`in_intersection`)."""
 
     deviation: np.ndarray
     oncoming: np.ndarray
     in_intersection: np.ndarray
+
+
+def astray(states: EgoStates, off: np.ndarray, path: np.ndarray, lanes: LaneView | None,
+           size: np.ndarray = EGO_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """Per state (N,) the masks NAVSIM's side-contact rules read: for NC, "in multiple lanes or in non-drivable
+    area" (`off`: a corner off the drivable area; multiple lanes from the lane polygons, `LaneView.multiple_lanes`;
+    without lanes, a corner more than half a lane from the expert's path stands in); for TTC, the same or the
+    ego's tracked point inside an intersection (NAVSIM's intersection clause, read at its rear axle)."""
+    if lanes is None or not len(lanes.start):
+        nc = off | out_of_lane(states, path, size)
+        return nc, nc
+    nc = off | lanes.multiple_lanes(box_corners(states.xy, states.heading, size))
+    return nc, nc | lanes.in_intersection(states.xy)

@@ -118,13 +118,14 @@ def box_corners(xy: np.ndarray, heading: np.ndarray, size: np.ndarray = EGO_SIZE
     return np.stack([xy[:, 0:1] + c * lx - s * ly, xy[:, 1:2] + s * lx + c * ly], axis=-1)
 
 
-def off_road(states: EgoStates, drivable: DrivableQuery | None, ego_pose: EgoPose | None = None) -> np.ndarray:
+def off_road(states: EgoStates, drivable: DrivableQuery | None, ego_pose: EgoPose | None = None,
+             size: np.ndarray = EGO_SIZE) -> np.ndarray:
     """Per state (N,) bool: a corner of the ego box lies outside the drivable area. `drivable` answers for
     points (K, 2) in the map's frame; `ego_pose` (x, y, yaw) maps ego-frame points there (None: the query takes
     ego-frame points). No query: nothing is off the road."""
     if drivable is None:
         return np.zeros(N_STATES, dtype=bool)
-    pts = box_corners(states.xy, states.heading).reshape(-1, 2)
+    pts = box_corners(states.xy, states.heading, size).reshape(-1, 2)
     if ego_pose is not None:
         x, y, yaw = (float(v) for v in ego_pose)
         c, s = np.cos(yaw), np.sin(yaw)
@@ -164,10 +165,10 @@ def path_distance(path: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return np.sqrt(dx * dx + dy * dy).min(1)
 
 
-def out_of_lane(states: EgoStates, path: np.ndarray) -> np.ndarray:
+def out_of_lane(states: EgoStates, path: np.ndarray, size: np.ndarray = EGO_SIZE) -> np.ndarray:
     """Per state (N,) bool: a corner of the ego box lies more than HALF_LANE_M from the expert's path, the
     stand-in for NAVSIM's "in multiple lanes" where the map has no lanes."""
-    corners = box_corners(states.xy, states.heading).reshape(-1, 2)
+    corners = box_corners(states.xy, states.heading, size).reshape(-1, 2)
     far = path_distance(path, corners) > HALF_LANE_M
     return np.asarray(far.reshape(N_STATES, 4).any(axis=1), dtype=bool)
 

@@ -20,7 +20,6 @@ from ...data.maps import DrivableArea, LaneMap
 from ..trajectory import FlatAgents, overlap_pairs
 from .agents import agent_steps, agent_tracks, first_seen
 from .constants import (
-    EGO_RADIUS,
     EGO_SIZE,
     FAR_MARGIN_M,
     KEY_STATES,
@@ -39,7 +38,7 @@ from .extended import (
     lane_keeping,
     lane_query,
 )
-from .lanes import LaneView
+from .lanes import LaneView, astray
 from .local_map import LocalDrivable
 from .motion import (
     EgoPose,
@@ -47,10 +46,10 @@ from .motion import (
     expert_path,
     is_comfortable,
     off_road,
-    out_of_lane,
     progress_along,
     waypoints,
 )
+from .route import route_centreline
 from .rules import Contact, collision_score, pdms_result, ttc_score
 from .tracked import initial_state, tracked_states
 
@@ -91,6 +90,7 @@ class PreparedFrame:
     lanes: LaneView | None = None  # the lanes around the ego (EPDMS's ddc and lk; None: not scored)
     past: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the ego's last 1.5 s (`extended.history`)
     human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
+    ego_size: np.ndarray = field(default_factory=lambda: EGO_SIZE.copy())  # the ego box (length, width), m
     #: plans judged on this frame (`judged`), by their bytes, up to MEMO_PLANS of them
     memo: dict[bytes, tuple[PDMSResult, ExtendedTerms]] = field(default_factory=dict, compare=False, repr=False)
 
@@ -98,12 +98,16 @@ class PreparedFrame:
     def prepare(cls, expert: npt.ArrayLike, agents: Sequence[AgentBoxes],
                 ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
                 ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
-                lanes: LaneView | None = None, expert_states: EgoStates | None = None) -> PreparedFrame:
+                lanes: LaneView | None = None, expert_states: EgoStates | None = None,
+                past_motion: npt.ArrayLike | None = None, ego_size: npt.ArrayLike = EGO_SIZE) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
         polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
         and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
         terms for the human filter (`lanes`: the lanes around the ego, in its frame). `expert_states`: the
-        expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states."""
+        expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states.
+        `past_motion`: the past keyframes' motion (`Frame.past_motion`) for history comfort (None: hc 1).
+        `ego_size`: the ego box (length, width) every box test of the plan and the expert uses (`EGO_BOXES`)."""
+        size = np.array(ego_size, dtype=np.float64).reshape(2)
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents)
         ids, velocities = agent_tracks(steps)
@@ -112,35 +116,41 @@ class PreparedFrame:
         if isinstance(drivable, DrivableArea) and ego_pose is not None:
             drivable = LocalDrivable(drivable, [float(ego_pose[0]), float(ego_pose[1])])
         es = tracked_states(expert_arr[None], [start])[0] if expert_states is None else expert_states
-        expert_off = off_road(es, drivable, ego_pose)
+        expert_off = off_road(es, drivable, ego_pose, size)
         path = expert_path(expert_arr, float(es.heading[-1]))
-        expert_astray = expert_off | out_of_lane(es, path)
+        expert_astray, expert_ttc_astray = astray(es, expert_off, path, lanes, size)
         boxes = FlatAgents.of(steps)
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
-        reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + EGO_RADIUS + FAR_MARGIN_M
-        past = history(ego.past_xy, ego.velocity, ego.acceleration) if isinstance(ego, EgoStatus) else None
+        reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + 0.5 * math.hypot(*size) + FAR_MARGIN_M
+        past = history(past_motion, ego.acceleration) if isinstance(ego, EgoStatus) and past_motion is not None \
+            else None
         # the frame without the expert's own judgement, whose vectorised contacts then judge the expert as they
         # judge a plan (`score_tracked`): the reference's contacts in the reference's order, 6x cheaper
         bare = cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
                    tuple(static_categories), path, progress_along(path, es.xy[-1]), math.nan, boxes, index, reach,
-                   lanes, past)
-        expert_nc = collision_score(es, bare.collisions(es), expert_astray, static_categories=static_categories)
+                   lanes, past, None, size)
+        expert_nc = collision_score(es, bare.collisions(es), expert_astray, static_categories=static_categories,
+                                    size=size)
         dac = 0.0 if expert_off.any() else 1.0
         query = lane_query(es, lanes)
         human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), float("nan"), 1.0,
-                              ttc_score(es, bare.projections(es), expert_astray),
-                              lane_keeping(es, lanes, query), history_comfort(es, past))
+                              ttc_score(es, bare.projections(es), expert_ttc_astray),
+                              lane_keeping(es, lanes, query), 1.0)  # NAVSIM scores the human without a past
         return replace(bare, expert_multiplier=expert_nc * dac, human=human)
 
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
            static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None,
-           expert_states: EgoStates | None = None) -> PreparedFrame:
+           expert_states: EgoStates | None = None, ego_size: npt.ArrayLike = EGO_SIZE) -> PreparedFrame:
         """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS;
-        `expert_states`: its expert's from `tracked_experts`)."""
-        lanes = LaneView.of_map(lane_map, frame.pose) if lane_map is not None and frame.pose is not None else None
+        `expert_states`: its expert's from `tracked_experts`; `ego_size`: the ego box)."""
+        lanes = None
+        if lane_map is not None and frame.pose is not None:
+            lanes = replace(LaneView.of_map(lane_map, frame.pose),
+                            route=route_centreline(lane_map, frame.pose, frame.gt_future[frame.gt_valid]))
         return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
-                           static_categories=static_categories, lanes=lanes, expert_states=expert_states)
+                           static_categories=static_categories, lanes=lanes, expert_states=expert_states,
+                           past_motion=frame.past_motion, ego_size=ego_size)
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -152,8 +162,8 @@ class PreparedFrame:
             q, a = q[near], a[near]
         if not len(q):
             return q, a
-        over = overlap_pairs(xy[q], np.broadcast_to(EGO_SIZE, (len(q), 2)), heading[q], b.centers[a], b.sizes[a],
-                             b.yaws[a])
+        over = overlap_pairs(xy[q], np.broadcast_to(self.ego_size, (len(q), 2)), heading[q], b.centers[a],
+                             b.sizes[a], b.yaws[a])
         return q[over], a[over]
 
     def _contact(self, state: int, flat: int, tracked: bool) -> Contact:
@@ -187,10 +197,11 @@ class PreparedFrame:
 
     def score_tracked(self, plan: np.ndarray, ps: EgoStates) -> PDMSResult:
         """The PDMS of a plan (6, 2) whose tracked states `ps` are already simulated from `initial`."""
-        plan_off = off_road(ps, self.drivable, self.ego_pose)
-        astray = plan_off | out_of_lane(ps, self.path)
-        nc = collision_score(ps, self.collisions(ps), astray, static_categories=self.static_categories)
-        ttc = ttc_score(ps, self.projections(ps), astray)
+        plan_off = off_road(ps, self.drivable, self.ego_pose, self.ego_size)
+        side, ttc_side = astray(ps, plan_off, self.path, self.lanes, self.ego_size)
+        nc = collision_score(ps, self.collisions(ps), side, static_categories=self.static_categories,
+                             size=self.ego_size)
+        ttc = ttc_score(ps, self.projections(ps), ttc_side)
         dac = 0.0 if plan_off.any() else 1.0
         return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, ps.xy[-1]),
                            self.expert_m, self.expert_multiplier, self.drivable is not None)

@@ -9,14 +9,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ...constants import EGO_LENGTH
 from ...data.frame import AgentBoxes
 from .agents import hits
 from .constants import (
     AHEAD_DEG,
     BEHIND_DEG,
-    BUMPER_SIZE,
     COMFORT_WEIGHT,
+    EGO_SIZE,
     EP_WEIGHT,
     PROGRESS_DISTANCE_THRESHOLD,
     STATIC_CATEGORIES,
@@ -61,14 +60,16 @@ def relative_angle(xy: np.ndarray, heading: float, other: np.ndarray) -> float:
     return float(np.arccos(np.clip((d[0] * np.cos(heading) + d[1] * np.sin(heading)) / norm, -1.0, 1.0)))
 
 
-def front_contact(xy: np.ndarray, heading: float, contact: Contact) -> bool:
-    """Whether the ego's front edge (a box of no length across its nose) touches the contact's box."""
-    nose = xy + 0.5 * EGO_LENGTH * np.array([np.cos(heading), np.sin(heading)])
+def front_contact(xy: np.ndarray, heading: float, contact: Contact, size: np.ndarray = EGO_SIZE) -> bool:
+    """Whether the ego's front edge (a box of no length across the nose of an ego box of `size`) touches the
+    contact's box."""
+    nose = xy + 0.5 * float(size[0]) * np.array([np.cos(heading), np.sin(heading)])
     single = AgentBoxes(contact.center[None], contact.size[None], np.array([contact.yaw]), (contact.category,))
-    return len(hits(nose, heading, single, BUMPER_SIZE)) > 0
+    return len(hits(nose, heading, single, np.array([0.0, float(size[1])]))) > 0
 
 
-def at_fault(states: EgoStates, contact: Contact, astray: np.ndarray, static: bool) -> bool:
+def at_fault(states: EgoStates, contact: Contact, astray: np.ndarray, static: bool,
+             size: np.ndarray = EGO_SIZE) -> bool:
     """NAVSIM's get_collision_type for one collision: ego stopped -> not at fault; agent stopped (or `static`)
     -> at fault; agent behind (> BEHIND_DEG) -> not at fault; the ego's front edge touches it -> at fault; else
     (a side contact) at fault only while the ego is `astray` (off the road or out of its lane, per state)."""
@@ -81,11 +82,12 @@ def at_fault(states: EgoStates, contact: Contact, astray: np.ndarray, static: bo
     xy, heading = states.xy[i], float(states.heading[i])
     if relative_angle(xy, heading, contact.center) > np.deg2rad(BEHIND_DEG):
         return False  # hit from behind
-    return front_contact(xy, heading, contact) or bool(astray[i])
+    return front_contact(xy, heading, contact, size) or bool(astray[i])
 
 
 def collision_score(states: EgoStates, collisions: Iterable[Contact], astray: np.ndarray,
-                    ignore: Collection[int] = (), static_categories: Sequence[str] = STATIC_CATEGORIES) -> float:
+                    ignore: Collection[int] = (), static_categories: Sequence[str] = STATIC_CATEGORIES,
+                    size: np.ndarray = EGO_SIZE) -> float:
     """NC in {0, 0.5, 1} from the plan's collisions at the waypoint times, in time order: per track not
     ignored, an at-fault collision scores 0 (1/2 with a static object); a not-at-fault track is ignored from
     then on."""
@@ -95,7 +97,7 @@ def collision_score(states: EgoStates, collisions: Iterable[Contact], astray: np
         if contact.track in ignored:
             continue
         static = contact.category in static_categories
-        if at_fault(states, contact, astray, static):
+        if at_fault(states, contact, astray, static, size):
             score = min(score, 0.5 if static else 0.0)
         else:
             ignored.add(contact.track)
