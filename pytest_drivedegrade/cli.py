@@ -184,7 +184,8 @@ def _compare(args: argparse.Namespace) -> int:
         flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"
         flag += "  IMPORTED (metrics as given, plans not seen)" if getattr(row, "imported", False) else ""
         print(f"{row.planner}: clean L2 {row.clean_l2:.3f} (rank {row.rank_clean_l2}), mean retention rank "
-              f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}{flag}")
+              f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}; intervals: "
+              f"{row.interval_basis}{flag}")
     print(f"wrote {csv_path} and {html_path}", file=sys.stderr)
     return 0
 
