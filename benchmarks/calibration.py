@@ -57,6 +57,10 @@ class Population:
     cells: np.ndarray
     scenes: np.ndarray
     union: int = 0  #: C of the union bound when it is not the cells replayed (a real run's 87 stopping cells)
+    names: tuple[str, ...] = ()  #: the cells' ids (a real run's)
+
+    def label(self, i: int) -> str:
+        return self.names[i] if self.names else f"cell {i}"
 
     def retention(self) -> np.ndarray:
         return self.clean.sum() / self.cells.sum(axis=1)
@@ -124,11 +128,12 @@ def from_cells(folder: Path) -> Population:
         raise SystemExit(f"{folder}: no clean cell among the stored results")
     clean = records["clean"].l2_avg_per_frame()
     ok = np.isfinite(clean)
-    cells = [r.l2_avg_per_frame()[ok] for c, r in sorted(records.items())
-             if is_camera_ladder(r.family) and np.isfinite(r.l2_avg_per_frame()[ok]).all()]
+    names = tuple(c for c, r in sorted(records.items())
+                  if is_camera_ladder(r.family) and np.isfinite(r.l2_avg_per_frame()[ok]).all())
+    cells = [records[c].l2_avg_per_frame()[ok] for c in names]
     scenes = np.array([hash(t.split("-")[0]) for t in np.array(records["clean"].frames)[ok]])
     return Population(f"real ({folder.parent.name}, {len(cells)} cells)", clean[ok], np.array(cells), scenes,
-                      union=UNION)
+                      union=UNION, names=names)
 
 
 def covers(a: np.ndarray, b: np.ndarray, truth: float, population: int, a_side: float, method: str) -> bool:
@@ -218,7 +223,7 @@ def report(pop: Population, t: Tally, alpha: float) -> list[str]:
              f"{'OK' if ok else 'ABOVE TARGET'} (point <= {alpha:g}, upper <= {1.5 * alpha:.3g}); "
              f"cost {t.used / t.orders:.3f} of the units",
              "    per-cell miscoverage, worst: " + ", ".join(
-                 f"cell {i} (r {pop.retention()[i]:.3f}) {t.cell_miss[i] / t.orders:.4f}" for i in worst)
+                 f"{pop.label(i)} (r {pop.retention()[i]:.3f}) {t.cell_miss[i] / t.orders:.4f}" for i in worst)
              + f"; claimed per cell {alpha / max(len(pop.cells), pop.union):.2g}"]
     g = max(1, t.gate_tests)
     lines.append(f"    gate ({t.gate_tests} tests): false 'regression' {t.gate_false_regression / g:.4f}; "
