@@ -21,6 +21,10 @@ no_stray_ray = test_ray.no_stray_ray  # the fixture: no Ray daemon outlives the 
 PLANNERS = Path(__file__).resolve().parents[2] / "planners"
 
 
+def without_reused(records: dict[str, dict]) -> dict[str, dict]:
+    return {c: {k: v for k, v in r.items() if k != "reused"} for c, r in records.items()}
+
+
 def test_an_adaptive_ray_run_gives_the_cells_of_a_local_one(dd, two_scene_world, no_stray_ray):
     kw = {"planner": str(PLANNERS / "camera_cnn.py"), "data": two_scene_world, "families": "jpeg,blackout",
           "severities": "1,2,3,4,5"}
@@ -32,10 +36,13 @@ def test_an_adaptive_ray_run_gives_the_cells_of_a_local_one(dd, two_scene_world,
     result.stdout.fnmatch_lines(["*ray: 2 planner actor(s) on a local cluster*"])
     local, ray = (dd.pytester.path / report / "camera_cnn" for report in ("local", "ray"))
     assert (ray / "cells.csv").read_text() == (local / "cells.csv").read_text()
-    assert stored_records(ray) == stored_records(local)
+    # every severity runs now (issue 36), blackout S1-S2 too, whose inputs equal clean's for camera_cnn: the local
+    # run reuses the clean plan there, an actor predicts every frame it is sent (`RunContext.reuses_clean`), so
+    # only the count of reused frames differs
+    assert without_reused(stored_records(ray)) == without_reused(stored_records(local))
     a, b = load_json(local / "certificate.json"), load_json(ray / "certificate.json")
     assert a["adaptive"] == b["adaptive"] and a["cells"] == b["cells"]
-    assert any(c["stop"] == "skipped" for c in b["adaptive"]["cells"].values())  # the schedule skipped some
+    assert b["adaptive"]["families"]["blackout"]["visited"] == [1, 2, 3, 4, 5]  # no severity skipped (issue 36)
     assert b["adaptive"]["passes"] < b["adaptive"]["full_passes"]
     done = verify_cli(ray / "certificate.json")
     assert done.returncode == 0, done.stderr
