@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate,
+"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, sign, merge, compare, estimate,
 closed-loop import.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
@@ -117,14 +117,15 @@ def _keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
-    """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key text only there), else None;
-    a key file readable by its group or others is warned about."""
+def _merge_signing_key(args: argparse.Namespace, flag: str = "--sign-key") -> Ed25519PrivateKey | None:
+    """`flag`'s PATH (--sign-key, or sign's --key), else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key
+    text only there), else None; a key file readable by its group or others is warned about."""
     import os
 
     from .certificate.signing import ENV_VAR, key_file_path, load_private_key, loose_permissions, read_key_source
 
-    source, where = (args.sign_key, "--sign-key") if args.sign_key else (os.environ.get(ENV_VAR), ENV_VAR)
+    given = getattr(args, flag.lstrip("-").replace("-", "_"))
+    source, where = (given, flag) if given else (os.environ.get(ENV_VAR), ENV_VAR)
     if not source:
         return None
     key = load_private_key(read_key_source(source, where, pem_allowed=where == ENV_VAR), where)
@@ -133,6 +134,34 @@ def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
     if loose:
         print(f"drivedegrade: warning: {where}: {loose}", file=sys.stderr)
     return key
+
+
+def _sign(args: argparse.Namespace) -> int:
+    """Sign a finished run's certificate (issue 37 H1): this command runs no planner code, so the key never
+    shares a process with one. Exit 0 signed, 1 when the certificate does not verify, 2 for a usage error."""
+    from .certificate.adaptive_check import check_adaptive
+    from .certificate.consistency import check_consistency
+    from .certificate.seal import CertificateMismatch, verify
+    from .certificate.signing import ENV_VAR, sign_file
+
+    key = _merge_signing_key(args, "--key")
+    if key is None:
+        raise DriveDegradeError(f"sign: no key: give --key PATH (from `drivedegrade keygen NAME`) or set {ENV_VAR}")
+    try:
+        cert = verify(args.file)
+    except CertificateMismatch as exc:
+        print(f"drivedegrade: sign: FAILED: not signed: {exc}", file=sys.stderr)
+        return 1
+    problems = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
+    if problems:
+        print(f"drivedegrade: sign: FAILED: {args.file}: not signed: its arithmetic does not add up:", file=sys.stderr)
+        for line in problems:
+            print(f"  {line}", file=sys.stderr)
+        return 1
+    sealed, written = sign_file(args.file, key)
+    print(f"signed {args.file} with the key of fingerprint {sealed['signature']['public_key_fingerprint']} (digest "
+          f"{sealed['digest']}); wrote {', '.join(map(str, written))}")
+    return 0
 
 
 def _merge(args: argparse.Namespace) -> int:
@@ -318,6 +347,14 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("keygen", help="write an Ed25519 key pair NAME.key (mode 0600) and NAME.pub for signing")
     p.add_argument("name", metavar="NAME", help="path prefix of the two files")
     p.set_defaults(func=_keygen)
+
+    p = sub.add_parser("sign", help="sign a finished run's certificate.json with an Ed25519 private key (runs no "
+                                    "planner code; the run itself never holds the key)")
+    p.add_argument("file", metavar="CERT", help="the certificate.json to sign (verified first; report.html beside "
+                                                "it is updated)")
+    p.add_argument("--key", metavar="PATH", help="the private key file from `drivedegrade keygen NAME` (default: "
+                                                 "$DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
+    p.set_defaults(func=_sign)
 
     p = sub.add_parser("compare", help="compare certificates: compare.csv and compare.html, ranks and reversals")
     p.add_argument("certificates", nargs="+", metavar="CERT", help="certificate.json files (verified first)")

@@ -12,16 +12,13 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pytest
 
 from ..cells import cell_id
 from ..run import RunContext
 from .options import RunOptions
-
-if TYPE_CHECKING:
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 #: The files the controller writes in a planner's (or a shard's) folder; cells/ holds one <cell>.json each.
 OUTPUT_FILES = ("certificate.json", "cells.csv", "report.html", "shard.json")
@@ -214,11 +211,3 @@ def restore_device(previous: str | None) -> None:
     else:
         os.environ[DEVICE_ENV] = previous
 
-
-def signing_key(options: RunOptions) -> Ed25519PrivateKey | None:
-    """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
-    if options.sign_key_pem is None:
-        return None
-    from ..certificate.signing import load_private_key
-
-    return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")

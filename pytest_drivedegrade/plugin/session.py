@@ -304,7 +304,6 @@ class DriveDegradeSession:
         actors = self._close_actors()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
-                                  signing_key=preflight.signing_key(self.options),
                                   closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]),
                                   floor=self.floor)
         if self.outcome is not None:
