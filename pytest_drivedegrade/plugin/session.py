@@ -244,6 +244,7 @@ class DriveDegradeSession:
                                          stored_reader(context, chosen, self.store))
             if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
                 self.runner.baseline_cells = self.options.baseline_path.parent / "cells"
+                self.runner.baseline_digests = preflight.sealed_digests(self.baseline)
                 self.runner.tolerance = self.options.tolerance
         return self.runner
 
