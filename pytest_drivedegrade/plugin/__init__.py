@@ -13,7 +13,8 @@ fallbacks).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import os
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -26,6 +27,9 @@ if TYPE_CHECKING:
 #: which pytest loads once per process, so every module that reaches the session shares the one key (pytester's
 #: in-process runs drop and re-import the plugin's other modules).
 SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
+#: `exitguard`'s state, here for the same reason: the real ``os._exit`` and the status of the last session to
+#: finish in this process.
+EXIT_STATE: dict[str, Any] = {"real_exit": os._exit, "status": 0}
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -67,3 +71,12 @@ def pytest_configure(config: pytest.Config) -> None:
     config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, DriveDegradeSession.NAME)
     config.pluginmanager.register(context, "drivedegrade-context")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Every session's final status, for the status guard of a run whose planner shared its process
+    (`exitguard`): the last session to finish in a process decides what it ends with."""
+    from .exitguard import record
+
+    record(int(session.exitstatus))
