@@ -8,13 +8,10 @@ context when ``predict`` takes it, batches, reuse of the clean plan, timeouts, a
 from __future__ import annotations
 
 import contextlib
-import signal
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
-from types import FrameType
 from typing import Protocol
 
 import numpy as np
@@ -30,6 +27,7 @@ from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
 from .pacing import PDMS_SPAN, CellPdms, Scorer, opencv_share, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
+from .timelimit import PlannerTimeout, time_limit
 
 
 class DataFault(str):
@@ -57,30 +55,6 @@ class Source(Protocol):
     def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
 
     def frame_truth(self, frame: Frame) -> FrameTruth: ...
-
-
-class PlannerTimeout(Exception):
-    """predict() ran past --drivedegrade-timeout on one frame."""
-
-
-@contextlib.contextmanager
-def time_limit(seconds: float) -> Iterator[None]:
-    """Raise PlannerTimeout inside the block after `seconds` (POSIX main thread; a no-op elsewhere or at 0)."""
-    usable = seconds > 0 and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
-    if not usable:
-        yield
-        return
-
-    def expire(signum: int, frame: FrameType | None) -> None:
-        raise PlannerTimeout(f"predict() took longer than {seconds:g} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
 
 
 #: The reuse control: the second reused frame of a cell (the first with a skipped call before it, where a planner

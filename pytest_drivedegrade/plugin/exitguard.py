@@ -45,8 +45,8 @@ def arm() -> None:
     """``os._exit`` (and ``posix._exit``, the same function) refused until `disarm`."""
     import posix
 
-    os._exit = _refuse  # type: ignore[assignment]
-    posix._exit = _refuse  # type: ignore[assignment]
+    os._exit = _refuse
+    posix._exit = _refuse
 
 
 def disarm() -> None:
