@@ -114,6 +114,9 @@ class Frame:
     location: str = ""  # the log's location, which names its map ("" when the data has no log table)
     pose: tuple[float, float, float] | None = None  # global (x, y, yaw) of the ego at this keyframe
     lidar_file: str = ""  # the keyframe's LIDAR_TOP sweep (.pcd.bin), "" when the data set has none
+    #: A non-finite planner input of the data set (`data.faults.input_fault`), set for a run's scored frames by
+    #: `RunContext.open`: the frame is then a data fault in every cell. "" when there is none.
+    input_fault: str = ""
 
     def to_global(self, xy: np.ndarray) -> np.ndarray:
         """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""
