@@ -174,9 +174,19 @@ def _merge(args: argparse.Namespace) -> int:
     here = Path.cwd()
     command = "drivedegrade merge " + " ".join(shown_arg(a, here) for a in [*args.shards, "--out", args.out])
     key = _merge_signing_key(args)
+    baseline = None
+    if args.baseline:  # loaded first: a bad baseline is refused before anything is written
+        from .certificate.merge_gate import load_verified_baseline
+
+        baseline = load_verified_baseline(Path(args.baseline), Path(args.baseline_public_key)
+                                          if args.baseline_public_key else None)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here,
                           progress=Sink())
+    if merged.missing_cells and not args.allow_incomplete:  # issue 37 (low): it wrote them and exited 0
+        raise DriveDegradeError(f"missing cell(s) {', '.join(merged.missing_cells)}: "
+                                f"{merged.missing_advice or 'rerun the shard that lacks them'}; or pass "
+                                "--allow-incomplete to write a certificate that says completeness: false")
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
     if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
@@ -186,6 +196,15 @@ def _merge(args: argparse.Namespace) -> int:
         cells.mkdir(parents=True, exist_ok=True)
         for cell, path in merged.cell_files.items():
             shutil.copyfile(path, cells / f"{cell}.json")
+    if baseline is not None:
+        from .certificate.merge_gate import gate_merged
+        from .certificate.seal import load_certificate
+
+        cert = load_certificate(Path(args.out) / merged.provenance.planner_name / "certificate.json")
+        lines, failed = gate_merged(cert, baseline, args.tolerance)
+        for line in lines:
+            print(line)
+        return 1 if failed else 0
     return 0
 
 
@@ -299,6 +318,12 @@ def _add_run_commands(sub: argparse._SubParsersAction) -> None:
                    help="merge although shards are missing; the certificate then says completeness: false")
     p.add_argument("--sign-key", metavar="PATH", help="sign the certificate with this Ed25519 private key "
                                                        "(default: $DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
+    p.add_argument("--baseline", metavar="BASE", help="gate the merged run against this baseline certificate, as "
+                                                     "--drivedegrade-baseline gates a whole run: exit 1 on a cell or "
+                                                     "axis regression beyond --tolerance")
+    p.add_argument("--tolerance", type=float, default=0.02, metavar="X",
+                   help="the gate's tolerance on retention (default 0.02, as --drivedegrade-tolerance)")
+    p.add_argument("--baseline-public-key", metavar="PUB", help="require the baseline to be signed by this key")
     p.set_defaults(func=_merge)
 
     p = sub.add_parser("estimate", help="wall time of a certification at a planner's frames/s on G GPUs")

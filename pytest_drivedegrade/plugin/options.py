@@ -406,7 +406,8 @@ def parse(config: pytest.Config) -> RunOptions:
     if baseline and settings.shard is not None:  # issue 20 M6: a shard's frames are not the baseline's run
         raise _fail("drivedegrade_baseline", "a shard cannot be gated: the baseline covers the whole run, a shard "
                     f"only its part of the frames ({settings.shard}). Run the shards without "
-                    "--drivedegrade-baseline and merge them (drivedegrade merge), or gate the whole run unsharded")
+                    "--drivedegrade-baseline and gate the merge: drivedegrade merge SHARD_DIRS --out DIR "
+                    "--baseline BASE (--tolerance X), or gate the whole run unsharded")
     options = RunOptions(
         planner_path=planner_path,
         settings=settings,
