@@ -219,6 +219,8 @@ def _compare(args: argparse.Namespace) -> int:
     except CertificateMismatch as exc:
         print(f"drivedegrade: compare: refused: {exc}", file=sys.stderr)
         return 2
+    if df.attrs.get("note"):
+        print(f"note: this comparison {df.attrs['note']}")
     for row in df.itertuples():
         flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
         flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"

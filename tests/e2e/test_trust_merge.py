@@ -53,3 +53,22 @@ def test_merge_refuses_a_shard_that_lacks_a_cell_unless_allowed(dd, capsys):
     assert "missing cell(s) jpeg-s1: shard 1/1" in err and "--allow-incomplete" in err, err
     assert not out.exists()
     assert main(["merge", str(shard), "--out", str(out), "--allow-incomplete"]) == 0
+
+
+def test_compare_notes_a_mix_of_adaptive_and_full_certificates(dd, capsys):
+    """Issue 37 (low): `compare` mixed adaptive and full certificates without a note; now a column says which
+    each is, and the terminal and compare.html carry a note naming the adaptive ones."""
+    import csv
+
+    dd.write_planner()
+    dd.run("-p", "no:xdist", families="jpeg", severities="1", report="full").assert_outcomes(passed=4)
+    dd.run("-p", "no:xdist", "--drivedegrade-adaptive", families="jpeg", severities="1", report="ada")
+    full, ada = (str(dd.folder(report=r) / "certificate.json") for r in ("full", "ada"))
+    out = dd.pytester.path / "cmp"
+    code = main(["compare", full, ada, "--out", str(out), "--force"])
+    printed = capsys.readouterr()
+    assert code == 0, printed.err
+    assert "note: this comparison mixes adaptive and full certificates" in printed.out and ada in printed.out
+    rows = list(csv.DictReader((out / "compare.csv").open()))
+    assert [r["certification"] for r in rows] == ["full", "adaptive"]
+    assert "Note: this comparison mixes adaptive and full certificates" in (out / "compare.html").read_text()
