@@ -64,6 +64,15 @@ def _verify(args: argparse.Namespace) -> int:
     except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
+    from .certificate.adaptive_check import missing_results
+
+    missing_files = missing_results(cert, Path(args.file).parent / "cells")
+    if missing_files:  # not an edit: what verify needs is not there (exit 2, naming it)
+        shown = ", ".join(map(str, missing_files[:5])) + (" ..." if len(missing_files) > 5 else "")
+        print(f"drivedegrade: verify: cannot check {args.file}: an adaptive certificate is verified with its "
+              f"per-frame results beside it, and these are missing: {shown}; copy the certificate together with "
+              "its report folder's cells/ (as the run wrote it) and verify again", file=sys.stderr)
+        return 2
     inconsistent = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
     if args.baseline:  # a gate run's recorded test parts recomputed from the baseline itself
         from .certificate.adaptive_check import check_gate_baseline

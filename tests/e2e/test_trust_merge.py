@@ -72,3 +72,17 @@ def test_compare_notes_a_mix_of_adaptive_and_full_certificates(dd, capsys):
     rows = list(csv.DictReader((out / "compare.csv").open()))
     assert [r["certification"] for r in rows] == ["full", "adaptive"]
     assert "Note: this comparison mixes adaptive and full certificates" in (out / "compare.html").read_text()
+    # Issue 37 (low): the adaptive certificate copied without its cells/ is "cannot check, missing X" (exit 2),
+    # not a failed arithmetic (exit 1); so is one cell file gone
+    import shutil
+
+    alone = dd.pytester.path / "alone"
+    alone.mkdir()
+    shutil.copyfile(ada, alone / "certificate.json")
+    assert main(["verify", str(alone / "certificate.json")]) == 2
+    err = capsys.readouterr().err
+    assert f"these are missing: {alone / 'cells'}" in err and "copy the certificate together with" in err, err
+    (dd.folder(report="ada") / "cells" / "jpeg-s1.json").unlink()
+    assert main(["verify", ada]) == 2
+    assert f"these are missing: {dd.folder(report='ada') / 'cells' / 'jpeg-s1.json'}" in capsys.readouterr().err
+    assert main(["verify", full]) == 0
