@@ -1,4 +1,4 @@
-"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, merge, compare, estimate,
+"""The `drivedegrade` command: spec, preview, world, verify, reproduce, keygen, sign, merge, compare, estimate,
 closed-loop import, analyse, ladder.
 
 Each subcommand's argument parser lives here; its work lives in the module that owns the stage, imported
@@ -64,6 +64,15 @@ def _verify(args: argparse.Namespace) -> int:
     except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
+    from .certificate.adaptive_check import missing_results
+
+    missing_files = missing_results(cert, Path(args.file).parent / "cells")
+    if missing_files:  # not an edit: what verify needs is not there (exit 2, naming it)
+        shown = ", ".join(map(str, missing_files[:5])) + (" ..." if len(missing_files) > 5 else "")
+        print(f"drivedegrade: verify: cannot check {args.file}: an adaptive certificate is verified with its "
+              f"per-frame results beside it, and these are missing: {shown}; copy the certificate together with "
+              "its report folder's cells/ (as the run wrote it) and verify again", file=sys.stderr)
+        return 2
     inconsistent = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
     if args.baseline:  # a gate run's recorded test parts recomputed from the baseline itself
         from .certificate.adaptive_check import check_gate_baseline
@@ -125,14 +134,15 @@ def _keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
-    """--sign-key PATH, else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key text only there), else None;
-    a key file readable by its group or others is warned about."""
+def _merge_signing_key(args: argparse.Namespace, flag: str = "--sign-key") -> Ed25519PrivateKey | None:
+    """`flag`'s PATH (--sign-key, or sign's --key), else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key
+    text only there), else None; a key file readable by its group or others is warned about."""
     import os
 
     from .certificate.signing import ENV_VAR, key_file_path, load_private_key, loose_permissions, read_key_source
 
-    source, where = (args.sign_key, "--sign-key") if args.sign_key else (os.environ.get(ENV_VAR), ENV_VAR)
+    given = getattr(args, flag.lstrip("-").replace("-", "_"))
+    source, where = (given, flag) if given else (os.environ.get(ENV_VAR), ENV_VAR)
     if not source:
         return None
     key = load_private_key(read_key_source(source, where, pem_allowed=where == ENV_VAR), where)
@@ -141,6 +151,34 @@ def _merge_signing_key(args: argparse.Namespace) -> Ed25519PrivateKey | None:
     if loose:
         print(f"drivedegrade: warning: {where}: {loose}", file=sys.stderr)
     return key
+
+
+def _sign(args: argparse.Namespace) -> int:
+    """Sign a finished run's certificate (issue 37 H1): this command runs no planner code, so the key never
+    shares a process with one. Exit 0 signed, 1 when the certificate does not verify, 2 for a usage error."""
+    from .certificate.adaptive_check import check_adaptive
+    from .certificate.consistency import check_consistency
+    from .certificate.seal import CertificateMismatch, verify
+    from .certificate.signing import ENV_VAR, sign_file
+
+    key = _merge_signing_key(args, "--key")
+    if key is None:
+        raise DriveDegradeError(f"sign: no key: give --key PATH (from `drivedegrade keygen NAME`) or set {ENV_VAR}")
+    try:
+        cert = verify(args.file)
+    except CertificateMismatch as exc:
+        print(f"drivedegrade: sign: FAILED: not signed: {exc}", file=sys.stderr)
+        return 1
+    problems = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
+    if problems:
+        print(f"drivedegrade: sign: FAILED: {args.file}: not signed: its arithmetic does not add up:", file=sys.stderr)
+        for line in problems:
+            print(f"  {line}", file=sys.stderr)
+        return 1
+    sealed, written = sign_file(args.file, key)
+    print(f"signed {args.file} with the key of fingerprint {sealed['signature']['public_key_fingerprint']} (digest "
+          f"{sealed['digest']}); wrote {', '.join(map(str, written))}")
+    return 0
 
 
 def _merge(args: argparse.Namespace) -> int:
@@ -153,9 +191,19 @@ def _merge(args: argparse.Namespace) -> int:
     here = Path.cwd()
     command = "drivedegrade merge " + " ".join(shown_arg(a, here) for a in [*args.shards, "--out", args.out])
     key = _merge_signing_key(args)
+    baseline = None
+    if args.baseline:  # loaded first: a bad baseline is refused before anything is written
+        from .certificate.merge_gate import load_verified_baseline
+
+        baseline = load_verified_baseline(Path(args.baseline), Path(args.baseline_public_key)
+                                          if args.baseline_public_key else None)
     merged = merge_shards([Path(d) for d in args.shards], allow_incomplete=args.allow_incomplete,
                           command=command + (" --allow-incomplete" if args.allow_incomplete else ""), root=here,
                           progress=Sink())
+    if merged.missing_cells and not args.allow_incomplete:  # issue 37 (low): it wrote them and exited 0
+        raise DriveDegradeError(f"missing cell(s) {', '.join(merged.missing_cells)}: "
+                                f"{merged.missing_advice or 'rerun the shard that lacks them'}; or pass "
+                                "--allow-incomplete to write a certificate that says completeness: false")
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
     if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
@@ -165,6 +213,15 @@ def _merge(args: argparse.Namespace) -> int:
         cells.mkdir(parents=True, exist_ok=True)
         for cell, path in merged.cell_files.items():
             shutil.copyfile(path, cells / f"{cell}.json")
+    if baseline is not None:
+        from .certificate.merge_gate import gate_merged
+        from .certificate.seal import load_certificate
+
+        cert = load_certificate(Path(args.out) / merged.provenance.planner_name / "certificate.json")
+        lines, failed = gate_merged(cert, baseline, args.tolerance)
+        for line in lines:
+            print(line)
+        return 1 if failed else 0
     return 0
 
 
@@ -179,6 +236,8 @@ def _compare(args: argparse.Namespace) -> int:
     except CertificateMismatch as exc:
         print(f"drivedegrade: compare: refused: {exc}", file=sys.stderr)
         return 2
+    if df.attrs.get("note"):
+        print(f"note: this comparison {df.attrs['note']}")
     for row in df.itertuples():
         flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
         flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"
@@ -343,6 +402,12 @@ def _add_run_commands(sub: argparse._SubParsersAction) -> None:
                    help="merge although shards are missing; the certificate then says completeness: false")
     p.add_argument("--sign-key", metavar="PATH", help="sign the certificate with this Ed25519 private key "
                                                        "(default: $DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
+    p.add_argument("--baseline", metavar="BASE", help="gate the merged run against this baseline certificate, as "
+                                                     "--drivedegrade-baseline gates a whole run: exit 1 on a cell or "
+                                                     "axis regression beyond --tolerance")
+    p.add_argument("--tolerance", type=float, default=0.02, metavar="X",
+                   help="the gate's tolerance on retention (default 0.02, as --drivedegrade-tolerance)")
+    p.add_argument("--baseline-public-key", metavar="PUB", help="require the baseline to be signed by this key")
     p.set_defaults(func=_merge)
 
     p = sub.add_parser("estimate", help="wall time of a certification at a planner's frames/s on G GPUs")
@@ -391,6 +456,14 @@ def _add_certificate_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("keygen", help="write an Ed25519 key pair NAME.key (mode 0600) and NAME.pub for signing")
     p.add_argument("name", metavar="NAME", help="path prefix of the two files")
     p.set_defaults(func=_keygen)
+
+    p = sub.add_parser("sign", help="sign a finished run's certificate.json with an Ed25519 private key (runs no "
+                                    "planner code; the run itself never holds the key)")
+    p.add_argument("file", metavar="CERT", help="the certificate.json to sign (verified first; report.html beside "
+                                                "it is updated)")
+    p.add_argument("--key", metavar="PATH", help="the private key file from `drivedegrade keygen NAME` (default: "
+                                                 "$DRIVEDEGRADE_SIGNING_KEY, a path or the PEM text)")
+    p.set_defaults(func=_sign)
 
     p = sub.add_parser("compare", help="compare certificates: compare.csv and compare.html, ranks and reversals")
     p.add_argument("certificates", nargs="+", metavar="CERT", help="certificate.json files (verified first)")

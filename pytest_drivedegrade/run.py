@@ -25,7 +25,7 @@ from .data.content import content_fingerprint
 from .data.context import FrameContext
 from .data.frame import Frame
 from .data.nuscenes import UNSCORED, NuScenesReader
-from .errors import DriveDegradeError
+from .errors import DataError, DriveDegradeError
 from .metrics.pdms import EgoStates, PreparedFrame, tracked_experts
 from .metrics.pdms.constants import EGO_BOXES
 from .metrics.trajectory import FrameTruth
@@ -114,6 +114,23 @@ def style_of(planner: AnyPlanner) -> CallStyle:
     return planner.style if isinstance(planner, PlannerElsewhere) else call_style(planner)
 
 
+def checked_frames(frames: list[Frame]) -> list[Frame]:
+    """`frames` with each one's non-finite planner inputs noted (`Frame.input_fault`); a frame whose scoring truth
+    is not finite is a DataError naming it (issue 37: it failed every cell with a traceback)."""
+    from dataclasses import replace
+
+    from .data.faults import input_fault, truth_fault
+
+    out = []
+    for frame in frames:
+        truth = truth_fault(frame)
+        if truth is not None:
+            raise DataError(truth)
+        fault = input_fault(frame)
+        out.append(replace(frame, input_fault=fault) if fault else frame)
+    return out
+
+
 @dataclass
 class RunContext:
     """Per-process state of a certification run."""
@@ -155,6 +172,7 @@ class RunContext:
         if not chosen:
             raise DriveDegradeError(f"{root}: split {settings.split!r} has no scorable frames (frames need six "
                                     f"future keyframes); skipped: {dict(reader.skipped)}")
+        chosen = checked_frames(chosen)
         total = len(chosen)
         fingerprint = content_fingerprint(reader, chosen, digest_cache)
         if settings.shard is not None and not settings.adaptive:  # an adaptive shard owns cells, on every frame

@@ -8,13 +8,10 @@ context when ``predict`` takes it, batches, reuse of the clean plan, timeouts, a
 from __future__ import annotations
 
 import contextlib
-import signal
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from functools import partial
-from types import FrameType
 from typing import Protocol
 
 import numpy as np
@@ -30,6 +27,7 @@ from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
 from .pacing import PDMS_SPAN, CellPdms, Scorer, opencv_share, prefetch_depth, process_key
 from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from .settings import RunSettings
+from .timelimit import PlannerTimeout, time_limit
 
 
 class DataFault(str):
@@ -57,30 +55,6 @@ class Source(Protocol):
     def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
 
     def frame_truth(self, frame: Frame) -> FrameTruth: ...
-
-
-class PlannerTimeout(Exception):
-    """predict() ran past --drivedegrade-timeout on one frame."""
-
-
-@contextlib.contextmanager
-def time_limit(seconds: float) -> Iterator[None]:
-    """Raise PlannerTimeout inside the block after `seconds` (POSIX main thread; a no-op elsewhere or at 0)."""
-    usable = seconds > 0 and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
-    if not usable:
-        yield
-        return
-
-    def expire(signum: int, frame: FrameType | None) -> None:
-        raise PlannerTimeout(f"predict() took longer than {seconds:g} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
 
 
 #: The reuse control: the second reused frame of a cell (the first with a skipped call before it, where a planner
@@ -228,7 +202,7 @@ def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) ->
         return
     except Exception as exc:  # noqa: BLE001 - the planner's failure, on every frame of the batch
         for s in batch:
-            yield s, _data_fault(s) or describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
+            yield s, _data_fault(s, exc) or describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
         return
     for s, plan in zip(batch, raw):
         yield s, _checked(s, plan)
@@ -260,8 +234,8 @@ def _predict(source: Source, planner: Planner, sample: CellSample, style: CallSt
             else:
                 raw = predict(sample.view, ego, frame.command)
     except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
-        return _data_fault(sample) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
-                                       describe_failure(exc, frame.token))
+        return _data_fault(sample, exc) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
+                                            describe_failure(exc, frame.token))
     return _checked(sample, raw)
 
 
@@ -376,11 +350,24 @@ def _is_none(reused: np.ndarray | None) -> bool:
     return reused is None
 
 
-def _data_fault(sample: CellSample) -> DataFault | None:
-    """The frame's data fault (the first image that could not be produced), naming the frame, or None."""
-    if not sample.data_errors:
-        return None
-    return DataFault(f"frame {sample.frame.token!r}: {sample.data_errors[0]}")
+def _data_fault(sample: CellSample, exc: BaseException | None = None) -> DataFault | None:
+    """The frame's data fault, naming the frame, or None: the first image that could not be produced, a
+    non-finite planner input of the data set (`Frame.input_fault`), or, for a call that failed with `exc`, a
+    DataError the frame's LiDAR sweep raises when read again here (so a planner cannot pass its own failure off
+    as the data's)."""
+    token = sample.frame.token
+    if sample.data_errors:
+        return DataFault(f"frame {token!r}: {sample.data_errors[0]}")
+    if sample.frame.input_fault:
+        return DataFault(f"frame {token!r}: {sample.frame.input_fault}")
+    if isinstance(exc, DataError) and sample.frame.lidar_file:
+        from .data.context import load_points
+
+        try:
+            load_points(sample.frame.lidar_file)
+        except DataError as again:
+            return DataFault(f"frame {token!r}: {again}")
+    return None
 
 
 def _predict_every_frame(sample: CellSample) -> None:

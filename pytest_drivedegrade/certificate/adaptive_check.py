@@ -45,6 +45,19 @@ def load_records(folder: Path, cells: list[str],
     return records, problems
 
 
+def missing_results(cert: Mapping[str, object], folder: Path) -> list[Path]:
+    """An adaptive certificate's per-frame results that are not there (issue 37, low: verify said the
+    arithmetic failed, exit 1, for a certificate copied without its `cells/`): the folder when it is absent,
+    else each `cells/<cell>.json` of the certificate's cells that is. Empty for a full run's certificate."""
+    if not isinstance(cert.get("adaptive"), Mapping):
+        return []
+    if not folder.is_dir():
+        return [folder]
+    rows = cert.get("cells")
+    cells = [r.get("cell") for r in rows if isinstance(r, Mapping)] if isinstance(rows, list) else []
+    return [folder / f"{c}.json" for c in cells if isinstance(c, str) and not (folder / f"{c}.json").is_file()]
+
+
 def _differences(recorded: object, recomputed: object, where: str, out: list[str]) -> None:
     """Every leaf where the two (canonical) trees differ, as ``where: certificate says X, its cells give Y``."""
     if isinstance(recorded, Mapping) and isinstance(recomputed, Mapping):

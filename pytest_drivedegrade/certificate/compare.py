@@ -63,6 +63,7 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
         **{f"pdms_axis_{k}": pdms_axes.value(k) for k in PDMS_AXES},
         "verdict": verdict.get("label"),
         "ego_label": verdict.get("ego_label"),
+        "certification": "adaptive" if cert.get("adaptive") else "full",
         "verdict_metric": verdict.get("metric", "l2"),
         "floor_l2": _section(cert, "floor").get("l2_avg"),
         "imported": is_imported(cert),
@@ -142,6 +143,20 @@ def check_comparable(certs: Sequence[tuple[str, Mapping[str, Any]]], force: bool
     return problems
 
 
+#: The note on a comparison of adaptive with full certificates (issue 37, low: they were mixed without one).
+MIXED_NOTE = ("mixes adaptive and full certificates: an adaptive certificate's retentions are estimates from the "
+              "units each cell needed (stopped once its decisions settled, with wider intervals), a full one's are "
+              "over every frame; compare like with like for a ranking (column certification)")
+
+
+def mixed_note(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> str | None:
+    """`MIXED_NOTE` naming the adaptive certificates when the comparison mixes both kinds, else None."""
+    adaptive = [path for path, cert in certs if cert.get("adaptive")]
+    if not adaptive or len(adaptive) == len(certs):
+        return None
+    return f"{MIXED_NOTE}; adaptive: {', '.join(adaptive)}"
+
+
 def check_sound(path: str, cert: Mapping[str, Any]) -> str:
     """A certificate's status for the comparison: ``complete``, or ``incomplete: <what is missing>`` (compared,
     and marked); `CompareError` when verify's arithmetic does not add up (a certificate verify rejects is never
@@ -190,7 +205,7 @@ def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFram
     return df[head + [c for c in df.columns if c not in head]]
 
 
-def _html(df: pd.DataFrame, warnings: Sequence[str]) -> str:
+def _html(df: pd.DataFrame, warnings: Sequence[str], note: str | None = None) -> str:
     table = df.to_html(index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}",
                        classes="cmp", border=0)
     flagged = df[df["rank_reversal"]]
@@ -199,6 +214,7 @@ def _html(df: pd.DataFrame, warnings: Sequence[str]) -> str:
     warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
     warn += "".join(f"<p class='warn'>IMPORTED: {html.escape(str(r.certificate))}: {IMPORTED_TEXT}</p>"
                     for r in df.itertuples() if r.imported)
+    warn += f"<p class='warn'>Note: this comparison {html.escape(note)}</p>" if note else ""
     warn += "".join(f"<p class='warn'>INCOMPLETE, compared as it is: {html.escape(str(r.certificate))}: "
                     f"{html.escape(str(r.status))}</p>" for r in df.itertuples() if r.status != "complete")
     return f"""<!DOCTYPE html>
@@ -237,5 +253,7 @@ def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     for col in safe.select_dtypes(exclude="number").columns:  # text cells only: numbers stay numbers
         safe[col] = safe[col].map(neutralise)
     csv_path = atomic_write_text(folder / "compare.csv", safe.to_csv(index=False, float_format="%.6g"))
-    html_path = atomic_write_text(folder / "compare.html", _html(df, warnings))
+    note = mixed_note(certs)
+    df.attrs["note"] = note
+    html_path = atomic_write_text(folder / "compare.html", _html(df, warnings, note))
     return csv_path, html_path, df

@@ -191,7 +191,12 @@ def check_null_control(cert: Mapping[str, object], cells: Sequence[Cell]) -> lis
         return []
     a, b = clean.get("plans_digest"), null.get("plans_digest")
     if not isinstance(a, str) or not isinstance(b, str):
-        return []
+        # issue 37 (low): a certificate that records plans digests (any cell's, or the seal's record_digests)
+        # must record clean's and null's; deleting one skipped this check. Older certificates record none.
+        recorded = "record_digests" in cert or any(isinstance(c.get("plans_digest"), str) for c in cells)
+        gone = [name for name, d in (("clean", a), ("null", b)) if not isinstance(d, str)]
+        return [f"cells.{name}.plans_digest: missing (or not a string) in a certificate that records plans "
+                "digests, so the null control cannot be checked" for name in gone] if recorded else []
     passed, changed = nc.get("passed"), nc.get("frames_changed", 0)
     if a == b and (passed is False or (isinstance(changed, int) and changed > 0)):
         return [f"null_control.passed: certificate says {passed!r} with {changed!r} frame(s) changed, but the "

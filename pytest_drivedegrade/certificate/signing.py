@@ -30,9 +30,9 @@ if TYPE_CHECKING:
     from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 ALGORITHM = "ed25519"
-#: The environment variable that signs every certificate of a run: a key file's path, or the PEM text itself
-#: (a CI secret; the only place a key's text is accepted). ``--drivedegrade-sign-key PATH`` wins over it. A run
-#: reads it at start-up and removes it from its environment, so no planner, worker or actor can read it.
+#: The signing key for ``drivedegrade sign`` and ``merge`` when no key file is given: a key file's path, or the PEM
+#: text itself (a CI secret; the only place a key's text is accepted). A pytest run REFUSES it in its own
+#: environment (issue 37 H1): the planner could read it from /proc/<pid>/environ.
 ENV_VAR = "DRIVEDEGRADE_SIGNING_KEY"
 #: The keys the signature does not cover (the seal's own, and the signature itself).
 UNSIGNED_KEYS = ("digest", "section_digests", "signature")
@@ -224,3 +224,36 @@ def verify_signature(cert: Mapping[str, object], public_key: Ed25519PublicKey, w
         raise SignatureFailure(f"{where}: the signature does not verify with the given public key: the signed "
                                "content was changed after signing (or the signature was forged)") from None
     return expected
+
+
+def sign_file(path: str | os.PathLike[str], private_key: Ed25519PrivateKey,
+              problems: list[str] | None = None) -> tuple[dict[str, Any], list[Path]]:
+    """Sign the certificate file `path` in place, after the run, in a process that runs no planner code (issue 37
+    H1: a run never holds the key). The certificate must verify first (its digest, and no entry in `problems`,
+    the arithmetic checks the caller ran); one already signed is refused, since a second signature would
+    replace the first. ``report.html`` beside it has its seal rows rewritten for the new digest. Returns (the
+    sealed certificate, the files written)."""
+    from ..atomic import atomic_write_set
+    from ..report.html import reseal_page
+    from .seal import certificate_text, seal, verify
+
+    where = os.fspath(path)
+    cert = verify(where)
+    if problems:
+        raise CertificateError(f"{where}: not signed: its digest verifies but its arithmetic does not add up "
+                               f"({'; '.join(problems)}); `drivedegrade verify {where}` names every field")
+    section = cert.get("signature")
+    if section is not None:
+        held = section.get("public_key_fingerprint") if isinstance(section, Mapping) else None
+        raise CertificateError(f"{where}: already signed (by the key with fingerprint {held}); a certificate is "
+                               "signed once, by the run's issuer")
+    sealed = seal(sign(cert, private_key))
+    files = {Path(where): certificate_text(sealed).encode("utf-8")}
+    page_path = Path(where).parent / "report.html"
+    if page_path.is_file():
+        page = reseal_page(page_path.read_text(encoding="utf-8"), str(sealed["digest"]),
+                           str(sealed["signature"]["public_key_fingerprint"]))
+        if page is not None:
+            files = {page_path: page.encode("utf-8"), **files}  # the certificate last: it vouches for the rest
+    atomic_write_set(files)
+    return sealed, list(files)

@@ -35,6 +35,11 @@ UNSCORED_FAILURES = ("Agent crashed", "Simulation crashed", "Agent couldn't be s
 #: Failure messages that end a scored run, and the suite's end reason for each.
 ENDS = {"Agent got blocked": END_BLOCKED, "Agent deviated from the route": END_OFF_ROAD,
         "Agent timed out": END_SCENE}
+#: Statuses of a scored run without a failure message (the leaderboard's 1.0 and 2.x).
+SCORED_STATUSES = ("Completed", "Perfect", "Failed")
+#: The most routes a file's progress may plan (the leaderboards' route files hold hundreds): a larger count is a
+#: malformed file, refused before any placeholder run is made for it (issue 37, low: memory blow-up).
+MAX_PLANNED = 100_000
 
 
 @dataclass(frozen=True)
@@ -131,6 +136,13 @@ def read_record(record: object, seed: int, where: str) -> LeaderboardRun:
     length = meta.get("route_length") if isinstance(meta, dict) else None
     length = float(length) if isinstance(length, (int, float)) and not isinstance(length, bool) else 0.0
     failure = status.partition(" - ")[2]
+    known = status in (*SCORED_STATUSES, "Started") or (status.startswith("Failed - ") and failure in
+                                                              (*UNSCORED_FAILURES, *ENDS))
+    if not known:  # issue 37: an unknown status is neither scored as a driving outcome nor dropped
+        raise DataError(f"{where}: unknown route status {status!r}; known: Completed, Perfect, Failed, Started, "
+                        f"and 'Failed - ' with one of: {', '.join((*UNSCORED_FAILURES, *ENDS))}. A status this "
+                        "import does not know cannot be scored as a driving outcome: fix the file, or report "
+                        "the leaderboard version that writes it")
     if status == "Started" or failure in UNSCORED_FAILURES:
         given = record.get("scores")
         reported = given.get("score_composed") if isinstance(given, dict) else None
@@ -181,7 +193,10 @@ def read_results(path: Path, cell: str | None = None, seed: int = 0) -> ResultsF
     runs = [read_record(r, seed, f"{path}: _checkpoint.records[{i}]") for i, r in enumerate(records)]
     progress = checkpoint.get("progress")
     planned = int(progress[1]) if isinstance(progress, list) and len(progress) == 2 \
-        and isinstance(progress[1], int) else len(runs)
+        and isinstance(progress[1], int) and not isinstance(progress[1], bool) else len(runs)
+    if not 0 <= planned <= MAX_PLANNED:
+        raise DataError(f"{path}: _checkpoint.progress plans {planned} routes: not a route count (0 to "
+                        f"{MAX_PLANNED}); fix the file")
     for i in range(len(runs), planned):  # the evaluation stopped before these routes: unscored, not dropped
         runs.append(LeaderboardRun(f"unrun_{i}", f"unrun_{i}", 0, seed, None, None, None,
                                    f"not run: progress says {planned} routes, the file has {len(records)} records",

@@ -2,8 +2,10 @@
 
 `content_fingerprint` hashes the reader's identity (`NuScenesReader.fingerprint`: the split and the world's
 manifest, or the scene list) together with the size and content digest of every file a run's scores depend on:
-the tables of the version folder, each scored frame's six camera images, and the CAN bus and map expansion files
-of the scored scenes. A swapped image therefore changes the run key and its cells are recomputed.
+the tables of the version folder (calibration and ego poses included), each scored frame's six camera images and
+its LIDAR_TOP sweep (`FrameContext.lidar_file`, issue 37 H4), and the CAN bus and map expansion files of the
+scored scenes: every file the frame context hands a planner. A swapped image or sweep therefore changes the run
+key and its cells are recomputed.
 
 Digests are cached per data root in a small JSON file keyed by (path, size, mtime_ns), written atomically, so a
 rerun stats the files instead of reading them. A file replaced with the same size and the same nanosecond
@@ -39,7 +41,8 @@ def file_digest(path: str | os.PathLike[str]) -> str:
 
 def scored_files(reader: NuScenesReader, frames: Sequence[Frame]) -> Iterator[Path]:
     """Every file the scores of `frames` are read from, in a fixed order, each once: the tables, then per frame
-    its camera images (camera order), then the CAN bus and map files of the scenes and locations (when present)."""
+    its camera images (camera order) and its LIDAR_TOP sweep (when the data set has one), then the CAN bus and
+    map files of the scenes and locations (when present)."""
     yield from sorted(reader.table_dir.glob("*.json"))
     seen_scenes: dict[str, None] = {}
     seen_locations: dict[str, None] = {}
@@ -47,6 +50,8 @@ def scored_files(reader: NuScenesReader, frames: Sequence[Frame]) -> Iterator[Pa
         for camera in CAMERAS:
             if camera in frame.cameras:
                 yield Path(frame.cameras[camera].path)
+        if frame.lidar_file:
+            yield Path(frame.lidar_file)
         seen_scenes.setdefault(frame.scene_name, None)
         if frame.location:
             seen_locations.setdefault(frame.location, None)

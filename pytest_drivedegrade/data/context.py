@@ -9,6 +9,7 @@ asks for the keyframe's LIDAR_TOP sweep with ``context.lidar_points()``: the fil
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from types import MappingProxyType
@@ -33,10 +34,14 @@ def load_points(path: str) -> np.ndarray:
     except OSError as exc:
         raise DataError(f"cannot read the LIDAR_TOP sweep {path}: {exc}; restore the file or re-extract the "
                         f"data set") from exc
-    if raw.size % LIDAR_POINT_SIZE:
-        raise DataError(f"LIDAR_TOP sweep {path} holds {raw.size} float32 values, not a multiple of "
-                        f"{LIDAR_POINT_SIZE} (x, y, z, intensity, ring): the file is truncated; restore it")
+    size = os.path.getsize(path)
+    if raw.size % LIDAR_POINT_SIZE or size % 4 or not raw.size:
+        raise DataError(f"LIDAR_TOP sweep {path} holds {size} bytes, not a whole, non-empty number of points of "
+                        f"{LIDAR_POINT_SIZE} float32 values (x, y, z, intensity, ring): the file is truncated; "
+                        "restore it")
     points = raw.reshape(-1, LIDAR_POINT_SIZE)
+    if not np.isfinite(points[:, :3]).all():
+        raise DataError(f"LIDAR_TOP sweep {path} holds a non-finite point coordinate (NaN or inf); restore it")
     points.setflags(write=False)
     return points
 

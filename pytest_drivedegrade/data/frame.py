@@ -120,6 +120,9 @@ class Frame:
     #: `EgoStatus` has it). A keyframe before the scene's first repeats the first's motion 0.5 s further back.
     #: None where the data give no past (a closed-loop frame).
     past_motion: np.ndarray | None = None
+    #: A non-finite planner input of the data set (`data.faults.input_fault`), set for a run's scored frames by
+    #: `RunContext.open`: the frame is then a data fault in every cell. "" when there is none.
+    input_fault: str = ""
 
     def to_global(self, xy: np.ndarray) -> np.ndarray:
         """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""

@@ -13,7 +13,8 @@ fallbacks).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import os
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -26,9 +27,9 @@ if TYPE_CHECKING:
 #: which pytest loads once per process, so every module that reaches the session shares the one key (pytester's
 #: in-process runs drop and re-import the plugin's other modules).
 SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
-#: $DRIVEDEGRADE_SIGNING_KEY as it was at start-up, once `keys.take_from_environment` has deleted it from the
-#: environment (here for the same reason as SESSION_KEY).
-SIGNING_KEY_ENV: pytest.StashKey[str | None] = pytest.StashKey["str | None"]()
+#: `exitguard`'s state, here for the same reason: the real ``os._exit`` and the status of the last session to
+#: finish in this process.
+EXIT_STATE: dict[str, Any] = {"real_exit": os._exit, "status": 0}
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -40,8 +41,8 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_load_initial_conftests(early_config: pytest.Config, parser: pytest.Parser, args: list[str]) -> None:
-    """Before any conftest.py is imported: a run given `--drivedegrade` takes the signing key out of the
-    environment (`keys.take_from_environment`), so no planner code can read it."""
+    """Before any conftest.py is imported: a run given `--drivedegrade` refuses a signing key in its environment
+    or options (`keys.refuse_run_key`): the planner it runs could read it; the certificate is signed afterwards."""
     enabled = getattr(early_config.known_args_namespace, opt.ENABLE, None) is not None
     if not enabled:
         try:
@@ -49,9 +50,9 @@ def pytest_load_initial_conftests(early_config: pytest.Config, parser: pytest.Pa
         except (ValueError, KeyError):  # pragma: no cover - the ini value is not known yet
             enabled = False
     if enabled:
-        from .keys import take_from_environment
+        from .keys import refuse_run_key
 
-        take_from_environment(early_config)
+        refuse_run_key(early_config)
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -70,3 +71,12 @@ def pytest_configure(config: pytest.Config) -> None:
     config.stash[SESSION_KEY] = session
     config.pluginmanager.register(session, DriveDegradeSession.NAME)
     config.pluginmanager.register(context, "drivedegrade-context")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """Every session's final status, for the status guard of a run whose planner shared its process
+    (`exitguard`): the last session to finish in a process decides what it ends with."""
+    from .exitguard import record
+
+    record(int(session.exitstatus))

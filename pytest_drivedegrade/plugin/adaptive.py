@@ -11,12 +11,13 @@ already finished is taken from the store (the controller writes each cell as it 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from ..cells import FRAME_ARRAYS, CellRecord, cell_id, is_camera_ladder
+from ..errors import DriveDegradeError
 from ..run import AnyPlanner, RunContext, style_of
 from ..scoring.adaptive import SEVERITIES, GateBaseline, Unit, gate_cell
 from ..scoring.sequential import (
@@ -77,6 +78,9 @@ class AdaptiveRunner:
         self._done: dict[str, CellRecord] = {}
         #: --drivedegrade-baseline: the baseline's cells/ folder (its per-frame results) and its tolerance
         self.baseline_cells: Path | None = None
+        #: the baseline certificate's sealed record_digests: a baseline cell file is read only when it hashes to
+        #: its entry (issue 37 H2; `preflight.check_baseline_cells` checked them all before any cell ran)
+        self.baseline_digests: Mapping[str, object] = {}
         self.tolerance = 0.0
         self._baseline: dict[str, GateBaseline | None] = {}
 
@@ -203,7 +207,9 @@ class AdaptiveRunner:
         if cell not in self._baseline:
             from ..certificate.adaptive_check import load_records
 
-            got, _ = load_records(self.baseline_cells, ["clean", cell], {})
+            got, problems = load_records(self.baseline_cells, ["clean", cell], self.baseline_digests)
+            if problems:  # changed since the run started: never gate on a record the baseline did not seal
+                raise DriveDegradeError(f"--drivedegrade-baseline: {problems[0]}")
             clean, base = got.get("clean"), got.get(cell)
             ok = clean is not None and base is not None and np.isfinite(base.l2_avg_per_frame()).all()
             self._baseline[cell] = GateBaseline(*unit_sums(

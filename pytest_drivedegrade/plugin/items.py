@@ -20,6 +20,43 @@ from ..cells import cell_id
 from .compat import is_fixture, register_module_fixtures
 
 
+def planner_runs_elsewhere(config: pytest.Config, ray: object) -> bool:
+    """Whether this process only controls the run (issue 37, "planner code runs in the process that decides the
+    exit status"): the xdist controller under ``-n N`` (N >= 1), or any non-worker process under
+    ``--drivedegrade-ray``. Such a process never imports the planner file: its code runs in the workers or the
+    actors, so no module-level patch, ``atexit`` handler or ``os._exit`` of it can reach the gate's decision or
+    the exit status."""
+    if hasattr(config, "workerinput"):
+        return False
+    workers = getattr(config.option, "numprocesses", None)
+    return ray is not None or (bool(workers) and getattr(config.option, "dist", "no") != "no")
+
+
+def check_planner_file(path: Path) -> None:
+    """The checks `import_planner_file` makes, without running any of the file: it exists, is Python, parses,
+    and defines a ``planner`` at module level (a usage error otherwise). For a process that must not run it."""
+    import ast
+
+    if not path.is_file():
+        raise pytest.UsageError(f"--drivedegrade: planner file {path} does not exist; give the path of a .py file "
+                                "that defines a `planner` fixture (see planners/template.py)")
+    if path.suffix != ".py":
+        raise pytest.UsageError(f"--drivedegrade: {path} is not a Python file (.py)")
+    try:
+        tree = ast.parse(path.read_bytes(), filename=str(path))
+    except SyntaxError as exc:
+        raise pytest.UsageError(f"--drivedegrade: {path}:{exc.lineno}: syntax error: {exc.msg}") from None
+    except (OSError, ValueError) as exc:
+        raise pytest.UsageError(f"--drivedegrade: {path} cannot be read: {exc}") from None
+    names = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
+    names |= {t.id for n in tree.body if isinstance(n, (ast.Assign, ast.AnnAssign))
+              for t in (n.targets if isinstance(n, ast.Assign) else [n.target]) if isinstance(t, ast.Name)}
+    names |= {a.asname or a.name for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom)) for a in n.names}
+    if "planner" not in names and "*" not in names:
+        raise pytest.UsageError(f"--drivedegrade: {path} defines no `planner` fixture; add one, e.g.\n"
+                                "    @pytest.fixture(scope='session')\n    def planner():\n        return MyPlanner()")
+
+
 def import_planner_file(path: Path, name: str | None = None) -> ModuleType:
     """Import a planner file as a module (under `name`, by default ``drivedegrade_planner_<stem>``), or raise a
     UsageError that says what is wrong with it."""

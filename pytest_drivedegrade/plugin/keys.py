@@ -1,11 +1,13 @@
-"""The run's signing key, kept out of everything the run records or runs (issue 20, item 1).
+"""A run never holds a signing key (issue 37 H1; issue 20 item 1 before it).
 
-A key's value is never recorded: ``--drivedegrade-sign-key`` (and its ini value) takes a path only, PEM text is
-taken only from ``DRIVEDEGRADE_SIGNING_KEY``, errors never quote a key, and the command line the certificate and
-the report record has the option's value replaced unless it is a key file's path. The variable is read at
-start-up and deleted from the environment before any conftest.py or planner file is imported, so neither the
-planner nor the xdist workers and Ray actors started later (which inherit the environment) can read it; only the
-controller signs, so a worker never loads the key.
+Deleting ``DRIVEDEGRADE_SIGNING_KEY`` from ``os.environ`` is not enough: the kernel keeps every process's initial
+environment in ``/proc/<pid>/environ``, readable by any process of the same user, so a planner (in the controller
+under ``-n 0``, in a worker reading its parent's, in a Ray actor scanning ``/proc/*/environ``) could read the key,
+and a key file's path given to the run is as exposed. So a run given ``--drivedegrade`` REFUSES a key in its
+environment, on its command line or in its ini file, before any conftest.py or planner file is imported, and says
+how to sign instead: run unsigned, then ``drivedegrade sign CERT --key PATH`` (or ``drivedegrade merge --sign-key``)
+in a step that runs no planner code. The command line the certificate records still has any key-looking value
+replaced (`recorded_args`).
 """
 
 from __future__ import annotations
@@ -16,62 +18,35 @@ from pathlib import Path
 
 import pytest
 
-from ..errors import DriveDegradeError
-
 FLAG = "--drivedegrade-sign-key"
 DEST = "drivedegrade_sign_key"
 #: What the recorded command line shows in place of a signing key option's value that is not a key file's path.
 REDACTED = "<redacted>"
+#: How to sign instead, the end of every refusal.
+HOW_TO_SIGN = ("a run never holds the signing key, since the planner it runs could read it (from "
+               "/proc/<pid>/environ or the key file): run unsigned, then sign the finished certificate in a step "
+               "that runs no planner code: `drivedegrade sign REPORT/PLANNER/certificate.json --key PATH` (or "
+               "`drivedegrade merge SHARDS --out DIR --sign-key PATH` for a sharded run)")
 
 
-def _stash_key() -> pytest.StashKey[str | None]:
-    from . import SIGNING_KEY_ENV  # the entry module's key: the same in every copy of this module
-
-    return SIGNING_KEY_ENV
-
-
-def take_from_environment(config: pytest.Config) -> str | None:
-    """``$DRIVEDEGRADE_SIGNING_KEY`` as it was at start-up, deleted from ``os.environ`` the first time this runs
-    for `config` (the value is kept on the config for `signing_key_pem`)."""
+def refuse_run_key(config: pytest.Config) -> None:
+    """A usage error when the run was given a signing key: ``$DRIVEDEGRADE_SIGNING_KEY`` set in its environment,
+    or ``--drivedegrade-sign-key`` (or its ini value). Called before any conftest.py is imported. The key's
+    value is never quoted."""
     from ..certificate.signing import ENV_VAR
 
-    key = _stash_key()
-    if key not in config.stash:
-        config.stash[key] = os.environ.pop(ENV_VAR, None) or None
-    return config.stash[key]
-
-
-def _configured(config: pytest.Config) -> str | None:
-    """The option's value: the command line's, else the ini file's."""
-    got = config.getoption(DEST, default=None)
-    return got if got is not None else (config.getini(DEST) or None)
-
-
-def signing_key_pem(config: pytest.Config, here: Path) -> bytes | None:
-    """The PEM bytes of the run's Ed25519 signing key, checked now so that a bad key is a usage error before any
-    cell runs: ``--drivedegrade-sign-key PATH`` (relative to `here`), else ``$DRIVEDEGRADE_SIGNING_KEY`` (a path
-    or the PEM text). None in an xdist worker (only the controller signs) and for an unsigned run. A key file
-    readable by its group or others is warned about."""
-    from ..certificate.signing import ENV_VAR, key_file_path, load_private_key, loose_permissions, read_key_source
-
-    from_env = take_from_environment(config)
-    if hasattr(config, "workerinput"):
-        return None
-    raw, where, pem_allowed = _configured(config), FLAG, False
-    if raw is None:
-        raw, where, pem_allowed = from_env, ENV_VAR, True
-        if raw is None:
-            return None
-    try:
-        pem = read_key_source(str(raw), where, pem_allowed=pem_allowed, base=here)
-        load_private_key(pem, where)
-    except DriveDegradeError as exc:
-        raise pytest.UsageError(str(exc)) from None
-    path = key_file_path(str(raw), here)
-    loose = loose_permissions(path) if path is not None else None
-    if loose:
-        config.issue_config_time_warning(pytest.PytestConfigWarning(f"{where}: {loose}"), stacklevel=2)
-    return pem
+    if os.environ.get(ENV_VAR):
+        raise pytest.UsageError(f"{ENV_VAR} is set in the environment of this run (its value is not shown): "
+                                f"{HOW_TO_SIGN}. Unset it for the run (`env -u {ENV_VAR} pytest ...`) and keep it "
+                                "out of every process of the user the planner runs as")
+    given = getattr(config.known_args_namespace, DEST, None)
+    if given is None:
+        try:
+            given = config.getini(DEST) or None
+        except (ValueError, KeyError):  # pragma: no cover - the ini value is not known yet
+            given = None
+    if given is not None:
+        raise pytest.UsageError(f"{FLAG} is refused (its value is not shown): {HOW_TO_SIGN}")
 
 
 def _redacted(value: str, here: Path) -> str:

@@ -16,7 +16,6 @@ import pytest
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
-from .keys import signing_key_pem
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
@@ -132,9 +131,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
                "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
                {"metavar": "X"}),
-    OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
-               "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
-               "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
+    OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "REFUSED (as is DRIVEDEGRADE_SIGNING_KEY in "
+               "the run's environment): the planner could read the key; sign the finished certificate with "
+               "`drivedegrade sign CERT --key PATH`", {"metavar": "PATH"}),
 )
 _BY_DEST = {spec.dest: spec for spec in OPTIONS}
 
@@ -216,7 +215,6 @@ class RunOptions:
     baseline_path: Path | None
     tolerance: float
     ego: tuple[str, ...] = ("ego_noise", "ego_blind")  #: the ego cells to run (SPEC section 10)
-    sign_key_pem: bytes | None = field(default=None, repr=False)  #: the certificate's signing key (PEM), checked
     baseline_partial: bool = False  #: --drivedegrade-baseline-partial: gate on what the baseline covers
     baseline_any_planner: bool = False  #: --drivedegrade-baseline-any-planner: another planner's baseline is fine
     baseline_public_key: Path | None = None  #: --drivedegrade-baseline-public-key: the baseline must be signed by it
@@ -415,7 +413,8 @@ def parse(config: pytest.Config) -> RunOptions:
     if baseline and settings.shard is not None:  # issue 20 M6: a shard's frames are not the baseline's run
         raise _fail("drivedegrade_baseline", "a shard cannot be gated: the baseline covers the whole run, a shard "
                     f"only its part of the frames ({settings.shard}). Run the shards without "
-                    "--drivedegrade-baseline and merge them (drivedegrade merge), or gate the whole run unsharded")
+                    "--drivedegrade-baseline and gate the merge: drivedegrade merge SHARD_DIRS --out DIR "
+                    "--baseline BASE (--tolerance X), or gate the whole run unsharded")
     options = RunOptions(
         planner_path=planner_path,
         settings=settings,
@@ -425,7 +424,6 @@ def parse(config: pytest.Config) -> RunOptions:
         baseline_path=(here / baseline).resolve() if baseline else None,
         tolerance=_number(config, "drivedegrade_tolerance", float, DEFAULT_TOLERANCE, 0.0, 1.0),
         ego=tuple(f for f in EGO_FAMILIES if f in families),
-        sign_key_pem=signing_key_pem(config, here),
         baseline_partial=_flag(config, "drivedegrade_baseline_partial"),
         baseline_any_planner=_flag(config, "drivedegrade_baseline_any_planner"),
         baseline_public_key=(here / str(public_key)).resolve() if public_key else None,

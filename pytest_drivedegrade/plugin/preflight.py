@@ -12,16 +12,13 @@ import json
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pytest
 
 from ..cells import cell_id
 from ..run import RunContext
 from .options import RunOptions
-
-if TYPE_CHECKING:
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 #: The files the controller writes in a planner's (or a shard's) folder; cells/ holds one <cell>.json each.
 OUTPUT_FILES = ("certificate.json", "cells.csv", "report.html", "shard.json")
@@ -55,7 +52,42 @@ def load_baseline(options: RunOptions) -> dict[str, Any] | None:
         raise pytest.UsageError(f"{where}: refused: the digest verifies but the arithmetic does not add up "
                                 f"({'; '.join(problems[:3])}{'; ...' if len(problems) > 3 else ''}): `drivedegrade "
                                 "verify` rejects it, so it cannot be trusted as a baseline")
+    if options.settings.adaptive:  # the sequential gate reads the baseline's per-frame results beside it
+        check_baseline_cells(cert, options.baseline_path.parent / "cells")
     return cert
+
+
+def sealed_digests(cert: Mapping[str, object] | None) -> dict[str, object]:
+    """The baseline certificate's ``record_digests`` (its open-loop cells' sealed records), {} without any."""
+    got = (cert or {}).get("record_digests")
+    return dict(got) if isinstance(got, Mapping) else {}
+
+
+def check_baseline_cells(cert: Mapping[str, object], folder: Path) -> None:
+    """Every file of the baseline's ``cells/`` checked against the record the baseline certificate sealed
+    (issue 37 H2), before any cell runs: one whose record hashes to another digest (a cell file of another run
+    copied over it), or one the certificate sealed no record for, is a usage error naming the file. Files of
+    the closed loop's cells (sealed in its own section, never read by the gate) are left alone."""
+    from ..certificate.adaptive_check import load_records
+
+    if not folder.is_dir():
+        return
+    digests = sealed_digests(cert)
+    closed = cert.get("closed_loop")
+    closed_cells = closed.get("record_digests") if isinstance(closed, Mapping) else None
+    for path in sorted(folder.glob("*.json")):
+        cell = path.stem
+        if cell not in digests:
+            if isinstance(closed_cells, Mapping) and cell in closed_cells:
+                continue
+            raise pytest.UsageError(f"--drivedegrade-baseline: {path}: the baseline certificate sealed no record of "
+                                    f"cell {cell!r} (record_digests), so the sequential gate cannot trust it; "
+                                    "remove it, or use the baseline's own cells/ folder as its run wrote it")
+        _, problems = load_records(folder, [cell], digests)
+        if problems:
+            raise pytest.UsageError(f"--drivedegrade-baseline: refused before any cell ran: {problems[0]}; the "
+                                    "gate would compare this run with results the baseline never certified. Restore "
+                                    "the baseline's cells/ as its run wrote them (or rerun the baseline)")
 
 
 def refuse_own_output(options: RunOptions) -> None:
@@ -214,11 +246,3 @@ def restore_device(previous: str | None) -> None:
     else:
         os.environ[DEVICE_ENV] = previous
 
-
-def signing_key(options: RunOptions) -> Ed25519PrivateKey | None:
-    """The run's Ed25519 private key (checked at start-up by `options.parse`), or None for an unsigned run."""
-    if options.sign_key_pem is None:
-        return None
-    from ..certificate.signing import load_private_key
-
-    return load_private_key(options.sign_key_pem, "--drivedegrade-sign-key")

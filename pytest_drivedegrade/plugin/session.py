@@ -23,12 +23,21 @@ from ..errors import DriveDegradeError
 from ..payload import CellPayload
 from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
-from . import SESSION_KEY, preflight
+from . import SESSION_KEY, exitguard, preflight
 from .closed import CLOSED_ATTR, ClosedState, write_stored
 from .context import build_run_context
 from .controller import Outcome, planner_file
 from .egofloor import FloorAhead, start_floor
-from .items import CellCollector, CellItem, ClosedItem, NothingCollector, conftest_with_planner, import_planner_file
+from .items import (
+    CellCollector,
+    CellItem,
+    ClosedItem,
+    NothingCollector,
+    check_planner_file,
+    conftest_with_planner,
+    import_planner_file,
+    planner_runs_elsewhere,
+)
 from .options import RunOptions, parse
 
 if TYPE_CHECKING:
@@ -106,19 +115,33 @@ class DriveDegradeSession:
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
+        self.guarded = False  # -n 0: os._exit refused while the run is live (`exitguard`)
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
         options = parse(config)
-        module = None
-        if options.planner_path is not None:
-            module = import_planner_file(options.planner_path)  # its fixtures are registered by CellCollector
-            collect_path = options.planner_path
-        else:
-            collect_path = conftest_with_planner(config)
-        baseline = preflight.load_baseline(options)
+        elsewhere = planner_runs_elsewhere(config, options.ray)
+        guarded = not elsewhere and not _is_worker(config)  # -n 0: the planner shares the status's process
+        if guarded:
+            exitguard.arm()
+        try:
+            module = None
+            if options.planner_path is not None:
+                if elsewhere:  # the workers or actors import it, never this process
+                    check_planner_file(options.planner_path)
+                else:
+                    module = import_planner_file(options.planner_path)  # fixtures registered by CellCollector
+                collect_path = options.planner_path
+            else:
+                collect_path = conftest_with_planner(config)
+            baseline = preflight.load_baseline(options)
+        except BaseException:
+            if guarded:
+                exitguard.disarm()
+            raise
         config.args = [str(collect_path)]  # collect the cells, not the rest of the test tree
         session = cls(config, options, collect_path, module, baseline)
+        session.guarded = guarded
         session._device_env = preflight.use_device(options.settings.device)
         return session
 
@@ -133,6 +156,9 @@ class DriveDegradeSession:
             self.floor.close()
         self.context, self.floor, self.runner = None, None, None
         self.received.clear()
+        if self.guarded:  # the planner ran here: its os._exit is its own again, the run's status is held
+            exitguard.disarm()
+            exitguard.hold_final_status()
 
     # --- collection ------------------------------------------------------------------------------------------
 
@@ -244,6 +270,7 @@ class DriveDegradeSession:
                                          stored_reader(context, chosen, self.store))
             if self.options.baseline_path is not None:  # cells also stop on the sequential gate's test
                 self.runner.gate_against(self.options.baseline_path, self.options.tolerance)
+                self.runner.baseline_digests = preflight.sealed_digests(self.baseline)
         return self.runner
 
     def _next_cell(self, item: CellItem) -> tuple[str, int] | None:
@@ -303,7 +330,6 @@ class DriveDegradeSession:
         actors = self._close_actors()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
-                                  signing_key=preflight.signing_key(self.options),
                                   closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]),
                                   floor=self.floor)
         if self.outcome is not None:

@@ -165,9 +165,11 @@ _STYLE = ("<style>body{font-family:sans-serif;margin:2em;color:#1f2933}td.n{text
 def write_closed_report(path: str | os.PathLike[str], planner: str, analysis: ClosedAnalysis, run: ClosedRun, *,
                         digest: str = "") -> Path:
     """A page of its own for a run of closed cells only."""
+    from .html import seal_html
+
     page = (f"<!doctype html><html><head><meta charset='utf-8'><title>DriveDegrade closed loop: {html.escape(planner)}"
             f"</title>{_STYLE}</head><body>"
-            f"<h1>{html.escape(planner)}: closed loop</h1><p>certificate digest {html.escape(digest)}</p>"
+            f"<h1>{html.escape(planner)}: closed loop</h1><dl>{seal_html(digest, '')}</dl>"
             + closed_fragment(analysis, run) + "</body></html>\n")
     return atomic_write_text(path, page)
 

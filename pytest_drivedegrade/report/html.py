@@ -204,10 +204,45 @@ def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.
     }
     env = Environment(loader=FileSystemLoader(str(TEMPLATES)), autoescape=True, undefined=StrictUndefined,
                       trim_blocks=True, lstrip_blocks=True)
-    extra = {"created": created, "digest": digest, "signed_by": signed_by, "closed_html": closed_html,
+    extra = {"created": created, "seal_html": seal_html(digest, signed_by), "closed_html": closed_html,
              "traj_cells": [c for t in traj[:1] for c in t["plans"]], "cost": _cost_rows(cost),
              **pdms_ego_context(analysis)}
     return env.get_template("report.html.j2").render(_context(analysis, provenance, charts, families, extra))
+
+
+#: The marks around the page's seal rows: `drivedegrade sign` rewrites what lies between them (issue 37 H1).
+SEAL_OPEN, SEAL_CLOSE = "<!-- drivedegrade:seal -->", "<!-- /drivedegrade:seal -->"
+
+
+def seal_html(digest: str, signed_by: str) -> str:
+    """The report's rows on the certificate's digest and what its seal proves, between `SEAL_OPEN` and
+    `SEAL_CLOSE` ("" without a digest): signed by the key `signed_by` (its fingerprint), or integrity only."""
+    if not digest:
+        return ""
+    from markupsafe import escape
+
+    if signed_by:
+        proves = (f"signed (Ed25519, key fingerprint <code>{escape(signed_by)}</code>): it proves who issued the "
+                  "certificate; <code>drivedegrade verify certificate.json --public-key KEY.pub</code> checks the "
+                  "signature, the digest and the arithmetic")
+    else:
+        proves = ("integrity only, unsigned: the digest catches an accidental edit, not a deliberate one; sign it "
+                  "after the run with <code>drivedegrade sign certificate.json --key KEY</code> to prove who "
+                  "issued it. <code>drivedegrade verify certificate.json</code> checks the digest and the "
+                  "arithmetic")
+    return (f"{SEAL_OPEN}<dt>certificate digest</dt><dd><code>{escape(digest)}</code></dd>\n    <dt>what the seal "
+            f"proves</dt><dd>{proves};\n      <code>drivedegrade reproduce certificate.json PLANNER</code> reruns "
+            f"sampled cells bit for bit</dd>{SEAL_CLOSE}")
+
+
+def reseal_page(page: str, digest: str, signed_by: str) -> str | None:
+    """`page` (a report.html) with its seal rows rewritten for a certificate now sealed as `digest` and signed
+    by `signed_by`; None when the page has no single seal block (an older page, or not ours)."""
+    if page.count(SEAL_OPEN) != 1 or page.count(SEAL_CLOSE) != 1:
+        return None
+    head, rest = page.split(SEAL_OPEN)
+    _, tail = rest.split(SEAL_CLOSE)
+    return head + seal_html(digest, signed_by) + tail
 
 
 def _cost_rows(cost: Mapping[str, Any] | None) -> dict[str, object] | None:

@@ -7,6 +7,8 @@ Faults and bad input are in test_plugin_faults.py. Every run uses one small worl
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -203,8 +205,9 @@ def _verify_with(path: Path, *extra: str):
 
 @pytest.mark.parametrize("via", ["option", "env"])
 def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch, via):
-    """A run signed with --drivedegrade-sign-key (or DRIVEDEGRADE_SIGNING_KEY holding the PEM text) verifies
-    with the public key; edited and resealed with hashlib, it fails; another key fails."""
+    """A run's certificate signed after the run by `drivedegrade sign --key` (or DRIVEDEGRADE_SIGNING_KEY holding
+    the PEM text, given to the sign step only: a run refuses it, issue 37 H1) verifies with the public key;
+    edited and resealed with hashlib, it fails; another key fails."""
     import hashlib
     import json
 
@@ -213,13 +216,16 @@ def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch
     key, pub = keygen(dd.pytester.path / "issuer")
     _, other = keygen(dd.pytester.path / "other")
     dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "certificate.json"
     if via == "env":
         monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", key.read_text())
         extra: tuple[str, ...] = ()
     else:
-        extra = ("--drivedegrade-sign-key", "issuer.key")
-    dd.run(*extra, families="jpeg", severities="1").assert_outcomes(passed=4)
-    path = dd.folder() / "certificate.json"
+        extra = ("--key", str(key))
+    signed = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "sign", str(path), *extra],
+                            capture_output=True, text=True, check=False)
+    assert signed.returncode == 0, signed.stderr
     assert load_json(path)["signature"]["algorithm"] == "ed25519"
     page = (dd.folder() / "report.html").read_text()  # the report says what the seal proves
     assert "signed (Ed25519, key fingerprint" in page
@@ -243,12 +249,16 @@ def test_signed_run_verifies_with_its_key_and_a_forgery_does_not(dd, monkeypatch
 
 
 def test_a_bad_signing_key_is_a_usage_error(dd):
+    """`drivedegrade sign --key` with a file that is not a key: exit 2 naming the option, nothing signed."""
     dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
     (dd.pytester.path / "bad.key").write_text("not a key")
-    result = dd.run("--drivedegrade-sign-key", "bad.key", families="jpeg", severities="1")
-    assert result.ret == pytest.ExitCode.USAGE_ERROR
-    no_traceback(result)
-    result.stderr.fnmatch_lines(["*--drivedegrade-sign-key*not an unencrypted PEM private key*"])
+    path = dd.folder() / "certificate.json"
+    result = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "sign", str(path), "--key",
+                             str(dd.pytester.path / "bad.key")], capture_output=True, text=True, check=False)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "--key: not an unencrypted PEM private key" in result.stderr, result.stderr
+    assert "signature" not in load_json(path)
 
 
 def test_an_edited_stored_cell_is_recomputed_and_reported(dd):

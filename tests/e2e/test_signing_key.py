@@ -1,10 +1,15 @@
-"""Issue 20 item 1, "The signing key published" (with M7, M8, L4), end to end: a signed run, the key given as a
-path to the option or as PEM text in the environment, writes no key material to any output; PEM text given where
-a path belongs is a usage error that does not echo it; the planner (and its conftest.py), in the controller and
-in xdist workers, never sees DRIVEDEGRADE_SIGNING_KEY."""
+"""Issue 37 H1, "The planner can read the signing key" (and issue 20 item 1 before it), end to end. A run never
+holds a key: a run given one (in its environment, on its command line or in its ini file) is refused before any
+conftest.py or planner file is imported, with a message that says how to sign instead and never quotes the key;
+a planner that scans every /proc/*/environ it can read, and every file named on its command line, finds no key
+material under -n 0 and -n 2; the certificate signed afterwards with `drivedegrade sign` verifies with
+--public-key and its report says it is signed."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -16,34 +21,58 @@ from pytest_drivedegrade.certificate.signing import keygen  # noqa: E402
 
 pytest_plugins = ["plugin_support"]
 
-SNOOP = '''
+#: A planner that hunts for key material everywhere a same-user process can look: the initial environment of
+#: every process (/proc/*/environ: its own under -n 0, the controller's under -n 2), and every file named on its
+#: own and its parent's command line. What it finds, it writes to `found`.
+SCANNER = '''
+import json
 import os
 
 import numpy as np
 import pytest
 
-
-def note(where):
-    """Record what this process sees of the signing key's variable."""
-    with open({seen!r}, "a") as f:
-        f.write(f"{{where}} {{os.getpid()}} {{os.environ.get('DRIVEDEGRADE_SIGNING_KEY')!r}}\\n")
+with open({material!r}) as f:  # kept out of this file, which is on the command line the scanner reads
+    MATERIAL = json.load(f)
 
 
-note("import")
+def scan(where):
+    hits = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        for name in ("environ", "cmdline"):
+            try:
+                with open(f"/proc/{{pid}}/{{name}}", "rb") as f:
+                    data = f.read()
+            except OSError:
+                continue
+            hits += [f"{{where}} /proc/{{pid}}/{{name}}" for m in MATERIAL if m.encode() in data]
+            if name == "cmdline" and pid in (str(os.getpid()), str(os.getppid())):
+                for arg in data.split(b"\\0"):
+                    try:
+                        text = open(arg.decode(), "rb").read()
+                    except (OSError, UnicodeDecodeError, ValueError):
+                        continue
+                    hits += [f"{{where}} file {{arg!r}}" for m in MATERIAL if m.encode() in text]
+    with open({found!r}, "a") as f:
+        f.write(f"{{where}} {{os.getpid()}} {{len(hits)}} {{hits!r}}\\n")
 
 
-class Snoop:
+scan("import")
+
+
+class Scanner:
     cameras = ("CAM_FRONT",)
-    name = "snoop"
+    name = "scanner"
 
     def __init__(self):
-        note("build")
-        self.noted = False
+        scan("build")
+        self.scanned = False
 
     def predict(self, images, ego, cmd):
-        if not self.noted:
-            note("predict")
-            self.noted = True
+        if not self.scanned:
+            scan("predict")
+            self.scanned = True
         plan = np.zeros((6, 2))
         plan[:, 0] = 2.0 * np.arange(1, 7)
         plan[:, 1] = float(images["CAM_FRONT"][::16, ::16].mean()) / 255.0
@@ -52,96 +81,138 @@ class Snoop:
 
 @pytest.fixture(scope="session")
 def planner():
-    return Snoop()
+    return Scanner()
 '''
 
 CONFTEST = '''
-import os
-
-with open({seen!r}, "a") as f:
-    f.write(f"conftest {{os.getpid()}} {{os.environ.get('DRIVEDEGRADE_SIGNING_KEY')!r}}\\n")
+with open({found!r}, "a") as f:
+    f.write("conftest imported\\n")
 '''
+
+
+def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", *args], capture_output=True, text=True,
+                          check=False, env=env)
 
 
 def leaks(root: Path, material: list[str], skip: Path, *texts: str) -> list[str]:
     """Every file under `root` (but `skip`, the key itself) and every text holding any of `material`."""
     found = [f"output {i}" for i, text in enumerate(texts) if any(m in text for m in material)]
     for path in root.rglob("*"):
-        if path.is_file() and path != skip:
+        if path.is_file() and path != skip and path.name != "material.json":
             data = path.read_bytes()
             if any(m.encode() in data for m in material):
                 found.append(str(path.relative_to(root)))
     return found
 
 
-def write_snoop(dd) -> Path:
-    seen = dd.pytester.path / "seen.txt"
-    dd.pytester.makepyfile(snoop=SNOOP.format(seen=str(seen)), conftest=CONFTEST.format(seen=str(seen)))
-    return seen
+def write_scanner(dd, material: list[str]) -> Path:
+    found, keep = dd.pytester.path / "found.txt", dd.pytester.path / "material.json"
+    keep.write_text(json.dumps(material))
+    dd.pytester.makepyfile(scanner=SCANNER.format(material=str(keep), found=str(found)),
+                           conftest=CONFTEST.format(found=str(found)))
+    return found
 
 
-@pytest.mark.parametrize(("via", "workers"), [("env", "0"), ("option", "2")])
-def test_the_signing_key_published_no_output_of_a_signed_run_holds_key_material(
+@pytest.mark.parametrize(("via", "workers"), [("env", "0"), ("env-path", "2"), ("option", "0"), ("ini", "2")])
+def test_the_planner_can_read_the_signing_key_a_run_given_a_key_is_refused_before_any_planner_code(
         dd, monkeypatch, key_material, via, workers):
-    """The key given both ways, under -n 0 and -n 2: the certificate (tool.command included), report.html,
-    cells.csv, cells/*.json, the JUnit XML and the terminal hold no part of the key; the run is signed; the
-    planner file, its conftest.py and the planner in every process see no DRIVEDEGRADE_SIGNING_KEY; a key file
-    readable by others is warned about (L4)."""
+    """A key in the run's environment (the PEM text, or a key file's path), or given to the option or the ini
+    value: the run (a subprocess, so the key is in its /proc/<pid>/environ as in a real shell) is a usage error
+    before conftest.py or the planner file is imported (nothing the scanner could run), the message says how to
+    sign instead and quotes no key; nothing is written. On the old code the run signed, and the scanner found
+    the key in /proc/<pid>/environ."""
     key, _ = keygen(dd.pytester.path / "issuer")
     material = key_material(key)
-    seen = write_snoop(dd)
+    found = write_scanner(dd, material)
+    extra: tuple[str, ...] = ()
     if via == "env":
         monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", key.read_text())
-        extra: tuple[str, ...] = ()
-    else:
-        key.chmod(0o644)
+    elif via == "env-path":
+        monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", str(key))
+    elif via == "option":
         extra = ("--drivedegrade-sign-key", "issuer.key")
-    result = dd.run("-n", workers, *extra, "--junitxml", "junit.xml", planner="snoop.py", families="jpeg",
-                    severities="1", report="rep")
-    no_traceback(result)
-    assert result.ret == 0, result.stdout.str()
-    folder = dd.pytester.path / "rep" / "snoop"
-    cert = load_json(folder / "certificate.json")
-    assert cert["signature"]["algorithm"] == "ed25519"
-    assert (dd.pytester.path / "junit.xml").exists() and list((folder / "cells").glob("*.json"))
-    assert leaks(dd.pytester.path, material, key, result.stdout.str(), result.stderr.str()) == []
-    lines = seen.read_text().splitlines()
-    assert {line.split()[0] for line in lines} == {"conftest", "import", "build", "predict"}
-    assert all(line.endswith(" None") for line in lines), lines
-    if workers == "2":
-        assert len({line.split()[1] for line in lines if line.startswith("predict")}) == 2  # both workers saw None
-    if via == "option":
-        assert "--drivedegrade-sign-key issuer.key" in cert["tool"]["command"]
-        result.stdout.fnmatch_lines(["*--drivedegrade-sign-key: the signing key file*issuer.key is accessible to "
-                                     "its group or others (mode 0644)*chmod 600*"], consecutive=False)
     else:
-        assert "accessible to its group" not in result.stdout.str()
-    assert "DRIVEDEGRADE_SIGNING_KEY" not in __import__("os").environ  # taken from this process's environment too
-
-
-@pytest.mark.parametrize("how", ["option", "option=", "ini", "env-broken", "env-body"])
-def test_the_signing_key_published_key_text_where_a_path_belongs_is_a_usage_error_not_echoed(
-        dd, monkeypatch, key_material, how):
-    """PEM text given to the option (as its own argument, after `=`, or through -o as the ini value) is refused
-    (the message points at the environment variable); a key in the variable that does not parse (M8), or its
-    base64 body alone, is refused; no message quotes any of the key, and nothing is written."""
-    key, _ = keygen(dd.pytester.path / "issuer")
-    pem, material = key.read_text(), key_material(key)
-    write_snoop(dd)
-    args = {"option": ("--drivedegrade-sign-key", pem), "option=": (f"--drivedegrade-sign-key={pem}",),
-            "ini": ("-o", f"drivedegrade_sign_key={pem}")}.get(how, ())
-    if how == "env-broken":
-        monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", pem[: len(pem) // 2])
-    if how == "env-body":
-        monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", pem.splitlines()[1])
-    result = dd.run(*args, planner="snoop.py", families="jpeg", severities="1", report="rep")
-    assert result.ret == pytest.ExitCode.USAGE_ERROR
-    no_traceback(result)
+        extra = ("-o", "drivedegrade_sign_key=issuer.key")
+    result = dd.run("-n", workers, *extra, planner="scanner.py", families="jpeg", severities="1", report="rep",
+                    subprocess=True)
     text = result.stdout.str() + result.stderr.str()
-    if how.startswith("env"):
-        assert "DRIVEDEGRADE_SIGNING_KEY: " in text
-    else:
-        assert "--drivedegrade-sign-key: expected the path of a key file, got what looks like key text (not " \
-               "shown); a key's text goes in the DRIVEDEGRADE_SIGNING_KEY environment variable" in text
+    assert result.ret == pytest.ExitCode.USAGE_ERROR, text
+    no_traceback(result)
+    assert "drivedegrade sign REPORT/PLANNER/certificate.json --key PATH" in text, text
+    assert ("DRIVEDEGRADE_SIGNING_KEY is set in the environment of this run" if via.startswith("env")
+            else "--drivedegrade-sign-key is refused") in text, text
+    assert not found.exists(), found.read_text()  # neither conftest.py nor the planner file was imported
     assert leaks(dd.pytester.path, material, key, text) == []
     assert not (dd.pytester.path / "rep").exists()
+
+
+@pytest.mark.parametrize("workers", ["0", "2"])
+def test_the_planner_can_read_the_signing_key_a_scanning_planner_finds_none_and_the_run_signed_after_verifies(
+        dd, key_material, workers):
+    """The scanner runs (conftest, import, build, predict: in the controller under -n 0, in both workers under
+    -n 2) and finds no key material in any /proc/*/environ or file on its command lines; `drivedegrade sign`
+    (the key given as a path, then a second run's certificate through the variable) signs the finished
+    certificate, which verifies with --public-key, fails with another key, and whose report.html now says it is
+    signed by that key's fingerprint; signing again is refused; no output holds key material."""
+    key, pub = keygen(dd.pytester.path / "issuer")
+    _, other = keygen(dd.pytester.path / "other")
+    material = key_material(key)
+    found = write_scanner(dd, material)
+    result = dd.run("-n", workers, planner="scanner.py", families="jpeg", severities="1", report="rep",
+                    subprocess=True)
+    no_traceback(result)
+    assert result.ret == 0, result.stdout.str()
+    lines = found.read_text().splitlines()
+    scans = [line for line in lines if not line.startswith("conftest")]
+    assert {line.split()[0] for line in scans} == {"import", "build", "predict"}, lines
+    assert all(line.split()[2] == "0" for line in scans), lines  # no hit anywhere
+    if workers == "2":
+        assert len({line.split()[1] for line in scans if line.startswith("predict")}) == 2
+    cert_path = dd.pytester.path / "rep" / "scanner" / "certificate.json"
+    assert "signature" not in load_json(cert_path)
+    assert "integrity only, unsigned" in (cert_path.parent / "report.html").read_text()
+
+    signed = cli("sign", str(cert_path), "--key", str(key))
+    assert signed.returncode == 0, signed.stderr
+    cert = load_json(cert_path)
+    fp = cert["signature"]["public_key_fingerprint"]
+    assert f"key of fingerprint {fp}" in signed.stdout
+    page = (cert_path.parent / "report.html").read_text()
+    assert f"signed (Ed25519, key fingerprint <code>{fp}</code>" in page and cert["digest"] in page
+    assert "integrity only" not in page
+    ok = cli("verify", str(cert_path), "--public-key", str(pub))
+    assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
+    wrong = cli("verify", str(cert_path), "--public-key", str(other))
+    assert wrong.returncode == 1 and "wrong key" in wrong.stderr
+    again = cli("sign", str(cert_path), "--key", str(key))
+    assert again.returncode == 2 and "already signed" in again.stderr
+    assert leaks(dd.pytester.path, material, key, signed.stdout, signed.stderr, ok.stdout) == []
+
+
+def test_sign_refuses_an_edited_certificate_and_takes_the_key_from_the_variable(dd, tmp_path, key_material):
+    """`drivedegrade sign` signs only what verifies: an edited (resealed-by-hand is not needed: plainly edited)
+    certificate is refused with exit 1 and left unsigned; no key at all is a usage error naming both ways; the
+    PEM text in DRIVEDEGRADE_SIGNING_KEY signs (the sign step is where the variable belongs), and an error
+    never quotes the key."""
+    import os
+
+    key, pub = keygen(tmp_path / "issuer")
+    dd.write_planner()
+    dd.run(families="jpeg", severities="1").assert_outcomes(passed=4)
+    path = dd.folder() / "certificate.json"
+    env = {k: v for k, v in os.environ.items() if k != "DRIVEDEGRADE_SIGNING_KEY"}
+    none = cli("sign", str(path), env=env)
+    assert none.returncode == 2 and "give --key PATH" in none.stderr and "DRIVEDEGRADE_SIGNING_KEY" in none.stderr
+    original = path.read_text()
+    data = json.loads(original)
+    data["verdict"]["label"] = "not-shown-to-use-cameras"
+    path.write_text(json.dumps(data))
+    edited = cli("sign", str(path), "--key", str(key), env=env)
+    assert edited.returncode == 1 and "not signed" in edited.stderr, edited.stderr
+    assert "signature" not in load_json(path)
+    path.write_text(original)
+    signed = cli("sign", str(path), env={**env, "DRIVEDEGRADE_SIGNING_KEY": key.read_text()})
+    assert signed.returncode == 0, signed.stderr
+    assert cli("verify", str(path), "--public-key", str(pub)).returncode == 0
+    assert leaks(tmp_path, key_material(key), key, signed.stdout, signed.stderr, none.stderr) == []

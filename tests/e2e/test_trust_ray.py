@@ -1,6 +1,7 @@
 """Issue 20 on Ray planner actors (`--drivedegrade-ray local`): "False accusation" (the culprit search replays on
 the actors too, and a planner whose plans depend on its call history is never blamed for a camera there), and
-"The signing key published" (M7: a signed run's actors never see DRIVEDEGRADE_SIGNING_KEY)."""
+"The signing key published" (issue 37 H1: a run never holds the key, so the actors scanning every
+/proc/*/environ find none; the certificate is signed afterwards)."""
 
 from __future__ import annotations
 
@@ -23,15 +24,25 @@ no_stray_ray = test_ray.no_stray_ray  # the fixture: no Ray daemon outlives the 
 def test_false_accusation_a_stateful_planner_without_reset_is_never_blamed_for_a_camera_on_ray(dd, no_stray_ray,
                                                                                                monkeypatch):
     """The front-only planner with state and no reset(), its cells run by two actors: whatever its null controls
-    find, a failure says the plans depend on call history and no camera is named. The run is signed through the
-    environment, and the planner in each actor notes what it sees of the variable: nothing."""
+    find, a failure says the plans depend on call history and no camera is named. The planner in each actor
+    scans every /proc/*/environ it can read for the signing key's variable: none holds it; the certificate
+    signed after the run (`drivedegrade sign`) verifies with the public key."""
+    import subprocess
+    import sys
+
     from pytest_drivedegrade.certificate.signing import keygen
 
-    key, _ = keygen(dd.pytester.path / "issuer")
-    monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", key.read_text())
+    key, pub = keygen(dd.pytester.path / "issuer")
     seen = dd.pytester.path / "seen.txt"
     note = (f"        with open({str(seen)!r}, 'a') as f:\n"
-            "            f.write(f\"{os.getpid()} {os.environ.get('DRIVEDEGRADE_SIGNING_KEY')!r}\\n\")\n")
+            "            hits = []\n"
+            "            for pid in filter(str.isdigit, os.listdir('/proc')):\n"
+            "                try:\n"
+            "                    data = open(f'/proc/{pid}/environ', 'rb').read()\n"
+            "                except OSError:\n"
+            "                    continue\n"
+            f"                hits += [pid] if {key.read_text().splitlines()[1]!r}.encode() in data else []\n"
+            "            f.write(f\"{os.getpid()} {hits or None!r}\\n\")\n")
     source = FRONT_CHANGE.replace("import numpy", "import os\n\nimport numpy").replace(
         "    def predict(self, images, ego, cmd):\n", "    def predict(self, images, ego, cmd):\n" + note)
     dd.pytester.makepyfile(frontchange=source)
@@ -49,4 +60,8 @@ def test_false_accusation_a_stateful_planner_without_reset_is_never_blamed_for_a
                for i in failed), text
     calls = seen.read_text().splitlines()
     assert len({c.split()[0] for c in calls}) == 2 and all(c.endswith(" None") for c in calls)  # both actors
-    assert "signature" in (dd.folder("frontchange") / "certificate.json").read_text()
+    cert = dd.folder("frontchange") / "certificate.json"
+    assert "signature" not in cert.read_text()
+    cli = [sys.executable, "-m", "pytest_drivedegrade.cli"]
+    assert subprocess.run([*cli, "sign", str(cert), "--key", str(key)], check=False).returncode == 0
+    assert subprocess.run([*cli, "verify", str(cert), "--public-key", str(pub)], check=False).returncode == 0

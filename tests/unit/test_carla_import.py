@@ -287,3 +287,51 @@ def test_a_null_named_but_not_given_is_a_clear_error(tmp_path: Path, capsys: pyt
     err = capsys.readouterr().err
     assert err.startswith("drivedegrade: error: ") and message in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
+
+
+# --- issue 37: cells paired by route, unknown statuses refused, the csv neutralised, the progress bounded --------
+
+
+def test_a_cell_missing_a_route_of_clean_is_refused_naming_it(tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """Without its worst route (2) the blackout cell's retention would be taken over other drives than clean's
+    (the issue's 1.091 against an honest 0.841); refused naming the cell, the file and the route. A route
+    clean lacks is refused too; a route the leaderboard planned but did not run still pairs (unscored)."""
+    clean = write(tmp_path / "clean.json", results_2x(CLEAN))
+    short = write(tmp_path / "blackout-s5.json", results_2x(BLACKOUT[:2]))
+    with pytest.raises(DataError, match=r"blackout-s5.json: cell closed-blackout-s5 has no run of route "
+                                        r"RouteScenario_2_rep0, which the clean cell ran"):
+        gather([clean, short])
+    assert main(["closed-loop", "import", clean, short, "--out", str(tmp_path / "out")]) == 2
+    assert "has no run of route RouteScenario_2_rep0" in capsys.readouterr().err
+    other = write(tmp_path / "fog-s5.json", results_2x([*BLACKOUT[:2], record_2x(2, 9, "Completed", 90.0, 100.0, 0.9)]))
+    with pytest.raises(DataError, match="ran route RouteScenario_9_rep0, which the clean cell did not"):
+        gather([clean, other])
+    unrun = write(tmp_path / "jpeg-s5.json", results_2x(BLACKOUT[:2], planned=3))  # stopped early: pairs
+    assert [c.cell for c in gather([clean, unrun])] == ["closed-clean", "closed-jpeg-s5"]
+
+
+@pytest.mark.parametrize("status", ["Failed - TickRuntime", "Crashed", "Failed - ", "completed"])
+def test_an_unknown_route_status_is_refused_not_scored(tmp_path: Path, status: str) -> None:
+    records = [*CLEAN[:2], record_2x(2, 2, status, 40.0, 40.0, 1.0)]
+    with pytest.raises(DataError, match=rf"records\[2\]: unknown route status {status!r}"):
+        read_results(Path(write(tmp_path / "clean.json", results_2x(records))))
+
+
+def test_file_texts_that_a_spreadsheet_would_run_are_neutralised_in_the_csv(tmp_path: Path) -> None:
+    evil = dict(CLEAN[0], route_id='=HYPERLINK("http://x","y")')
+    clean = write(tmp_path / "clean.json", results_2x([evil, *CLEAN[1:]]))
+    assert main(["closed-loop", "import", clean, "--out", str(tmp_path / "out")]) == 0
+    rows = list(csv.DictReader((tmp_path / "out" / CSV_NAME).open()))
+    assert rows[0]["route_id"] == "'=HYPERLINK(\"http://x\",\"y\")" and rows[0]["ds"] == "100.0"
+    assert all(not v.startswith(("=", "+", "@")) for r in rows for v in r.values())
+
+
+def test_a_huge_progress_count_is_refused_before_any_placeholder(tmp_path: Path) -> None:
+    import time
+
+    data = results_2x(CLEAN, planned=10**12)
+    start = time.monotonic()
+    with pytest.raises(DataError, match="progress plans 1000000000000 routes: not a route count"):
+        read_results(Path(write(tmp_path / "clean.json", data)))
+    assert time.monotonic() - start < 5

@@ -85,3 +85,30 @@ def test_an_unreadable_cache_is_ignored(world: Path, tmp_path: Path) -> None:
     path.write_text("{broken")
     assert _open(world, cache_dir).dataset_fingerprint == _open(world, None).dataset_fingerprint
     assert json.loads(path.read_text())["version"] == content.CACHE_VERSION
+
+
+def test_lidar_sweeps_are_in_the_fingerprint_and_the_run_key(world: Path) -> None:
+    """Issue 37 H4: the LIDAR_TOP sweep of a scored frame (what `FrameContext.lidar_points` reads) changed in
+    place (same size: points moved) changes the dataset fingerprint and so the run key, so a LiDAR planner's
+    stored cells are recomputed and two data sets differing only in LiDAR are not the same data to the gate,
+    `compare` and `merge`; an unscored frame's sweep does not. On the old code the fingerprint was unchanged."""
+    import numpy as np
+
+    from pytest_drivedegrade.data.context import LIDAR_POINT_SIZE
+
+    before = _open(world, None)
+    sweep = Path(before.frames[1].lidar_file)
+    assert sweep.is_file() and sweep.stat().st_size % (4 * LIDAR_POINT_SIZE) == 0
+    points = np.fromfile(sweep, dtype=np.float32).copy()
+    points[0] += 1.0
+    points.tofile(sweep)
+    after = _open(world, None)
+    assert after.reader.fingerprint() == before.reader.fingerprint()  # the manifest cannot see it
+    assert after.dataset_fingerprint != before.dataset_fingerprint
+    assert sweep in set(content.scored_files(after.reader, after.frames))
+    # an unscored frame's sweep: not read by the run, not in its fingerprint
+    every = _open(world, None, frames=None).frames
+    scored = {f.lidar_file for f in after.frames}
+    unscored = next(Path(f.lidar_file) for f in every if f.lidar_file and f.lidar_file not in scored)
+    unscored.write_bytes(unscored.read_bytes()[::-1])
+    assert _open(world, None).dataset_fingerprint == after.dataset_fingerprint
