@@ -33,7 +33,8 @@ from .terminal import floor_warning
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
-               "not-shown-to-use-cameras": "flat", "undetermined": "undetermined"}
+               "not-shown-to-use-cameras": "flat", "camera-sensitive": "insensitive",
+               "undetermined": "undetermined"}
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,9 @@ from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value, report_order
 
-VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
+#: The run's labels; ``camera-sensitive`` (plans move, accuracy does not fall) comes from ``reliance.read_movement``.
+VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras",
+                                   "camera-sensitive")
 
 
 @dataclass(frozen=True)
