@@ -149,3 +149,47 @@ def _with_reliance(res) -> dict:
     cert["cells"] = [{**c, "endpoint_shift": round(shifts[c["cell"]], 6)} for c in cert["cells"]]
     cert["reliance"] = res.reliance.to_builtins()
     return cert
+
+
+def test_the_profile_shows_each_input_with_what_accuracy_did() -> None:
+    from pytest_drivedegrade.report.junit import suite_properties
+    from pytest_drivedegrade.report.profile import profile_lines, profile_rows, reliance_profile
+
+    res = analyse_run(planner_run(16, misled), groups=GROUPS, n_resamples=100)
+    rows = {r["input"]: r for r in profile_rows(res.reliance, res.axes, 0.95)}
+    assert list(rows) == ["quality", "presence", "ego", "command"]
+    assert rows["quality"]["accuracy"] == "rises" and rows["presence"]["moves"] is True
+    assert rows["ego"]["shift"] is None and rows["command"]["accuracy"] == "n/a"  # not probed, never a zero
+    lines = profile_lines(res.reliance, res.axes, 0.95)
+    assert lines[2] == "  ego status: not probed" and "(rises)" in lines[0]
+    props = dict(suite_properties(res))
+    assert props["drivedegrade_reliance_presence_moves"] == "true"
+    assert props["drivedegrade_reliance_command_shift"] == "none"
+    assert props["drivedegrade_reliance_quality_shift"] == pytest.approx(res.reliance.of("quality").shift, abs=1e-6)
+    chart = reliance_profile(res.reliance, res.axes, 0.95, planner="misled")
+    assert chart is not None and chart.startswith("data:image/png;base64,")
+    assert reliance_profile(None, res.axes, 0.95, planner="old") is None
+
+
+def test_compare_notes_a_certificate_without_plan_movement() -> None:
+    from pytest_drivedegrade.certificate.compare import certificate_row, movement_notes
+
+    new = {"spec_version": "5.0.0", "reliance": {"wander": 0.0}, "verdict": {"label": "camera-sensitive"}}
+    old = {"spec_version": "4.1.0", "verdict": {"label": "not-shown-to-use-cameras"}}
+    notes = movement_notes([("a.json", new), ("b.json", old)])
+    assert len(notes) == 1 and notes[0].startswith("b.json (spec 4.1.0) records no plan movement")
+    assert movement_notes([("a.json", old), ("b.json", old)]) == []
+    assert certificate_row(old)["plan_movement"] == "not recorded" and certificate_row(new)["plan_movement"] == \
+        "recorded"
+
+
+def test_the_floor_warning_says_what_it_knows_and_a_miswired_adapter_is_one_cause() -> None:
+    from types import SimpleNamespace
+
+    from pytest_drivedegrade.report.terminal import floor_warning
+
+    got = floor_warning(SimpleNamespace(summaries=[SimpleNamespace(cell="clean", l2_avg=2.6)],
+                                        floor=SimpleNamespace(l2_avg=0.34)))
+    assert got is not None and "clean L2 2.600 m, floor 0.340 m, 7.6x" in got
+    assert "usually means" not in got and "Causes include a miswired adapter" in got
+    assert "weaker than ego status" in got and "perception-free" in got
