@@ -10,22 +10,29 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
-from ..scoring.records import Axes, format_value
+from ..constants import COMMAND_BLIND
+from ..scoring.records import Axes, CellSummary, format_value
 from ..scoring.reliance import INPUT_NAMES, RELIANCE_INPUTS, Reliance, gains
 
-#: The axis each input's accuracy is read from (None: no axis yet).
+#: The axis each input's accuracy is read from (None: the command_blind cell's own retention, `command_retention`).
 ACCURACY_AXIS: Mapping[str, str | None] = {"quality": "quality", "presence": "removal", "ego": "ego_removal",
                                            "command": None}
 FALLS, HOLDS, RISES, UNKNOWN = "#dc2626", "#2463eb", "#7c3aed", "#9aa5b1"
 
 
-def profile_rows(reliance: Reliance, axes: Axes, flat: float) -> list[dict[str, object]]:
-    """One row per input: name, shift (m, None: not probed), moves, retention and what accuracy did
-    ("falls", "holds", "rises" beyond its interval, "n/a")."""
+def command_retention(summaries: Sequence[CellSummary]) -> float | None:
+    """The command_blind cell's L2 retention (None when it did not run)."""
+    return next((s.retention for s in summaries if s.cell == COMMAND_BLIND), None)
+
+
+def profile_rows(reliance: Reliance, axes: Axes, flat: float,
+                 command: float | None = None) -> list[dict[str, object]]:
+    """One row per input: name, shift (m, None: not probed), moves, retention (the command's: `command`) and what
+    accuracy did ("falls", "holds", "rises" beyond its interval, "n/a")."""
     rows: list[dict[str, object]] = []
     for name in RELIANCE_INPUTS:
         got, axis = reliance.of(name), ACCURACY_AXIS[name]
-        value = axes.value(axis) if axis is not None else None
+        value = axes.value(axis) if axis is not None else command
         if value is None or not math.isfinite(value):
             accuracy = "n/a"
         elif round(value, 6) < flat:
@@ -37,13 +44,14 @@ def profile_rows(reliance: Reliance, axes: Axes, flat: float) -> list[dict[str, 
     return rows
 
 
-def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, planner: str) -> str | None:
+def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, planner: str,
+                     command: float | None = None) -> str | None:
     """The profile chart as a data URI; None without a reliance (a certificate of spec 4)."""
     if reliance is None:
         return None
     from .plots import INK, MUTED, _figure, _label, _style, to_data_uri
 
-    rows = profile_rows(reliance, axes, flat)
+    rows = profile_rows(reliance, axes, flat, command)
     fig = _figure(6.4, 2.9)
     ax = fig.add_subplot(1, 1, 1)
     _style(ax)
@@ -73,12 +81,12 @@ def _annotation(row: Mapping[str, object]) -> str:
             f"({row['accuracy']})")
 
 
-def profile_lines(reliance: Reliance | None, axes: Axes, flat: float) -> Sequence[str]:
+def profile_lines(reliance: Reliance | None, axes: Axes, flat: float, command: float | None = None) -> Sequence[str]:
     """The profile as terminal lines (one per input)."""
     if reliance is None:
         return []
     out = []
-    for row in profile_rows(reliance, axes, flat):
+    for row in profile_rows(reliance, axes, flat, command):
         if row["shift"] is None:
             out.append(f"  {row['name']}: not probed")
         else:

@@ -73,10 +73,10 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
         lines.append(f"ego: ego_noise S5 {format_value(ax.ego)}  ego_blind "
                      f"{format_value(ax.ego_removal)} -> {analysis.verdict.ego_label}")
     if analysis.reliance is not None:
-        from .profile import profile_lines
+        from .profile import command_retention, profile_lines
 
         lines += ["reliance profile (plan movement against the null's wander, and accuracy):",
-                  *profile_lines(analysis.reliance, ax, analysis.verdict.flat)]
+                  *profile_lines(analysis.reliance, ax, analysis.verdict.flat, command_retention(analysis.summaries))]
     return lines
 
 

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, cast
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..cells import DIAGNOSTIC, EGO_FAMILIES, CellRecord, is_camera_ladder
+from ..cells import DIAGNOSTIC, INPUT_FAMILIES, CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
 from ..metrics.trajectory import CONVENTIONS, at_horizons
 
@@ -385,7 +385,7 @@ def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[i
     """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
     if family in DIAGNOSTIC:
         return (0, DIAGNOSTIC.index(family), "", 0)
-    if family in EGO_FAMILIES:  # the ego cells after the camera ladder: ego_noise S1..S5, then ego_blind
-        return (2, EGO_FAMILIES.index(family), family, int(severity))
+    if family in INPUT_FAMILIES:  # after the camera ladder: ego_noise S1..S5, ego_blind, then command_blind
+        return (2, INPUT_FAMILIES.index(family), family, int(severity))
     rank = families.index(family) if family in families else len(families)
     return (1, rank, family, int(severity))

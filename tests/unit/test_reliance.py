@@ -193,3 +193,18 @@ def test_the_floor_warning_says_what_it_knows_and_a_miswired_adapter_is_one_caus
     assert got is not None and "clean L2 2.600 m, floor 0.340 m, 7.6x" in got
     assert "usually means" not in got and "Causes include a miswired adapter" in got
     assert "weaker than ego status" in got and "perception-free" in got
+
+
+def test_command_blind_gives_every_frame_the_constant_command_and_runs_after_the_ego_cells() -> None:
+    from pytest_drivedegrade.cells import cell_id, is_camera_ladder, is_input, run_order
+    from pytest_drivedegrade.corruptions.command import NEUTRAL_COMMAND, command_for
+    from pytest_drivedegrade.data.frame import Command
+
+    assert NEUTRAL_COMMAND is Command.STRAIGHT
+    assert [command_for(c, "command_blind") for c in Command] == [Command.STRAIGHT] * 3
+    assert [command_for(c, f) for c in Command for f in ("clean", "ego_blind", "fog")] == \
+        [c for c in Command for _ in range(3)]
+    assert cell_id("command_blind", 0) == "command_blind" and is_input("command_blind")
+    assert not is_camera_ladder("command_blind")
+    assert run_order(["fog"], [5])[-3:] == [("command_blind", 0), ("blind", 0), ("null", 0)]
+    assert ("command_blind", 0) not in run_order(["fog"], [5], ego=("ego_noise", "ego_blind"))
