@@ -1,7 +1,8 @@
 """Command following of the reference planners on the embedded world's junction frames (issue 40).
 
     python benchmarks/command_following.py                 # val split: floor, camera_cnn, temporal_cnn
-    python benchmarks/command_following.py --split train   # more junction frames (the planners trained on them)
+    python benchmarks/command_following.py --split train   # more junction frames; no images there: the floor and
+                                                           # constant_velocity only
     python benchmarks/command_following.py --quick         # val split, the floor and constant_velocity only
 
 At each frame where another command is meaningful (`data.junctions.alternative`) every planner plans twice on
@@ -72,7 +73,7 @@ def main() -> None:
                                                "drivedegrade" / "floor"),
         "constant_velocity": load_planner_file("constant_velocity").ConstantVelocity(),
     }
-    if not args.quick:
+    if not args.quick and args.split == "val":  # the world renders images for its val split only
         planners["camera_cnn"] = load_planner_file("camera_cnn").CameraCNNPlanner()
         planners["temporal_cnn"] = load_planner_file("temporal_cnn").TemporalCNNPlanner()
     logged = np.stack([f.gt_future for f, _ in scored]) if scored else np.zeros((0, 6, 2))

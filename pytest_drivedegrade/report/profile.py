@@ -18,6 +18,7 @@ from ..scoring.reliance import INPUT_NAMES, RELIANCE_INPUTS, Reliance, gains
 ACCURACY_AXIS: Mapping[str, str | None] = {"quality": "quality", "presence": "removal", "ego": "ego_removal",
                                            "command": None}
 FALLS, HOLDS, RISES, UNKNOWN = "#dc2626", "#2463eb", "#7c3aed", "#9aa5b1"
+BASE = 1e-3  #: m: the chart's left edge (log scale); a shift below it is drawn as no bar, its figure still written
 
 
 def command_retention(summaries: Sequence[CellSummary]) -> float | None:
@@ -56,20 +57,25 @@ def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, plan
     ax = fig.add_subplot(1, 1, 1)
     _style(ax)
     shifts = [float(r["shift"]) for r in rows if isinstance(r["shift"], float)]
-    top = max([*shifts, reliance.wander, 1e-3]) * 1.35
+    top = max([*shifts, reliance.wander, 10 * BASE])
     colours = {"falls": FALLS, "holds": HOLDS, "rises": RISES, "n/a": UNKNOWN}
+    ax.set_xscale("log")  # the ego cells move a plan by tens of metres, a camera cell by centimetres: both read
     for y, row in enumerate(rows):
         shift = row["shift"]
         if not isinstance(shift, float):
-            ax.text(0.0, y, "  not probed (no cell ran)", va="center", fontsize=8, color=MUTED)
+            ax.text(BASE * 1.1, y, "not probed (no cell ran)", va="center", fontsize=8, color=MUTED)
             continue
-        ax.barh([y], [shift], color=colours[str(row["accuracy"])], height=0.6)
-        ax.text(shift + top * 0.01, y, _annotation(row), va="center", fontsize=7.5, color=INK)
-    ax.axvline(reliance.wander, color=MUTED, linestyle="--", linewidth=0.9)
+        if shift > BASE:
+            ax.barh([y], [shift - BASE], left=BASE, color=colours[str(row["accuracy"])], height=0.6)
+        ax.text(max(shift, BASE) * 1.15, y, _annotation(row), va="center", fontsize=7.5, color=INK)
+    wander = "null's wander 0 m (bit-identical)"
+    if reliance.wander > BASE:
+        ax.axvline(reliance.wander, color=MUTED, linestyle="--", linewidth=0.9)
+        wander = f"dashed: the null's wander {reliance.wander:.3g} m"
     ax.set_yticks(range(len(rows)), [str(r["name"]) for r in rows], fontsize=8.5)
     ax.invert_yaxis()
-    ax.set_xlim(0.0, top * 1.6)
-    ax.set_xlabel("plan movement: mean 3 s endpoint shift from clean (m); dashed: the null's wander", fontsize=8.5)
+    ax.set_xlim(BASE, top * 400)  # room for the labels right of the longest bar
+    ax.set_xlabel(f"plan movement: mean 3 s endpoint shift from clean (m, log scale; {wander})", fontsize=8.5)
     ax.set_title(f"{_label(planner)}: what each input does to the plan (colour: accuracy falls / holds / rises)",
                  fontsize=8.5, color=INK)
     return to_data_uri(fig)
