@@ -144,7 +144,7 @@ def check_sound(path: str, cert: Mapping[str, Any]) -> str:
     return "complete" if missing is None else f"incomplete: {missing}"
 
 
-def movement_notes(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> list[str]:
+def movement_notes(certs: Sequence[tuple[str, Mapping[str, object]]]) -> list[str]:
     """A note for each certificate that records no plan movement (``reliance``, spec 5) compared beside one that
     does: its label was read on accuracy alone, so its ``not-shown-to-use-cameras`` may be a planner whose plans
     move while accuracy holds (``camera-sensitive`` since spec 5). Empty when all or none record it."""

@@ -12,13 +12,16 @@ Pure functions; the null control never comes here.
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 from ..constants import COMMAND_BLIND
-from ..data.frame import Command
 
-#: The command `command_blind` gives every frame (see the module's docstring for why this one).
-NEUTRAL_COMMAND = Command.STRAIGHT
+#: The command `command_blind` gives every frame: STRAIGHT in UniAD's order (`data.frame.Command`, a later stage
+#: than the corruptions, so by its value; see the module's docstring for why this one).
+NEUTRAL_COMMAND = 2
+C = TypeVar("C", bound=int)
 
 
-def command_for(command: Command, family: str) -> Command:
-    """The command a cell of `family` gives a frame whose logged command is `command`."""
-    return NEUTRAL_COMMAND if family == COMMAND_BLIND else command
+def command_for(command: C, family: str) -> C:
+    """The command a cell of `family` gives a frame whose logged command is `command` (a `Command`), of its type."""
+    return type(command)(NEUTRAL_COMMAND) if family == COMMAND_BLIND else command

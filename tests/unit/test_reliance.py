@@ -200,8 +200,9 @@ def test_command_blind_gives_every_frame_the_constant_command_and_runs_after_the
     from pytest_drivedegrade.corruptions.command import NEUTRAL_COMMAND, command_for
     from pytest_drivedegrade.data.frame import Command
 
-    assert NEUTRAL_COMMAND is Command.STRAIGHT
+    assert Command(NEUTRAL_COMMAND) is Command.STRAIGHT
     assert [command_for(c, "command_blind") for c in Command] == [Command.STRAIGHT] * 3
+    assert all(type(command_for(c, "command_blind")) is Command for c in Command)
     assert [command_for(c, f) for c in Command for f in ("clean", "ego_blind", "fog")] == \
         [c for c in Command for _ in range(3)]
     assert cell_id("command_blind", 0) == "command_blind" and is_input("command_blind")
