@@ -73,7 +73,7 @@ def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, plan
         ax.axvline(reliance.wander, color=MUTED, linestyle="--", linewidth=0.9)
         wander = f"dashed: the null's wander {reliance.wander:.3g} m"
     ax.set_yticks(range(len(rows)), [str(r["name"]) for r in rows], fontsize=8.5)
-    ax.invert_yaxis()
+    ax.set_ylim(len(rows) - 0.4, -0.8)  # top to bottom in the inputs' order, the first label clear of the title
     ax.set_xlim(BASE, top * 400)  # room for the labels right of the longest bar
     ax.set_xlabel(f"plan movement: mean 3 s endpoint shift from clean (m, log scale; {wander})", fontsize=8.5)
     ax.set_title(f"{_label(planner)}: what each input does to the plan (colour: accuracy falls / holds / rises)",
