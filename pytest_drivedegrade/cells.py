@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .constants import EGO_BLIND, EGO_NOISE, HORIZON_STEPS
+from .constants import COMMAND_BLIND, EGO_BLIND, EGO_NOISE, HORIZON_STEPS
 from .errors import InvalidInput
 from .metrics.trajectory import l2_avg
 
@@ -25,6 +25,10 @@ DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
 #: The ego ladder (SPEC section 10): cells outside the camera axes that perturb (`ego_noise`, S1..S5) or zero
 #: (`ego_blind`, severity 0) the ego status and the context's CAN bus, the images left clean.
 EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
+#: The command cells (spec 5): the images and the ego status clean, the command replaced (`command_blind`).
+COMMAND_FAMILIES: tuple[str, ...] = (COMMAND_BLIND,)
+#: Every cell of an input other than the cameras, in report order: the ego cells, then the command cells.
+INPUT_FAMILIES: tuple[str, ...] = (*EGO_FAMILIES, *COMMAND_FAMILIES)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
 #: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
 #: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
@@ -82,7 +86,7 @@ Property = tuple[str, "str | float | int"]
 
 def cell_id(family: str, severity: int) -> str:
     """The stable id of a cell: `clean`, `null`, `blind` or `<family>-s<severity>` (e.g. `jpeg-s3`)."""
-    return family if family in DIAGNOSTIC or family == EGO_BLIND else f"{family}-s{int(severity)}"
+    return family if family in DIAGNOSTIC or family in (EGO_BLIND, COMMAND_BLIND) else f"{family}-s{int(severity)}"
 
 
 def is_ego(family: str) -> bool:
@@ -90,21 +94,28 @@ def is_ego(family: str) -> bool:
     return family in EGO_FAMILIES
 
 
+def is_input(family: str) -> bool:
+    """Whether a family probes an input other than the cameras (an ego cell or a command cell): its images are
+    clean and it is outside the camera axes."""
+    return family in INPUT_FAMILIES
+
+
 def is_camera_ladder(family: str) -> bool:
-    """A family of the camera ladder: not a diagnostic cell (clean, null, blind), not an ego cell."""
-    return family not in DIAGNOSTIC and not is_ego(family)
+    """A family of the camera ladder: not a diagnostic cell (clean, null, blind), not an ego or command cell."""
+    return family not in DIAGNOSTIC and not is_input(family)
 
 
 def run_order(families: Iterable[str], severities: Iterable[int], *,
-              ego: Iterable[str] | bool = EGO_FAMILIES) -> list[tuple[str, int]]:
+              ego: Iterable[str] | bool = INPUT_FAMILIES) -> list[tuple[str, int]]:
     """(family, severity) of every cell in run order: clean first, the ladder, the ego cells (`ego_noise` at the
-    same severities, then `ego_blind`: those of `ego` that are asked for; ``ego=False`` for none), blind, and the
+    same severities, then `ego_blind`, then `command_blind`: those of `ego` that are asked for; ``ego=False`` for
+    none), blind, and the
     null control last, so that under xdist the clean result is already stored when the null control and the
     baseline gate compare against it, and no worker computes clean twice."""
     sev = list(severities)
-    wanted = set(EGO_FAMILIES if ego is True else () if ego is False else ego)
-    ego_cells = [*((EGO_NOISE, s) for s in sev if EGO_NOISE in wanted), *([(EGO_BLIND, 0)] if EGO_BLIND in wanted
-                                                                            else [])]
+    wanted = set(INPUT_FAMILIES if ego is True else () if ego is False else ego)
+    ego_cells = [*((EGO_NOISE, s) for s in sev if EGO_NOISE in wanted),
+                 *((f, 0) for f in (EGO_BLIND, *COMMAND_FAMILIES) if f in wanted)]
     return [("clean", 0), *((f, s) for f in families for s in sev), *ego_cells, ("blind", 0), ("null", 0)]
 
 

@@ -242,6 +242,8 @@ def _compare(args: argparse.Namespace) -> int:
         flag = "  RANK REVERSAL with " + row.reversed_with if row.rank_reversal else ""
         flag += "" if row.status == "complete" else f"  INCOMPLETE ({row.status[len('incomplete: '):]})"
         flag += "  IMPORTED (metrics as given, plans not seen)" if getattr(row, "imported", False) else ""
+        mixed = "recorded" in set(df["plan_movement"]) and row.plan_movement != "recorded"
+        flag += "  (label on accuracy alone: no plan movement recorded, spec < 5)" if mixed else ""
         print(f"{row.planner}: clean L2 {row.clean_l2:.3f} (rank {row.rank_clean_l2}), mean retention rank "
               f"{row.rank_mean_retention}, verdict {row.verdict}, {row.ego_label}; intervals: "
               f"{row.interval_basis}{flag}")

@@ -41,6 +41,9 @@ DEFAULT_TOLERANCE: float = 0.02
 #: The ego ladder's families (SPEC section 10), cells outside the camera axes: `ego_noise` S1..S5 and the
 #: diagnostic `ego_blind` (cell ids ``ego_noise-s1`` .. ``ego_noise-s5``, ``ego_blind``).
 EGO_NOISE, EGO_BLIND = "ego_noise", "ego_blind"
+#: The command cell (spec 5, issue 40), outside the camera axes: every frame given the same command (STRAIGHT, the
+#: lane-following command), so the command carries no information about the frame (cell id ``command_blind``).
+COMMAND_BLIND = "command_blind"
 #: The confidence sequence adaptive cells stop on (`scoring.sequential.METHOD`): part of an adaptive run's key,
 #: so a changed stopping rule never reuses cells a former rule stopped.
 ADAPTIVE_METHOD = "betting"

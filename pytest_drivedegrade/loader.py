@@ -25,7 +25,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from .cells import DIAGNOSTIC, cell_id, is_ego
+from .cells import DIAGNOSTIC, cell_id, is_input
 from .constants import CAMERAS
 from .corruptions.api import corrupt
 from .corruptions.ladder import FAMILIES
@@ -138,7 +138,7 @@ def may_equal_clean(family: str, severity: int, cameras: tuple[str, ...]) -> boo
     reads no camera. Never the diagnostic cells (clean itself; null and blind are the controls) nor the ego
     cells (the images are clean there, but the ego status the planner gets is not).
     """
-    if family in DIAGNOSTIC or is_ego(family) or family not in FAMILIES:
+    if family in DIAGNOSTIC or is_input(family) or family not in FAMILIES:
         return False
     if family == "blackout":
         return not set(cameras) & set(FAMILIES[family].value(severity))
@@ -269,7 +269,7 @@ class CellSample(Mapping[str, np.ndarray]):
         family = self.family
         if family == "blind" or (family == "null" and camera in self._unread):
             return self._black(camera)
-        if family in ("clean", "null") or is_ego(family):  # the ego cells perturb the ego status, not the images
+        if family in ("clean", "null") or is_input(family):  # the ego and command cells leave the images clean
             return self._load(self.frame, camera)
         if family == "blackout":
             return self._black(camera) if camera in FAMILIES[family].value(self.severity) \

@@ -19,7 +19,7 @@ import numpy as np
 from .cells import REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
 from .constants import CAMERAS
 from .data.context import FrameContext
-from .data.frame import EgoStatus, Frame
+from .data.frame import Command, EgoStatus, Frame
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
@@ -192,7 +192,7 @@ def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) ->
     try:
         with _calling(batch), time_limit(source.settings.timeout * len(batch)):
             call = getattr(planner, "predict_batch")  # noqa: B009 - optional: not in the Planner protocol
-            raw = call([s.view for s in batch], egos, [s.frame.command for s in batch], contexts)
+            raw = call([s.view for s in batch], egos, [command_of(s) for s in batch], contexts)
         raw = to_numpy(raw)
         if len(raw) != len(batch):
             raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
@@ -223,16 +223,25 @@ def _inputs(source: Source, sample: CellSample, style: CallStyle) -> tuple[EgoSt
     return ego, context
 
 
+def command_of(sample: CellSample) -> Command:
+    """The command the planner is given: the frame's, or in the command cells the one the cell gives
+    (`corruptions.command.command_for`)."""
+    from .corruptions.command import command_for
+
+    return command_for(sample.frame.command, sample.family)
+
+
 def _predict(source: Source, planner: Planner, sample: CellSample, style: CallStyle) -> np.ndarray | str:
     frame = sample.frame
     ego, context = _inputs(source, sample, style)
+    command = command_of(sample)
     predict: Callable[..., object] = planner.predict
     try:
         with _calling([sample]), time_limit(source.settings.timeout):
             if style.takes_context:
-                raw = predict(sample.view, ego, frame.command, context=context)
+                raw = predict(sample.view, ego, command, context=context)
             else:
-                raw = predict(sample.view, ego, frame.command)
+                raw = predict(sample.view, ego, command)
     except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
         return _data_fault(sample, exc) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
                                             describe_failure(exc, frame.token))

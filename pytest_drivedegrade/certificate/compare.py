@@ -69,6 +69,8 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
         "imported": is_imported(cert),
         "verdict_confidence": verdict.get("confidence"),
         "interval_basis": interval_basis(cert),
+        # spec 5's plan movement: a certificate without it had its label read on accuracy alone
+        "plan_movement": "recorded" if isinstance(cert.get("reliance"), Mapping) else "not recorded",
     }
     for fam, entry in sorted(_section(cert, "thresholds").items()):
         row.update((f"{fam}_{key}", t.value) for key, t in FamilyThresholds.from_builtins(entry).levels.items())
@@ -172,6 +174,19 @@ def check_sound(path: str, cert: Mapping[str, Any]) -> str:
     return "complete" if missing is None else f"incomplete: {missing}"
 
 
+def movement_notes(certs: Sequence[tuple[str, Mapping[str, object]]]) -> list[str]:
+    """A note for each certificate that records no plan movement (``reliance``, spec 5) compared beside one that
+    does: its label was read on accuracy alone, so its ``not-shown-to-use-cameras`` may be a planner whose plans
+    move while accuracy holds (``camera-sensitive`` since spec 5). Empty when all or none record it."""
+    has = {path: isinstance(cert.get("reliance"), Mapping) for path, cert in certs}
+    if all(has.values()) or not any(has.values()):
+        return []
+    return [f"{path} (spec {cert.get('spec_version')}) records no plan movement: its label "
+            f"{_section(cert, 'verdict').get('label')!r} is read on accuracy alone, and 'camera-sensitive' (plans "
+            "move, accuracy holds) did not exist for it; compare labels with that in mind"
+            for path, cert in certs if not has[path]]
+
+
 def neutralise(value: object) -> object:
     """A text cell that a spreadsheet would run as a formula (it starts with = + - @, a tab or a carriage
     return) with a leading apostrophe, as OWASP's CSV-injection advice says; anything else unchanged."""
@@ -205,7 +220,7 @@ def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFram
     return df[head + [c for c in df.columns if c not in head]]
 
 
-def _html(df: pd.DataFrame, warnings: Sequence[str], note: str | None = None) -> str:
+def _html(df: pd.DataFrame, warnings: Sequence[str], notes: Sequence[str] = ()) -> str:
     table = df.to_html(index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}",
                        classes="cmp", border=0)
     flagged = df[df["rank_reversal"]]
@@ -214,7 +229,7 @@ def _html(df: pd.DataFrame, warnings: Sequence[str], note: str | None = None) ->
     warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
     warn += "".join(f"<p class='warn'>IMPORTED: {html.escape(str(r.certificate))}: {IMPORTED_TEXT}</p>"
                     for r in df.itertuples() if r.imported)
-    warn += f"<p class='warn'>Note: this comparison {html.escape(note)}</p>" if note else ""
+    warn += "".join(f"<p class='warn'>Note: {html.escape(n)}</p>" for n in notes)
     warn += "".join(f"<p class='warn'>INCOMPLETE, compared as it is: {html.escape(str(r.certificate))}: "
                     f"{html.escape(str(r.status))}</p>" for r in df.itertuples() if r.status != "complete")
     return f"""<!DOCTYPE html>
@@ -255,5 +270,6 @@ def write_compare(paths: Sequence[str | os.PathLike[str]], out: str | os.PathLik
     csv_path = atomic_write_text(folder / "compare.csv", safe.to_csv(index=False, float_format="%.6g"))
     note = mixed_note(certs)
     df.attrs["note"] = note
-    html_path = atomic_write_text(folder / "compare.html", _html(df, warnings, note))
+    notes = ([f"this comparison {note}"] if note else []) + movement_notes(certs)
+    html_path = atomic_write_text(folder / "compare.html", _html(df, warnings, notes))
     return csv_path, html_path, df

@@ -27,7 +27,8 @@ from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..corruptions.ladder import FAMILIES
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds, Threshold
 from ..scoring.retention import THRESHOLD_LEVELS, tolerance_threshold
-from ..scoring.verdict import BLIND_EQUALS_CLEAN, FamilyGroups, compute_axes, ego_label, verdict
+from ..scoring.verdict import BLIND_EQUALS_CLEAN, FamilyGroups, compute_axes, ego_label
+from .reliance_check import expected_label, recompute_reliance
 from .seal import DIGITS
 
 HALF_UNIT = 0.5 * 10.0 ** -DIGITS  #: the rounding error of one stored number
@@ -208,12 +209,14 @@ def check_null_control(cert: Mapping[str, object], cells: Sequence[Cell]) -> lis
     return []
 
 
-def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> list[str]:
-    """The label from the certificate's (checked) axes and its flat line, or ``undetermined`` when a cell has
-    failed frames (then ``verdict.failed_cells`` must name exactly those cells) or the null control failed; the
-    flat line agrees with settings."""
+def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = (),
+                  groups: FamilyGroups | None = None) -> list[str]:
+    """The label from the certificate's (checked) axes and its flat line, read beside its plans' movement where
+    it records one (``reliance``, spec 5: recomputed from the cells by ``reliance_check``), or ``undetermined``
+    when a cell has failed frames (then ``verdict.failed_cells`` must name exactly those cells) or the null
+    control failed; the flat line agrees with settings."""
     v, settings = _section(cert, "verdict"), _section(cert, "settings")
-    problems: list[str] = []
+    reliance, problems = recompute_reliance(cert, cells, groups or FamilyGroups.from_registry())
     flat = _number(v.get("flat", settings.get("flat", DEFAULT_FLAT)))
     if flat is None:
         return [f"verdict.flat: certificate says {_fmt(v.get('flat'))}, not a number"]
@@ -222,8 +225,7 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = ()) -> lis
     metric = v.get("metric", "l2")
     axes = _section(cert, {"pdms": "axes_pdms", "epdms": "axes_epdms"}.get(str(metric), "axes"))
     # the label from the certificate's own axes (checked against its cells by `check_axes`)
-    quality, removal, gap, mean = (_number(axes.get(k)) for k in AXES)
-    label = verdict(Axes(quality, removal, gap, mean), flat).label
+    label = expected_label(axes, flat, reliance)
     failed = _failed(cells)
     if failed:
         if v.get("label") != "undetermined":
@@ -301,7 +303,7 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
 
     if isinstance(cert.get("axes_epdms"), Mapping) and any("epdms_retention" in c for c in cells):
         problems += check_axes(cert["axes_epdms"], cells, "epdms_retention", "axes_epdms", groups)
-    return problems + check_verdict(cert, cells) + check_closed_loop(cert)
+    return problems + check_verdict(cert, cells, groups) + check_closed_loop(cert)
 
 
 def incompleteness(cert: Mapping[str, Any]) -> str | None:

@@ -7,8 +7,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-#: The cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise S1..S5 and ego_blind).
-DEFAULT_CELLS = 89
+#: The cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise S1..S5, ego_blind and
+#: command_blind).
+DEFAULT_CELLS = 90
 
 
 @dataclass(frozen=True)

@@ -188,6 +188,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         **({} if analysis.axes_epdms is None else {"axes_epdms": analysis.axes_epdms.to_builtins(),
                                                    "epdms_unscored": epdms_unscored(analysis)}),
         "floor": analysis.floor.to_builtins(),
+        **({} if analysis.reliance is None else {"reliance": analysis.reliance.to_builtins()}),
         "null_control": null_control_section(analysis.null_control),
         "verdict": analysis.verdict.to_builtins(),
         "settings": {**analysis.settings, "seed": provenance.seed, "timeout": provenance.timeout},

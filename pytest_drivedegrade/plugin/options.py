@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
+from ..constants import COMMAND_BLIND, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
 
-EGO_FAMILIES = (EGO_NOISE, EGO_BLIND)
+EGO_FAMILIES = (EGO_NOISE, EGO_BLIND, COMMAND_BLIND)  # the input cells besides the cameras: ego status, command
 
 
 @dataclass(frozen=True)
@@ -41,8 +41,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "mini_train, all", {"metavar": "SPLIT"}),
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
                "frames (default: all scorable frames)", {"metavar": "N"}),
-    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, and the ego "
-               "cells ego_noise, ego_blind (default: all sixteen and both ego cells; a list runs only what it names)",
+    OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, the ego "
+               "cells ego_noise, ego_blind and the command cell command_blind (default: all sixteen, both ego cells "
+               "and command_blind; a list runs only what it names)",
                {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
                "all five)", {"metavar": "LIST"}),

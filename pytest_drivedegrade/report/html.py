@@ -33,7 +33,8 @@ from .terminal import floor_warning
 
 TEMPLATES = Path(__file__).parent / "templates"
 LABEL_CLASS = {"camera-reliant": "reliant", "quality-insensitive": "insensitive",
-               "not-shown-to-use-cameras": "flat", "undetermined": "undetermined"}
+               "not-shown-to-use-cameras": "flat", "camera-sensitive": "insensitive",
+               "undetermined": "undetermined"}
 
 
 @dataclass(frozen=True)
@@ -145,9 +146,13 @@ def pdms_ego_charts(analysis: RunAnalysis, provenance: Provenance) -> dict[str, 
     """The PDMS and EPDMS retention heatmaps (none without a scored cell) and the camera-vs-ego reliance chart
     (spec 3, spec 4.1, SPEC section 10)."""
     from . import plots
+    from .profile import command_retention, reliance_profile
 
     blind = next((s.retention for s in analysis.summaries if s.cell == "blind"), None)
-    return {"heatmap_pdms": plots.retention_heatmap(analysis.summaries, "pdms_retention", "PDMS retention"),
+    return {"profile": reliance_profile(analysis.reliance, analysis.axes, analysis.verdict.flat,
+                                        planner=provenance.planner_name,
+                                        command=command_retention(analysis.summaries)),
+            "heatmap_pdms": plots.retention_heatmap(analysis.summaries, "pdms_retention", "PDMS retention"),
             "heatmap_epdms": plots.retention_heatmap(analysis.summaries, "epdms_retention", "EPDMS retention"),
             "reliance": plots.reliance_chart(analysis.axes, analysis.verdict.flat, planner=provenance.planner_name,
                                              blind=blind, floor_ego=analysis.floor.ego_removal)}

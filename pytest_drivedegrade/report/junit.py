@@ -15,6 +15,7 @@ import numpy as np
 
 from ..certificate.seal import epdms_unscored
 from ..scoring.records import AXES, BESIDE_AXES, EGO_AXES, CellSummary, RunAnalysis
+from ..scoring.reliance import RELIANCE_INPUTS
 from .columns import EPDMS, PDMS, STABLE, per_horizon
 
 #: Testcase properties of a finished summary, in the order they appear in the XML.
@@ -64,6 +65,11 @@ def suite_properties(analysis: RunAnalysis) -> list[tuple[str, str | float | int
     out += [("null_control_passed", None if nc is None else nc.passed),
             ("null_control_max_abs_diff", None if nc is None else nc.max_abs_diff)]
     out += [("floor_l2_avg", analysis.floor.l2_avg)]
+    if analysis.reliance is not None:  # each input's plan movement (spec 5): shift (m) and whether it moves
+        out += [("reliance_wander", analysis.reliance.wander)]
+        for name in RELIANCE_INPUTS:
+            got = analysis.reliance.of(name)
+            out += [(f"reliance_{name}_shift", got.shift), (f"reliance_{name}_moves", got.moves)]
     for fam, t in sorted(analysis.thresholds.items()):
         out += [(f"threshold_{fam}_{key}", x.value) for key, x in t.levels.items()]
     return [(SUITE_PREFIX + name, plain(value)) for name, value in out]

@@ -78,11 +78,16 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
     if ax.ego is not None or ax.ego_removal is not None:
         lines.append(f"ego: ego_noise S5 {format_value(ax.ego)}  ego_blind "
                      f"{format_value(ax.ego_removal)} -> {analysis.verdict.ego_label}")
+    if analysis.reliance is not None:
+        from .profile import command_retention, profile_lines
+
+        lines += ["reliance profile (plan movement against the null's wander, and accuracy):",
+                  *profile_lines(analysis.reliance, ax, analysis.verdict.flat, command_retention(analysis.summaries))]
     return lines
 
 
 #: A planner whose clean L2 is above this many times the ego-only floor's, and above it by `WORSE_MARGIN` m, is
-#: warned about: a floor that reads no camera plans far better, which points to a miswired adapter.
+#: warned about: a floor that reads no camera plans far better (a miswired adapter is one cause among others).
 WORSE_FACTOR = 2.0
 WORSE_MARGIN = 0.1
 
@@ -97,9 +102,13 @@ def floor_warning(analysis: RunAnalysis) -> str | None:
     if clean <= WORSE_FACTOR * floor or clean - floor <= WORSE_MARGIN:
         return None
     return (f"WARNING: the planner is far worse than the ego-only floor on clean frames (clean L2 {clean:.3f} m, "
-            f"floor {floor:.3f} m, {clean / floor:.1f}x): a planner that reads no camera does better. This usually "
-            "means a miswired adapter: camera order, RGB/BGR colour order, units (metres, pixels), the ego frame's "
-            "axes or the trajectory's time steps. Retention measured on a planner that does not plan says little.")
+            f"floor {floor:.3f} m, {clean / floor:.1f}x): a planner of ego status and command alone, no camera, "
+            "plans closer to the logged path on these frames. That is all this figure knows. Causes include a "
+            "miswired adapter (camera order, RGB/BGR colour order, units in metres or pixels, the ego frame's axes, "
+            "the trajectory's time steps), weights trained on other data or too briefly, or a planner that is "
+            "simply weaker than ego status on open-loop L2 (perception-free planners often are). Retention then "
+            "measures how a weak planner's error changes: read it beside how far its plans move (the reliance "
+            "profile).")
 
 
 def summary_lines(analysis: RunAnalysis, missing: Sequence[str], advice: str = "") -> list[str]:

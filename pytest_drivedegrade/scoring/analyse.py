@@ -16,6 +16,7 @@ from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
 from ..errors import InvalidInput
 from . import intervals as iv
 from .records import Axes, CellSummary, FamilyThresholds, NullControl, RunAnalysis, Threshold, Verdict, report_order
+from .reliance import Reliance, read_movement, run_movement
 from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
 from .verdict import (
     VERDICT_METRICS,
@@ -81,8 +82,9 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
     ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
     ax_epdms = replace(run_axes(summaries, groups, "epdms"), partial=partial)
+    moved = run_movement(summaries, nc.max_l2_change if nc is not None else None, groups.quality, groups.removal)
     v = run_verdict({"pdms": ax_pdms, "epdms": ax_epdms}.get(metric, ax), per, metric=metric, flat=flat,
-                    basis=basis)
+                    basis=basis, reliance=moved)
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
@@ -90,8 +92,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res, basis=basis),
-                       axes_pdms=ax_pdms,
-                       axes_epdms=ax_epdms)
+                       axes_pdms=ax_pdms, axes_epdms=ax_epdms, reliance=moved)
 
 
 def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:
@@ -178,13 +179,15 @@ def axis_resamples(summaries: Sequence[CellSummary], res: iv.Resamples | None,
 
 
 def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float,
-                basis: iv.Basis | None = None) -> Verdict:
-    """The label from the axes the verdict is put on (`on`), with the ego label and, on L2, its confidence
-    (the resamples are of L2 retention) and a borderline flag; no confidence where the `basis` cannot support
-    one (too few scenes: `Basis.confidence_reason`, said in the text)."""
-    v = verdict(on, flat)
+                basis: iv.Basis | None = None, reliance: Reliance | None = None) -> Verdict:
+    """The label from the axes the verdict is put on (`on`), read beside the plans' movement (`reliance`:
+    ``reliance.read_movement``), with the ego label and, on L2, its confidence (the resamples are of L2
+    retention; the share of them giving the axes' label) and a borderline flag; no confidence where the `basis`
+    cannot support one (too few scenes: `Basis.confidence_reason`, said in the text)."""
+    by_axes = verdict(on, flat)
+    v = read_movement(by_axes, on, reliance)
     text = {"pdms": "On PDMS retention: ", "epdms": "On EPDMS retention: "}.get(metric, "") + v.text
-    confidence = iv.verdict_confidence(v.label, per.quality, per.removal, flat) \
+    confidence = iv.verdict_confidence(by_axes.label, per.quality, per.removal, flat) \
         if per.quality is not None and metric == "l2" else None
     withheld = None if basis is None or confidence is None else basis.confidence_reason
     if withheld is not None:

@@ -67,7 +67,10 @@ class ClosedAnalysis:
         """Whether the closed-loop label equals the open loop's (None when either is undetermined or absent)."""
         if self.open_label not in VERDICT_LABELS or self.label not in VERDICT_LABELS:
             return None
-        return self.open_label == self.label
+        # the closed loop reads accuracy only: an open-loop planner whose plans move while both axes stay flat
+        # (camera-sensitive) agrees with a closed loop flat on both
+        opened = "not-shown-to-use-cameras" if self.open_label == "camera-sensitive" else self.open_label
+        return opened == self.label
 
     def figures(self) -> dict[str, Json]:
         cells: list[Json] = [c.figures() for c in self.cells]

@@ -7,14 +7,17 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from copy import deepcopy
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..cells import DIAGNOSTIC, EGO_FAMILIES, CellRecord, is_camera_ladder
+from ..cells import DIAGNOSTIC, INPUT_FAMILIES, CellRecord, is_camera_ladder
 from ..constants import REPORT_HORIZONS_S
 from ..metrics.trajectory import CONVENTIONS, at_horizons
+
+if TYPE_CHECKING:
+    from .reliance import Reliance
 
 
 def finite_mean(values: ArrayLike) -> float:
@@ -307,6 +310,7 @@ class RunAnalysis:
     settings: dict[str, Any]
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
     axes_epdms: Axes | None = None  #: the axes on EPDMS retention (spec 4.1)
+    reliance: Reliance | None = None  #: each input's plan movement (spec 5, issue 40)
 
     def to_builtins(self) -> Builtins:
         return {"summaries": [s.flat() for s in self.summaries],
@@ -315,7 +319,8 @@ class RunAnalysis:
                 "null_control": None if self.null_control is None else self.null_control.to_builtins(),
                 "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
                 "axes_pdms": self.axes_pdms.to_builtins(),
-                **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()})}
+                **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()}),
+                **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()})}
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""
@@ -380,7 +385,7 @@ def report_order(family: str, severity: int, families: Sequence[str]) -> tuple[i
     """Sort key of the report: clean, null, blind, then families in ladder order (unknown ones by name), S1..S5."""
     if family in DIAGNOSTIC:
         return (0, DIAGNOSTIC.index(family), "", 0)
-    if family in EGO_FAMILIES:  # the ego cells after the camera ladder: ego_noise S1..S5, then ego_blind
-        return (2, EGO_FAMILIES.index(family), family, int(severity))
+    if family in INPUT_FAMILIES:  # after the camera ladder: ego_noise S1..S5, ego_blind, then command_blind
+        return (2, INPUT_FAMILIES.index(family), family, int(severity))
     rank = families.index(family) if family in families else len(families)
     return (1, rank, family, int(severity))

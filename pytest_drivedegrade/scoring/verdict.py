@@ -13,12 +13,14 @@ from typing import Any, cast
 
 import numpy as np
 
-from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_ego, planned_in_both
+from ..cells import CellRecord, cell_id, differing_frames, identical_plans, is_input, planned_in_both
 from ..constants import DEFAULT_FLAT, EGO_BLIND, EGO_NOISE
 from ..errors import InvalidInput
 from .records import Axes, CellSummary, FailedCell, Floor, NullControl, Verdict, format_value, report_order
 
-VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras")
+#: The run's labels; ``camera-sensitive`` (plans move, accuracy does not fall) comes from ``reliance.read_movement``.
+VERDICT_LABELS: tuple[str, ...] = ("camera-reliant", "quality-insensitive", "not-shown-to-use-cameras",
+                                   "camera-sensitive")
 
 
 @dataclass(frozen=True)
@@ -131,8 +133,8 @@ def retention_of(summary: CellSummary, metric: str = "l2") -> float:
 
 
 def camera_s5(summaries: Iterable[CellSummary], metric: str = "l2") -> dict[str, float]:
-    """S5 retention per camera ladder family (the ego cells left out: they are not camera axes)."""
-    return {s.family: retention_of(s, metric) for s in summaries if s.severity == 5 and not is_ego(s.family)}
+    """S5 retention per camera ladder family (the ego and command cells left out: they are not camera axes)."""
+    return {s.family: retention_of(s, metric) for s in summaries if s.severity == 5 and not is_input(s.family)}
 
 
 def ego_axes(summaries: Iterable[CellSummary], metric: str = "l2") -> tuple[float | None, float | None]:

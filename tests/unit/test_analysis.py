@@ -460,7 +460,7 @@ def test_typed_sections_emit_the_certificate_keys_in_their_order() -> None:
     out = analyse_run(recs, groups=GROUPS, n_resamples=30, floor_l2=5.0).to_builtins()
     camera = ["quality", "removal", "gap", "mean", "dropout", "occlusion", "missing", "ego", "ego_removal"]
     assert list(out) == ["summaries", "thresholds", "axes", "verdict", "null_control", "floor", "settings",
-                         "axes_pdms", "axes_epdms"]
+                         "axes_pdms", "axes_epdms", "reliance"]
     assert list(out["axes"]) == [*camera, "quality_ci", "removal_ci", "gap_ci", "mean_ci", "partial"]
     assert list(out["axes_pdms"]) == [*camera, "partial"]  # the resamples are of L2: no intervals on PDMS
     assert list(out["verdict"]) == ["label", "case", "flat", "text", "negative_gap", "metric", "ego_label",

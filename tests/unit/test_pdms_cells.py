@@ -56,7 +56,9 @@ def test_pdms_retention_is_a_reward_ratio_with_a_paired_ci():
 
 def test_axes_pdms_and_the_verdict_on_pdms():
     """L2 says camera-reliant; PDMS is flat everywhere (every plan drives fine): axes_pdms at 1.000 and, with
-    metric="pdms", the verdict says not shown to use its cameras."""
+    metric="pdms", the verdict is put on PDMS: flat on both axes. Its plans move with the cameras (the L2 cells show
+    it), so since issue 40 the label is camera-sensitive (plans move, the score holds), never "not shown to use its
+    cameras"."""
     recs, _ = synthetic_run(20)
     for r in recs:
         with_pdms(r, np.full(20, 0.9))
@@ -64,7 +66,8 @@ def test_axes_pdms_and_the_verdict_on_pdms():
     on_pdms = analyse_run(recs, groups=GROUPS, n_resamples=50, metric="pdms")
     assert on_l2.verdict.label == "camera-reliant" and on_l2.verdict.metric == "l2"
     assert on_pdms.axes_pdms.quality == pytest.approx(1.0) and on_pdms.axes_pdms.removal == pytest.approx(1.0)
-    assert on_pdms.verdict.label == "not-shown-to-use-cameras" and on_pdms.verdict.metric == "pdms"
+    assert on_pdms.verdict.label == "camera-sensitive" and on_pdms.verdict.metric == "pdms"
+    assert on_pdms.verdict.case == "accuracy-holds" and on_pdms.verdict.text.startswith("On PDMS retention: ")
     assert on_pdms.axes == on_l2.axes and on_pdms.settings["verdict_metric"] == "pdms"
     with pytest.raises(Exception, match="metric"):
         analyse_run(recs, groups=GROUPS, metric="mse")
@@ -78,8 +81,8 @@ BUS = np.arange(18, dtype=float)
 
 def test_ego_cells_follow_the_ladder_and_stay_outside_the_camera_axes():
     order = [cell_id(f, s) for f, s in run_order(["jpeg"], [1, 2, 3, 4, 5])]
-    assert order[-8:] == ["ego_noise-s1", "ego_noise-s2", "ego_noise-s3", "ego_noise-s4", "ego_noise-s5",
-                          "ego_blind", "blind", "null"]
+    assert order[-9:] == ["ego_noise-s1", "ego_noise-s2", "ego_noise-s3", "ego_noise-s4", "ego_noise-s5",
+                          "ego_blind", "command_blind", "blind", "null"]  # command_blind: issue 40
     assert is_ego("ego_noise") and is_ego("ego_blind") and not is_ego("blind")
 
 

@@ -90,7 +90,8 @@ def test_html_shows_verdict_and_axes(run_and_records, page: str) -> None:
     assert html.escape(res.verdict.text, quote=True) in page
     assert res.verdict.label in page
     assert f"{res.axes.quality:.3f}" in page and f"{res.axes.removal:.3f}" in page
-    assert page.count('src="data:image/png;base64,') == 5  # axes, curves, heatmap, trajectories, montage
+    # axes, curves, heatmap, trajectories, montage, and the reliance profile (issue 40)
+    assert page.count('src="data:image/png;base64,') == 6 and 'alt="reliance profile chart"' in page
 
 
 def test_html_escapes_planner_strings(page: str) -> None:

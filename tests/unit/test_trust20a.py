@@ -100,8 +100,10 @@ def test_m1_a_failed_null_control_reported_as_passed_is_caught_by_the_plans_dige
         d["verdict"]["label"] = d["verdict"]["computed_label"]
     reseal(path, say_passed)
     problems = check_consistency(cf.verify(path))
+    # since issue 40 the reliance section, read against the null's wander, no longer adds up either
     assert problems == ["null_control.passed: certificate says True, but the null cell's plans_digest differs from "
-                        "clean's with every frame planned in both: its plans differ, so the control failed"]
+                        "clean's with every frame planned in both: its plans differ, so the control failed",
+                        "reliance.wander: certificate says 0.014142, its null control gives 0.000000"]
 
 
 def test_m1_a_passed_null_control_reported_as_failed_is_caught_by_the_plans_digests(tmp_path: Path) -> None:
@@ -381,8 +383,8 @@ def test_mutation_ego_label_is_recomputed_from_ego_removal(tmp_path: Path) -> No
 
 
 SIGNED_SECTIONS = ("axes", "axes_epdms", "axes_pdms", "cells", "completeness", "cost", "created", "dataset",
-                   "epdms_unscored", "floor", "null_control", "planner", "record_digests", "schema", "settings",
-                   "spec_version", "thresholds", "tool", "verdict")
+                   "epdms_unscored", "floor", "null_control", "planner", "record_digests", "reliance", "schema",
+                   "settings", "spec_version", "thresholds", "tool", "verdict")
 
 
 def _forge(value: object) -> tuple[object, bool]:

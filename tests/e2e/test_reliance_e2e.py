@@ -1,0 +1,44 @@
+"""Issue 40 end to end: a hidden-behaviour planner whose plans move with its front camera while its error falls is
+certified camera-sensitive (never "cannot tell it apart from a planner that ignores images"), verify agrees from
+the certificate alone, and the report carries the reliance profile; a planner that reads no camera keeps
+not-shown-to-use-cameras with "Its plans do not move"."""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.register_assert_rewrite("plugin_support")
+from plugin_support import AXIS_FAMILIES, load_json  # noqa: E402 - after register_assert_rewrite
+from test_plugin import junit  # noqa: E402
+
+from pytest_drivedegrade.certificate.consistency import check_consistency  # noqa: E402
+
+pytest_plugins = ["plugin_support"]
+
+#: Its lateral error is 0.6 m on clean images and shrinks with the damage to the front image (d: mean absolute
+#: difference from the clean image, 0..1): the worse it sees, the better it plans.
+MISLED = "0.6 - min(8.0 * d, 0.6)"
+
+
+@pytest.mark.parametrize("cameras, scale, label, says", [
+    (("CAM_FRONT",), MISLED, "camera-sensitive", "Camera-sensitive without reliance"),
+    ((), "0.0", "not-shown-to-use-cameras", "Its plans do not move"),
+])
+def test_plan_movement_beside_accuracy(dd, cameras, scale, label, says) -> None:
+    dd.write_planner(cameras=cameras, scale=scale)
+    result = dd.run("--junitxml=r.xml", families=AXIS_FAMILIES + ",command_blind", severities="5")
+    result.assert_outcomes(passed=14)
+    result.stdout.fnmatch_lines([f"verdict: {label} - *", "reliance profile (plan movement*",
+                                 "  command: plans 0.00 m, within the null; retention 1.000 (holds)"])
+    cert = load_json(dd.folder() / "certificate.json")
+    v = cert["verdict"]
+    assert v["label"] == label and says in v["text"]
+    assert ("cannot tell it apart from a planner that ignores images" in v["text"]) is (not cameras)
+    assert cert["reliance"]["presence"]["moves"] is bool(cameras)
+    assert check_consistency(cert) == []
+    suite, _ = junit(dd.pytester.path / "r.xml")
+    assert suite["drivedegrade_reliance_quality_moves"] == ("true" if cameras else "false")
+    html = (dd.folder() / "report.html").read_text()
+    assert 'alt="reliance profile chart"' in html
+    if cameras:
+        assert cert["axes"]["quality"] > 1.0 and cert["axes"]["removal"] > 1.0
