@@ -13,8 +13,11 @@ from typing import Any
 
 #: Version of the ladder (operators and values) and of the scores certified on it. A new value is a minor bump; a
 #: changed operator is major; a changed score with the ladder unchanged is minor (4.1.0: PDMS on tracked states;
-#: 4.2.0: the tracker's velocity fit with NAVSIM's penalty as its code applies it).
-SPEC_VERSION = "4.2.0"
+#: 4.2.0: the tracker's velocity fit with NAVSIM's penalty as its code applies it; 5.0.0, the ladder unchanged: what
+#: a stated probability means (scene-cluster intervals, non-asymptotic adaptive cells and gate, closed-loop
+#: statistics over routes), EPDMS equal to NAVSIM v2.2's terms, the leaderboard's Driving Score, plan movement beside
+#: accuracy and the command cells).
+SPEC_VERSION = "5.0.0"
 
 #: Order of SPEC section 3: the twelve core families first, then the four contamination families.
 ORDER: tuple[str, ...] = (
