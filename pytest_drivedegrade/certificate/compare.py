@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..atomic import atomic_write_text
+from ..atomic import atomic_write_text, neutralise
 from ..errors import DriveDegradeError
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds
 from .seal import verify
@@ -155,12 +155,6 @@ def check_sound(path: str, cert: Mapping[str, Any]) -> str:
                            f"verify {path}` names every field: refused")
     missing = incompleteness(cert)
     return "complete" if missing is None else f"incomplete: {missing}"
-
-
-def neutralise(value: object) -> object:
-    """A text cell that a spreadsheet would run as a formula (it starts with = + - @, a tab or a carriage
-    return) with a leading apostrophe, as OWASP's CSV-injection advice says; anything else unchanged."""
-    return "'" + value if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r") else value
 
 
 def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFrame:

@@ -16,6 +16,7 @@ import pytest
 from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
+from .pathcheck import check_utf8_paths
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
@@ -380,23 +381,9 @@ def _prefetch(config: pytest.Config) -> int:
     return auto_prefetch(processes)
 
 
-#: The options that take a path (and the planner file, ENABLE's value).
+#: The options that take a path (and the planner file, ENABLE's value): valid UTF-8 (`pathcheck`).
 PATH_OPTIONS = ("drivedegrade_data", "drivedegrade_report", "drivedegrade_baseline",
                 "drivedegrade_baseline_public_key")
-
-
-def _check_utf8_paths(config: pytest.Config, here: Path) -> None:
-    """Issue 37 (low): a path that is not valid UTF-8 (bytes a file system allows) ended the run in an
-    INTERNALERROR when the certificate, UTF-8 JSON, recorded it: a usage error naming the option now."""
-    for dest in (ENABLE, *PATH_OPTIONS):
-        given = value(config, dest)
-        if isinstance(given, str) and given:
-            try:
-                (here / given).as_posix().encode("utf-8")
-            except UnicodeEncodeError:
-                shown = given.encode("utf-8", "surrogateescape")
-                raise _fail(dest, f"the path {shown!r} is not valid UTF-8, and the certificate (UTF-8 JSON) "
-                            "records it: rename it, or give a symlink with a UTF-8 name") from None
 
 
 def parse(config: pytest.Config) -> RunOptions:
@@ -404,14 +391,7 @@ def parse(config: pytest.Config) -> RunOptions:
     from ..corruptions.ladder import FAMILIES, SEVERITIES
 
     here = Path(config.invocation_params.dir)
-    _check_utf8_paths(config, Path("."))
-    try:
-        str(here).encode("utf-8")
-    except UnicodeEncodeError:
-        shown = str(here).encode("utf-8", "surrogateescape")
-        raise pytest.UsageError(f"--drivedegrade: the working directory {shown!r} is not valid UTF-8, and the "
-                                "certificate records paths relative to it: run from a folder with a UTF-8 path") \
-            from None
+    check_utf8_paths(here, {_BY_DEST[d].flag: value(config, d) for d in (ENABLE, *PATH_OPTIONS)})
     path = value(config, ENABLE)
     planner_path = (here / path).resolve() if path else None
     listed = _list(config, "drivedegrade_families")
