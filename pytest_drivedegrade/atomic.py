@@ -82,3 +82,9 @@ def stray_temporaries(folder: Path, targets: Collection[str] | None, older_than:
         except OSError:
             continue
     return sorted(found)
+
+
+def neutralise(value: object) -> object:
+    """A text cell that a spreadsheet would run as a formula (it starts with = + - @, a tab or a carriage
+    return) with a leading apostrophe, as OWASP's CSV-injection advice says; anything else unchanged."""
+    return "'" + value if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r") else value

@@ -159,7 +159,8 @@ def _sign(args: argparse.Namespace) -> int:
     from .certificate.adaptive_check import check_adaptive
     from .certificate.consistency import check_consistency
     from .certificate.seal import CertificateMismatch, verify
-    from .certificate.signing import ENV_VAR, sign_file
+    from .certificate.signing import ENV_VAR
+    from .report.resign import sign_file
 
     key = _merge_signing_key(args, "--key")
     if key is None:
@@ -193,7 +194,7 @@ def _merge(args: argparse.Namespace) -> int:
     key = _merge_signing_key(args)
     baseline = None
     if args.baseline:  # loaded first: a bad baseline is refused before anything is written
-        from .certificate.merge_gate import load_verified_baseline
+        from .plugin.merge_gate import load_verified_baseline
 
         baseline = load_verified_baseline(Path(args.baseline), Path(args.baseline_public_key)
                                           if args.baseline_public_key else None)
@@ -214,8 +215,8 @@ def _merge(args: argparse.Namespace) -> int:
         for cell, path in merged.cell_files.items():
             shutil.copyfile(path, cells / f"{cell}.json")
     if baseline is not None:
-        from .certificate.merge_gate import gate_merged
         from .certificate.seal import load_certificate
+        from .plugin.merge_gate import gate_merged
 
         cert = load_certificate(Path(args.out) / merged.provenance.planner_name / "certificate.json")
         lines, failed = gate_merged(cert, baseline, args.tolerance)

@@ -47,17 +47,59 @@ def _tampered(expire: object, fired: bool, seconds: float, elapsed: float) -> st
     return None
 
 
-def _watch(expire: object, state: dict[str, bool], seconds: float, start: float, done: threading.Event) -> None:
-    if done.wait(seconds + WATCHDOG_GRACE):
-        return
-    what = _tampered(expire, state["fired"], seconds, time.monotonic() - start)
+class _Call:
+    """One limited call, as the watchdog sees it."""
+
+    def __init__(self, expire: object, state: dict[str, bool], seconds: float, start: float) -> None:
+        self.expire, self.state, self.seconds, self.start = expire, state, seconds, start
+        self.deadline = start + seconds + WATCHDOG_GRACE
+
+
+class _Watchdog:
+    """One daemon thread per process (started at the first limited call; a thread per call cost 170 us a call),
+    woken when a call starts or ends: it looks at a call still running `WATCHDOG_GRACE` s after its limit."""
+
+    def __init__(self) -> None:
+        self.cond = threading.Condition()
+        self.call: _Call | None = None
+        self.thread: threading.Thread | None = None
+
+    def watch(self, call: _Call | None) -> None:
+        with self.cond:
+            self.call = call
+            if self.thread is None or not self.thread.is_alive():
+                self.thread = threading.Thread(target=self._run, daemon=True, name="drivedegrade-timeout-watchdog")
+                self.thread.start()
+            self.cond.notify()
+
+    def _run(self) -> None:
+        with self.cond:
+            while True:
+                call = self.call
+                if call is None:
+                    self.cond.wait()
+                    continue
+                left = call.deadline - time.monotonic()
+                if left > 0:
+                    self.cond.wait(left)
+                    continue
+                if self.call is call:
+                    self.call = None  # looked at once
+                    _last_resort(call)
+
+
+def _last_resort(call: _Call) -> None:
+    what = _tampered(call.expire, call.state["fired"], call.seconds, time.monotonic() - call.start)
     if what is None:  # the signal is ours and armed: a call stuck in C code that will see it when it returns
         return
-    sys.stderr.write(f"\ndrivedegrade: predict() {what} and has now run {seconds + WATCHDOG_GRACE:g} s past "
-                     f"--drivedegrade-timeout ({seconds:g} s): the timeout cannot interrupt it, so this process is "
-                     "ended (a failed run)\n")
+    sys.stderr.write(f"\ndrivedegrade: predict() {what} and has now run {call.seconds + WATCHDOG_GRACE:g} s past "
+                     f"--drivedegrade-timeout ({call.seconds:g} s): the timeout cannot interrupt it, so this process "
+                     "is ended (a failed run)\n")
     sys.stderr.flush()
     os.kill(os.getpid(), signal.SIGKILL)
+
+
+_WATCHDOG = _Watchdog()
 
 
 @contextlib.contextmanager
@@ -75,11 +117,9 @@ def time_limit(seconds: float) -> Iterator[None]:
         raise PlannerTimeout(f"predict() took longer than {seconds:g} s")
 
     previous = signal.signal(signal.SIGALRM, expire)
-    start, done = time.monotonic(), threading.Event()
-    watchdog = threading.Thread(target=_watch, args=(expire, state, seconds, start, done), daemon=True,
-                                name="drivedegrade-timeout-watchdog")
+    start = time.monotonic()
     signal.setitimer(signal.ITIMER_REAL, seconds)
-    watchdog.start()
+    _WATCHDOG.watch(_Call(expire, state, seconds, start))
     try:
         yield
         what = _tampered(expire, state["fired"], seconds, time.monotonic() - start)
@@ -88,6 +128,6 @@ def time_limit(seconds: float) -> Iterator[None]:
                                  "planner may not change SIGALRM or ITIMER_REAL (a library that does must be kept "
                                  "out of predict)")
     finally:
-        done.set()
+        _WATCHDOG.watch(None)
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)

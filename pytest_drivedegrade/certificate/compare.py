@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ..atomic import atomic_write_text
+from ..atomic import atomic_write_text, neutralise
 from ..errors import DriveDegradeError
 from ..scoring.records import AXES, EGO_AXES, Axes, FamilyThresholds
 from .fields import IMPORTED_TEXT, is_imported
@@ -186,11 +186,6 @@ def movement_notes(certs: Sequence[tuple[str, Mapping[str, object]]]) -> list[st
             "move, accuracy holds) did not exist for it; compare labels with that in mind"
             for path, cert in certs if not has[path]]
 
-
-def neutralise(value: object) -> object:
-    """A text cell that a spreadsheet would run as a formula (it starts with = + - @, a tab or a carriage
-    return) with a leading apostrophe, as OWASP's CSV-injection advice says; anything else unchanged."""
-    return "'" + value if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r") else value
 
 
 def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFrame:

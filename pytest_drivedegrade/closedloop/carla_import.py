@@ -19,6 +19,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from ..atomic import neutralise as quote
 from ..errors import DataError
 from .carla_results import LeaderboardRun, ResultsFile, parse_source, read_results
 from .results import CellResult, RunResult
@@ -113,8 +114,6 @@ def _cell(value: float | None) -> str:
 def neutralise(value: object) -> object:
     """A text the file gave (a route id, a status, a path) that a spreadsheet would run as a formula, with a
     leading apostrophe (issue 37, low: formula injection); numbers, written by this module, unchanged."""
-    from ..certificate.compare import neutralise as quote
-
     return value if isinstance(value, (int, float)) or _numeric(value) else quote(value)
 
 

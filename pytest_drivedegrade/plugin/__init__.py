@@ -14,7 +14,7 @@ fallbacks).
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 SESSION_KEY: pytest.StashKey[DriveDegradeSession] = pytest.StashKey["DriveDegradeSession"]()
 #: `exitguard`'s state, here for the same reason: the real ``os._exit`` and the status of the last session to
 #: finish in this process.
-EXIT_STATE: dict[str, Any] = {"real_exit": os._exit, "status": 0}
+EXIT_STATE: list[object] = [os._exit, 0]  # [the real os._exit, the last session's status]
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

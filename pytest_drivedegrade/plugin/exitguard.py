@@ -22,13 +22,18 @@ from __future__ import annotations
 import atexit
 import os
 import sys
-from typing import Any, NoReturn
+from collections.abc import Callable
+from typing import NoReturn, cast
 
 
-def _state() -> dict[str, Any]:
+def _state() -> list[object]:
     from . import EXIT_STATE  # the entry module's: one per process, whichever copy of this module runs
 
     return EXIT_STATE
+
+
+def _real_exit() -> Callable[[int], NoReturn]:
+    return cast("Callable[[int], NoReturn]", _state()[0])
 
 
 class PlannerExitRefused(RuntimeError):
@@ -52,23 +57,23 @@ def arm() -> None:
 def disarm() -> None:
     import posix
 
-    os._exit = posix._exit = _state()["real_exit"]
+    os._exit = posix._exit = _real_exit()  # type: ignore[assignment]  # the function saved at import
 
 
 def record(status: int) -> None:
     """The exit status of the pytest session that just finished in this process (every session records it)."""
-    _state()["status"] = int(status)
+    _state()[1] = int(status)
 
 
 def _final_status() -> None:
-    state = _state()
-    if state["status"] != 0:
+    status = _state()[1]
+    if isinstance(status, int) and status != 0:
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
             except (OSError, ValueError):
                 pass
-        state["real_exit"](state["status"])
+        _real_exit()(status)
 
 
 def hold_final_status() -> None:

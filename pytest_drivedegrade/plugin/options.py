@@ -16,6 +16,7 @@ import pytest
 from ..constants import COMMAND_BLIND, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
+from .pathcheck import check_utf8_paths
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
@@ -388,11 +389,17 @@ def _prefetch(config: pytest.Config) -> int:
     return auto_prefetch(processes)
 
 
+#: The options that take a path (and the planner file, ENABLE's value): valid UTF-8 (`pathcheck`).
+PATH_OPTIONS = ("drivedegrade_data", "drivedegrade_report", "drivedegrade_baseline",
+                "drivedegrade_baseline_public_key")
+
+
 def parse(config: pytest.Config) -> RunOptions:
     """Read and check every option; raise pytest.UsageError naming the first bad one."""
     from ..corruptions.ladder import FAMILIES, SEVERITIES
 
     here = Path(config.invocation_params.dir)
+    check_utf8_paths(here, {_BY_DEST[d].flag: value(config, d) for d in (ENABLE, *PATH_OPTIONS)})
     path = value(config, ENABLE)
     planner_path = (here / path).resolve() if path else None
     listed = _list(config, "drivedegrade_families")

@@ -116,6 +116,7 @@ class DriveDegradeSession:
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
         self.guarded = False  # -n 0: os._exit refused while the run is live (`exitguard`)
+        self.worker_usage: str | None = None  # -n N: a worker's usage error (the planner file failed to import)
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -336,6 +337,20 @@ class DriveDegradeSession:
             self.outcome.lines += actors
         if self.outcome is not None and self.outcome.failed and session.exitstatus == 0:
             session.exitstatus = pytest.ExitCode.TESTS_FAILED
+        if self.worker_usage is not None:  # the planner file, imported by the workers alone, failed there
+            self.outcome = self.outcome or Outcome()
+            self.outcome.lines.append(f"ERROR: {self.worker_usage}")
+            session.exitstatus = pytest.ExitCode.USAGE_ERROR
+
+    @pytest.hookimpl(optionalhook=True)
+    def pytest_testnodedown(self, node: object, error: object) -> None:
+        """xdist: a worker ended by a usage error (under -n the workers alone import the planner file, so a file
+        that fails to import fails there): the run's usage error, said once at the end, and its exit status."""
+        import re
+
+        found = re.search(r"UsageError: (--drivedegrade[^\n]*)", str(error or ""))
+        if found:
+            self.worker_usage = found.group(1)
 
     def _close_actors(self) -> list[str]:
         """Tear the planner actors down (their fixtures' teardown) and disconnect from Ray; the pool's lines."""

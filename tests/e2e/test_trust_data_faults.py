@@ -110,3 +110,16 @@ def test_a_nan_ego_pose_refuses_the_run_naming_the_frame(dd, small_world, tmp_pa
     frames = NuScenesReader(root, split="val").scorable_frames(limit=4)
     first = next(f for f in frames if f.token == token or not np.isfinite(f.gt_future).all())
     assert f"frame '{first.token}'" in text, text
+
+
+def test_a_data_root_whose_path_is_not_utf8_is_a_usage_error(dd, small_world, tmp_path):
+    """Issue 37 (low): it ended in an INTERNALERROR (the certificate, UTF-8 JSON, could not record the path)."""
+    import os
+
+    odd = os.fsdecode(bytes(tmp_path) + b"/w\xff")
+    shutil.copytree(small_world, odd)
+    dd.pytester.makepyfile(ctx=CONTEXT_PLANNER)
+    result = dd.run(planner="ctx.py", families="jpeg", severities="1", data=Path(odd), subprocess=True)
+    text = result.stdout.str() + result.stderr.str()
+    assert result.ret == pytest.ExitCode.USAGE_ERROR, text
+    assert "INTERNALERROR" not in text and "--drivedegrade-data: the path b'" in text and "not valid UTF-8" in text

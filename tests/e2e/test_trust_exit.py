@@ -63,3 +63,13 @@ def test_an_os_exit_0_in_predict_is_a_failed_run_never_exit_0(dd, workers):
     assert result.ret not in (0, None), text
     if workers[1] == "0":
         assert "os._exit" in text, text
+
+
+def test_under_n2_a_planner_file_that_fails_to_import_is_still_a_usage_error_naming_it(dd):
+    """The controller no longer imports the planner file under -n, so an import-time failure happens in the
+    workers: the run still ends with the usage error (exit 4) naming the file and the exception."""
+    dd.pytester.makepyfile(bad='import pytest\n\nraise RuntimeError("boom at import")\n\n\n'
+                               '@pytest.fixture(scope="session")\ndef planner():\n    return None\n')
+    result = dd.run("-n", "2", planner="bad.py", families="jpeg", severities="1", subprocess=True)
+    assert result.ret == pytest.ExitCode.USAGE_ERROR, result.stdout.str()
+    result.stdout.fnmatch_lines(["ERROR: --drivedegrade: importing *bad.py:3 failed: RuntimeError: boom at import"])

@@ -25,7 +25,7 @@ STAGES: tuple[tuple[str, ...], ...] = (
     ("cells", "payload"),  # which cells exist, what one yields, bit-identity; how a finished one travels
     # running a cell: decode and inject, the threads beside the planner, calling it, the run, stored cells, shards,
     # Ray actors; the ego-only floor
-    ("loader", "pacing", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),
+    ("loader", "pacing", "timelimit", "stream", "run", "store", "shards", "rayactor", "raypool", "floor"),
     ("closedloop",),  # the closed loop: routes of the world, simulator, run and cell scores (spec 13)
     ("foreign",),  # a model's own evaluator: the cells it runs (ladder), its per-cell table read into cell records
     ("scoring",),  # statistics over finished cells

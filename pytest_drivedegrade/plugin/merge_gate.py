@@ -7,17 +7,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from ..errors import DriveDegradeError
 
 
-def load_verified_baseline(path: Path, public_key: Path | None) -> dict[str, Any]:
+def load_verified_baseline(path: Path, public_key: Path | None) -> Mapping[str, object]:
     """The baseline certificate, verified as `drivedegrade verify` does (digest, arithmetic, and the signature
     when `public_key` is given); a DriveDegradeError naming why otherwise."""
-    from .consistency import check_consistency
-    from .seal import CertificateError, verify
-    from .signing import load_public_key, verify_signature
+    from ..certificate.consistency import check_consistency
+    from ..certificate.seal import CertificateError, verify
+    from ..certificate.signing import load_public_key, verify_signature
 
     try:
         cert = verify(path)
@@ -32,11 +31,12 @@ def load_verified_baseline(path: Path, public_key: Path | None) -> dict[str, Any
     return cert
 
 
-def gate_merged(cert: Mapping[str, Any], baseline: Mapping[str, Any], tolerance: float) -> tuple[list[str], bool]:
+def gate_merged(cert: Mapping[str, object], baseline: Mapping[str, object],
+                tolerance: float) -> tuple[list[str], bool]:
     """(the lines to print, whether the merge fails): every axis and cell regression beyond `tolerance` fails,
     as does anything `plugin.controller.gate` fails a run for (another planner, a part not compared)."""
-    from ..plugin.controller import gate
     from ..scoring.baseline import BaselineError, compare_to_baseline
+    from .controller import gate
 
     if cert.get("adaptive"):
         raise DriveDegradeError("--baseline: an adaptive sharded run is gated by its sequential test, which needs the "
