@@ -130,6 +130,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
                "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
                {"metavar": "X"}),
+    OptionSpec("--drivedegrade-dry-run", "drivedegrade_dry_run", "stop after the pre-flight check (the planner's "
+               "declared needs against the data, one clean frame predicted and validated, the run's predictions "
+               "counted and its wall time estimated): no cell runs", {"action": "store_true"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "sign certificate.json with this Ed25519 "
                "private key file (from `drivedegrade keygen NAME`; default: the DRIVEDEGRADE_SIGNING_KEY "
                "environment variable, a path or the PEM text, which is accepted there only)", {"metavar": "PATH"}),
@@ -221,6 +224,7 @@ class RunOptions:
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
     resume: bool = True  #: not --drivedegrade-no-resume: reuse stored cells of the same run key (results unchanged)
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
+    dry_run: bool = False  #: --drivedegrade-dry-run: stop after the pre-flight check
 
 
 def _ray(config: pytest.Config) -> RayOptions | None:
@@ -425,6 +429,7 @@ def parse(config: pytest.Config) -> RunOptions:
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
         resume=not _flag(config, "drivedegrade_no_resume"),
         ray=_ray(config),
+        dry_run=_flag(config, "drivedegrade_dry_run"),
     )
     if settings.adaptive and settings.shard is not None:  # an adaptive shard owns whole families' cells
         from ..cells import run_order

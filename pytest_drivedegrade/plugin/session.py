@@ -180,8 +180,9 @@ class DriveDegradeSession:
         except DriveDegradeError as exc:
             raise pytest.UsageError(f"--drivedegrade: {exc}") from None
         preflight.check_baseline(self.baseline, self.options, context, self.cells)
-        swept = preflight.prepare_report_dir(self.options.report_dir, self.started)
         reporter = self.config.pluginmanager.get_plugin("terminalreporter")
+        self._preflight(context, reporter)
+        swept = preflight.prepare_report_dir(self.options.report_dir, self.started)
         if swept and reporter is not None:
             reporter.write_line(swept)
         if self.cells:  # the open cells' floor, beside them on an xdist controller (`controller.start_floor`)
@@ -193,6 +194,20 @@ class DriveDegradeSession:
                 self.remote = start_planner_actors(self.config, self.options, context, self.collect_path)
             except DriveDegradeError as exc:
                 raise pytest.UsageError(f"--drivedegrade-ray: {exc}") from None
+
+    def _preflight(self, context: RunContext, reporter: pytest.TerminalReporter | None) -> None:
+        """The pre-flight check (`plannercheck`): a usage error before any cell on a mismatch; its estimate
+        printed; --drivedegrade-dry-run ends the session here."""
+        from .plannercheck import preflight_lines
+
+        lines = preflight_lines(self.config, self.options, context, self.collect_path, self.planner_module,
+                                self.owned_cells(), len(self.closed))
+        for line in lines:
+            if reporter is not None:
+                reporter.write_line(line)
+        if self.options.dry_run:
+            pytest.exit("drivedegrade: --drivedegrade-dry-run: stopped after the pre-flight check; no cell ran",
+                        returncode=pytest.ExitCode.OK)
 
     def run_item(self, item: CellItem, planner: object) -> None:
         from .checks import certify, prefetch
