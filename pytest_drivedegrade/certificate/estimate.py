@@ -95,14 +95,18 @@ def count_predictions(frames: int, seeds_per_cell: Sequence[int], *, processes: 
 
 
 def run_wall_seconds(count: RunCount, planner_seconds: float, *, processes: int = 1, cores: int = 1,
-                     suite_seconds: float = SUITE_SECONDS_PER_PREDICTION,
+                     load: float = 0.0, suite_seconds: float = SUITE_SECONDS_PER_PREDICTION,
                      fixed_seconds: float = SUITE_FIXED_SECONDS) -> float:
     """The wall time of the open cells: each prediction costs the planner's and the suite's seconds, spread over
-    the processes that run cells (no more at once than the machine has cores), plus the run's fixed seconds."""
-    if planner_seconds < 0 or suite_seconds < 0 or processes < 1 or cores < 1:
-        raise ValueError("seconds must be >= 0, processes and cores >= 1")
+    the processes that run cells (no more at once than the machine has cores), plus the run's fixed seconds; all
+    of it stretched by `load`, the other jobs' runnable processes (a core shared with them is a core's share).
+    One short call measures near a quiet machine's speed even under load (it fits in a time slice), so the load
+    is applied here rather than read from that call."""
+    if planner_seconds < 0 or suite_seconds < 0 or processes < 1 or cores < 1 or load < 0:
+        raise ValueError("seconds and load must be >= 0, processes and cores >= 1")
     parallel = min(processes, cores)
-    return fixed_seconds + count.predictions * (planner_seconds + suite_seconds) / parallel
+    stretch = max(1.0, (load + parallel) / cores)
+    return (fixed_seconds + count.predictions * (planner_seconds + suite_seconds) / parallel) * stretch
 
 
 def duration_text(seconds: float) -> str:

@@ -222,6 +222,14 @@ def _processes(config: pytest.Config, options: RunOptions) -> int:
     return workers if isinstance(workers, int) and workers > 0 else 1
 
 
+def _others() -> float:
+    """The runnable processes of other jobs: the 1-minute load average less this one (0 where unknown)."""
+    try:
+        return max(0.0, os.getloadavg()[0] - 1.0)
+    except (AttributeError, OSError):  # pragma: no cover - a platform without a load average
+        return 0.0
+
+
 def _check(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
            module: ModuleType | None) -> tuple[Probe | None, str, list[str]]:
     """(probe, why there is none, notes); a usage error naming every problem found."""
@@ -256,7 +264,7 @@ def preflight_lines(config: pytest.Config, options: RunOptions, context: RunCont
     count = count_predictions(len(context.frames), [len(context.seeds_for(f)) for f, _ in cells],
                               processes=processes, closed_cells=closed)
     seconds = None if probe is None else \
-        run_wall_seconds(count, probe.seconds, processes=processes, cores=os.cpu_count() or 1)
+        run_wall_seconds(count, probe.seconds, processes=processes, cores=os.cpu_count() or 1, load=_others())
     bound = "at most " if options.settings.adaptive else ""
     head = (f"clean frame {probe.token!r} predicted and valid ({probe.seconds * 1000:.1f} ms per frame); "
             if probe is not None else f"no frame checked before the cells ({why}); ")

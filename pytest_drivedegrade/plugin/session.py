@@ -21,6 +21,7 @@ from ..closedloop.cells import ClosedPayload, closed_id
 from ..closedloop.cells import selection as closed_selection
 from ..errors import DriveDegradeError
 from ..payload import CellPayload
+from ..progress import Progress, Sink
 from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
 from . import SESSION_KEY, preflight
@@ -106,6 +107,8 @@ class DriveDegradeSession:
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
+        self.progress: Progress | None = None  # controller: the cells' progress line
+        self.running: dict[str, str] = {}  # controller: node id -> cell, of the cells started and not finished
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -185,6 +188,8 @@ class DriveDegradeSession:
         swept = preflight.prepare_report_dir(self.options.report_dir, self.started)
         if swept and reporter is not None:
             reporter.write_line(swept)
+        self.progress = Progress("drivedegrade cells", len(self.owned_cells()) + len(self.closed), unit="cells",
+                                 sink=Sink.log_for_pytest(self.config), milestones=10, eta=True)
         if self.cells:  # the open cells' floor, beside them on an xdist controller (`controller.start_floor`)
             self.floor = start_floor(self.config, self.options, context)
         if self.options.ray is not None:
@@ -294,10 +299,25 @@ class DriveDegradeSession:
             setattr(report, CLOSED_ATTR, closed.to_builtins())
         return report
 
+    def pytest_runtest_logstart(self, nodeid: str, location: tuple[str, int | None, str]) -> None:
+        """Controller: a cell started (on some worker), for the progress line's list of running cells."""
+        if not _is_worker(self.config):
+            self.running[nodeid] = nodeid.rpartition("::")[2]
+
+    def _advance(self, report: pytest.TestReport) -> None:
+        """The progress line, once per finished cell: done/total, the time left at the pace so far, what runs."""
+        if self.progress is None or report.nodeid not in self.running:
+            return
+        if report.when == "call" or report.outcome != "passed":  # a cell failed in set-up has no call
+            cell = self.running.pop(report.nodeid)
+            now = ", ".join(sorted(self.running.values())[:4])
+            self.progress.advance(note=f"{cell} done" + (f"; running {now}" if now else ""))
+
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         """Controller: write each finished cell to disk at once, so a crash or Ctrl-C loses nothing."""
         if _is_worker(self.config):
             return
+        self._advance(report)
         closed = getattr(report, CLOSED_ATTR, None)
         if closed is not None:
             got = ClosedPayload.from_builtins(closed)
@@ -317,6 +337,8 @@ class DriveDegradeSession:
         from .controller import finish_run
 
         actors = self._close_actors()
+        if self.progress is not None:
+            self.progress.finish()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
                                   signing_key=preflight.signing_key(self.options),
