@@ -222,6 +222,18 @@ def _processes(config: pytest.Config, options: RunOptions) -> int:
     return workers if isinstance(workers, int) and workers > 0 else 1
 
 
+def rootdir_note(invocation: Path, rootdir: Path, planner: Path | None, inifile: Path | None) -> str:
+    """Why a planner file outside the current folder matters ("" when it does not): pytest derives its rootdir
+    from the paths on the command line, so the run's cache (the world, the floor) and the settings it reads move
+    with the file, silently (a second world build, a retrained floor, the project's ini options dropped)."""
+    if planner is None or planner.is_relative_to(invocation) or rootdir == invocation:
+        return ""
+    ini = f"the settings of {inifile}" if inifile else "no ini file's settings"
+    return (f"the planner file lies outside {invocation}, so pytest took {rootdir} as its rootdir: the cache (the "
+            f"world, the floor) is {rootdir / '.pytest_cache'} and {ini} apply; pass --rootdir {invocation} (and "
+            "-c pyproject.toml) to keep this folder's")
+
+
 def _others() -> float:
     """The runnable processes of other jobs: the 1-minute load average less this one (0 where unknown)."""
     try:
@@ -269,4 +281,7 @@ def preflight_lines(config: pytest.Config, options: RunOptions, context: RunCont
     head = (f"clean frame {probe.token!r} predicted and valid ({probe.seconds * 1000:.1f} ms per frame); "
             if probe is not None else f"no frame checked before the cells ({why}); ")
     lines = [f"{HEAD}: {head}{bound}{estimate_line(count, seconds, processes=processes)}"]
+    moved = rootdir_note(Path(config.invocation_params.dir), Path(config.rootpath), options.planner_path,
+                         config.inipath)
+    notes += [moved] if moved else []
     return lines + [f"{HEAD}: note: {n}" for n in notes]

@@ -155,6 +155,9 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
     progress on `progress` (None: one line on stderr). A build worker re-running a script's unguarded
     ``pytest.main`` stops before the lock, saying why (`tasks.stop_starting_worker`), rather than wait there for
     ever; a world already built is returned to any process, as before."""
+    if progress is not None and not isinstance(progress, Sink):  # e.g. progress=print: fail before any work
+        raise TypeError(f"ensure_default_world(progress=...) takes a pytest_drivedegrade.progress.Sink (Sink() for "
+                        f"stderr, Sink.silent() for nothing), got {progress!r}")
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
     target = default_world_dir(cache_root)
@@ -175,8 +178,12 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
             tmp = cache_root / f".world-tmp-{os.getpid()}"
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.rmtree(target, ignore_errors=True)  # an incomplete world from an older crash
-            write_world(tmp, train_images=train_images, progress=say)
-            os.replace(tmp, target)
+            try:
+                write_world(tmp, train_images=train_images, progress=say)
+                os.replace(tmp, target)
+            except BaseException:  # an interrupted or failed build leaves no half-written folder behind
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
         if train_images and not ready():
             add_train_images(target, say)
     return target

@@ -1,0 +1,63 @@
+"""Frictions a newcomer met in the first hour (issue 41), each fixed where it bit."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from pytest_drivedegrade.data.world import build
+from pytest_drivedegrade.progress import Sink
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_a_progress_that_is_not_a_sink_fails_before_any_work(tmp_path):
+    """planners/train_camera_cnn.py passed progress=print: it crashed mid-build, leaving .world-tmp-<pid>."""
+    with pytest.raises(TypeError, match=r"takes a pytest_drivedegrade\.progress\.Sink .*got <built-in function print>"):
+        build.ensure_default_world(tmp_path, progress=print)  # type: ignore[arg-type]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_world_build_leaves_no_temporary_folder(tmp_path, monkeypatch):
+    def broken(out, **kwargs):
+        Path(out).mkdir(parents=True)
+        (Path(out) / "half").write_text("x")
+        raise RuntimeError("the build broke")
+
+    monkeypatch.setattr(build, "write_world", broken)
+    with pytest.raises(RuntimeError, match="the build broke"):
+        build.ensure_default_world(tmp_path, progress=Sink.silent())
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".world-tmp-")]
+
+
+def test_the_camera_cnn_training_script_passes_a_sink(tmp_path, monkeypatch):
+    import pytest_drivedegrade.data.world as world
+
+    seen = []
+
+    def record(cache_root, *, train_images=False, progress=None):
+        seen.append(progress)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(world, "ensure_default_world", record)
+    spec = importlib.util.spec_from_file_location("train_camera_cnn", ROOT / "planners" / "train_camera_cnn.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    with pytest.raises(SystemExit):
+        module.main(["--cache-root", str(tmp_path)])
+    assert len(seen) == 1 and isinstance(seen[0], Sink)
+
+
+def test_a_planner_file_outside_the_folder_says_where_the_rootdir_and_cache_went(tmp_path):
+    from pytest_drivedegrade.plugin.plannercheck import rootdir_note
+
+    clone, elsewhere = tmp_path / "clone", tmp_path / "law"
+    note = rootdir_note(clone, elsewhere, elsewhere / "law_planner.py", None)
+    assert note.startswith(f"the planner file lies outside {clone}, so pytest took {elsewhere} as its rootdir")
+    assert f"the cache (the world, the floor) is {elsewhere / '.pytest_cache'} and no ini file's settings" in note
+    assert f"--rootdir {clone}" in note
+    assert rootdir_note(clone, clone, elsewhere / "p.py", clone / "pyproject.toml") == ""  # pinned: nothing moved
+    assert rootdir_note(clone, clone / "planners", clone / "planners" / "p.py", None) == ""
+    assert rootdir_note(clone, elsewhere, None, None) == ""  # conftest mode
