@@ -61,3 +61,32 @@ def test_a_planner_file_outside_the_folder_says_where_the_rootdir_and_cache_went
     assert rootdir_note(clone, clone, elsewhere / "p.py", clone / "pyproject.toml") == ""  # pinned: nothing moved
     assert rootdir_note(clone, clone / "planners", clone / "planners" / "p.py", None) == ""
     assert rootdir_note(clone, elsewhere, None, None) == ""  # conftest mode
+
+
+def test_a_label_names_a_unit_once():
+    from pytest_drivedegrade.corruptions.ladder import FAMILIES
+
+    assert FAMILIES["jpeg"].describe(4) == "JPEG quality = 12"  # was "JPEG quality = 12 quality"
+    assert FAMILIES["color_quant"].describe(4) == "bits per channel = 3"
+    assert FAMILIES["raindrop"].describe(4) == "frame fraction under drops = 0.16"
+    assert FAMILIES["gaussian_blur"].describe(4) == "defocus sigma = 3.5 px"  # a unit the name lacks stays
+    for fam in FAMILIES.values():
+        parameter, _, rest = fam.describe(4).partition(" = ")
+        words = rest.split()[1:]
+        assert not words or words[0].strip(",") not in parameter.split(), fam.describe(4)
+
+
+def test_the_s4_montage_has_no_unlabelled_black_tile():
+    import numpy as np
+
+    from pytest_drivedegrade.corruptions.ladder import FAMILIES
+    from pytest_drivedegrade.corruptions.preview import montage
+
+    image = np.full((90, 160, 3), 200, np.uint8)
+    grid = montage(image, severity=4, frame="f", width=160)
+    tile_h, tile_w = grid.shape[0] // 3, grid.shape[1] // 6
+    assert (len(FAMILIES) + 1) < 18  # one place of the 6 x 3 grid is left over
+    last = grid[2 * tile_h:, 5 * tile_w:]
+    bar = 2 * 18 + 6
+    assert (last[bar:] == 128).all()  # grey, not black (which reads as a blacked-out camera)
+    assert (last[:bar] > 200).any()  # and labelled
