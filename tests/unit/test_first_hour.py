@@ -90,3 +90,12 @@ def test_the_s4_montage_has_no_unlabelled_black_tile():
     bar = 2 * 18 + 6
     assert (last[bar:] == 128).all()  # grey, not black (which reads as a blacked-out camera)
     assert (last[:bar] > 200).any()  # and labelled
+
+
+def test_a_retention_above_the_top_is_shown_not_clipped():
+    from pytest_drivedegrade.report.plots import RETENTION_TOP, upper_limit
+
+    assert upper_limit([0.4, 0.95, 1.02, None, float("nan")]) == RETENTION_TOP
+    assert upper_limit([1.110]) == 1.15  # occlusion S1 of camera_cnn on 24 frames was cut off at 1.08
+    assert upper_limit([0.9, 1.379]) == 1.45  # an interval's high end too
+    assert upper_limit([]) == RETENTION_TOP
