@@ -48,6 +48,7 @@ class Probe:
     token: str
     seconds: float
     read: tuple[str, ...]
+    name: str = ""  #: the planner's name (its report folder), "" where it is not usable
 
 
 def declared_problems(planner: Any, context: RunContext) -> tuple[list[str], list[str]]:
@@ -180,7 +181,7 @@ def probe_first_frame(planner: Any, context: RunContext) -> tuple[Probe | None, 
         return None, [str(exc)], []
     except Exception as exc:  # noqa: BLE001 - the planner's failure on a clean frame: named, no traceback
         return None, [describe_failure(exc, frame.token)], []
-    probe = Probe(frame.token, seconds, tuple(dict.fromkeys(read)))
+    probe = Probe(frame.token, seconds, tuple(dict.fromkeys(read)), _usable_name(planner))
     undeclared = [c for c in probe.read if c not in cameras]
     if not undeclared:
         return probe, [], []
@@ -195,6 +196,22 @@ def probe_first_frame(planner: Any, context: RunContext) -> tuple[Probe | None, 
                        "them to planner.cameras (or stop reading them); the null control would fail"], []
     return probe, [], [f"predict() reads {', '.join(undeclared)} without declaring it; the plan does not change "
                        "when it is black"]
+
+
+def _usable_name(planner: Any) -> str:
+    from ..planning import planner_name
+
+    try:
+        return planner_name(planner, "")
+    except DriveDegradeError:
+        return ""
+
+
+def _name(probe: Probe | None, options: RunOptions) -> str:
+    """The report folder's name: the planner's, where the pre-flight built it, else the file's stem."""
+    if probe is not None and probe.name:
+        return probe.name
+    return options.planner_path.stem if options.planner_path else "planner"
 
 
 def build_planner(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
@@ -232,6 +249,22 @@ def rootdir_note(invocation: Path, rootdir: Path, planner: Path | None, inifile:
     return (f"the planner file lies outside {invocation}, so pytest took {rootdir} as its rootdir: the cache (the "
             f"world, the floor) is {rootdir / '.pytest_cache'} and {ini} apply; pass --rootdir {invocation} (and "
             "-c pyproject.toml) to keep this folder's")
+
+
+def replaced_note(folder: Path, frames: int, cells: int) -> str:
+    """A line when `folder` holds a certificate of a run of another size (the quick recipe's 48 frames over the
+    full run's 204): this run replaces it; "" when there is none or it is of the same size."""
+    import json
+
+    try:
+        cert = json.loads((folder / "certificate.json").read_text())
+        theirs = (int(cert["dataset"]["frames"]), len(cert["cells"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+    if theirs == (frames, cells):
+        return ""
+    return (f"{folder} holds the certificate of another run ({theirs[0]} frames, {theirs[1]} cells); this run "
+            f"({frames} frames, {cells} cells) replaces it: pass another --drivedegrade-report to keep both")
 
 
 def _others() -> float:
@@ -272,6 +305,9 @@ def preflight_lines(config: pytest.Config, options: RunOptions, context: RunCont
     from ..certificate.estimate import count_predictions, estimate_line, run_wall_seconds
 
     probe, why, notes = _check(config, options, context, collect_path, module)
+    replaced = replaced_note(options.report_dir / _name(probe, options), context.frames_total,
+                             len(cells) + closed) if options.settings.shard is None else ""
+    notes += [replaced] if replaced else []
     processes = _processes(config, options)
     count = count_predictions(len(context.frames), [len(context.seeds_for(f)) for f, _ in cells],
                               processes=processes, closed_cells=closed)

@@ -99,3 +99,18 @@ def test_a_retention_above_the_top_is_shown_not_clipped():
     assert upper_limit([1.110]) == 1.15  # occlusion S1 of camera_cnn on 24 frames was cut off at 1.08
     assert upper_limit([0.9, 1.379]) == 1.45  # an interval's high end too
     assert upper_limit([]) == RETENTION_TOP
+
+
+def test_a_run_of_another_size_says_it_replaces_the_certificate_in_its_folder(tmp_path):
+    import json
+
+    from pytest_drivedegrade.plugin.plannercheck import replaced_note
+
+    folder = tmp_path / "camera_cnn"
+    assert replaced_note(folder, 48, 17) == ""  # nothing there
+    folder.mkdir()
+    (folder / "certificate.json").write_text(json.dumps({"dataset": {"frames": 204}, "cells": [{}] * 89}))
+    assert replaced_note(folder, 204, 89) == ""  # the same run again
+    assert replaced_note(folder, 48, 17) == (
+        f"{folder} holds the certificate of another run (204 frames, 89 cells); this run (48 frames, 17 cells) "
+        "replaces it: pass another --drivedegrade-report to keep both")
