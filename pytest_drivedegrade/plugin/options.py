@@ -40,8 +40,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "rendered into pytest's cache on first use)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-split", "drivedegrade_split", "split to score: val (default), train, mini_val, "
                "mini_train, all", {"metavar": "SPLIT"}),
-    OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
-               "frames (default: all scorable frames)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic subset of N frames: each "
+               "scene's middle contiguous run, scenes sharing N by their frame counts (default: all scorable "
+               "frames); a subset's intervals speak for those frames, not for the full run's", {"metavar": "N"}),
     OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, and the ego "
                "cells ego_noise, ego_blind (default: all sixteen and both ego cells; a list runs only what it names)",
                {"metavar": "LIST"}),

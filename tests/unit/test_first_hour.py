@@ -114,3 +114,27 @@ def test_a_run_of_another_size_says_it_replaces_the_certificate_in_its_folder(tm
     assert replaced_note(folder, 48, 17) == (
         f"{folder} holds the certificate of another run (204 frames, 89 cells); this run (48 frames, 17 cells) "
         "replaces it: pass another --drivedegrade-report to keep both")
+
+
+def test_the_training_how_to_example_trains_and_its_planner_meets_the_contract(small_world, tmp_path):
+    """planners/examples/tiny_camera.py, as the how-to runs it (on the small world's val images, which are
+    rendered; the how-to trains on the embedded world's train split)."""
+    import numpy as np
+
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.planning import validate_output
+
+    spec = importlib.util.spec_from_file_location("tiny_camera", ROOT / "planners" / "examples" / "tiny_camera.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = tmp_path / "tiny.pt"
+    assert module.main(["--data", str(small_world), "--split", "val", "--steps", "3", "--out", str(out)]) == 0
+    import torch
+
+    model = module.TinyCamera()
+    model.load_state_dict(torch.load(out, weights_only=True))
+    planner = module.TinyCameraPlanner(model)
+    reader = NuScenesReader(small_world, split="val")
+    frame = reader.scorable_frames(limit=1)[0]
+    plan = planner.predict({"CAM_FRONT": reader.load_image(frame.cameras["CAM_FRONT"])}, frame.ego, frame.command)
+    assert validate_output(plan, frame.token).shape == (6, 2) and np.isfinite(plan).all()
