@@ -37,7 +37,8 @@ def test_every_cells_csv_column_is_described(gen):
     from pytest_drivedegrade.report.columns import CSV
 
     missing = [name for name in CSV if not gen.column_description(name)]
-    assert not missing, f"cells.csv column(s) without docs: {missing}; describe them in COLUMNS of docs/gen_reference.py"
+    assert not missing, f"cells.csv column(s) without docs: {missing}; describe them in COLUMNS of " \
+        "docs/gen_reference.py"
     assert gen.column_description("collision_2s_uniad") == ("share of frames whose plan collides with an annotated "
                                                              "box at 2 s, UniAD convention (the value at the horizon "
                                                              "step)")
