@@ -29,6 +29,7 @@ from ..errors import DataError, DriveDegradeError, PlannerOutputError
 from ..loader import planner_view
 from ..planning import CallStyle, call_style, planner_cameras, to_numpy, validate_output
 from ..run import RunContext
+from ..store import ResultStore
 from ..stream import describe_failure, time_limit
 from .options import RunOptions
 
@@ -275,14 +276,41 @@ def _others() -> float:
         return 0.0
 
 
+@dataclass(frozen=True)
+class Checked:
+    """What the check found: the probe (None: no frame checked, `why`), notes, and the cells a stored result
+    with this run's key will stand for (a rerun computes only the others)."""
+
+    probe: Probe | None
+    why: str = ""
+    notes: tuple[str, ...] = ()
+    stored: frozenset[str] = frozenset()
+
+
+def _stored(planner: Any, context: RunContext, store: ResultStore | None,
+            cells: Sequence[tuple[str, int]]) -> frozenset[str]:
+    """The cells of `cells` a stored result of this run key will stand for (`checks.stored_reader`)."""
+    if store is None or not store.resume:
+        return frozenset()
+    from ..cells import cell_id
+    from .checks import stored_reader
+
+    try:
+        read = stored_reader(context, planner, store)
+        return frozenset(c for c in (cell_id(f, s) for f, s in cells) if read(c) is not None)
+    except DriveDegradeError:  # a bad name or cameras: the cells report it
+        return frozenset()
+
+
 def _check(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
-           module: ModuleType | None) -> tuple[Probe | None, str, list[str]]:
-    """(probe, why there is none, notes); a usage error naming every problem found."""
+           module: ModuleType | None, store: ResultStore | None = None,
+           cells: Sequence[tuple[str, int]] = ()) -> Checked:
+    """What the check found; a usage error naming every problem."""
     if options.ray is not None:
-        return None, "the planner is built in the Ray actors", []
+        return Checked(None, "the planner is built in the Ray actors")
     built = build_planner(config, options, context, collect_path, module)
     if isinstance(built, str):
-        return None, built, []
+        return Checked(None, built)
     planner, close = built
     try:
         problems, notes = declared_problems(planner, context)
@@ -290,27 +318,35 @@ def _check(config: pytest.Config, options: RunOptions, context: RunContext, coll
         if not problems:
             probe, problems, more = probe_first_frame(planner, context)
             notes += more
+        stored = _stored(planner, context, store, cells) if not problems else frozenset()
     finally:
         close()
         del planner
     if problems:
         listed = "\n".join(f"  - {p}" for p in problems)
         raise pytest.UsageError(f"{HEAD}: the planner and the data disagree, so no cell ran:\n{listed}")
-    return probe, "", notes
+    return Checked(probe, "", tuple(notes), stored)
 
 
 def preflight_lines(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
-                    module: ModuleType | None, cells: Sequence[tuple[str, int]], closed: int) -> list[str]:
+                    module: ModuleType | None, cells: Sequence[tuple[str, int]], closed: int,
+                    store: ResultStore | None = None) -> list[str]:
     """The pre-flight check's lines (the estimate first); pytest.UsageError on a mismatch, before any cell."""
+    from ..cells import cell_id
     from ..certificate.estimate import count_predictions, estimate_line, run_wall_seconds
 
-    probe, why, notes = _check(config, options, context, collect_path, module)
+    checked = _check(config, options, context, collect_path, module, store, cells)
+    probe, why, notes = checked.probe, checked.why, list(checked.notes)
+    todo = [(f, s) for f, s in cells if cell_id(f, s) not in checked.stored]
+    if checked.stored:
+        notes.append(f"{len(checked.stored)} of {len(cells)} cells are stored with this run's key and are reused "
+                     "(--drivedegrade-no-resume recomputes them): the estimate counts the other cells")
     replaced = replaced_note(options.report_dir / _name(probe, options), context.frames_total,
                              len(cells) + closed) if options.settings.shard is None else ""
     notes += [replaced] if replaced else []
     processes = _processes(config, options)
-    count = count_predictions(len(context.frames), [len(context.seeds_for(f)) for f, _ in cells],
-                              processes=processes, closed_cells=closed)
+    count = replace(count_predictions(len(context.frames), [len(context.seeds_for(f)) for f, _ in todo],
+                                      processes=processes, closed_cells=closed), cells=len(cells))
     seconds = None if probe is None else \
         run_wall_seconds(count, probe.seconds, processes=processes, cores=os.cpu_count() or 1, load=_others())
     bound = "at most " if options.settings.adaptive else ""

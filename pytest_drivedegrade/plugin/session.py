@@ -206,7 +206,7 @@ class DriveDegradeSession:
         from .plannercheck import preflight_lines
 
         lines = preflight_lines(self.config, self.options, context, self.collect_path, self.planner_module,
-                                self.owned_cells(), len(self.closed))
+                                self.owned_cells(), len(self.closed), self.store)
         for line in lines:
             if reporter is not None:
                 reporter.write_line(line)

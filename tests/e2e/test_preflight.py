@@ -81,6 +81,10 @@ def test_a_valid_planner_prints_its_estimate_first_and_dry_run_stops_there(dd):
     full.assert_outcomes(passed=cells)
     out = full.stdout.str()
     assert out.index("drivedegrade pre-flight:") < out.index("PASSED" if "PASSED" in out else "pf.py ")
+    again = dd.run(planner="pf.py")  # every cell stored with the same key: nothing left to predict
+    again.stdout.fnmatch_lines([f"drivedegrade pre-flight: clean frame * {cells} cells, 0 predictions, *",
+                                f"drivedegrade pre-flight: note: {cells} of {cells} cells are stored with this run's "
+                                "key and are reused*"])
 
 
 def test_a_fixture_pytest_alone_provides_leaves_the_frame_to_the_first_cell(dd):
