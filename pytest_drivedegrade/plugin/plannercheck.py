@@ -18,7 +18,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import ModuleType
-from typing import Any
 
 import numpy as np
 import pytest
@@ -27,7 +26,7 @@ from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import Frame
 from ..errors import DataError, DriveDegradeError, PlannerOutputError
 from ..loader import planner_view
-from ..planning import CallStyle, call_style, planner_cameras, to_numpy, validate_output
+from ..planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from ..run import RunContext
 from ..store import ResultStore
 from ..stream import describe_failure, time_limit
@@ -52,7 +51,7 @@ class Probe:
     name: str = ""  #: the planner's name (its report folder), "" where it is not usable
 
 
-def declared_problems(planner: Any, context: RunContext) -> tuple[list[str], list[str]]:
+def declared_problems(planner: Planner, context: RunContext) -> tuple[list[str], list[str]]:
     """(problems, notes): what the planner declares it needs that the data or the run do not serve."""
     problems: list[str] = []
     notes: list[str] = []
@@ -74,12 +73,12 @@ def declared_problems(planner: Any, context: RunContext) -> tuple[list[str], lis
     if lidar and without:
         problems.append(f"planner.{LIDAR_ATTR} is set but {without} of {len(frames)} scored frames have no "
                         "LIDAR_TOP sweep in this data set")
-    if style.resets:
-        try:
-            inspect.signature(planner.reset).bind("scene-token")
-        except (TypeError, ValueError):
-            problems.append("planner.reset must take one argument, the scene token (reset(scene_token)); "
-                            f"its signature is reset{_signature(planner.reset)}")
+    reset: Callable[..., object] = getattr(planner, "reset", None) if style.resets else (lambda token: None)
+    try:
+        inspect.signature(reset).bind("scene-token")
+    except (TypeError, ValueError):
+        problems.append("planner.reset must take one argument, the scene token (reset(scene_token)); "
+                        f"its signature is reset{_signature(reset)}")
     batch = context.settings.batch
     if batch > 1 and not callable(getattr(planner, "predict_batch", None)):
         notes.append(f"--drivedegrade-batch {batch} has no effect: the planner has no predict_batch()")
@@ -96,7 +95,7 @@ def _signature(function: Callable[..., object]) -> str:
         return "(...)"
 
 
-def _horizon(planner: Any, frames: Sequence[Frame]) -> list[str]:
+def _horizon(planner: Planner, frames: Sequence[Frame]) -> list[str]:
     """The planner's declared poses against the future every scored frame holds."""
     poses = getattr(planner, POSES_ATTR, HORIZON_STEPS)
     if isinstance(poses, bool) or not isinstance(poses, (int, np.integer)) or poses < 1:
@@ -109,7 +108,7 @@ def _horizon(planner: Any, frames: Sequence[Frame]) -> list[str]:
             f"frames: certify it on data with {poses * STEP_SECONDS:g} s of future, or declare {future} poses"]
 
 
-def _device(planner: Any, device: str) -> list[str]:
+def _device(planner: Planner, device: str) -> list[str]:
     """The planner's weights on another device than --drivedegrade-device: its plans would be computed elsewhere
     than the run key says."""
     for owner in (planner, getattr(planner, "model", None), getattr(planner, "net", None)):
@@ -146,7 +145,7 @@ def _readonly(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def _call(planner: Any, context: RunContext, frame: Frame, images: Mapping[str, np.ndarray], style: CallStyle,
+def _call(planner: Planner, context: RunContext, frame: Frame, images: Mapping[str, np.ndarray], style: CallStyle,
           read: list[str]) -> tuple[object, float]:
     """One clean predict() as the cells call it; returns (raw output, seconds)."""
     def load(camera: str) -> np.ndarray:
@@ -156,17 +155,18 @@ def _call(planner: Any, context: RunContext, frame: Frame, images: Mapping[str, 
 
     ego = replace(frame.ego, past_xy=_readonly(np.array(frame.ego.past_xy, dtype=np.float64)))
     if style.resets:
-        planner.reset(frame.scene_token)
+        getattr(planner, "reset")(frame.scene_token)  # noqa: B009 - optional: not in the Planner protocol
+    predict: Callable[..., object] = planner.predict
     start = time.perf_counter()
     with time_limit(context.settings.timeout):
         if style.takes_context:
-            raw = planner.predict(planner_view(load), ego, frame.command, context=context.context_of(frame).private())
+            raw = predict(planner_view(load), ego, frame.command, context=context.context_of(frame).private())
         else:
-            raw = planner.predict(planner_view(load), ego, frame.command)
+            raw = predict(planner_view(load), ego, frame.command)
     return raw, time.perf_counter() - start
 
 
-def probe_first_frame(planner: Any, context: RunContext) -> tuple[Probe | None, list[str], list[str]]:
+def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | None, list[str], list[str]]:
     """(probe, problems, notes) of one clean frame predicted twice (the second timed) and validated."""
     cameras, style = planner_cameras(planner), call_style(planner)
     frame, images = _frame(context, cameras)
@@ -199,7 +199,7 @@ def probe_first_frame(planner: Any, context: RunContext) -> tuple[Probe | None, 
                        "when it is black"]
 
 
-def _usable_name(planner: Any) -> str:
+def _usable_name(planner: Planner) -> str:
     from ..planning import planner_name
 
     try:
@@ -216,7 +216,7 @@ def _name(probe: Probe | None, options: RunOptions) -> str:
 
 
 def build_planner(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
-                  module: ModuleType | None) -> tuple[Any, Callable[[], list[str]]] | str:
+                  module: ModuleType | None) -> tuple[Planner, Callable[[], list[str]]] | str:
     """The planner built from its fixture outside pytest's test run, with its teardown; or why it cannot be
     (a fixture that requests ``request`` or a conftest fixture). A fixture that raises is a usage error."""
     from .actors import FixtureUnavailable, PlannerFile
@@ -287,7 +287,7 @@ class Checked:
     stored: frozenset[str] = frozenset()
 
 
-def _stored(planner: Any, context: RunContext, store: ResultStore | None,
+def _stored(planner: Planner, context: RunContext, store: ResultStore | None,
             cells: Sequence[tuple[str, int]]) -> frozenset[str]:
     """The cells of `cells` a stored result of this run key will stand for (`checks.stored_reader`)."""
     if store is None or not store.resume:

@@ -79,6 +79,8 @@ def test_a_valid_planner_prints_its_estimate_first_and_dry_run_stops_there(dd):
     assert not (dd.pytester.path / "rep" / "pf").exists()
     full = dd.run(planner="pf.py")
     full.assert_outcomes(passed=cells)
+    full.stdout.fnmatch_lines(["*drivedegrade cells: 1/9 cells (11 %) * s, about * left, clean done*",
+                               "*drivedegrade cells: 9 cells in * s"])  # the cells' progress line, first to last
     out = full.stdout.str()
     assert out.index("drivedegrade pre-flight:") < out.index("PASSED" if "PASSED" in out else "pf.py ")
     again = dd.run(planner="pf.py")  # every cell stored with the same key: nothing left to predict
