@@ -73,7 +73,7 @@ def declared_problems(planner: Planner, context: RunContext) -> tuple[list[str],
     if lidar and without:
         problems.append(f"planner.{LIDAR_ATTR} is set but {without} of {len(frames)} scored frames have no "
                         "LIDAR_TOP sweep in this data set")
-    reset: Callable[..., object] = getattr(planner, "reset", None) if style.resets else (lambda token: None)
+    reset: Callable[..., object] = getattr(planner, "reset") if style.resets else (lambda token: None)  # noqa: B009
     try:
         inspect.signature(reset).bind("scene-token")
     except (TypeError, ValueError):
