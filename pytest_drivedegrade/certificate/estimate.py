@@ -120,6 +120,8 @@ def duration_text(seconds: float) -> str:
 
 def estimate_line(count: RunCount, seconds: float | None, *, processes: int) -> str:
     """The one line a run prints before its cells: '89 cells, 17,373 predictions, about 6 minutes with -n 2'."""
+    if not count.cells:  # a closed-loop-only run: its cost (routes x steps x seeds) is not modelled here
+        return f"{count.closed_cells} closed-loop cell(s) (time not estimated)"
     how = f"with -n {processes}" if processes > 1 else "in one process"
     text = f"{count.cells} cells, {count.predictions:,} predictions"
     text += f", {duration_text(seconds)} {how}" if seconds is not None else " (time not estimated)"

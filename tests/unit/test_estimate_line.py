@@ -52,6 +52,7 @@ def test_the_one_line():
     assert estimate_line(count, None, processes=1) == "89 cells, 17,373 predictions (time not estimated)"
     assert estimate_line(RunCount(9, 36, 7), 30, processes=1) == \
         "9 cells, 36 predictions, about 30 seconds in one process; plus 7 closed-loop cell(s), not in the estimate"
+    assert estimate_line(RunCount(0, 0, 3), 50, processes=1) == "3 closed-loop cell(s) (time not estimated)"
 
 
 class Lines(Sink):
