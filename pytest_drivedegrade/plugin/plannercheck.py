@@ -26,6 +26,7 @@ from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import Frame
 from ..errors import DataError, DriveDegradeError, PlannerOutputError
 from ..loader import planner_view
+from ..pacing import opencv_share
 from ..planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
 from ..run import RunContext
 from ..store import ResultStore
@@ -175,8 +176,9 @@ def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | No
                           "not decode (the cells report the data errors)"]
     read: list[str] = []
     try:
-        _call(planner, context, frame, images, style, read)
-        raw, seconds = _call(planner, context, frame, images, style, read)
+        with opencv_share():  # as the cells call it: OpenCV's thread count the run's, and put back after
+            _call(planner, context, frame, images, style, read)
+            raw, seconds = _call(planner, context, frame, images, style, read)
         plan = validate_output(to_numpy(raw), frame.token)
     except PlannerOutputError as exc:
         return None, [str(exc)], []
@@ -188,7 +190,8 @@ def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | No
         return probe, [], []
     black = {**images, **{c: _readonly(np.zeros_like(context.decode(frame, c))) for c in undeclared}}
     try:
-        again = validate_output(to_numpy(_call(planner, context, frame, black, style, [])[0]), frame.token)
+        with opencv_share():
+            again = validate_output(to_numpy(_call(planner, context, frame, black, style, [])[0]), frame.token)
     except Exception as exc:  # noqa: BLE001 - failing on a black camera it does not declare is relying on it
         again = np.full_like(plan, np.nan) if not isinstance(exc, KeyboardInterrupt) else plan
     if style.deterministic and not np.array_equal(again, plan):
