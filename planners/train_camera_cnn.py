@@ -209,8 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.data.world import ensure_default_world
+    from pytest_drivedegrade.progress import Sink
 
-    root = args.data or ensure_default_world(args.cache_root, train_images=True, progress=print)
+    root = args.data or ensure_default_world(args.cache_root, train_images=True, progress=Sink())
     readers = {s: NuScenesReader(root, split=s) for s in ("train", "val")}
     cache = args.cache_root / "camera_cnn"
     data = {s: load_split(r, cache) for s, r in readers.items()}

@@ -47,3 +47,9 @@ COMMAND_BLIND = "command_blind"
 #: The confidence sequence adaptive cells stop on (`scoring.sequential.METHOD`): part of an adaptive run's key,
 #: so a changed stopping rule never reuses cells a former rule stopped.
 ADAPTIVE_METHOD = "betting"
+
+#: A planner whose clean L2 is above this many times the ego-only floor's, and above it by `WORSE_MARGIN` m, is
+#: warned about (the terminal, compare.html): a floor that reads no camera plans far better, which points to a
+#: miswired adapter, among other causes.
+WORSE_FACTOR = 2.0
+WORSE_MARGIN = 0.1

@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol, TypedDict
@@ -23,6 +23,7 @@ from torch import nn
 from .atomic import atomic_write_bytes
 from .constants import HORIZON_STEPS
 from .data.frame import Command, EgoStatus, Frame
+from .progress import Progress
 
 #: Bump when features, network or training change: it is part of the cache key and the fingerprint.
 FLOOR_VERSION = "ego_mlp-1"
@@ -129,11 +130,18 @@ def _set_stats(model: EgoMLP, x: np.ndarray, y: np.ndarray) -> None:
     model.y_std.copy_(torch.from_numpy(np.maximum(y.std(0), 1e-3)))
 
 
+#: What shows training's progress: called with the number of steps, returns a `Progress` to advance per step.
+ProgressFactory = Callable[[int], Progress]
+
+
 def fit_arrays(
-    x: np.ndarray, y: np.ndarray, *, seed: int = 0, settings: FloorSettings | None = None
+    x: np.ndarray, y: np.ndarray, *, seed: int = 0, settings: FloorSettings | None = None,
+    progress: ProgressFactory | None = None,
 ) -> EgoMLP:
-    """Train an ``EgoMLP`` on features `x` and targets `y` deterministically; loss is the mean waypoint L2 (m)."""
+    """Train an ``EgoMLP`` on features `x` and targets `y` deterministically; loss is the mean waypoint L2 (m).
+    `progress` shows the steps (the weights are the same with or without it)."""
     settings = SETTINGS if settings is None else settings
+    bar = progress(settings["steps"]) if progress is not None else None
     with deterministic_torch(seed):
         model = EgoMLP(settings["hidden"])
         _set_stats(model, x.astype(np.float32), y.astype(np.float32))
@@ -155,16 +163,21 @@ def fit_arrays(
             loss.backward()  # type: ignore[no-untyped-call]  # torch's Tensor.backward is unannotated
             opt.step()
             sched.step()
+            if bar is not None:
+                bar.advance()
         model.eval()
+    if bar is not None:
+        bar.finish()
     return model
 
 
 def train_floor(
-    frames_train: Sequence[Frame], *, seed: int = 0, settings: FloorSettings | None = None
+    frames_train: Sequence[Frame], *, seed: int = 0, settings: FloorSettings | None = None,
+    progress: ProgressFactory | None = None,
 ) -> EgoMLP:
     """Train the floor on the scorable frames of a train split; same frames and seed give bit-identical weights."""
     x, y = frames_to_arrays(list(frames_train))
-    return fit_arrays(x, y, seed=seed, settings=settings)
+    return fit_arrays(x, y, seed=seed, settings=settings, progress=progress)
 
 
 def cache_key(dataset_fingerprint: str, seed: int = 0) -> str:
@@ -198,7 +211,8 @@ class TrainSplit(Protocol):
     def scorable_frames(self, *, agents: bool = True) -> Sequence[Frame]: ...
 
 
-def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int = 0) -> EgoMLP:
+def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int = 0,
+                        progress: ProgressFactory | None = None) -> EgoMLP:
     """The floor for a train split: loaded from `cache_dir` when trained before on the same data, else trained.
 
     `reader_train` is a ``NuScenesReader`` on the train split (``fingerprint()`` and ``scorable_frames()``, read
@@ -217,7 +231,7 @@ def load_or_train_floor(reader_train: TrainSplit, cache_dir: Path, *, seed: int 
                 return model.eval()
         except Exception:  # noqa: BLE001 - a corrupt or unchecked cache entry is retrained, not fatal
             pass
-    model = train_floor(list(reader_train.scorable_frames(agents=False)), seed=seed)
+    model = train_floor(list(reader_train.scorable_frames(agents=False)), seed=seed, progress=progress)
     data = save_atomic(model, path)  # the weights first: a digest never vouches for a file not yet written
     atomic_write_bytes(_floor_digest_path(path), hashlib.sha256(data).hexdigest().encode())
     return model

@@ -64,6 +64,15 @@ class Sink:
         return Sink() if reporter is None else _ReporterSink(reporter)
 
     @staticmethod
+    def log_for_pytest(config: pytest.Config) -> Sink:
+        """pytest's terminal reporter as a log (milestone lines, never rewritten in place): for progress beside
+        pytest's own (the cells' dots, which a line rewritten in place would erase)."""
+        reporter = config.pluginmanager.get_plugin("terminalreporter")
+        sink = Sink() if reporter is None else _ReporterSink(reporter)
+        sink.tty = False
+        return sink
+
+    @staticmethod
     def silent() -> Sink:
         """Nowhere (for library calls and tests that want no output)."""
         return _SilentSink()
@@ -122,8 +131,8 @@ class Progress:
     """
 
     def __init__(self, label: str, total: int, *, unit: str = "", sink: Sink | None = None, milestones: int = 4,
-                 interval_s: float = 0.1, clock: Callable[[], float] = time.monotonic) -> None:
-        self.label, self.total, self.unit = label, max(int(total), 0), unit
+                 interval_s: float = 0.1, clock: Callable[[], float] = time.monotonic, eta: bool = False) -> None:
+        self.label, self.total, self.unit, self.eta = label, max(int(total), 0), unit, eta
         self.sink = sink if sink is not None else Sink()
         self.milestones, self.interval_s, self._clock = max(int(milestones), 1), interval_s, clock
         self.done = 0
@@ -141,7 +150,14 @@ class Progress:
         unit = f" {self.unit}" if self.unit else ""
         pct = f" ({100 * self.done // self.total} %)" if self.total else ""
         tail = f", {note}" if note else ""
-        return f"{self.label}: {self.done}/{self.total}{unit}{pct} {self.elapsed:.1f} s{tail}"
+        return f"{self.label}: {self.done}/{self.total}{unit}{pct} {self.elapsed:.1f} s{self._left()}{tail}"
+
+    def _left(self) -> str:
+        """With `eta`: ", about N s left" at the pace so far (nothing before the first step or after the last)."""
+        if not self.eta or not self.done or not self.total or self.done >= self.total:
+            return ""
+        left = self.elapsed / self.done * (self.total - self.done)
+        return f", about {left:.0f} s left" if left < 90 else f", about {left / 60:.0f} min left"
 
     def advance(self, n: int = 1, note: str = "") -> None:
         """`n` more steps done; `note` says what the last one was (shown on a terminal only)."""
@@ -157,7 +173,7 @@ class Progress:
             return
         mark = self.done * self.milestones // self.total
         if self._mark < mark < self.milestones:
-            self.sink.line(self.text())
+            self.sink.line(self.text(note if self.eta else ""))
         self._mark = max(self._mark, mark)
 
     def tick(self, note: str = "") -> None:

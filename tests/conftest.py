@@ -5,8 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 DATA = Path(__file__).parent / "data" / "nuscenes"
+
+#: Hypothesis's default deadline (200 ms per example) fails a property test by the clock, not by its values: on a
+#: machine at a load of 15 on 2 cores an example that takes 30 ms quiet takes several hundred. The suite's
+#: properties judge values only; the tests that set `deadline=None` themselves said so one by one, and the rest
+#: (test_settings, test_shard_partition, test_closed_cells) inherited the default.
+settings.register_profile("drivedegrade", deadline=None)
+settings.load_profile("drivedegrade")
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -215,7 +215,31 @@ def compare_frame(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> pd.DataFram
     return df[head + [c for c in df.columns if c not in head]]
 
 
-def _html(df: pd.DataFrame, warnings: Sequence[str], notes: Sequence[str] = ()) -> str:
+#: The first table of compare.html, one screen wide: who, whether it is sound, the verdict and the figures it
+#: rests on. Every column follows in the full table below it.
+SUMMARY = ("planner", "status", "verdict", "ego_label", "verdict_metric", "verdict_confidence", "interval_basis",
+           "clean_l2", "floor_l2", "axis_quality", "axis_removal", "axis_mean")
+
+
+def floor_warnings(df: pd.DataFrame) -> list[str]:
+    """A line per planner far worse than its ego-only floor on clean frames (`report.terminal.floor_warning`'s
+    rule: above twice the floor's L2 and by more than 0.1 m); a miswired adapter is one cause among others."""
+    from ..constants import WORSE_FACTOR, WORSE_MARGIN
+
+    out = []
+    for r in df.itertuples():
+        clean, floor = r.clean_l2, r.floor_l2
+        if isinstance(clean, (int, float)) and isinstance(floor, (int, float)) and floor > 0 and \
+                clean > WORSE_FACTOR * floor and clean - floor > WORSE_MARGIN:
+            out.append(f"{r.planner}: clean L2 {clean:.3f} m against the ego-only floor's {floor:.3f} m: a planner "
+                       "that reads no camera plans far better (a miswired adapter, other data, too little training "
+                       "or a perception-free design); read its retention with that in mind")
+    return out
+
+
+def _html(df: pd.DataFrame, warnings: Sequence[str], comparison_notes: Sequence[str] = ()) -> str:
+    summary = df[[c for c in SUMMARY if c in df.columns]].to_html(
+        index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}", classes="cmp", border=0)
     table = df.to_html(index=False, escape=True, na_rep="—", float_format=lambda v: f"{v:.3f}",
                        classes="cmp", border=0)
     flagged = df[df["rank_reversal"]]
@@ -224,9 +248,10 @@ def _html(df: pd.DataFrame, warnings: Sequence[str], notes: Sequence[str] = ()) 
     warn = "".join(f"<p class='warn'>Compared with --force: {html.escape(w)}</p>" for w in warnings)
     warn += "".join(f"<p class='warn'>IMPORTED: {html.escape(str(r.certificate))}: {IMPORTED_TEXT}</p>"
                     for r in df.itertuples() if r.imported)
-    warn += "".join(f"<p class='warn'>Note: {html.escape(n)}</p>" for n in notes)
+    warn += "".join(f"<p class='warn'>Note: {html.escape(n)}</p>" for n in comparison_notes)
     warn += "".join(f"<p class='warn'>INCOMPLETE, compared as it is: {html.escape(str(r.certificate))}: "
                     f"{html.escape(str(r.status))}</p>" for r in df.itertuples() if r.status != "complete")
+    warn += "".join(f"<p class='warn'>FLOOR: {html.escape(w)}</p>" for w in floor_warnings(df))
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>DriveDegrade comparison</title>
 <style>
@@ -241,6 +266,9 @@ table.cmp th {{ background:#fafbfc; color:#616e7c; }}
 A rank reversal: a planner better than another on one ranking and worse on the other.</p>
 {warn}
 {"<h2>Rank reversals</h2><ul>" + notes + "</ul>" if notes else "<p>No rank reversals.</p>"}
+<h2>Verdicts</h2>
+<div style="overflow-x:auto">{summary}</div>
+<h2>Every column</h2>
 <div style="overflow-x:auto">{table}</div>
 </body></html>
 """

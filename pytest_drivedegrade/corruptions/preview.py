@@ -61,8 +61,12 @@ def _tile(image: np.ndarray, label: str, width: int) -> np.ndarray:
     return np.vstack([bar, tile])
 
 
-def _grid(tiles: list[np.ndarray], columns: int) -> np.ndarray:
-    blank = np.zeros_like(tiles[0])
+def _grid(tiles: list[np.ndarray], columns: int, note: str = "") -> np.ndarray:
+    """`tiles` in rows of `columns`; a row's empty places are grey tiles labelled `note` (a black one read as a
+    blacked-out camera without a label)."""
+    blank = np.full_like(tiles[0], 128)
+    if note:
+        blank = _tile(np.full((8, 8, 3), 128, np.uint8), note, tiles[0].shape[1])[:tiles[0].shape[0]]
     rows = [tiles[i:i + columns] + [blank] * (columns - len(tiles[i:i + columns]))
             for i in range(0, len(tiles), columns)]
     return np.vstack([np.hstack(r) for r in rows])
@@ -82,7 +86,7 @@ def montage(image: np.ndarray, *, severity: int | None = None, family: str | Non
     for name, fam in FAMILIES.items():
         out = render(image, name, severity, seed=seed, frame=frame, camera=camera)
         tiles.append(_tile(out, f"{name} S{severity}: {fam.describe(severity)}", width))
-    return _grid(tiles, 6)
+    return _grid(tiles, 6, note=f"this montage: {len(FAMILIES)} families at S{severity}, clean first")
 
 
 def write_preview(images: Sequence[str], *, severity: int = 4, family: str | None = None,

@@ -65,7 +65,9 @@ class Family:
         value = self.value(severity)
         if isinstance(value, tuple):
             value = "+".join(c.replace("CAM_", "") for c in value)
-        unit = f" {self.unit}" if self.unit and self.unit not in ("level", "cameras") else ""
+        # no unit the parameter already names ("JPEG quality = 12", not "= 12 quality"; "bits per channel = 3")
+        named = bool(self.unit) and self.unit.split()[0].strip(",") in self.parameter.split()
+        unit = f" {self.unit}" if self.unit and self.unit not in ("level", "cameras") and not named else ""
         return f"{self.parameter} = {value}{unit}"
 
 

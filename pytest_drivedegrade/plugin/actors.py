@@ -13,8 +13,9 @@ import inspect
 import sys
 import traceback
 from collections.abc import Callable, Generator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -33,21 +34,28 @@ if TYPE_CHECKING:
 CONTEXT_FIXTURE = "drivedegrade_context"
 
 
+class FixtureUnavailable(DriveDegradeError):
+    """A fixture of the planner file requests one that only pytest's test run provides (``request``, a conftest
+    fixture): the planner cannot be built outside pytest."""
+
+
 @dataclass(frozen=True)
 class PlannerFile:
     """Builds the `planner` fixture of `path` (imported as module `module`: a conftest's own name, or by default
-    the name the controller imports a planner file under, so the planner's fingerprint is the same)."""
+    the name the controller imports a planner file under, so the planner's fingerprint is the same). `loaded`:
+    the module already imported in this process (the controller's pre-flight), used as it is."""
 
     path: Path
     module: str | None = None
+    loaded: ModuleType | None = field(default=None, compare=False)
 
     def __call__(self, context: RunContext) -> tuple[Planner, Callable[[], list[str]]]:
         from .items import import_planner_file
 
-        if self.module is not None:  # a conftest.py imports its siblings, as pytest's prepend import mode allows
+        if self.module is not None and self.loaded is None:  # a conftest imports its siblings (pytest's prepend mode)
             sys.path.insert(0, str(self.path.parent))
         try:
-            module = import_planner_file(self.path, self.module)
+            module = self.loaded or import_planner_file(self.path, self.module)
         except pytest.UsageError as exc:
             raise DriveDegradeError(str(exc)) from None
         table = dict(fixture_function(obj) for obj in vars(module).values() if is_fixture(obj))
@@ -59,7 +67,7 @@ class PlannerFile:
                 return built[name]
             if name not in table:
                 via = " -> ".join((*chain, name))
-                raise DriveDegradeError(
+                raise FixtureUnavailable(
                     f"{self.path}: fixture {chain[-1]!r} requests {name!r} ({via}), which a Ray actor cannot provide: "
                     f"with --drivedegrade-ray the planner is built in each actor from {self.path.name} alone, so its "
                     f"fixtures may request only fixtures of that file and {CONTEXT_FIXTURE}; build it without "

@@ -36,13 +36,15 @@ def floor_frames(config: pytest.Config, context: RunContext, split: str, lines: 
     """The ego-only floor on the scored frames (trained on the train split once, cached), with its ego_blind
     cell when `ego`; None with a line saying why when there is no floor."""
     from ..floor import load_or_train_floor, train_split_for
+    from ..progress import Progress, Sink
 
     try:
         train = context.reader.with_split(train_split_for(split))
         if not any(f.scorable for f in train.frames(agents=False)):  # lazily: stops at the first scorable one
             lines.append(f"ego-only floor: skipped, split {train.split!r} has no scorable frames")
             return None
-        model = load_or_train_floor(train, cache_root(config) / "floor")
+        model = load_or_train_floor(train, cache_root(config) / "floor", progress=lambda steps: Progress(
+            "drivedegrade ego-only floor, training", steps, unit="steps", sink=Sink.log_for_pytest(config), eta=True))
     except DriveDegradeError as exc:
         lines.append(f"ego-only floor: skipped ({exc})")
         return None

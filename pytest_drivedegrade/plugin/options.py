@@ -40,8 +40,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "rendered into pytest's cache on first use)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-split", "drivedegrade_split", "split to score: val (default), train, mini_val, "
                "mini_train, all", {"metavar": "SPLIT"}),
-    OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
-               "frames (default: all scorable frames)", {"metavar": "N"}),
+    OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic subset of N frames: each "
+               "scene's middle contiguous run, scenes sharing N by their frame counts (default: all scorable "
+               "frames); a subset's intervals speak for those frames, not for the full run's", {"metavar": "N"}),
     OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, the ego "
                "cells ego_noise, ego_blind and the command cell command_blind (default: all sixteen, both ego cells "
                "and command_blind; a list runs only what it names)",
@@ -133,6 +134,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
                "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
                {"metavar": "X"}),
+    OptionSpec("--drivedegrade-dry-run", "drivedegrade_dry_run", "stop after the pre-flight check (the planner's "
+               "declared needs against the data, one clean frame predicted and validated, the run's predictions "
+               "counted and its wall time estimated): no cell runs", {"action": "store_true"}),
     OptionSpec("--drivedegrade-sign-key", "drivedegrade_sign_key", "REFUSED (as is DRIVEDEGRADE_SIGNING_KEY in "
                "the run's environment): the planner could read the key; sign the finished certificate with "
                "`drivedegrade sign CERT --key PATH`", {"metavar": "PATH"}),
@@ -223,6 +227,7 @@ class RunOptions:
     report_overwrite: bool = False  #: --drivedegrade-report-overwrite: replace another planner's outputs
     resume: bool = True  #: not --drivedegrade-no-resume: reuse stored cells of the same run key (results unchanged)
     ray: RayOptions | None = None  #: --drivedegrade-ray: the planner actors (None: the planner runs in-process)
+    dry_run: bool = False  #: --drivedegrade-dry-run: stop after the pre-flight check
 
 
 def _ray(config: pytest.Config) -> RayOptions | None:
@@ -438,6 +443,7 @@ def parse(config: pytest.Config) -> RunOptions:
         report_overwrite=_flag(config, "drivedegrade_report_overwrite"),
         resume=not _flag(config, "drivedegrade_no_resume"),
         ray=_ray(config),
+        dry_run=_flag(config, "drivedegrade_dry_run"),
     )
     if settings.adaptive and settings.shard is not None:  # an adaptive shard owns whole families' cells
         from ..cells import run_order

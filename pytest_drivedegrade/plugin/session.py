@@ -21,6 +21,7 @@ from ..closedloop.cells import ClosedPayload, closed_id
 from ..closedloop.cells import selection as closed_selection
 from ..errors import DriveDegradeError
 from ..payload import CellPayload
+from ..progress import Progress, Sink
 from ..run import AnyPlanner, RunContext
 from ..store import ResultStore
 from . import SESSION_KEY, exitguard, preflight
@@ -117,6 +118,8 @@ class DriveDegradeSession:
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
         self.guarded = False  # -n 0: os._exit refused while the run is live (`exitguard`)
         self.worker_usage: str | None = None  # -n N: a worker's usage error (the planner file failed to import)
+        self.progress: Progress | None = None  # controller: the cells' progress line
+        self.running: dict[str, str] = {}  # controller: node id -> cell, of the cells started and not finished
 
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
@@ -207,10 +210,13 @@ class DriveDegradeSession:
         except DriveDegradeError as exc:
             raise pytest.UsageError(f"--drivedegrade: {exc}") from None
         preflight.check_baseline(self.baseline, self.options, context, self.cells)
-        swept = preflight.prepare_report_dir(self.options.report_dir, self.started)
         reporter = self.config.pluginmanager.get_plugin("terminalreporter")
+        self._preflight(context, reporter)
+        swept = preflight.prepare_report_dir(self.options.report_dir, self.started)
         if swept and reporter is not None:
             reporter.write_line(swept)
+        self.progress = Progress("drivedegrade cells", len(self.owned_cells()) + len(self.closed), unit="cells",
+                                 sink=Sink.log_for_pytest(self.config), milestones=10, eta=True)
         if self.cells:  # the open cells' floor, beside them on an xdist controller (`controller.start_floor`)
             self.floor = start_floor(self.config, self.options, context)
         if self.options.ray is not None:
@@ -220,6 +226,20 @@ class DriveDegradeSession:
                 self.remote = start_planner_actors(self.config, self.options, context, self.collect_path)
             except DriveDegradeError as exc:
                 raise pytest.UsageError(f"--drivedegrade-ray: {exc}") from None
+
+    def _preflight(self, context: RunContext, reporter: pytest.TerminalReporter | None) -> None:
+        """The pre-flight check (`plannercheck`): a usage error before any cell on a mismatch; its estimate
+        printed; --drivedegrade-dry-run ends the session here."""
+        from .plannercheck import preflight_lines
+
+        lines = preflight_lines(self.config, self.options, context, self.collect_path, self.planner_module,
+                                self.owned_cells(), len(self.closed), self.store)
+        for line in lines:
+            if reporter is not None:
+                reporter.write_line(line)
+        if self.options.dry_run:
+            pytest.exit("drivedegrade: --drivedegrade-dry-run: stopped after the pre-flight check; no cell ran",
+                        returncode=pytest.ExitCode.OK)
 
     def run_item(self, item: CellItem, planner: object) -> None:
         from .checks import certify, prefetch
@@ -306,10 +326,25 @@ class DriveDegradeSession:
             setattr(report, CLOSED_ATTR, closed.to_builtins())
         return report
 
+    def pytest_runtest_logstart(self, nodeid: str, location: tuple[str, int | None, str]) -> None:
+        """Controller: a cell started (on some worker), for the progress line's list of running cells."""
+        if not _is_worker(self.config):
+            self.running[nodeid] = nodeid.rpartition("::")[2]
+
+    def _advance(self, report: pytest.TestReport) -> None:
+        """The progress line, once per finished cell: done/total, the time left at the pace so far, what runs."""
+        if self.progress is None or report.nodeid not in self.running:
+            return
+        if report.when == "call" or report.outcome != "passed":  # a cell failed in set-up has no call
+            cell = self.running.pop(report.nodeid)
+            now = ", ".join(sorted(self.running.values())[:4])
+            self.progress.advance(note=f"{cell} done" + (f"; running {now}" if now else ""))
+
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         """Controller: write each finished cell to disk at once, so a crash or Ctrl-C loses nothing."""
         if _is_worker(self.config):
             return
+        self._advance(report)
         closed = getattr(report, CLOSED_ATTR, None)
         if closed is not None:
             got = ClosedPayload.from_builtins(closed)
@@ -329,6 +364,8 @@ class DriveDegradeSession:
         from .controller import finish_run
 
         actors = self._close_actors()
+        if self.progress is not None:
+            self.progress.finish()
         self.outcome = finish_run(self.config, self.options, self.context, self.received, self.cells, self.baseline,
                                   self.store, planner_file=planner_file(self.config, self.collect_path),
                                   closed=(self.closed_received, [closed_id(f, s) for f, s in self.closed]),

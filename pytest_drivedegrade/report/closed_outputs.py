@@ -50,6 +50,13 @@ def _fmt(value: float | None, digits: int = 1) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
 
+def _agreement(agrees: bool | None) -> str:
+    """The closed verdict against the open one: yes, no, or why they were not compared (not Python's None)."""
+    if agrees is None:
+        return "not compared: no open-loop verdict (a closed-only run)"
+    return "yes" if agrees else "no"
+
+
 def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> list[str]:
     """The terminal summary of the closed cells: one line per cell, the null control, the verdict (`run` None:
     runs imported from CARLA, whose null control is `imported_null` against clean)."""
@@ -81,7 +88,8 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null:
                     f" (not robust: the bounds and route intervals allow {', '.join(sorted(set(analysis.labels)))})")
                  +
                  f"; availability-vs-quality separation {sep.get('holds')}, under every assignment of the unscored "
-                 f"runs {sep.get('holds_under_every_assignment')}; agrees with the open loop: {analysis.agrees}")
+                 f"runs {sep.get('holds_under_every_assignment')}; agrees with the open loop: "
+                 f"{_agreement(analysis.agrees)}")
     if run is not None and run.missing:
         lines.append(f"closed loop: missing cells ({len(run.missing)}): {', '.join(run.missing)}")
     return lines

@@ -78,6 +78,18 @@ def _curves(summaries: Sequence[CellSummary]) -> dict[str, list[CellSummary]]:
     return {f: sorted(c, key=lambda s: s.severity) for f, c in out.items()}
 
 
+#: The top of a retention axis when every value lies below it: a little above 1 (no damage).
+RETENTION_TOP = 1.08
+
+
+def upper_limit(values: Sequence[float | None]) -> float:
+    """The top of a retention axis: `RETENTION_TOP`, or above the largest finite value (a corruption can improve
+    a plan: occlusion at 1.110 was clipped at 1.08), rounded up to 0.05 with room for its marker."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    top = max(finite, default=0.0) + 0.03
+    return RETENTION_TOP if top <= RETENTION_TOP else math.ceil(top * 20) / 20
+
+
 def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, FamilyThresholds],
                      cols: int = 4) -> str | None:
     """Small multiples: retention vs severity per family (clean at S0 = 1), 95% CI band, 0.90 / 0.75 lines and
@@ -88,6 +100,7 @@ def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, 
     rows = math.ceil(len(curves) / cols)
     lows = [s.retention_ci_low for c in curves.values() for s in c if math.isfinite(s.retention_ci_low)]
     ymin = min(0.5, math.floor(min(lows, default=0.5) * 10) / 10)
+    ymax = upper_limit([v for c in curves.values() for s in c for v in (s.retention, s.retention_ci_high)])
     fig = _figure(3.0 * cols, 2.1 * rows)
     for i, (fam, cells) in enumerate(curves.items()):
         ax = fig.add_subplot(rows, cols, i + 1)
@@ -108,7 +121,7 @@ def tolerance_curves(summaries: Sequence[CellSummary], thresholds: Mapping[str, 
         ax.set_title(fam, fontsize=9.5, color=INK, loc="left", fontweight="bold")
         ax.set_xlim(-0.2, 5.2)
         ax.set_xticks(range(6), ["clean", "S1", "S2", "S3", "S4", "S5"])
-        ax.set_ylim(ymin, 1.08)
+        ax.set_ylim(ymin, ymax)
     fig.tight_layout(h_pad=1.2, w_pad=1.0)
     return to_data_uri(fig)
 
@@ -171,22 +184,23 @@ def retention_heatmap(summaries: Sequence[CellSummary], key: str = "retention",
 def _quadrants(points: Sequence[float | None], flat: float,
                corners: tuple[str, str, str, str]) -> tuple[Figure, MplAxes, float]:
     """The frame both retention-plane charts share: a square plot from `lo` (below every finite point, at
-    most 0.5) to 1.08 on both axes, the "flat on both" corner shaded, and the four corner labels
+    most 0.5) to `upper_limit` on both axes, the "flat on both" corner shaded, and the four corner labels
     (top right, bottom right, top left, bottom left; "" for none). Returns (figure, axes, lo)."""
     pts = [v for v in points if v is not None and math.isfinite(v)]
     lo = min(0.5, math.floor(min(pts) * 10) / 10 - 0.05)
+    hi = upper_limit(pts)
     fig = _figure(5.2, 4.6)
     ax = fig.add_subplot(1, 1, 1)
     _style(ax)
     ax.add_patch(Rectangle((flat, flat), 2, 2, color="#e5e7eb", alpha=0.7, linewidth=0))
     kw: dict[str, Any] = dict(fontsize=7.5, color=MUTED, style="italic")
-    places = ((flat + 0.005, 1.075, "top"), (flat + 0.005, lo + 0.01, "bottom"), (lo + 0.01, 1.075, "top"),
+    places = ((flat + 0.005, hi - 0.005, "top"), (flat + 0.005, lo + 0.01, "bottom"), (lo + 0.01, hi - 0.005, "top"),
               (lo + 0.01, lo + 0.01, "bottom"))
     for (x, y, va), text in zip(places, corners):
         if text:  # an empty label leaves its corner bare
             ax.text(x, y, text, va=va, **kw)
-    ax.set_xlim(lo, 1.08)
-    ax.set_ylim(lo, 1.08)
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
     return fig, ax, lo
 
 
@@ -206,7 +220,7 @@ def axes_chart(axes: Axes, flat: float, *, planner: str, blind: float | None = N
                              ("not shown to\nuse cameras", "quality-insensitive", "", "camera-reliant"))
     ax.add_patch(Rectangle((flat, lo - 1), 2, flat - lo + 1, color="#fde68a", alpha=0.5, linewidth=0))
     ax.add_patch(Rectangle((lo - 1, lo - 1), flat - lo + 1, 3, color="#fecaca", alpha=0.45, linewidth=0))
-    ax.plot([lo, 1.1], [lo, 1.1], color=MUTED, linewidth=0.8, linestyle=":")
+    ax.plot([lo, 10.0], [lo, 10.0], color=MUTED, linewidth=0.8, linestyle=":")
     ax.scatter([floor[0]], [floor[1]], marker="s", s=60, color="#6b7280", zorder=3, label="ego-only floor")
     if blind is not None and math.isfinite(blind):
         ax.scatter([blind], [blind], marker="X", s=70, color="#111827", zorder=3, label="blind (all cameras off)")

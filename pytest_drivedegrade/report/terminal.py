@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from ..scoring.records import AXES, Axes, RunAnalysis, format_value
+from ..constants import WORSE_FACTOR, WORSE_MARGIN
+from ..scoring.records import AXES, Axes, FamilyThresholds, RunAnalysis, format_value
 from ..scoring.retention import THRESHOLD_LEVELS
 
 
@@ -59,10 +60,19 @@ def retention_table(analysis: RunAnalysis) -> list[str]:
     for family, row in by_family.items():
         t = analysis.thresholds.get(family)
         cells = "".join(f"{format_value(row.get(s)):>7s}" for s in severities)
-        values = [None if t is None else t.levels[k].value for k in THRESHOLD_LEVELS]
-        marks = "".join(f"{('-' if v is None else format(v, '.2f')):>7s}" for v in values)
+        # a family without thresholds (the ego cells, a ladder cut short) reads n/a; a threshold never crossed
+        # on the ladder reads never, as in the thresholds table: one mark, one meaning
+        marks = "".join(f"{_threshold_mark(t, k):>7s}" for k in THRESHOLD_LEVELS)
         lines.append(f"{family:15s}{cells}{marks}")
     return lines
+
+
+def _threshold_mark(thresholds: FamilyThresholds | None, level: str) -> str:
+    """A family's s* at `level`: its severity, `never` where the ladder never crosses it, `n/a` without one."""
+    if thresholds is None:
+        return "n/a"
+    value = thresholds.levels[level].value
+    return "never" if value is None else format(value, ".2f")
 
 
 def _axes_line(axes: Axes) -> str:
@@ -86,10 +96,6 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
     return lines
 
 
-#: A planner whose clean L2 is above this many times the ego-only floor's, and above it by `WORSE_MARGIN` m, is
-#: warned about: a floor that reads no camera plans far better (a miswired adapter is one cause among others).
-WORSE_FACTOR = 2.0
-WORSE_MARGIN = 0.1
 
 
 def floor_warning(analysis: RunAnalysis) -> str | None:

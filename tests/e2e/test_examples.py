@@ -102,13 +102,18 @@ def test_example_certified_serially_and_under_xdist(pytester, two_scene_world, s
         # reads the front three only: blackout-s3 (the rear three out) is the clean plan, bit for bit
         assert float(rows["blackout-s3"]["retention"]) == 1.0
         return
-    # -n 0: one process streams every cell: per cell, reset once per scene before its first frame
+    # -n 0: one process streams every cell: per cell, reset once per scene before its first frame, after the
+    # pre-flight's check of the first frame (twice, each after a reset) on a planner of its own
+    preflight = [f"reset {scenes[0][0]}", f"predict {scenes[0][0]} {scenes[0][1][0]} 0"] * 2
     serial = per_process(logs[0])
     assert len(serial) == 1
     (lines,) = serial.values()
-    assert lines == one_cell(scenes) * len(CELLS)
-    # -n 2: each worker streams whole cells the same way (a worker may also compute the clean reference)
+    assert lines == preflight + one_cell(scenes) * len(CELLS)
+    # -n 2: each worker streams whole cells the same way (a worker may also compute the clean reference); the
+    # controller made only the pre-flight's calls
     parallel = per_process(logs[2])
+    assert sorted(parallel.values()).count(preflight) == 1
+    parallel = {pid: lines for pid, lines in parallel.items() if lines != preflight}
     cell = one_cell(scenes)
     total = 0
     for lines in parallel.values():

@@ -23,12 +23,18 @@ def failed_cells(result: pytest.RunResult) -> set[str]:
 
 
 def test_conformance_faults_fail_only_their_cells(dd, scored_tokens):
-    """One planner, five faults in five cells (one frame each); the other cells pass and the outputs are written."""
+    """One planner, five faults in five cells (one frame each); the other cells pass and the outputs are written.
+
+    The timeout separates a hang (the planner sleeps until interrupted) from a normal call by a measured margin:
+    a normal call took at most 59 ms (median 36 ms) at a load of 12.8 on 2 cores (issue 41's measurement), so
+    1 s holds at a load of 15 with room to spare. It failed before because the planner read the whole data set in
+    its first predict() call (282 ms at that load, on top of the call), against a 0.5 s timeout; it now reads it
+    when it is built."""
     frame = scored_tokens[1]
     faults = {"gaussian_blur-s1": "raise", "gaussian_blur-s5": "nan", "jpeg-s1": "shape", "jpeg-s5": "write",
               "blackout-s1": "hang"}
     dd.write_planner(faults={cell: (fault, frame) for cell, fault in faults.items()})
-    result = dd.run("--drivedegrade-timeout", "0.5")
+    result = dd.run("--drivedegrade-timeout", "1")
     result.assert_outcomes(passed=4, failed=5)
     assert failed_cells(result) == set(faults)
     no_traceback(result)
@@ -39,7 +45,7 @@ def test_conformance_faults_fail_only_their_cells(dd, scored_tokens):
         head.format("gaussian_blur-s5"), f"{where} is not finite (first at step 3, coordinate 1)*Got ndarray*nan*",
         head.format("jpeg-s1"), f"{where} has shape (5, 2), not (6, 2)*",
         head.format("jpeg-s5"), f"{where}: predict() wrote to its input image*read-only*",
-        head.format("blackout-s1"), f"{where}: predict() took longer than 0.5 s*--drivedegrade-timeout*",
+        head.format("blackout-s1"), f"{where}: predict() took longer than 1 s*--drivedegrade-timeout*",
     ], consecutive=False)
     rows = by_cell(read_csv(dd.folder() / "cells.csv"))
     assert list(rows) == list(SMALL_CELLS)

@@ -29,7 +29,9 @@ T = 0.5 * np.arange(1, 7)
 
 class Temporal:
     """Keeps an exponential memory of the front camera's brightness (as a BEV planner keeps prev_bev) and
-    drives straight at its speed, drifting sideways by the memory. `leak` adds CAM_BACK to the memory."""
+    drives straight at its speed, drifting sideways by the memory. `leak` adds CAM_BACK to the memory from a
+    scene's second frame on: the state carries it, which the pre-flight (one frame after a reset) cannot see and
+    the null control's replays must find."""
 
     cameras = ("CAM_FRONT",)
     name = "temporal"
@@ -43,7 +45,7 @@ class Temporal:
 
     def predict(self, images, ego, cmd, context):
         seen = float(images["CAM_FRONT"][::8, ::8].mean()) / 255.0
-        if self.leak:
+        if self.leak and self.memory is not None:
             seen += float(images["CAM_BACK"][::8, ::8].mean()) / 255.0
         self.memory = seen if self.memory is None else 0.7 * self.memory + 0.3 * seen
         plan = np.zeros((6, 2))

@@ -155,7 +155,8 @@ def test_the_import_runs_the_closed_loop_analysis_with_a_wandering_null(tmp_path
     assert ("closed null control: the simulator is not deterministic; blackout S3 against clean wanders by 5.000 DS "
             "(null bounds [85.0, 90.0])") in printed
     assert "closed-loop verdict: quality-insensitive; availability-vs-quality separation True, under every " \
-           "assignment of the unscored runs True; agrees with the open loop: None" in printed
+           "assignment of the unscored runs True; agrees with the open loop: not compared: no open-loop verdict " \
+           "(a closed-only run)" in printed
     section = json.loads((out / SUMMARY_NAME).read_text())["closed_loop"]
     assert check_section(section, None) == []  # the figures follow from the run rows, as verify checks them
     assert section["axes"]["quality"] == pytest.approx(1.0) and section["axes"]["removal"] == pytest.approx(0.2)

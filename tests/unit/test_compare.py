@@ -69,3 +69,28 @@ def test_an_edited_certificate_is_refused(tmp_path, capsys):
     a.write_text(json.dumps(data))
     assert main(["compare", str(a), "--out", str(tmp_path / "z")]) == 2
     assert "digest mismatch" in capsys.readouterr().err
+
+
+def test_the_verdicts_come_first_in_one_screen_wide_table_and_a_planner_far_worse_than_its_floor_is_flagged(
+        tmp_path):
+    """compare.html was one 60-column table with the verdict columns off-screen and no floor warning (issue 41)."""
+    import pandas as pd
+
+    from pytest_drivedegrade.certificate.compare import SUMMARY, floor_warnings
+
+    a = certify(tmp_path, "a", lambda f, s: 0.1 * s)
+    b = certify(tmp_path, "b", lambda f, s: 0.0, offset=1.0)
+    _, html_path, df = write_compare([a, b], tmp_path / "cmp")
+    page = html_path.read_text()
+    first = page.index("<h2>Verdicts</h2>")
+    summary = page[first:page.index("<h2>Every column</h2>")]
+    assert [f"<th>{c}</th>" in summary for c in SUMMARY] == [True] * len(SUMMARY)
+    assert "jpeg_s10" not in summary and "jpeg_s10" in page[page.index("<h2>Every column</h2>"):]
+    rows = pd.DataFrame([{"planner": "wired", "clean_l2": 0.30, "floor_l2": 0.34},
+                         {"planner": "miswired", "clean_l2": 3.30, "floor_l2": 0.34},
+                         {"planner": "close", "clean_l2": 0.15, "floor_l2": 0.06},  # 2.5x, but only 0.09 m worse
+                         {"planner": "unknown", "clean_l2": 3.30, "floor_l2": None}])
+    assert floor_warnings(rows) == ["miswired: clean L2 3.300 m against the ego-only floor's 0.340 m: a planner "
+                                    "that reads no camera plans far better (a miswired adapter, other data, too "
+                                    "little training or a perception-free design); read its retention with that in "
+                                    "mind"]

@@ -26,7 +26,7 @@ GENERATOR_VERSION = "3.1.1"  # 3.1: the lane-level map layers; 3.1.1: their poly
 WORLD_VERSION = "v1.0-trainval"
 MANIFEST = WORLD_MANIFEST  # the file the reader looks for
 DEFAULT_SCENES = 100  # 94 train scenes (3196 scorable frames) and 6 val scenes (204 scorable frames)
-MAX_VAL_SCENES = 6  # val is what a certification scores (83 cells x its frames): enough, and bounded
+MAX_VAL_SCENES = 6  # val is what a certification scores (89 cells x its frames): enough, and bounded
 SCORABLE_PER_SCENE = KEYFRAMES - 6
 #: Scene numbers nuscenes-devkit's `NuScenesCanBus.get_messages` refuses (its `can_blacklist`).
 CAN_BLACKLIST = frozenset((*range(161, 169), *range(170, 177), *range(309, 315)))
@@ -155,6 +155,9 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
     progress on `progress` (None: one line on stderr). A build worker re-running a script's unguarded
     ``pytest.main`` stops before the lock, saying why (`tasks.stop_starting_worker`), rather than wait there for
     ever; a world already built is returned to any process, as before."""
+    if progress is not None and not isinstance(progress, Sink):  # e.g. progress=print: fail before any work
+        raise TypeError(f"ensure_default_world(progress=...) takes a pytest_drivedegrade.progress.Sink (Sink() for "
+                        f"stderr, Sink.silent() for nothing), got {progress!r}")
     cache_root = Path(cache_root)
     cache_root.mkdir(parents=True, exist_ok=True)
     target = default_world_dir(cache_root)
@@ -175,8 +178,12 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
             tmp = cache_root / f".world-tmp-{os.getpid()}"
             shutil.rmtree(tmp, ignore_errors=True)
             shutil.rmtree(target, ignore_errors=True)  # an incomplete world from an older crash
-            write_world(tmp, train_images=train_images, progress=say)
-            os.replace(tmp, target)
+            try:
+                write_world(tmp, train_images=train_images, progress=say)
+                os.replace(tmp, target)
+            except BaseException:  # an interrupted or failed build leaves no half-written folder behind
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
         if train_images and not ready():
             add_train_images(target, say)
     return target
