@@ -120,7 +120,7 @@ def _fail(frame_token: str, problem: str, value: Any, poses: int = HORIZON_STEPS
 POSE_COUNTS: tuple[int, ...] = (HORIZON_STEPS, 8)
 
 
-def planner_poses(planner: Any) -> int:
+def planner_poses(planner: object) -> int:
     """The waypoints a planner declares it returns (its optional ``poses``): 6 by default, or 8 (NAVSIM's 4 s at
     0.5 s). Anything else raises ``InvalidInput`` saying what to write."""
     declared = getattr(planner, "poses", None)
@@ -159,7 +159,7 @@ def to_numpy(value: Any) -> Any:
     return tensor.numpy()
 
 
-def horizon_problem(planner: Any, data_poses: int, where: str = "the data") -> str:
+def horizon_problem(planner: object, data_poses: int, where: str = "the data") -> str:
     """Why `planner` cannot be scored over its declared horizon on data holding `data_poses` future keyframes per
     scored frame ("" when it can): a malformed ``poses`` or `check_horizon`'s usage error. Pure, for the start-up
     check and the pre-flight."""
