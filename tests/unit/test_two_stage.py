@@ -75,3 +75,75 @@ def test_stage_two_images_differ_from_the_logged_ones_and_equal_a_fresh_render(w
     camera._BACKDROPS.clear()  # nothing kept from the first render: built again from the scene
     fresh = camera.images_at(route, FRONT, moved, keyframe)
     assert all(np.array_equal(fresh[c], stage_two[c]) for c in FRONT)
+
+
+# -- stage two of a cell ---------------------------------------------------------------------------------------------
+
+def test_start_poses_are_offsets_in_the_ego_frame():
+    from pytest_drivedegrade.twostage import STAGE_TWO_STARTS, start_poses
+
+    (x, y, yaw), = start_poses((1.0, 2.0, math.pi / 2), ((1.0, 0.5, 0.1),))
+    assert (x, y, yaw) == pytest.approx((0.5, 3.0, math.pi / 2 + 0.1))
+    assert start_poses((1.0, 2.0, 0.3))[0] == (1.0, 2.0, 0.3) and len(STAGE_TWO_STARTS) == 7
+
+
+def test_a_moved_frame_sees_the_logged_future_from_its_pose(world):
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.twostage import stage_two_frame, start_poses
+
+    frame = next(f for f in NuScenesReader(world).scorable_frames() if f.index == 6)
+    assert frame.pose is not None
+    same = stage_two_frame(frame, frame.pose, 0)
+    assert np.allclose(same.gt_future, frame.gt_future, atol=1e-9) and same.pose == frame.pose
+    assert np.allclose(same.ego.velocity, frame.ego.velocity) and same.past_motion is None
+    left = stage_two_frame(frame, start_poses(frame.pose, ((0.0, 0.5, 0.0),))[0], 1)
+    assert np.allclose(left.gt_future, frame.gt_future - [0.0, 0.5], atol=1e-9)  # half a metre left: all 0.5 right
+    for a, b in zip(left.agents, frame.agents):
+        assert np.allclose(a.center, np.asarray(b.center) - [0.0, 0.5], atol=1e-9)
+    turned = stage_two_frame(frame, (frame.pose[0], frame.pose[1], frame.pose[2] + 0.2), 2)
+    assert np.allclose(np.hypot(*turned.gt_future.T), np.hypot(*frame.gt_future.T))  # a rotation about the ego
+    assert turned.token == f"{frame.token}~stage2~2"
+
+
+class _Spy:
+    """Reads the front cameras; plans constant velocity; keeps what it was given."""
+
+    name = "spy"
+    cameras = FRONT
+
+    def __init__(self) -> None:
+        self.seen: list[dict[str, np.ndarray]] = []
+
+    def predict(self, images, ego, cmd):
+        self.seen.append({c: np.array(images[c]) for c in FRONT})
+        t = 0.5 * np.arange(1, 7)
+        return np.stack([ego.velocity[0] * t, ego.velocity[1] * t], axis=1)
+
+
+@pytest.mark.parametrize("family, severity", [("clean", 0), ("jpeg", 3)])
+def test_stage_two_of_a_cell(world, family, severity):
+    """Stage two renders at the start poses (the logged one gives the logged keyframe's images, under the cell's
+    operator), plans there and scores; the frame's two-stage EPDMS is stage one's times stage two's."""
+    from pytest_drivedegrade.corruptions.api import corrupt_sample
+    from pytest_drivedegrade.data.nuscenes import NuScenesReader
+    from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
+    from pytest_drivedegrade.twostage import STAGE_TWO_STARTS, stage_two_cell
+
+    context = RunContext.open(RunSettings(data=world, frames=3))
+    spy = _Spy()
+    record = context.run_cell(spy, family, severity)
+    spy.seen.clear()
+    result = stage_two_cell(context, spy, record)
+    later = {f.index: f for f in NuScenesReader(world).scorable_frames()}
+    have = [i for i, f in enumerate(context.frames) if f.index + 6 in later]
+    assert have and result.frames == len(have) and len(spy.seen) == len(have) * len(STAGE_TWO_STARTS)
+    for i in have:
+        assert 0.0 <= result.stage_two[i] <= 1.0
+        assert result.two_stage[i] == pytest.approx(record.epdms[i] * result.stage_two[i])
+    first = later[context.frames[have[0]].index + 6]
+    logged = {c: NuScenesReader.load_image(first.cameras[c]) for c in FRONT}
+    expected = corrupt_sample(logged, family, severity, seed=context.seed, frame=f"{first.token}~stage2~0") \
+        if family != "clean" else logged
+    assert all(np.array_equal(spy.seen[0][c], expected[c]) for c in FRONT)  # at the logged pose: the data's
+    assert all(not np.array_equal(spy.seen[1][c], expected[c]) for c in FRONT)  # half a metre left: not
