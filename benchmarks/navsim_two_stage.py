@@ -1,4 +1,4 @@
-"""NAVSIM's two-stage pseudo-simulation on the embedded world (issue 39, `pytest_drivedegrade.twostage`): a planner's
+"""NAVSIM's two-stage pseudo-simulation on the embedded world (issue 39, `closedloop.twostage`): a planner's
 cells scored in one stage (the cell's EPDMS) and in two (stage one times the weighted stage-two EPDMS at the start
 poses around where its plans end), with the EPDMS retention of each corrupted cell against clean both ways.
 
@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell
 from pytest_drivedegrade.data.world import write_world
 from pytest_drivedegrade.run import RunContext
 from pytest_drivedegrade.settings import RunSettings
-from pytest_drivedegrade.twostage import STAGE_TWO_STARTS, stage_two_cell
 
 PLANNERS = Path(__file__).resolve().parents[1] / "planners"
 

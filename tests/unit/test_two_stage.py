@@ -80,7 +80,7 @@ def test_stage_two_images_differ_from_the_logged_ones_and_equal_a_fresh_render(w
 # -- stage two of a cell ---------------------------------------------------------------------------------------------
 
 def test_start_poses_are_offsets_in_the_ego_frame():
-    from pytest_drivedegrade.twostage import STAGE_TWO_STARTS, start_poses
+    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, start_poses
 
     (x, y, yaw), = start_poses((1.0, 2.0, math.pi / 2), ((1.0, 0.5, 0.1),))
     assert (x, y, yaw) == pytest.approx((0.5, 3.0, math.pi / 2 + 0.1))
@@ -88,8 +88,8 @@ def test_start_poses_are_offsets_in_the_ego_frame():
 
 
 def test_a_moved_frame_sees_the_logged_future_from_its_pose(world):
+    from pytest_drivedegrade.closedloop.twostage import stage_two_frame, start_poses
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
-    from pytest_drivedegrade.twostage import stage_two_frame, start_poses
 
     frame = next(f for f in NuScenesReader(world).scorable_frames() if f.index == 6)
     assert frame.pose is not None
@@ -124,11 +124,11 @@ class _Spy:
 def test_stage_two_of_a_cell(world, family, severity):
     """Stage two renders at the start poses (the logged one gives the logged keyframe's images, under the cell's
     operator), plans there and scores; the frame's two-stage EPDMS is stage one's times stage two's."""
+    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell
     from pytest_drivedegrade.corruptions.api import corrupt_sample
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.run import RunContext
     from pytest_drivedegrade.settings import RunSettings
-    from pytest_drivedegrade.twostage import STAGE_TWO_STARTS, stage_two_cell
 
     context = RunContext.open(RunSettings(data=world, frames=3))
     spy = _Spy()

@@ -3,7 +3,7 @@
 Stage one is the cell itself: each frame's plan, scored as the cell scored it (its EPDMS). Stage two starts where
 the stage-one plan ends in time (the keyframe `poses` x 0.5 s later: 3 s, or 4 s for an 8-pose planner), from
 start poses around the logged ego there (`STAGE_TWO_STARTS`). At each start the cameras are rendered by the world
-at that pose (`closedloop.camera.images_at`: NAVSIM renders its synthetic scenes in advance by Gaussian
+at that pose (`camera.images_at`: NAVSIM renders its synthetic scenes in advance by Gaussian
 splatting, the world renders them exactly) and corrupted with the cell's operator; the planner plans from the
 logged state there seen from the new pose, and the plan is scored against that keyframe's logged future, agents
 and map, all seen from the start pose. The stage-two scenes are weighted by how close their start lies to where
@@ -24,21 +24,22 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .cells import CellRecord
-from .constants import CAMERAS
-from .corruptions.api import corrupt_sample
-from .data import geometry as geo
-from .data.context import FrameContext
-from .data.frame import AgentBoxes, EgoStatus, Frame
-from .metrics.pdms import PreparedFrame, tracked_states
-from .metrics.pdms.constants import EGO_BOXES
-from .metrics.pdms.extended import epdms_score
-from .metrics.pdms.two_stage import group_score, stage_two_weights, weighted_average
-from .planning import Planner, call_style, planner_cameras, validate_output
+from ..cells import CellRecord
+from ..constants import CAMERAS
+from ..corruptions.api import corrupt_sample
+from ..data import geometry as geo
+from ..data.context import FrameContext
+from ..data.frame import AgentBoxes, EgoStatus, Frame
+from ..metrics.pdms import PreparedFrame, tracked_states
+from ..metrics.pdms.constants import EGO_BOXES
+from ..metrics.pdms.extended import epdms_score
+from ..metrics.pdms.two_stage import group_score, stage_two_weights, weighted_average
+from ..planning import Planner, call_style, planner_cameras, validate_output
+from .camera import images_at
+from .routes import Route, load_routes
 
 if TYPE_CHECKING:
-    from .closedloop.routes import Route
-    from .run import RunContext
+    from ..run import RunContext
 
 #: The stage-two start poses, (forward m, left m, yaw rad) from the logged ego pose in its own frame: the logged
 #: pose, half a metre to each side, a metre ahead and behind, 5 degrees to each side. NAVSIM's come from its
@@ -116,8 +117,6 @@ def _scene_images(images: dict[str, np.ndarray], shape: tuple[int, ...]) -> dict
 def stage_two_scores(context: RunContext, planner: Planner, later: Frame, poses: int, family: str, severity: int, *,
                      seed: int, starts: list[tuple[float, float, float]], route: Route) -> list[float]:
     """The planner's stage-two EPDMS from each start pose at keyframe `later` under the cell's operator."""
-    from .closedloop.camera import images_at
-
     style, cameras = call_style(planner), planner_cameras(planner)
     out = []
     for n, pose in enumerate(starts):
@@ -144,8 +143,6 @@ def stage_two_scores(context: RunContext, planner: Planner, later: Frame, poses:
 def stage_two_cell(context: RunContext, planner: Planner, record: CellRecord, *, seed: int | None = None,
                    offsets: tuple[tuple[float, float, float], ...] = STAGE_TWO_STARTS) -> StageTwo:
     """Stage two of every frame of the cell `record` (run by `context` on `planner`): see the module."""
-    from .closedloop.routes import load_routes
-
     poses = int(record.plans.shape[1])
     routes = {r.name: r for r in load_routes(context.reader.root)}
     later_of = {(f.scene_name, f.index): f for f in context.reader.scorable_frames()}
