@@ -147,3 +147,26 @@ def test_stage_two_of_a_cell(world, family, severity):
         if family != "clean" else logged
     assert all(np.array_equal(spy.seen[0][c], expected[c]) for c in FRONT)  # at the logged pose: the data's
     assert all(not np.array_equal(spy.seen[1][c], expected[c]) for c in FRONT)  # half a metre left: not
+
+
+def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(world):
+    """From the logged pose, stage two is the cell's own frame at that keyframe: the same plan (constant velocity
+    from the same state), the same terms; its EPDMS is the cell's without the terms stage two does not score (ec:
+    no previous plan; hc: no past)."""
+    from pytest_drivedegrade.closedloop.routes import load_routes
+    from pytest_drivedegrade.closedloop.twostage import stage_two_scores
+    from pytest_drivedegrade.metrics.pdms.extended import ExtendedTerms, epdms_score
+    from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
+
+    context = RunContext.open(RunSettings(data=world))
+    spy = _Spy()
+    record = context.run_cell(spy, "clean", 0)
+    route = load_routes(world)[0]
+    for j in (6, 12, 20):
+        later = context.frames[j]
+        assert later.index == j and later.pose is not None
+        (score,) = stage_two_scores(context, spy, later, 6, "clean", 0, seed=0, starts=[later.pose], route=route)
+        terms = ExtendedTerms(*(float(record.array(k)[j]) for k in ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk")),
+                              1.0)
+        assert score == pytest.approx(epdms_score(terms, math.nan), abs=1e-9), j
