@@ -68,6 +68,9 @@ class FrameArray:
         return np.where(arr < 0, np.nan, arr) if self.flags else arr
 
 
+#: The plans of a planner declaring NAVSIM's eight poses (`planning.planner_poses`) are (F, 8, 2): the one
+#: per-frame array whose shape follows the planner; every other array (L2, collisions) reads the first six.
+PLANNED_POSES = 8
 #: Every per-frame array of a `CellRecord`, in the order its builtins list them: a new per-frame figure is one
 #: entry here (and a `CellRecord` field), and construction, builtins, concat and the builder follow.
 FRAME_ARRAYS: tuple[FrameArray, ...] = (
@@ -246,6 +249,8 @@ class CellRecord:
                 got = a.empty(n)
             arr = np.asarray(got, dtype=a.dtype)
             shape = (n, *a.shape)
+            if a.name == "plans" and arr.ndim == 3 and arr.shape[1:] == (PLANNED_POSES, 2):  # a 4 s planner's
+                shape = (n, PLANNED_POSES, 2)
             arr = arr.reshape(shape) if arr.size == 0 else arr
             if arr.shape != shape:
                 raise InvalidInput(f"cell {self.cell!r}: {a.name} has shape {arr.shape}, expected {shape}")
@@ -341,7 +346,8 @@ class CellRecord:
 
     def endpoint_shift(self, clean: CellRecord) -> np.ndarray:
         """Per frame, how far (m) the 3 s waypoint moved from clean's plan (NaN where either failed)."""
-        return np.linalg.norm(self.plans[:, -1] - clean.plans[:, -1], axis=-1)
+        last = HORIZON_STEPS - 1
+        return np.linalg.norm(self.plans[:, last] - clean.plans[:, last], axis=-1)
 
     def l2_avg_per_frame(self, convention: str = "stp3") -> np.ndarray:
         """Per-frame mean of the 1/2/3 s L2 under `convention`: the M of retention, one value per frame."""
@@ -361,9 +367,12 @@ class RecordBuilder:
     """A cell's record assembled frame by frame, outside the loop that calls the planner: every row NaN until the
     frame is scored (`put`), copied from another record (`copy_row`: a reused clean plan) or failed (`fail`)."""
 
-    def __init__(self, cell: str, family: str, severity: int, frames: Sequence[str]) -> None:
+    def __init__(self, cell: str, family: str, severity: int, frames: Sequence[str],
+                 poses: int = HORIZON_STEPS) -> None:
         self.cell, self.family, self.severity, self.frames = cell, family, severity, list(frames)
         self.arrays = {a.name: a.empty(len(self.frames)) for a in FRAME_ARRAYS}
+        if poses != HORIZON_STEPS:  # a planner of NAVSIM's 4 s: its whole plan is kept (and PDMS-scored)
+            self.arrays["plans"] = np.full((len(self.frames), poses, 2), np.nan)
         self.errors: list[str] = []
         self.data_errors: list[str] = []
         self.reused = 0

@@ -392,6 +392,9 @@ def _add_input_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--full-size", action="store_true", help="render 1600x900 instead of 800x450")
     p.add_argument("--train-images", action="store_true", help="also render the train split's images")
+    p.add_argument("--future", type=int, choices=(3, 4), default=3,
+                   help="seconds of future every scored frame holds: 3 (nuScenes, the default) or 4 (NAVSIM's eight "
+                        "poses: for a planner declaring poses = 8)")
     p.set_defaults(func=_world)
 
 

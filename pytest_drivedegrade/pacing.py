@@ -32,7 +32,7 @@ PDMS_SPAN = 32
 class PdmsSource(Protocol):
     """Where a cell's PDMS preparation comes from (`run.RunContext.pdms_frame`, once per frame and process)."""
 
-    def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
+    def pdms_frame(self, frame: Frame, poses: int = ...) -> PreparedFrame: ...
 
 
 class CellPdms:
@@ -54,7 +54,7 @@ class CellPdms:
         which held the planner's next frame back) and score the span it ends, if it ends one."""
         if not self.enabled or self.span is None:
             return False
-        self.source.pdms_frame(self.frames[i])
+        self.source.pdms_frame(self.frames[i], self.rows.arrays["plans"].shape[1])
         if i + 1 - self.done < self.span:
             return False
         self._score(i + 1)
@@ -78,7 +78,7 @@ def score_cell_pdms(source: PdmsSource, rows: RecordBuilder, frames: list[Frame]
     (`previous_frame`, its states in `states`): deterministic for any batches, spans, workers or reuse."""
     plans = rows.arrays["plans"]
     have = [i for i in span if np.isfinite(plans[i]).all()]
-    prepared = {i: source.pdms_frame(frames[i]) for i in have}
+    prepared = {i: source.pdms_frame(frames[i], plans.shape[1]) for i in have}
     states.update(zip(have, tracked_states(plans[have], [prepared[i].initial for i in have])))
     for i in have:
         result, terms = prepared[i].judged(plans[i], states[i])

@@ -1,7 +1,10 @@
 """The planner contract (SPEC section 2): what a planner is, what it must return, and how it is identified.
 
 A planner is any object with ``predict(images, ego, cmd)`` returning a ``(6, 2)`` float array of waypoints at
-t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Three attributes are optional:
+t = 0.5 .. 3.0 s in the current ego frame (x forward, y left, metres). Four attributes are optional:
+
+- ``poses``: 6 (the default: nuScenes' 3 s) or 8 (NAVSIM's 4 s at 0.5 s); a planner declaring 8 returns ``(8, 2)``
+  and is scored with PDMS/EPDMS over 4 s on data holding 4 s of future (`check_horizon`), L2 over the first six.
 
 - ``cameras``: the camera names it reads (default all six); a claim the null control checks.
 - ``name``: the report folder name (default the planner file's stem).
@@ -30,7 +33,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from .constants import CAMERAS, HORIZON_STEPS, MAX_WAYPOINT_M
+from .constants import CAMERAS, HORIZON_STEPS, MAX_WAYPOINT_M, STEP_SECONDS
 from .data.frame import Command, EgoStatus
 from .errors import InvalidInput, PlannerOutputError
 
@@ -40,10 +43,13 @@ __all__ = [
     "EgoStatus",
     "Planner",
     "call_style",
+    "check_horizon",
+    "horizon_problem",
     "planner_cameras",
     "planner_device",
     "planner_fingerprint",
     "planner_name",
+    "planner_poses",
     "predict_checked",
     "to_numpy",
     "validate_output",
@@ -103,11 +109,40 @@ def _show(value: Any) -> str:
     return text if len(text) <= _VALUE_CHARS else text[:_VALUE_CHARS] + " ..."
 
 
-def _fail(frame_token: str, problem: str, value: Any) -> PlannerOutputError:
+def _fail(frame_token: str, problem: str, value: Any, poses: int = HORIZON_STEPS) -> PlannerOutputError:
     return PlannerOutputError(
         f"planner output for frame {frame_token!r} {problem}; the contract is a finite "
-        f"({HORIZON_STEPS}, 2) float array of waypoints. Got {type(value).__name__}: {_show(value)}"
+        f"({poses}, 2) float array of waypoints. Got {type(value).__name__}: {_show(value)}"
     )
+
+
+#: The horizons a planner may declare (``poses``): nuScenes' six waypoints (3 s) and NAVSIM's eight (4 s).
+POSE_COUNTS: tuple[int, ...] = (HORIZON_STEPS, 8)
+
+
+def planner_poses(planner: object) -> int:
+    """The waypoints a planner declares it returns (its optional ``poses``): 6 by default, or 8 (NAVSIM's 4 s at
+    0.5 s). Anything else raises ``InvalidInput`` saying what to write."""
+    declared = getattr(planner, "poses", None)
+    if declared is None:
+        return HORIZON_STEPS
+    if isinstance(declared, (bool, np.bool_)) or not isinstance(declared, (int, np.integer)) \
+            or int(declared) not in POSE_COUNTS:
+        raise InvalidInput(f"planner.poses must be {' or '.join(map(str, POSE_COUNTS))} (waypoints at 0.5 s: "
+                           f"nuScenes' 3 s or NAVSIM's 4 s), got {declared!r}")
+    return int(declared)
+
+
+def check_horizon(poses: int, data_poses: int, where: str = "the data") -> None:
+    """A planner of `poses` waypoints on data whose scored frames hold `data_poses` future keyframes: an
+    ``InvalidInput`` before any cell when the data cannot score its whole plan (an 8-pose planner on data with
+    3 s of future), saying how to get data that can. Pure: the plugin's start-up and its pre-flight call it."""
+    if poses > data_poses:
+        raise InvalidInput(
+            f"the planner declares poses = {poses} ({poses * STEP_SECONDS:g} s) but {where} holds "
+            f"{data_poses * STEP_SECONDS:g} s of future per scored frame ({data_poses} keyframes), so its plan "
+            f"cannot be scored over its horizon; generate a world with 4 s of future (drivedegrade world --out "
+            f"DIR --future 4, then --drivedegrade-data DIR) or declare poses = {HORIZON_STEPS}")
 
 
 def to_numpy(value: Any) -> Any:
@@ -124,8 +159,19 @@ def to_numpy(value: Any) -> Any:
     return tensor.numpy()
 
 
-def validate_output(traj: Any, frame_token: str) -> np.ndarray:
-    """Check one planner output against the contract and return it as a fresh float64 (6, 2) array.
+def horizon_problem(planner: object, data_poses: int, where: str = "the data") -> str:
+    """Why `planner` cannot be scored over its declared horizon on data holding `data_poses` future keyframes per
+    scored frame ("" when it can): a malformed ``poses`` or `check_horizon`'s usage error. Pure, for the start-up
+    check and the pre-flight."""
+    try:
+        check_horizon(planner_poses(planner), data_poses, where)
+    except InvalidInput as exc:
+        return str(exc)
+    return ""
+
+
+def validate_output(traj: Any, frame_token: str, poses: int = HORIZON_STEPS) -> np.ndarray:
+    """Check one planner output against the contract and return it as a fresh float64 (`poses`, 2) array.
 
     Accepts any float array-like (numpy, lists of floats, a torch tensor of any float dtype, bfloat16 and float16
     included); rejects a wrong shape, a non-float dtype (int, bool, complex, object), NaN / inf and a waypoint
@@ -133,19 +179,20 @@ def validate_output(traj: Any, frame_token: str) -> np.ndarray:
     token and shows the value.
     """
     if traj is None:
-        raise _fail(frame_token, "is None (did predict() forget to return?)", traj)
+        raise _fail(frame_token, "is None (did predict() forget to return?)", traj, poses)
     traj = to_numpy(traj)
     try:
         arr = np.asarray(traj)
     except Exception as exc:  # noqa: BLE001 - ragged lists and exotic objects
-        raise _fail(frame_token, f"is not an array ({exc})", traj) from None
+        raise _fail(frame_token, f"is not an array ({exc})", traj, poses) from None
     if arr.dtype.kind != "f":
-        raise _fail(frame_token, f"has dtype {arr.dtype}, not a float dtype", traj)
-    if arr.shape != (HORIZON_STEPS, 2):
-        raise _fail(frame_token, f"has shape {arr.shape}, not ({HORIZON_STEPS}, 2)", traj)
+        raise _fail(frame_token, f"has dtype {arr.dtype}, not a float dtype", traj, poses)
+    if arr.shape != (poses, 2):
+        hint = f" (the planner declares poses = {poses})" if poses != HORIZON_STEPS else ""
+        raise _fail(frame_token, f"has shape {arr.shape}, not ({poses}, 2){hint}", traj, poses)
     if not np.isfinite(arr).all():
         bad = np.argwhere(~np.isfinite(arr))[0]
-        raise _fail(frame_token, f"is not finite (first at step {bad[0]}, coordinate {bad[1]})", traj)
+        raise _fail(frame_token, f"is not finite (first at step {bad[0]}, coordinate {bad[1]})", traj, poses)
     out = np.array(arr, dtype=np.float64, copy=True)
     with np.errstate(over="ignore"):  # 1e200 squared is inf: still beyond the bound
         far = np.hypot(out[:, 0], out[:, 1]) > MAX_WAYPOINT_M
@@ -153,7 +200,7 @@ def validate_output(traj: Any, frame_token: str) -> np.ndarray:
         step = int(np.argmax(far))
         raise _fail(frame_token, f"has a waypoint {np.hypot(*out[step]):.6g} m from the ego at step {step} "
                                  f"({out[step, 0]:.6g}, {out[step, 1]:.6g}), beyond the physical bound of "
-                                 f"{MAX_WAYPOINT_M:g} m", traj)
+                                 f"{MAX_WAYPOINT_M:g} m", traj, poses)
     return out
 
 
@@ -161,7 +208,7 @@ def predict_checked(
     planner: Any, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command, frame_token: str
 ) -> np.ndarray:
     """Call ``planner.predict`` and validate its output. Exceptions raised by the planner propagate unchanged."""
-    return validate_output(planner.predict(images, ego, cmd), frame_token)
+    return validate_output(planner.predict(images, ego, cmd), frame_token, planner_poses(planner))
 
 
 @dataclass(frozen=True)
@@ -171,11 +218,13 @@ class CallStyle:
 
     `deterministic` is the planner's optional ``deterministic`` attribute (default True: the same inputs give
     the same plan, which the null control checks). A deterministic planner without ``reset`` is not asked
-    again for a frame whose inputs equal the clean cell's: the clean plan is reused (``reuses``)."""
+    again for a frame whose inputs equal the clean cell's: the clean plan is reused (``reuses``). `poses`: the
+    waypoints each call returns (`planner_poses`)."""
 
     takes_context: bool
     resets: bool
     deterministic: bool = True
+    poses: int = HORIZON_STEPS
 
     @property
     def reuses(self) -> bool:
@@ -196,7 +245,8 @@ def call_style(planner: Any) -> CallStyle:
     if not isinstance(deterministic, (bool, np.bool_)):
         raise InvalidInput(f"planner.deterministic must be True or False, got {deterministic!r} "
                            f"({type(deterministic).__name__})")
-    return CallStyle("context" in params, callable(getattr(planner, "reset", None)), bool(deterministic))
+    return CallStyle("context" in params, callable(getattr(planner, "reset", None)), bool(deterministic),
+                     planner_poses(planner))
 
 
 def planner_cameras(planner: Any) -> tuple[str, ...]:
@@ -373,4 +423,7 @@ def planner_fingerprint(planner: Any, path: str | Path | None = None) -> str:
     if state is not None:
         digest.update(b"|state|" + state)
     digest.update(b"|cameras|" + ",".join(planner_cameras(planner)).encode())
+    poses = planner_poses(planner)
+    if poses != HORIZON_STEPS:  # only then: a six-pose planner keeps its fingerprint (and its stored cells)
+        digest.update(f"|poses|{poses}".encode())
     return digest.hexdigest()

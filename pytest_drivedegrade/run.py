@@ -18,7 +18,7 @@ import numpy as np
 
 from . import stream
 from .cells import RECORD_VERSION, CellRecord
-from .constants import ADAPTIVE_METHOD, CAMERAS
+from .constants import ADAPTIVE_METHOD, CAMERAS, HORIZON_STEPS
 from .corruptions.derived import register as register_stable
 from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.content import content_fingerprint
@@ -153,7 +153,8 @@ class RunContext:
     _primed: set[int] = field(default_factory=set)  #: the planners that planned clean in this process
     _contexts: dict[str, FrameContext] = field(default_factory=dict)
     _pdms: dict[str, PreparedFrame] = field(default_factory=dict)
-    _experts: dict[str, EgoStates] | None = None  # the run frames' experts tracked (`tracked_experts`)
+    #: the run frames' experts tracked (`tracked_experts`), by the horizon scored (6 or 8 poses)
+    _experts: dict[int, dict[str, EgoStates]] = field(default_factory=dict)
     _truth: dict[str, FrameTruth] = field(default_factory=dict)
 
     @classmethod
@@ -303,17 +304,19 @@ class RunContext:
             found = self._contexts[frame.token] = FrameContext.of(frame)
         return found
 
-    def pdms_frame(self, frame: Frame) -> PreparedFrame:
-        """The frame's PDMS preparation (expert states, agent tracks, the map around the ego), built once per
-        process and shared by every cell: a cell then pays only for its own plans."""
-        found = self._pdms.get(frame.token)
+    def pdms_frame(self, frame: Frame, poses: int = HORIZON_STEPS) -> PreparedFrame:
+        """The frame's PDMS preparation (expert states, agent tracks, the map around the ego) for plans of `poses`
+        waypoints (6, or NAVSIM's 8 over 4 s), built once per process and shared by every cell: a cell then pays
+        only for its own plans."""
+        key = frame.token if poses == HORIZON_STEPS else f"{frame.token}|{poses}"
+        found = self._pdms.get(key)
         if found is None:
-            if self._experts is None:  # every run frame's expert tracked at the first, in one batch
-                self._experts = tracked_experts(self.frames)
-            found = self._pdms[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
-                                                               lane_map=self.reader.lane_map(frame),
-                                                               expert_states=self._experts.get(frame.token),
-                                                               ego_size=EGO_BOXES[self.settings.ego_box])
+            if poses not in self._experts:  # every run frame's expert tracked at the first, in one batch
+                self._experts[poses] = tracked_experts(self.frames, poses)
+            found = self._pdms[key] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
+                                                       lane_map=self.reader.lane_map(frame),
+                                                       expert_states=self._experts[poses].get(frame.token),
+                                                       ego_size=EGO_BOXES[self.settings.ego_box], poses=poses)
         return found
 
     def frame_truth(self, frame: Frame) -> FrameTruth:

@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from .cells import REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
-from .constants import CAMERAS
+from .constants import CAMERAS, HORIZON_STEPS
 from .data.context import FrameContext
 from .data.frame import Command, EgoStatus, Frame
 from .errors import DataError, DriveDegradeError, PlannerOutputError
@@ -25,7 +25,7 @@ from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
 from .metrics.trajectory import FrameTruth, bit1_density, frame_metrics
 from .pacing import PDMS_SPAN, CellPdms, Scorer, opencv_share, prefetch_depth, process_key
-from .planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
+from .planning import CallStyle, Planner, call_style, planner_cameras, planner_poses, to_numpy, validate_output
 from .settings import RunSettings
 from .timelimit import PlannerTimeout, time_limit
 
@@ -52,7 +52,7 @@ class Source(Protocol):
 
     def context_of(self, frame: Frame) -> FrameContext: ...
 
-    def pdms_frame(self, frame: Frame) -> PreparedFrame: ...
+    def pdms_frame(self, frame: Frame, poses: int = ...) -> PreparedFrame: ...
 
     def frame_truth(self, frame: Frame) -> FrameTruth: ...
 
@@ -205,7 +205,7 @@ def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) ->
             yield s, _data_fault(s, exc) or describe_failure(exc, s.frame.token) + f" (in a batch of {len(batch)})"
         return
     for s, plan in zip(batch, raw):
-        yield s, _checked(s, plan)
+        yield s, _checked(s, plan, planner_poses(planner))
 
 
 def _inputs(source: Source, sample: CellSample, style: CallStyle) -> tuple[EgoStatus, FrameContext | None]:
@@ -245,10 +245,10 @@ def _predict(source: Source, planner: Planner, sample: CellSample, style: CallSt
     except Exception as exc:  # noqa: BLE001 - any planner failure is this frame's conformance failure
         return _data_fault(sample, exc) or (f"frame {frame.token!r}: {exc}" if isinstance(exc, DataError) else
                                             describe_failure(exc, frame.token))
-    return _checked(sample, raw)
+    return _checked(sample, raw, style.poses)
 
 
-def _checked(sample: CellSample, raw: object) -> np.ndarray | str:
+def _checked(sample: CellSample, raw: object, poses: int = HORIZON_STEPS) -> np.ndarray | str:
     """A returned plan, validated; or the frame's data fault (one the planner caught and planned around is still
     the data's), or the write into an input image, or what is wrong with the plan."""
     fault = _data_fault(sample)
@@ -258,7 +258,7 @@ def _checked(sample: CellSample, raw: object) -> np.ndarray | str:
     if written:
         return _written_message(sample.frame.token, written)
     try:
-        return validate_output(raw, sample.frame.token)
+        return validate_output(raw, sample.frame.token, poses)
     except PlannerOutputError as exc:
         return str(exc)
 
@@ -295,7 +295,8 @@ def run_cell(source: Source, planner: Planner, family: str, severity: int, frame
     PDMS of every PDMS_SPAN frames' plans there too; without, the PDMS of the cell's plans at its end, their
     tracking in one batch (`CellPdms`: the same figures either way). `pdms` False leaves the PDMS and EPDMS
     columns NaN (the ego-only floor, whose L2 alone the report reads)."""
-    rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames])
+    rows = RecordBuilder(cell_id(family, severity), family, severity, [f.token for f in frames],
+                         poses=call_style(planner).poses)
     clock = _Clock()
     overlap = prefetch_depth(source.settings) > 0
     cell_pdms = CellPdms(source, rows, frames, PDMS_SPAN if overlap else None, enabled=pdms)
@@ -327,7 +328,7 @@ def _record(source: Source, rows: RecordBuilder, i: int, sample: CellSample, res
 def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan: np.ndarray, clock: _Clock) -> None:
     """Frame `i`'s figures of a validated plan: L2, collisions, jerk, the bit-1 density of what it read."""
     start = time.perf_counter()
-    m = frame_metrics(plan, sample.frame, source.frame_truth(sample.frame))
+    m = frame_metrics(plan[:HORIZON_STEPS], sample.frame, source.frame_truth(sample.frame))  # L2: nuScenes' 3 s
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
     clock.scoring["metrics"] += time.perf_counter() - start

@@ -101,3 +101,14 @@ class RouteCameras:
             return {}
         parts = self.parts(pose, step)
         return {cam: self.one(cam, parts, pose, step) for cam in self.cameras}
+
+
+def images_at(route: Route, cameras: Sequence[str], pose: tuple[float, float, float], keyframe: int
+              ) -> dict[str, np.ndarray]:
+    """The route's `cameras` as they would have looked from world `pose` (x, y, yaw) at log keyframe `keyframe`
+    (its agents where they were then): the images a second stage starting off the logged pose reads (NAVSIM
+    renders them in advance by Gaussian splatting; the world renders them exactly). At the logged pose they are
+    the data's images, byte for byte."""
+    from ..data.world.expert import KEY_EVERY
+
+    return RouteCameras(route, cameras).images(pose, int(keyframe) * KEY_EVERY)

@@ -123,6 +123,29 @@ class Frame:
     #: A non-finite planner input of the data set (`data.faults.input_fault`), set for a run's scored frames by
     #: `RunContext.open`: the frame is then a data fault in every cell. "" when there is none.
     input_fault: str = ""
+    #: The future keyframes beyond the sixth, on data with more than 3 s of future (a world generated with
+    #: ``--future 4``): their positions (T, 2) in the current ego frame and their agent boxes, for a planner of
+    #: NAVSIM's eight poses (`future`, `future_agents`); None and () elsewhere.
+    future_tail: np.ndarray | None = None
+    agents_tail: tuple[AgentBoxes, ...] = ()
+    #: The future keyframes a scored frame of its data holds (2 x the data's future seconds): 6, or 8.
+    future_needed: int = HORIZON_STEPS
+
+    def future(self, poses: int = HORIZON_STEPS) -> np.ndarray:
+        """The logged future of `poses` waypoints (the first six are `gt_future`); ValueError when the data hold
+        fewer future keyframes here."""
+        if poses == HORIZON_STEPS:
+            return self.gt_future
+        tail = self.future_tail if self.future_tail is not None else np.zeros((0, 2))
+        if len(tail) < poses - HORIZON_STEPS:
+            raise ValueError(f"frame {self.token} holds {HORIZON_STEPS + len(tail)} future keyframes, not {poses}")
+        return np.concatenate([self.gt_future, tail[: poses - HORIZON_STEPS]])
+
+    def future_agents(self, poses: int = HORIZON_STEPS) -> tuple[AgentBoxes, ...]:
+        """The agent boxes of `poses` future keyframes (the first six are `agents`)."""
+        if poses == HORIZON_STEPS:
+            return self.agents
+        return tuple(self.agents) + tuple(self.agents_tail[: poses - HORIZON_STEPS])
 
     def to_global(self, xy: np.ndarray) -> np.ndarray:
         """Points (..., 2) of the current ego frame in global metres (the map's frame); needs `pose`."""
@@ -135,5 +158,8 @@ class Frame:
 
     @property
     def scorable(self) -> bool:
-        """True when all six future keyframes exist (the VAD-style valid-planning subset)."""
-        return bool(np.asarray(self.gt_valid).all()) and len(self.gt_valid) == HORIZON_STEPS
+        """True when all six future keyframes exist (the VAD-style valid-planning subset), and on data with 4 s of
+        future (`future_needed` 8) the two after them too."""
+        tail = 0 if self.future_tail is None else len(self.future_tail)
+        return bool(np.asarray(self.gt_valid).all()) and len(self.gt_valid) == HORIZON_STEPS and \
+            HORIZON_STEPS + tail >= self.future_needed

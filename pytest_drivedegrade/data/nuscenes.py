@@ -80,6 +80,7 @@ class NuScenesReader:
         self.skipped: Counter[str] = Counter()
         self.problems: list[str] = []
         self.manifest = load_manifest(self.root / WORLD_MANIFEST)
+        self.future_poses = future_poses(self.manifest, self.root)
         self._index()
 
     def _detect_version(self) -> str:
@@ -258,6 +259,7 @@ class NuScenesReader:
             return None
         xy, yaw, stamps, full = poses
         ego = _ego_status(xy, yaw, stamps, k, can)
+        beyond = list(range(k + 1 + HORIZON_STEPS, min(k + 1 + self.future_poses, len(tokens))))
         ahead = list(range(k + 1, min(k + 1 + HORIZON_STEPS, len(tokens))))  # the future keyframes there are
         valid = np.arange(HORIZON_STEPS) < len(ahead)  # the steps they fill, the first ones
         future = np.zeros((HORIZON_STEPS, 2))
@@ -265,8 +267,11 @@ class NuScenesReader:
             future[: len(ahead)] = geo.se2_to_ego(xy[ahead], xy[k], yaw[k])
         agents = [self._agents(tokens[i], xy[k], yaw[k]) if with_agents else AgentBoxes.empty() for i in ahead]
         command = command_from_future(future[valid]) if valid.any() else Command.STRAIGHT
-        if not valid.all():
+        if not valid.all() or len(beyond) < self.future_poses - HORIZON_STEPS:
             self.skipped[UNSCORED] += 1
+        tail = geo.se2_to_ego(xy[beyond], xy[k], yaw[k]) if beyond else None
+        tail_agents = tuple(self._agents(tokens[i], xy[k], yaw[k]) if with_agents else AgentBoxes.empty()
+                            for i in beyond)
         pose = (tuple(float(v) for v in full[k, :4]), tuple(float(v) for v in full[k, 4:]))
         can_record = None
         if can is not None:
@@ -276,7 +281,8 @@ class NuScenesReader:
                      future, valid, tuple(agents), scene["name"], index=k, ego_pose=pose,
                      lidar=self._lidar(token), can=can_record, location=self.locations.get(scene["token"], ""),
                      pose=(float(xy[k, 0]), float(xy[k, 1]), float(yaw[k])), lidar_file=self._lidar_file(token),
-                     past_motion=_past_motion(yaw, stamps, k, lambda i: _ego_status(xy, yaw, stamps, i, can)))
+                     past_motion=_past_motion(yaw, stamps, k, lambda i: _ego_status(xy, yaw, stamps, i, can)),
+                     future_tail=tail, agents_tail=tail_agents, future_needed=self.future_poses)
 
     def _lidar(self, token: str) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
         """LIDAR_TOP's calibrated_sensor (rotation, translation) at keyframe `token`, or None without one."""
@@ -320,6 +326,16 @@ class NuScenesReader:
         size = np.array([[a[1][1], a[1][0]] for a in anns], dtype=float)  # nuScenes size is (w, l, h)
         yaw = geo.wrap_angle(geo.quat_yaws(np.array([a[2] for a in anns])) - origin_yaw)
         return AgentBoxes(centre, size, yaw, tuple(a[3] for a in anns))
+
+
+def future_poses(manifest: dict | None, root: Path) -> int:
+    """The future keyframes every scored frame of the data holds: 2 x a world manifest's ``future_s`` (a world
+    generated with ``--future 4``: 8), else nuScenes' convention of 3 s (6)."""
+    seconds = 3 if manifest is None else manifest.get("future_s", 3)
+    if isinstance(seconds, bool) or seconds not in (3, 4):
+        raise DataError(f"{root / WORLD_MANIFEST}: future_s must be 3 or 4 (seconds of future per scored frame), "
+                        f"found {seconds!r}")
+    return round(seconds / STEP_SECONDS)
 
 
 def _ego_status(xy: np.ndarray, yaw: np.ndarray, stamps: np.ndarray, k: int, can: list[dict] | None) -> EgoStatus:

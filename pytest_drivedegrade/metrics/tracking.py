@@ -24,7 +24,7 @@ import numpy as np
 from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..data.frame import EgoStatus
 from ..data.geometry import wrap_angle as _wrap
-from .pdms.constants import N_STATES, SIM_DT
+from .pdms.constants import SCORED_POSES, SIM_DT, SUBSTEPS
 from .pdms.motion import EgoStates, is_comfortable
 
 #: nuPlan's get_pacifica_parameters().wheel_base (m): NAVSIM's vehicle for both the tracker and the model.
@@ -117,8 +117,9 @@ def _plans(plans: np.ndarray) -> np.ndarray:
     arr = np.asarray(plans, dtype=np.float64)
     if arr.ndim == 2:
         arr = arr[None]
-    if arr.ndim != 3 or arr.shape[1:] != (HORIZON_STEPS, 2):
-        raise ValueError(f"plans must have shape ({HORIZON_STEPS}, 2) or (B, {HORIZON_STEPS}, 2), got {arr.shape}")
+    if arr.ndim != 3 or arr.shape[2] != 2 or arr.shape[1] not in SCORED_POSES:
+        raise ValueError(f"plans must have shape ({HORIZON_STEPS}, 2) or (B, {HORIZON_STEPS}, 2) (8 for 4 s), got "
+                         f"{arr.shape}")
     if not np.isfinite(arr).all():
         raise ValueError("plans have non-finite waypoints")
     return arr
@@ -137,8 +138,8 @@ def waypoint_headings(points: np.ndarray) -> np.ndarray:
     before = pts[:, -2] - pts[:, -3]
     turn_on = 0.5 * _wrap(angle[:, -1] - np.arctan2(before[:, 1], before[:, 0]))
     angle[:, -1] += np.where(np.hypot(before[:, 0], before[:, 1]) >= STANDING_CHORD_M, turn_on, 0.0)
-    out = np.zeros((len(points), HORIZON_STEPS + 1))
-    for k in range(HORIZON_STEPS):
+    out = np.zeros((len(points), points.shape[1] + 1))
+    for k in range(points.shape[1]):
         turn = _wrap(angle[:, k] - out[:, k])
         turn = np.where(np.abs(turn) > np.pi / 2, _wrap(turn - np.pi), turn)  # backwards: heading opposite
         out[:, k + 1] = np.where(moving[:, k], out[:, k] + turn, out[:, k])
@@ -154,11 +155,12 @@ def interpolate_plan(plans: np.ndarray, headings: np.ndarray | None = None) -> n
     if headings is None:
         yaw = waypoint_headings(pts)
     else:
-        given = np.broadcast_to(np.asarray(headings, dtype=np.float64), (len(pts), HORIZON_STEPS))
+        given = np.broadcast_to(np.asarray(headings, dtype=np.float64), pts.shape[:2])
         yaw = np.unwrap(np.concatenate([np.zeros((len(pts), 1)), given], axis=1), axis=1)
     poses = np.concatenate([knots, yaw[..., None]], axis=-1)  # (B, 7, 3)
-    t = np.arange(N_STATES) * SIM_DT
-    seg = np.minimum((t / STEP_SECONDS + 1e-9).astype(int), HORIZON_STEPS - 1)
+    poses_n = pts.shape[1]
+    t = np.arange(poses_n * SUBSTEPS + 1) * SIM_DT
+    seg = np.minimum((t / STEP_SECONDS + 1e-9).astype(int), poses_n - 1)
     u = (t - seg * STEP_SECONDS) / STEP_SECONDS
     return poses[:, seg] * (1.0 - u)[None, :, None] + poses[:, seg + 1] * u[None, :, None]
 

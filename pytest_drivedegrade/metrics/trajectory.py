@@ -128,24 +128,26 @@ class FlatAgents:
     sizes: np.ndarray  # (M, 2)
     yaws: np.ndarray  # (M,)
     categories: np.ndarray  # (M,) object: the coarse class of each box
+    count: int = HORIZON_STEPS  # the steps (waypoint times) the boxes belong to: 6, or 8 for a 4 s plan
 
     @classmethod
-    def of(cls, agents: Sequence[AgentBoxes]) -> FlatAgents:
-        """All agents of the first six steps (none: empty arrays)."""
-        steps = list(agents[:HORIZON_STEPS])
+    def of(cls, agents: Sequence[AgentBoxes], count: int = HORIZON_STEPS) -> FlatAgents:
+        """All agents of the first `count` steps (none: empty arrays)."""
+        steps = list(agents[:count])
         counts = [len(b) for b in steps]
         if not sum(counts):
-            return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, object))
+            return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros(0, object),
+                       count)
         return cls(np.repeat(np.arange(len(steps)), counts),
                    np.concatenate([np.asarray(b.center, np.float64).reshape(-1, 2) for b in steps]),
                    np.concatenate([np.asarray(b.size, np.float64).reshape(-1, 2) for b in steps]),
                    np.concatenate([np.asarray(b.yaw, np.float64).reshape(-1) for b in steps]),
-                   np.array([c for b in steps for c in b.category], dtype=object))
+                   np.array([c for b in steps for c in b.category], dtype=object), count)
 
     @cached_property
     def step_start(self) -> np.ndarray:
-        """(HORIZON_STEPS + 1,) where each step's boxes start in the flat arrays (they are in step order)."""
-        return np.concatenate([[0], np.cumsum(np.bincount(self.step, minlength=HORIZON_STEPS))])
+        """(count + 1,) where each step's boxes start in the flat arrays (they are in step order)."""
+        return np.concatenate([[0], np.cumsum(np.bincount(self.step, minlength=self.count))])
 
     def pairs(self, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every (query, box) pair of queries at waypoint `step` (Q,) and that step's boxes, in (query, box)

@@ -111,6 +111,7 @@ class DriveDegradeSession:
         self.received: dict[str, CellPayload] = {}  # controller: cell -> payload, as each cell finishes
         self.outcome: Outcome | None = None  # controller: the end of the run
         self.name_error: str | None = None  # the planner name's check, done once at the first cell ("": fine)
+        self.horizon_error: str | None = None  # the planner horizon's check against the data's, likewise
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
@@ -248,6 +249,7 @@ class DriveDegradeSession:
         self._check_name(item, planner)
         try:
             context = self.run_context()
+            self._check_horizon(item, planner, context)
             coming = self._next_cell(item)
             if coming is not None:  # planner actors: start the next cell now, so they never wait for this one's end
                 prefetch(context, planner, *coming, store=self.store)
@@ -302,6 +304,18 @@ class DriveDegradeSession:
         at = next((i for i, it in enumerate(items) if it is item), len(items))
         return next((it.drivedegrade_cell for it in items[at + 1:] if isinstance(it, CellItem)
                      and not isinstance(it, ClosedItem)), None)
+
+    def _check_horizon(self, item: CellItem, planner: object, context: RunContext) -> None:
+        """The planner's horizon against the data's, once, before its first cell: an 8-pose planner on data with
+        3 s of future fails that cell with the reason and stops the session (`planning.horizon_problem`)."""
+        if self.horizon_error is None:
+            from ..planning import horizon_problem
+
+            problem = horizon_problem(planner, context.reader.future_poses, f"the data at {context.reader.root}")
+            self.horizon_error = f"--drivedegrade: {problem}" if problem else ""
+        if self.horizon_error:
+            item.session.shouldstop = self.horizon_error
+            pytest.fail(self.horizon_error, pytrace=False)
 
     def _check_name(self, item: CellItem, planner: object) -> None:
         """The planner's name, checked once when the planner first exists (the first cell): a bad one, or one

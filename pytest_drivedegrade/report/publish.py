@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..certificate.finished import FinishedRun
+from ..constants import HORIZON_STEPS, STEP_SECONDS
 from ..errors import DriveDegradeError
 from ..scoring.records import RunAnalysis, cost_ledger
 
@@ -42,6 +43,10 @@ def analyse(run: FinishedRun) -> RunAnalysis:
                            scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
+    # the horizon the PDMS and EPDMS scored: 3 s (six poses), or 4 s for a planner declaring NAVSIM's eight; L2
+    # is always the first six poses' (nuScenes' 3 s convention)
+    poses = max((r.plans.shape[1] for r in run.records.values()), default=HORIZON_STEPS)
+    analysis.settings["pdms_horizon_s"] = poses * STEP_SECONDS
     return analysis
 
 

@@ -18,7 +18,7 @@ from ...progress import Progress, Sink
 from ..nuscenes import WORLD_MANIFEST, official_scene_names
 from . import export, tasks
 from .rig import Rig
-from .scene import KEYFRAMES
+from .scene import KEYFRAMES, scene_keyframes
 from .tasks import SceneTask
 
 GENERATOR_VERSION = "3.1.1"  # 3.1: the lane-level map layers; 3.1.1: their polygons share edges exactly
@@ -50,26 +50,33 @@ def split_names(n: int) -> tuple[list[str], list[str]]:
 
 def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size: bool = False,
                 train_images: bool = False, progress: Sink | None = None, val_images: bool = True,
-                workers: int | None = None) -> Path:
+                workers: int | None = None, future_s: int = 3) -> Path:
     """Generate a world of `scenes` scenes into `out_dir` (the nuScenes data root) and return it.
 
     Val images are rendered (unless `val_images` is False, for table-only checks); train images only with
     `train_images` (the tables are complete either way). Scenes are generated on `workers` processes (None:
     `tasks.default_workers`, from the cores available); the files are the same for any number.
-    The manifest is written last, so a world without one is incomplete.
+    The manifest is written last, so a world without one is incomplete. `future_s` 4: every scored frame holds
+    4 s of future (NAVSIM's eight poses), each scene exporting two keyframes more (`scene.scene_keyframes`) and
+    scoring the same frames as the default world's; the manifest then names it (``future_s``).
     """
     n = DEFAULT_SCENES if scenes is None else int(scenes)
+    try:
+        keyframes = scene_keyframes(future_s)
+    except ValueError:
+        raise DataError(f"a world's future is 3 or 4 seconds per scored frame; got {future_s!r}") from None
     if n < 2:
         raise DataError(f"a world needs at least 2 scenes (one train, one val); got {n}")
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
     train, val = split_names(n)
     todo = [SceneTask(str(root), seed, i, name, full_size, render=(name in val and val_images)
-                      or (name not in val and train_images), fingerprint_images=name in val)
+                      or (name not in val and train_images), fingerprint_images=name in val, keyframes=keyframes)
             for i, name in enumerate(train + val)]
     with Progress("drivedegrade world", n, unit="scenes", sink=progress or Sink.silent()) as bar:
         outputs = tasks.run_tasks(todo, workers, lambda t: bar.advance(note=f"{t.name}{' rendered' * t.render}"))
-    digest = hashlib.blake2b(f"{GENERATOR_VERSION}|{seed}|{n}|{full_size}".encode(), digest_size=16)
+    longer = f"|future{future_s}" if future_s != 3 else ""  # only then: the default world keeps its fingerprint
+    digest = hashlib.blake2b(f"{GENERATOR_VERSION}|{seed}|{n}|{full_size}{longer}".encode(), digest_size=16)
     for out in outputs:
         digest.update(out.fingerprint)
     static = export.static_tables(seed, Rig.nuscenes_like(full_size))
@@ -85,6 +92,8 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
                 "version": WORLD_VERSION, "seed": seed, "scenes": n, "full_size": full_size,
                 "train_images": bool(train_images), "splits": {"train": train, "val": val},
                 "fingerprint": digest.hexdigest(), "events": {s: _event_stats(e) for s, e in events.items()}}
+    if future_s != 3:  # only then: the default world's manifest keeps its bytes
+        manifest["future_s"] = future_s
     export.dump(root / MANIFEST, manifest)
     return root
 
@@ -105,8 +114,9 @@ def add_train_images(root: Path, progress: Sink | None = None, workers: int | No
     """Render the train split's images into an existing world (same seed and options as its manifest)."""
     manifest = json.loads((root / MANIFEST).read_text())
     names = manifest["splits"]["train"]
-    todo = [SceneTask(str(root), manifest["seed"], i, name, manifest["full_size"], tables=False, render=True)
-            for i, name in enumerate(names)]
+    keyframes = scene_keyframes(manifest.get("future_s", 3))
+    todo = [SceneTask(str(root), manifest["seed"], i, name, manifest["full_size"], tables=False, render=True,
+                      keyframes=keyframes) for i, name in enumerate(names)]
     with Progress("drivedegrade world: train images", len(todo), unit="scenes",
                   sink=progress or Sink.silent()) as bar:
         tasks.run_tasks(todo, workers, lambda t: bar.advance(note=t.name))
@@ -190,10 +200,10 @@ def ensure_default_world(cache_root, *, train_images: bool = False, progress: Si
 
 
 def cli_world(args) -> int:
-    """`drivedegrade world --out DIR [--scenes N] [--seed S] [--full-size] [--train-images]`."""
+    """`drivedegrade world --out DIR [--scenes N] [--seed S] [--full-size] [--train-images] [--future 3|4]`."""
     start = time.perf_counter()
     root = write_world(args.out, scenes=args.scenes, seed=args.seed, full_size=args.full_size,
-                       train_images=args.train_images, progress=Sink())
+                       train_images=args.train_images, progress=Sink(), future_s=getattr(args, "future", 3))
     manifest = json.loads((root / MANIFEST).read_text())
     ev = manifest["events"]["val"]
     print(f"wrote {root} ({manifest['scenes']} scenes, fingerprint {manifest['fingerprint']}) in "

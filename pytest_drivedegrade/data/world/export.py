@@ -22,7 +22,7 @@ from .expert import KEY_EVERY
 from .lanemap import lane_layers
 from .rig import Rig
 from .roads import drivable_polygons
-from .scene import KEYFRAMES, Scene
+from .scene import Scene
 
 BASE_TIME = 1_533_151_600_000_000  # microseconds; scene i starts 10^8 us (100 s) after scene i - 1
 ANNOTATION_RANGE = 60.0  # m around the ego, as nuScenes annotates
@@ -99,21 +99,21 @@ def scene_tables(scene: Scene, seed: int, t: dict[str, list[dict]], rig: Rig) ->
     log_tok, scene_tok = token(seed, "log", scene.index), token(seed, "scene", scene.index)
     t["log"].append({"token": log_tok, "logfile": f"ddworld-s{seed}-{scene.name}", "vehicle": "ddworld-ego",
                      "date_captured": "2018-08-01", "location": location(scene, seed)})
-    samples = [token(seed, "sample", scene.index, k) for k in range(KEYFRAMES)]
-    t["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": KEYFRAMES,
+    samples = [token(seed, "sample", scene.index, k) for k in range(scene.keyframes)]
+    t["scene"].append({"token": scene_tok, "log_token": log_tok, "nbr_samples": scene.keyframes,
                        "first_sample_token": samples[0], "last_sample_token": samples[-1], "name": scene.name,
                        "description": describe(scene)})
     ann_tokens: dict[int, list[str]] = {}
     # tokens used more than once (a sample_data's is its neighbours' prev/next too) are hashed once
     channels = (*CAMERAS, LIDAR)
-    sd_tokens = {ch: [token(seed, "sd", scene.index, ch, j) for j in range(KEYFRAMES)] + [""] for ch in channels}
+    sd_tokens = {ch: [token(seed, "sd", scene.index, ch, j) for j in range(scene.keyframes)] + [""] for ch in channels}
     calib = {ch: token(seed, "calib", ch) for ch in channels}
     inst = [token(seed, "inst", scene.index, i) for i in range(len(scene.agents))]
     attribute = {a: token(seed, "attribute", a) for a in ATTRIBUTES}
     for k, st in enumerate(samples):
         step, ts = k * KEY_EVERY, timestamp(scene, k)
         t["sample"].append({"token": st, "timestamp": ts, "prev": samples[k - 1] if k else "",
-                            "next": samples[k + 1] if k + 1 < KEYFRAMES else "", "scene_token": scene_tok})
+                            "next": samples[k + 1] if k + 1 < scene.keyframes else "", "scene_token": scene_tok})
         pose_tok = token(seed, "pose", scene.index, k)
         t["ego_pose"].append({"token": pose_tok, "timestamp": ts, "rotation": list(yaw_to_quat(scene.ego.yaw[step])),
                               "translation": [float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), 0.0]})
@@ -198,7 +198,7 @@ def can_bus(scene: Scene) -> list[dict]:
     """The CAN bus pose expansion at 10 Hz: speed, acceleration and yaw rate in the ego frame."""
     yaw_rate = np.gradient(np.unwrap(scene.ego.yaw), DT)
     out = []
-    for step in range(KEYFRAMES * KEY_EVERY):
+    for step in range(scene.keyframes * KEY_EVERY):
         v = float(scene.ego.speed[step])
         out.append({"utime": timestamp(scene, 0) + step * int(DT * 1e6),
                     "pos": [float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), 0.0],
@@ -271,7 +271,7 @@ def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
     static = backdrop[2]
     pre = {cam: render.precompute(rig, cam, scene.style.haze_m) for cam in CAMERAS}
     digests = []
-    for k in range(KEYFRAMES) if keys is None else keys:
+    for k in range(scene.keyframes) if keys is None else keys:
         step = k * KEY_EVERY
         pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
         parts = models.Parts(list(static.boxes), list(static.colours), dict(static.decals))

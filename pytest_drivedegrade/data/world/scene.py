@@ -22,6 +22,17 @@ from .expert import (
 from .roads import LANE_WIDTH, Path, RoadNet, build_roads
 
 KEYFRAMES = 40  # 20 s at 2 Hz, as a nuScenes scene
+#: The seconds of future every scored keyframe holds: 3 (nuScenes' convention, the default world) or 4 (NAVSIM's
+#: eight poses): a world with 4 s exports each scene's KEYFRAMES plus the two keyframes after it (the simulation
+#: runs SIM_STEPS, past both), so its first KEYFRAMES are the default world's, the same records and images.
+FUTURE_SECONDS = (3, 4)
+
+
+def scene_keyframes(future_s: int = 3) -> int:
+    """The keyframes a scene exports when its scored frames hold `future_s` seconds of future."""
+    if future_s not in FUTURE_SECONDS:
+        raise ValueError(f"future_s must be one of {FUTURE_SECONDS}, got {future_s!r}")
+    return KEYFRAMES + 2 * (future_s - 3)
 
 
 @dataclass
@@ -69,6 +80,7 @@ class Scene:
     events: list[str]
     crosswalks: list[float]  # arc lengths on the route centreline with a zebra crossing
     v_cruise: float
+    keyframes: int = KEYFRAMES  # the keyframes it exports (`scene_keyframes`)
 
     @functools.cached_property
     def props(self) -> list[Prop]:
@@ -77,15 +89,16 @@ class Scene:
 
     @property
     def key_steps(self) -> np.ndarray:
-        return np.arange(KEYFRAMES) * KEY_EVERY
+        return np.arange(self.keyframes) * KEY_EVERY
 
 
 MAX_TRIES = 8  # draws of a scene's scenario before it falls back to background traffic only
 MIN_GAP = 0.5  # m: the expert must keep at least this bumper gap to everything in its corridor
 
 
-def make_scene(seed: int, index: int, name: str) -> Scene:
-    """Generate scene `index` of the world with `seed`: deterministic for a given (seed, index)."""
+def make_scene(seed: int, index: int, name: str, keyframes: int = KEYFRAMES) -> Scene:
+    """Generate scene `index` of the world with `seed`: deterministic for a given (seed, index); `keyframes`
+    (`scene_keyframes`) changes only how many of its keyframes are exported, never the drive."""
     rng = np.random.default_rng([seed, index, 0x5EED])
     net = build_roads(rng)
     turn = net.junctions[0].turn if net.junctions else "straight"
@@ -109,8 +122,8 @@ def make_scene(seed: int, index: int, name: str) -> Scene:
         agents, ego = _drive_and_release(rng, lane, background, v_cruise, v0, s0, seen)
     if rng.random() < 0.5:
         agents.append(follower(rng, lane, ego))
-    events = keyframe_events(lane, ego, KEYFRAMES)
-    return Scene(index, seed, name, net, lane, agents, ego, style, events, crosswalks, v_cruise)
+    events = keyframe_events(lane, ego, keyframes)
+    return Scene(index, seed, name, net, lane, agents, ego, style, events, crosswalks, v_cruise, keyframes)
 
 
 def _scenario(rng, net: RoadNet, lane: Path, lane_d: float, v_cruise: float) -> tuple[list[Agent], list[float]]:

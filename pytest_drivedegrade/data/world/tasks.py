@@ -25,7 +25,7 @@ from ...settings import cores
 from ..maps import expansion_path
 from . import export
 from .rig import Rig
-from .scene import make_scene
+from .scene import KEYFRAMES, make_scene
 
 #: The tables a scene appends records to, in the order `export.scene_tables` fills them.
 SCENE_TABLES = ("log", "scene", "sample", "ego_pose", "sample_data", "sample_annotation", "instance")
@@ -46,6 +46,7 @@ class SceneTask:
     tables: bool = True  # its records, point clouds, CAN bus and map expansion
     render: bool = False  # its six cameras' JPEGs at every keyframe
     fingerprint_images: bool = False  # the JPEGs count in the world's fingerprint (val scenes)
+    keyframes: int = KEYFRAMES  # the keyframes exported (`scene.scene_keyframes`: 42 for 4 s of future)
 
     @property
     def cost(self) -> int:
@@ -71,7 +72,7 @@ def _rig(full_size: bool) -> Rig:
 def run_task(task: SceneTask) -> SceneOutput:
     """Generate the scene and write its files; what `write_world` once did inline per scene, in the same order."""
     root, rig = Path(task.root), _rig(task.full_size)
-    scene = make_scene(task.seed, task.index, task.name)
+    scene = make_scene(task.seed, task.index, task.name, task.keyframes)
     feed: list[bytes] = []
     fragments = dict.fromkeys(SCENE_TABLES, "")
     log_token = ""

@@ -13,10 +13,10 @@ from ..trajectory import overlap_pairs
 from .constants import EGO_SIZE, MAX_AGENT_SPEED, SIZE_MATCH_M
 
 
-def agent_steps(agents: Sequence[AgentBoxes]) -> list[AgentBoxes]:
-    """Exactly one `AgentBoxes` per waypoint time: extra steps dropped, missing ones empty."""
-    steps = list(agents)[:HORIZON_STEPS]
-    return steps + [AgentBoxes.empty()] * (HORIZON_STEPS - len(steps))
+def agent_steps(agents: Sequence[AgentBoxes], count: int = HORIZON_STEPS) -> list[AgentBoxes]:
+    """Exactly one `AgentBoxes` per waypoint time (`count` of them): extra steps dropped, missing ones empty."""
+    steps = list(agents)[:count]
+    return steps + [AgentBoxes.empty()] * (count - len(steps))
 
 
 def _match(prev: AgentBoxes, boxes: AgentBoxes, prev_ids: np.ndarray, cur: np.ndarray) -> None:
@@ -78,7 +78,7 @@ def agent_tracks(agents: Sequence[AgentBoxes]) -> tuple[list[np.ndarray], list[n
     Returns per step the track id of each box (N,) and its velocity (N, 2) m/s: the central difference where
     the agent is seen at both neighbouring keyframes, else the one-sided one, NaN when seen only once.
     """
-    steps = agent_steps(agents)
+    steps = agent_steps(agents, max(len(agents), HORIZON_STEPS))  # six steps, or a 4 s plan's eight
     ids = _track_ids(steps)
     return ids, _track_velocities(steps, ids)
 

@@ -21,6 +21,8 @@ N_STATES: int = HORIZON_STEPS * SUBSTEPS + 1
 TIMES: np.ndarray = np.arange(N_STATES) * SIM_DT
 #: State index of each waypoint (and of each future keyframe's agent boxes): 5, 10, .., 30.
 KEY_STATES: np.ndarray = np.arange(1, HORIZON_STEPS + 1) * SUBSTEPS
+#: The waypoint counts a plan may be scored at: six (3 s, the default) and NAVSIM's eight (4 s).
+SCORED_POSES: tuple[int, ...] = (HORIZON_STEPS, 8)
 
 #: NAVSIM v1 PDMScorerConfig: weights of the averaged terms and the progress threshold.
 EP_WEIGHT, TTC_WEIGHT, COMFORT_WEIGHT = 5.0, 5.0, 2.0
@@ -33,9 +35,23 @@ TTC_STOPPED_SPEED: float = 5e-3  # m/s
 TTC_PROJECTIONS_S: tuple[float, ...] = (0.0, 0.3, 0.6, 0.9)
 #: The TTC checks in NAVSIM's order: (state index, projection seconds, waypoint index) for every projection
 #: from a 10 Hz state that lands on a waypoint time (where agents are annotated).
-TTC_SCHEDULE: tuple[tuple[int, float, int], ...] = tuple(sorted(
-    (int(i - round(d / SIM_DT)), d, k) for k, i in enumerate(KEY_STATES.tolist()) for d in TTC_PROJECTIONS_S
-    if i - round(d / SIM_DT) >= 0))
+def ttc_schedule(poses: int = HORIZON_STEPS) -> tuple[tuple[int, float, int], ...]:
+    """`TTC_SCHEDULE` of a plan of `poses` waypoints (its states up to poses x 0.5 s)."""
+    return tuple(sorted((int(i - round(d / SIM_DT)), d, k) for k, i in enumerate(key_states(poses).tolist())
+                        for d in TTC_PROJECTIONS_S if i - round(d / SIM_DT) >= 0))
+
+
+def key_states(poses: int = HORIZON_STEPS) -> np.ndarray:
+    """`KEY_STATES` of a plan of `poses` waypoints: 5, 10, .., 5 x poses."""
+    return np.arange(1, poses + 1) * SUBSTEPS
+
+
+def state_times(poses: int = HORIZON_STEPS) -> np.ndarray:
+    """`TIMES` of a plan of `poses` waypoints: 0 .. poses x 0.5 s at SIM_DT (`poses` x SUBSTEPS + 1 states)."""
+    return np.arange(poses * SUBSTEPS + 1) * SIM_DT
+
+
+TTC_SCHEDULE: tuple[tuple[int, float, int], ...] = ttc_schedule()
 #: nuPlan's is_agent_ahead / is_agent_behind angle tolerances (degrees off the ego heading).
 AHEAD_DEG, BEHIND_DEG = 30.0, 150.0
 #: Coarse categories that are static objects (nuScenes movable_object.* and static_object.* read as "other"):

@@ -18,10 +18,11 @@ from .constants import (
     EXTEND_M,
     HALF_LANE_M,
     HEADING_MIN_SPEED,
-    N_STATES,
+    SCORED_POSES,
     SIM_DT,
     TIMES,
     DrivableQuery,
+    state_times,
 )
 
 #: The ego's (x, y, yaw) in the map's frame (m, m, rad), as `Frame.pose`.
@@ -48,10 +49,11 @@ class EgoStates:
 
 
 def waypoints(traj: npt.ArrayLike, name: str) -> np.ndarray:
-    """`traj` as finite (6, 2) float64 waypoints; a ValueError naming `name` otherwise."""
+    """`traj` as finite (6, 2) float64 waypoints, or (8, 2) (NAVSIM's 4 s, `SCORED_POSES`); a ValueError naming
+    `name` otherwise."""
     arr = np.asarray(traj, dtype=np.float64)
-    if arr.shape != (HORIZON_STEPS, 2):
-        raise ValueError(f"{name} must have shape ({HORIZON_STEPS}, 2), got {arr.shape}")
+    if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) not in SCORED_POSES:
+        raise ValueError(f"{name} must have shape ({HORIZON_STEPS}, 2) or (8, 2), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise ValueError(f"{name} has non-finite waypoints")
     return arr
@@ -70,8 +72,9 @@ def _spline(pts: np.ndarray, v0: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
         rhs[k] = 6.0 / h**2 * (pts[k + 1] - 2.0 * pts[k] + pts[k - 1])
     a[-1, -2:] = -1.0, 1.0
     m = np.linalg.solve(a, rhs)  # second derivatives at the knots
-    seg = np.minimum((TIMES / h + 1e-9).astype(int), n - 2)
-    u = (TIMES - seg * h)[:, None]
+    times = TIMES if n == HORIZON_STEPS + 1 else state_times(n - 1)
+    seg = np.minimum((times / h + 1e-9).astype(int), n - 2)
+    u = (times - seg * h)[:, None]
     w = h - u
     m0, m1, p0, p1 = m[seg], m[seg + 1], pts[seg], pts[seg + 1]
     c0, c1 = p0 / h - m0 * h / 6.0, p1 / h - m1 * h / 6.0
@@ -124,13 +127,13 @@ def off_road(states: EgoStates, drivable: DrivableQuery | None, ego_pose: EgoPos
     points (K, 2) in the map's frame; `ego_pose` (x, y, yaw) maps ego-frame points there (None: the query takes
     ego-frame points). No query: nothing is off the road."""
     if drivable is None:
-        return np.zeros(N_STATES, dtype=bool)
+        return np.zeros(len(states.xy), dtype=bool)
     pts = box_corners(states.xy, states.heading, size).reshape(-1, 2)
     if ego_pose is not None:
         x, y, yaw = (float(v) for v in ego_pose)
         c, s = np.cos(yaw), np.sin(yaw)
         pts = np.stack([x + c * pts[:, 0] - s * pts[:, 1], y + s * pts[:, 0] + c * pts[:, 1]], axis=1)
-    inside = np.asarray(drivable(pts), dtype=bool).reshape(N_STATES, 4)
+    inside = np.asarray(drivable(pts), dtype=bool).reshape(-1, 4)
     return np.logical_not(inside.all(axis=1))
 
 
@@ -170,7 +173,7 @@ def out_of_lane(states: EgoStates, path: np.ndarray, size: np.ndarray = EGO_SIZE
     stand-in for NAVSIM's "in multiple lanes" where the map has no lanes."""
     corners = box_corners(states.xy, states.heading, size).reshape(-1, 2)
     far = path_distance(path, corners) > HALF_LANE_M
-    return np.asarray(far.reshape(N_STATES, 4).any(axis=1), dtype=bool)
+    return np.asarray(far.reshape(-1, 4).any(axis=1), dtype=bool)
 
 
 def progress_along(path: np.ndarray, point: np.ndarray) -> float:

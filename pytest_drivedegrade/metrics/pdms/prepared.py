@@ -6,6 +6,7 @@ TTC projections in one vectorised separating-axis call, and the plans of many fr
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -28,6 +29,8 @@ from .constants import (
     TTC_STOPPED_SPEED,
     DrivableQuery,
     PDMSResult,
+    key_states,
+    ttc_schedule,
 )
 from .extended import (
     ExtendedTerms,
@@ -56,10 +59,17 @@ from .tracked import initial_state, tracked_states
 if TYPE_CHECKING:  # `tracking` imports this package: its names are read through `tracked` at run time
     from ..tracking import InitialState
 
-#: TTC_SCHEDULE as arrays: the state each check projects from, the projection (s), the waypoint time it meets.
-_TTC_STATE = np.array([s[0] for s in TTC_SCHEDULE], dtype=np.int64)
-_TTC_SECONDS = np.array([s[1] for s in TTC_SCHEDULE], dtype=np.float64)
-_TTC_STEP = np.array([s[2] for s in TTC_SCHEDULE], dtype=np.int64)
+
+
+@functools.cache
+def _ttc_arrays(poses: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`ttc_schedule(poses)` as arrays: the state each check projects from, the projection (s), the waypoint time
+    it meets (for six poses: TTC_SCHEDULE's)."""
+    schedule = TTC_SCHEDULE if poses == HORIZON_STEPS else ttc_schedule(poses)
+    return (np.array([s[0] for s in schedule], dtype=np.int64), np.array([s[1] for s in schedule], dtype=np.float64),
+            np.array([s[2] for s in schedule], dtype=np.int64))
+
+
 #: Plans remembered per prepared frame (`PreparedFrame.judged`): more than a full ladder's cells, about 1 KB each.
 MEMO_PLANS = 256
 
@@ -109,7 +119,7 @@ class PreparedFrame:
         `ego_size`: the ego box (length, width) every box test of the plan and the expert uses (`EGO_BOXES`)."""
         size = np.array(ego_size, dtype=np.float64).reshape(2)
         expert_arr = waypoints(expert, "expert")
-        steps = agent_steps(agents)
+        steps = agent_steps(agents, len(expert_arr))
         ids, velocities = agent_tracks(steps)
         seen = first_seen(ids, velocities)
         start = initial_state(ego)
@@ -119,7 +129,7 @@ class PreparedFrame:
         expert_off = off_road(es, drivable, ego_pose, size)
         path = expert_path(expert_arr, float(es.heading[-1]))
         expert_astray, expert_ttc_astray = astray(es, expert_off, path, lanes, size)
-        boxes = FlatAgents.of(steps)
+        boxes = FlatAgents.of(steps, len(steps))
         index = np.concatenate([np.arange(len(b), dtype=np.int64) for b in steps])
         reach = 0.5 * np.hypot(boxes.sizes[:, 0], boxes.sizes[:, 1]) + 0.5 * math.hypot(*size) + FAR_MARGIN_M
         past = history(past_motion, ego.acceleration) if isinstance(ego, EgoStatus) and past_motion is not None \
@@ -141,14 +151,18 @@ class PreparedFrame:
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
            static_categories: Sequence[str] = STATIC_CATEGORIES, lane_map: LaneMap | None = None,
-           expert_states: EgoStates | None = None, ego_size: npt.ArrayLike = EGO_SIZE) -> PreparedFrame:
+           expert_states: EgoStates | None = None, ego_size: npt.ArrayLike = EGO_SIZE,
+           poses: int = HORIZON_STEPS) -> PreparedFrame:
         """Prepare a reader frame, as `frame_pdms` scores it (`lane_map`: its location's lanes, for EPDMS;
-        `expert_states`: its expert's from `tracked_experts`; `ego_size`: the ego box)."""
+        `expert_states`: its expert's from `tracked_experts`; `ego_size`: the ego box; `poses`: the horizon
+        scored, 6 or 8 waypoints: `Frame.future` and `Frame.future_agents` of that many)."""
+        expert, agents = frame.future(poses), frame.future_agents(poses)
         lanes = None
         if lane_map is not None and frame.pose is not None:
+            logged = frame.gt_future[frame.gt_valid] if poses == HORIZON_STEPS else expert
             lanes = replace(LaneView.of_map(lane_map, frame.pose),
-                            route=route_centreline(lane_map, frame.pose, frame.gt_future[frame.gt_valid]))
-        return cls.prepare(frame.gt_future, frame.agents, frame.ego, drivable, frame.pose,
+                            route=route_centreline(lane_map, frame.pose, logged))
+        return cls.prepare(expert, agents, frame.ego, drivable, frame.pose,
                            static_categories=static_categories, lanes=lanes, expert_states=expert_states,
                            past_motion=frame.past_motion, ego_size=ego_size)
 
@@ -174,16 +188,18 @@ class PreparedFrame:
 
     def collisions(self, states: EgoStates) -> Iterator[Contact]:
         """`reference.collisions`: the ego box at every waypoint time against its agents, all at once."""
-        keys = np.asarray(KEY_STATES)
-        qs, ags = self._hit_pairs(states.xy[keys], states.heading[keys], np.arange(HORIZON_STEPS))
+        n = len(self.steps)
+        keys = np.asarray(KEY_STATES) if n == HORIZON_STEPS else key_states(n)
+        qs, ags = self._hit_pairs(states.xy[keys], states.heading[keys], np.arange(n))
         for q, flat in zip(qs.tolist(), ags.tolist()):
             yield self._contact(int(keys[q]), flat, tracked=True)
 
     def projections(self, states: EgoStates) -> Iterator[Contact]:
         """`reference.projections`: every (state, projection) pair of TTC_SCHEDULE at once."""
-        speed = states.speed[_TTC_STATE]
+        ttc_state, ttc_seconds, ttc_step = _ttc_arrays(len(self.steps))
+        speed = states.speed[ttc_state]
         moving = speed >= TTC_STOPPED_SPEED
-        i_arr, d_arr, k_arr, speed = _TTC_STATE[moving], _TTC_SECONDS[moving], _TTC_STEP[moving], speed[moving]
+        i_arr, d_arr, k_arr, speed = ttc_state[moving], ttc_seconds[moving], ttc_step[moving], speed[moving]
         heading = states.heading[i_arr]
         moved = states.xy[i_arr] + (speed * d_arr)[:, None] * np.stack([np.cos(heading), np.sin(heading)], 1)
         qs, ags = self._hit_pairs(moved, heading, k_arr)
@@ -236,7 +252,7 @@ class PreparedFrame:
         return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lk, hc)
 
 
-def tracked_experts(frames: Sequence[Frame]) -> dict[str, EgoStates]:
+def tracked_experts(frames: Sequence[Frame], poses: int = HORIZON_STEPS) -> dict[str, EgoStates]:
     """The experts (logged futures) of reader frames tracked from their egos in one batch, by frame token, for
     `PreparedFrame.of`: the tracker's cost is its 30 steps, nearly the same for 200 plans as for one, and a
     plan's states are bit-identical whichever plans share its batch. A frame whose expert or ego is not
@@ -244,7 +260,7 @@ def tracked_experts(frames: Sequence[Frame]) -> dict[str, EgoStates]:
     tokens, experts, starts = [], [], []
     for frame in frames:
         try:
-            expert, start = waypoints(frame.gt_future, "expert"), initial_state(frame.ego)
+            expert, start = waypoints(frame.future(poses), "expert"), initial_state(frame.ego)
         except (TypeError, ValueError):
             continue
         tokens.append(frame.token)

@@ -11,6 +11,7 @@ import numpy.typing as npt
 from ...constants import HORIZON_STEPS
 from ...data.frame import EgoStatus
 from .. import tracking  # the module, its names read at call time: `tracking` imports this package's constants
+from .constants import SCORED_POSES
 from .motion import EgoStates  # and motion, so a name taken from it here would not exist yet if it came first
 
 
@@ -26,11 +27,12 @@ def initial_state(ego: EgoStatus | tracking.InitialState | npt.ArrayLike) -> tra
 
 
 def tracked_states(plans: np.ndarray, starts: Sequence[tracking.InitialState]) -> list[EgoStates]:
-    """Plans (B, 6, 2) tracked from one start each, in one batch, as the score's `EgoStates` (body-frame velocity
-    and acceleration rotated into the ego frame: zero lateral acceleration after t = 0). A plan's states are
-    bit-identical whichever plans share its batch (tests/unit/test_pdms.py checks it), so a cell split over
-    processes scores as one."""
-    arr = np.asarray(plans, dtype=np.float64).reshape(-1, HORIZON_STEPS, 2)
+    """Plans (B, 6, 2) (or (B, 8, 2): 4 s) tracked from one start each, in one batch, as the score's `EgoStates`
+    (body-frame velocity and acceleration rotated into the ego frame: zero lateral acceleration after t = 0). A
+    plan's states are bit-identical whichever plans share its batch (tests/unit/test_pdms.py checks it), so a cell
+    split over processes scores as one."""
+    arr = np.asarray(plans, dtype=np.float64)
+    arr = arr.reshape(-1, arr.shape[-2] if arr.ndim >= 2 and arr.shape[-2] in SCORED_POSES else HORIZON_STEPS, 2)
     firsts = list(starts)
     if len(firsts) != len(arr):
         raise ValueError(f"{len(firsts)} initial states for {len(arr)} plans")
