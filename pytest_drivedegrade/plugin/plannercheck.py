@@ -22,12 +22,21 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from ..constants import HORIZON_STEPS, STEP_SECONDS
+from ..constants import HORIZON_STEPS
 from ..data.frame import Frame
 from ..errors import DataError, DriveDegradeError, PlannerOutputError
 from ..loader import planner_view
 from ..pacing import opencv_share
-from ..planning import CallStyle, Planner, call_style, planner_cameras, to_numpy, validate_output
+from ..planning import (
+    CallStyle,
+    Planner,
+    call_style,
+    horizon_problem,
+    planner_cameras,
+    planner_poses,
+    to_numpy,
+    validate_output,
+)
 from ..run import RunContext
 from ..store import ResultStore
 from ..stream import describe_failure, time_limit
@@ -65,7 +74,8 @@ def declared_problems(planner: Planner, context: RunContext) -> tuple[list[str],
     missing = sorted({c for f in frames for c in cameras if c not in f.cameras})
     if missing:
         problems.append(f"planner.cameras declares {', '.join(missing)}, which some scored frames do not have")
-    problems += _horizon(planner, frames)
+    root = getattr(getattr(context, "reader", None), "root", None)
+    problems += _horizon(planner, frames, "the data" if root is None else f"the data at {root}")
     lidar = getattr(planner, LIDAR_ATTR, False)
     if lidar and not style.takes_context:
         problems.append(f"planner.{LIDAR_ATTR} is set but predict() takes no `context` parameter, the one way "
@@ -96,17 +106,12 @@ def _signature(function: Callable[..., object]) -> str:
         return "(...)"
 
 
-def _horizon(planner: Planner, frames: Sequence[Frame]) -> list[str]:
-    """The planner's declared poses against the future every scored frame holds."""
-    poses = getattr(planner, POSES_ATTR, HORIZON_STEPS)
-    if isinstance(poses, bool) or not isinstance(poses, (int, np.integer)) or poses < 1:
-        return [f"planner.{POSES_ATTR} must be a positive whole number of {STEP_SECONDS:g} s poses, got {poses!r}"]
-    future = min((len(f.gt_future) for f in frames), default=HORIZON_STEPS)
-    if poses <= future:
-        return []
-    return [f"planner.{POSES_ATTR} = {poses} plans {poses * STEP_SECONDS:g} s ahead, but the data hold "
-            f"{future * STEP_SECONDS:g} s of future ({future} keyframes at {STEP_SECONDS:g} s) on the scored "
-            f"frames: certify it on data with {poses * STEP_SECONDS:g} s of future, or declare {future} poses"]
+def _horizon(planner: Planner, frames: Sequence[Frame], where: str = "the data") -> list[str]:
+    """The planner's declared poses against the future every scored frame of the data holds
+    (`planning.horizon_problem`, the rule the start-up check applies too)."""
+    future = min((getattr(f, "future_needed", len(f.gt_future)) for f in frames), default=HORIZON_STEPS)
+    problem = horizon_problem(planner, future, where)
+    return [problem] if problem else []
 
 
 def _device(planner: Planner, device: str) -> list[str]:
@@ -179,7 +184,7 @@ def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | No
         with opencv_share():  # as the cells call it: OpenCV's thread count the run's, and put back after
             _call(planner, context, frame, images, style, read)
             raw, seconds = _call(planner, context, frame, images, style, read)
-        plan = validate_output(to_numpy(raw), frame.token)
+        plan = validate_output(to_numpy(raw), frame.token, planner_poses(planner))
     except PlannerOutputError as exc:
         return None, [str(exc)], []
     except Exception as exc:  # noqa: BLE001 - the planner's failure on a clean frame: named, no traceback
@@ -191,7 +196,8 @@ def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | No
     black = {**images, **{c: _readonly(np.zeros_like(context.decode(frame, c))) for c in undeclared}}
     try:
         with opencv_share():
-            again = validate_output(to_numpy(_call(planner, context, frame, black, style, [])[0]), frame.token)
+            again = validate_output(to_numpy(_call(planner, context, frame, black, style, [])[0]), frame.token,
+                                    planner_poses(planner))
     except Exception as exc:  # noqa: BLE001 - failing on a black camera it does not declare is relying on it
         again = np.full_like(plan, np.nan) if not isinstance(exc, KeyboardInterrupt) else plan
     if style.deterministic and not np.array_equal(again, plan):

@@ -60,5 +60,5 @@ def test_eight_poses_on_3_s_data_stop_before_any_cell(pytester, horizon_worlds, 
     result, folder = _run(pytester, horizon_worlds[3], shared_cache, "rep3")
     no_traceback(result)
     assert result.ret != 0
-    result.stdout.fnmatch_lines(["*declares poses = 8 (4 s) but the data at * holds 3 s of future*--future 4*"])
+    result.stderr.fnmatch_lines(["*declares poses = 8 (4 s) but the data at * holds 3 s of future*--future 4*"])
     assert not (folder / "cells.csv").exists() or "jpeg-s3" not in (folder / "cells.csv").read_text()

@@ -54,7 +54,7 @@ def preflight_error(result: pytest.RunResult) -> str:
      "*predict() reads CAM_BACK, which planner.cameras (CAM_FRONT) does not declare, and its plan*changes when "
      "they are black*"),
     ("        return plan", "    poses = 8",
-     "*planner.poses = 8 plans 4 s ahead, but the data hold 3 s of future (6 keyframes at 0.5 s)*"),
+     "*declares poses = 8 (4 s) but the data at * holds 3 s of future per scored frame (6 keyframes)*--future 4*"),
     ("        return plan.astype(int)", "", "*has dtype int64, not a float dtype*"),
     ("        return plan * np.nan", "", "*is not finite*"),
     ("        return plan", "    lidar = True", "*planner.lidar is set but predict() takes no `context`*"),

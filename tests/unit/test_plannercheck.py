@@ -36,9 +36,9 @@ def test_a_valid_planner_has_no_problem_and_no_note():
 @pytest.mark.parametrize("attrs, ctx, expected", [
     ({"cameras": ("CAM_FRONT", "CAM_FRONT_LEFT")}, {}, "planner.cameras declares CAM_FRONT_LEFT, which some scored "
                                                        "frames do not have"),
-    ({"poses": 8}, {}, "planner.poses = 8 plans 4 s ahead, but the data hold 3 s of future"),
-    ({"poses": 8.0}, {}, "planner.poses must be a positive whole number of 0.5 s poses, got 8.0"),
-    ({"poses": True}, {}, "planner.poses must be a positive whole number"),
+    ({"poses": 8}, {}, "the planner declares poses = 8 (4 s) but the data holds 3 s of future per scored frame"),
+    ({"poses": 8.0}, {}, "planner.poses must be 6 or 8 (waypoints at 0.5 s: nuScenes' 3 s or NAVSIM's 4 s), got 8.0"),
+    ({"poses": True}, {}, "planner.poses must be 6 or 8"),
     ({"lidar": True}, {}, "planner.lidar is set but predict() takes no `context` parameter"),
     ({"lidar": True, "predict": lambda self, images, ego, cmd, context=None: None}, {"lidar": ""},
      "planner.lidar is set but 3 of 3 scored frames have no LIDAR_TOP sweep"),
