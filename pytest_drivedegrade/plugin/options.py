@@ -13,14 +13,15 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from ..constants import COMMAND_BLIND, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
+from ..constants import COMMAND_BLIND, COMMAND_SWAP, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
 
 if TYPE_CHECKING:
     from ..raypool import RayOptions
 
-EGO_FAMILIES = (EGO_NOISE, EGO_BLIND, COMMAND_BLIND)  # the input cells besides the cameras: ego status, command
+#: the input cells besides the cameras: ego status, command
+EGO_FAMILIES = (EGO_NOISE, EGO_BLIND, COMMAND_BLIND, COMMAND_SWAP)
 
 
 @dataclass(frozen=True)
@@ -42,8 +43,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic, evenly spaced subset of N "
                "frames (default: all scorable frames)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, the ego "
-               "cells ego_noise, ego_blind and the command cell command_blind (default: all sixteen, both ego cells "
-               "and command_blind; a list runs only what it names)",
+               "cells ego_noise, ego_blind and the command cells command_blind, command_swap (default: all sixteen, "
+               "both ego cells and both command cells; a list runs only what it names)",
                {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
                "all five)", {"metavar": "LIST"}),
