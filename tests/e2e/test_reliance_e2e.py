@@ -42,3 +42,26 @@ def test_plan_movement_beside_accuracy(dd, cameras, scale, label, says) -> None:
     assert 'alt="reliance profile chart"' in html
     if cameras:
         assert cert["axes"]["quality"] > 1.0 and cert["axes"]["removal"] > 1.0
+
+
+def test_the_command_swap_cell_runs_and_its_figure_reaches_every_output(dd) -> None:
+    """command_swap as a cell of the run: the small world has no frame where another command is meaningful, so
+    the figure is "not measured" (0 junction frames), said in the verdict, the certificate (verify agrees), the
+    cells.csv row, the JUnit properties and the profile's command line."""
+    from plugin_support import by_cell, read_csv
+
+    from pytest_drivedegrade.certificate.command_check import check_command
+
+    dd.write_planner()
+    result = dd.run("--junitxml=r.xml", families="jpeg,command_blind,command_swap", severities="5")
+    result.assert_outcomes(passed=6)
+    result.stdout.fnmatch_lines(["*command: plans*following not measured (no junction frame)*"])
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["command"] == {"cell": "command_swap", "following": None, "low": None, "high": None,
+                               "label": "undetermined", "frames": 0, "junction_frames": 0, "sums": []}
+    assert "Command: not measured" in cert["verdict"]["text"]
+    assert check_consistency(cert) == [] and check_command(cert) == []
+    row = by_cell(read_csv(dd.folder() / "cells.csv"))["command_swap"]
+    assert (row["junction_frames"], row["command_label"], row["command_following"]) == ("0", "undetermined", "")
+    suite, _ = junit(dd.pytester.path / "r.xml")
+    assert suite["drivedegrade_command_label"] == "undetermined" and suite["drivedegrade_command_junction_frames"] == "0"

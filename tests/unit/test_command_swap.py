@@ -145,3 +145,50 @@ def test_cells_csv_junit_and_the_profile_carry_the_figure() -> None:
     lines = profile_lines(res.reliance, res.axes, 0.95, None, res.command.following)
     assert lines[3].startswith("  command: not probed; following 0.900 [0.900 .. 0.900] over 24 junction frames "
                                "(command-following)")
+
+
+class _Recorder:
+    """A deterministic planner without reset that plans along the logged command's side and records each
+    command it is given."""
+
+    cameras = ("CAM_FRONT",)
+
+    def __init__(self) -> None:
+        self.commands: list[int] = []
+
+    def predict(self, images, ego, cmd):
+        self.commands.append(int(cmd))
+        return np.stack([np.arange(1, 7) * 1.0, np.full(6, float(int(cmd)))], axis=-1)
+
+
+def test_the_cell_gives_the_alternative_at_junction_frames_and_records_the_target(small_world, monkeypatch) -> None:
+    """On a real run: frames the lane map calls junctions (here every other frame, patched in: the small world has
+    none) get the alternative command and their record row the expert's change; the others the logged command,
+    NaN target. The same frames in two halves give the record of one run (shards, -n 2)."""
+    from pytest_drivedegrade.data.frame import Command
+    from pytest_drivedegrade.data.junctions import Alternative
+    from pytest_drivedegrade.run import RunContext
+    from pytest_drivedegrade.settings import RunSettings
+
+    context = RunContext.open(RunSettings(data=small_world, frames=6, timeout=0.0))
+    junction = {f.token for f in context.frames[::2]}
+
+    def alternative_of(frame):
+        if frame.token not in junction:
+            return None
+        other = Command.LEFT if frame.command != Command.LEFT else Command.RIGHT
+        return Alternative(other, np.asarray(frame.gt_future) + [0.0, 2.0])
+
+    monkeypatch.setattr(context, "alternative_of", alternative_of)
+    planner = _Recorder()
+    rec = context.run_cell(planner, "command_swap", 0)
+    logged = [int(f.command) for f in context.frames]
+    assert planner.commands == [(int(Command.LEFT) if c != int(Command.LEFT) else int(Command.RIGHT))
+                                if f.token in junction else c for f, c in zip(context.frames, logged)]
+    at = np.array([f.token in junction for f in context.frames])
+    np.testing.assert_allclose(rec.command_target[at], np.broadcast_to([0.0, 2.0], (at.sum(), 6, 2)))
+    assert np.isnan(rec.command_target[~at]).all()
+    halves = [context.run_cell(planner, "command_swap", 0, span=span) for span in ((0, 3), (3, 6))]
+    joined = CellRecord.concat(halves)
+    assert np.array_equal(joined.command_target, rec.command_target, equal_nan=True)
+    assert np.array_equal(joined.plans, rec.plans)
