@@ -64,4 +64,5 @@ def test_the_command_swap_cell_runs_and_its_figure_reaches_every_output(dd) -> N
     row = by_cell(read_csv(dd.folder() / "cells.csv"))["command_swap"]
     assert (row["junction_frames"], row["command_label"], row["command_following"]) == ("0", "undetermined", "")
     suite, _ = junit(dd.pytester.path / "r.xml")
-    assert suite["drivedegrade_command_label"] == "undetermined" and suite["drivedegrade_command_junction_frames"] == "0"
+    assert suite["drivedegrade_command_label"] == "undetermined"
+    assert suite["drivedegrade_command_junction_frames"] == "0"
