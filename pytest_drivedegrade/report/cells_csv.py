@@ -62,7 +62,7 @@ def cell_rows(analysis: RunAnalysis, provenance: Provenance) -> list[dict[str, s
     return [{col: _field(row.get(col)) for col in CSV_COLUMNS} for row in rows]
 
 
-def command_columns(analysis: RunAnalysis) -> dict[str, Any]:
+def command_columns(analysis: RunAnalysis) -> dict[str, object]:
     """The command_swap row's following columns (`columns.COMMAND`); none when the cell did not run."""
     if analysis.command is None:
         return {}
