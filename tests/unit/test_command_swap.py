@@ -192,3 +192,14 @@ def test_the_cell_gives_the_alternative_at_junction_frames_and_records_the_targe
     joined = CellRecord.concat(halves)
     assert np.array_equal(joined.command_target, rec.command_target, equal_nan=True)
     assert np.array_equal(joined.plans, rec.plans)
+
+
+def test_compare_shows_the_command_label_and_reads_a_spec_4_certificate_without_it() -> None:
+    from pytest_drivedegrade.certificate.compare import certificate_row
+
+    res = analyse_run(swap_run(follows), groups=GROUPS, n_resamples=100)
+    new = {"spec_version": "5.0.0", "command": res.command.to_builtins(), "verdict": {"label": "camera-reliant"}}
+    old = {"spec_version": "4.1.0", "verdict": {"label": "not-shown-to-use-cameras"}}
+    assert certificate_row(new)["command_label"] == "command-following"
+    assert certificate_row(new)["command_following"] == pytest.approx(0.9)
+    assert certificate_row(old)["command_label"] is None and certificate_row(old)["command_following"] is None
