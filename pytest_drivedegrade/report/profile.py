@@ -109,7 +109,8 @@ def profile_lines(reliance: Reliance | None, axes: Axes, flat: float, command: f
     out = []
     for row in profile_rows(reliance, axes, flat, command, following):
         if row["shift"] is None:
-            out.append(f"  {row['name']}: not probed{_following_words(row.get('following'))}")
+            gone = " (command_blind did not run)" if row.get("following") is not None else ""
+            out.append(f"  {row['name']}: not probed{gone}{_following_words(row.get('following'))}")
         else:
             out.append(f"  {row['name']}: plans {_annotation(row)}")
     return out
