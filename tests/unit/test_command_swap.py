@@ -143,8 +143,8 @@ def test_cells_csv_junit_and_the_profile_carry_the_figure() -> None:
     assert props["drivedegrade_command_following"] == pytest.approx(0.9, abs=1e-6)
     assert props["drivedegrade_command_junction_frames"] == 24
     lines = profile_lines(res.reliance, res.axes, 0.95, None, res.command.following)
-    assert lines[3].startswith("  command: not probed (command_blind did not run); following 0.900 [0.900 .. 0.900] over 24 junction frames "
-                               "(command-following)")
+    assert lines[3] == ("  command: not probed (command_blind did not run); following 0.900 [0.900 .. 0.900] "
+                        "over 24 junction frames (command-following)")
 
 
 class _Recorder:
