@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .constants import COMMAND_BLIND, EGO_BLIND, EGO_NOISE, HORIZON_STEPS
+from .constants import COMMAND_BLIND, COMMAND_SWAP, EGO_BLIND, EGO_NOISE, HORIZON_STEPS
 from .errors import InvalidInput
 from .metrics.trajectory import l2_avg
 
@@ -25,16 +25,18 @@ DIAGNOSTIC: tuple[str, ...] = ("clean", "null", "blind")
 #: The ego ladder (SPEC section 10): cells outside the camera axes that perturb (`ego_noise`, S1..S5) or zero
 #: (`ego_blind`, severity 0) the ego status and the context's CAN bus, the images left clean.
 EGO_FAMILIES: tuple[str, ...] = (EGO_NOISE, EGO_BLIND)
-#: The command cells (spec 5): the images and the ego status clean, the command replaced (`command_blind`).
-COMMAND_FAMILIES: tuple[str, ...] = (COMMAND_BLIND,)
+#: The command cells (spec 5): the images and the ego status clean, the command replaced (`command_blind`: the
+#: same command on every frame; `command_swap`: the alternative command at junction frames).
+COMMAND_FAMILIES: tuple[str, ...] = (COMMAND_BLIND, COMMAND_SWAP)
 #: Every cell of an input other than the cameras, in report order: the ego cells, then the command cells.
 INPUT_FAMILIES: tuple[str, ...] = (*EGO_FAMILIES, *COMMAND_FAMILIES)
 #: Version of the stored per-cell record: part of the run key, so a stored cell of an older record (no PDMS
 #: arrays) is recomputed rather than reused. 2: per-frame PDMS and sub-scores; the ego cells. 3: data faults
 #: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
 #: 5: the tracker's velocity fit as NAVSIM's code does it (spec 4.2). 6: the EPDMS terms and NC/TTC's side rule as
-#: NAVSIM v2.2's code (issue 39).
-RECORD_VERSION = 6
+#: NAVSIM v2.2's code (issue 39). 7: ``command_target``, the expert's change of path at command_swap's junction
+#: frames (issue 40).
+RECORD_VERSION = 7
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The per-frame EPDMS arrays (spec 4.1, NAVSIM v2): its own terms (before the human filter) and the score; NaN
@@ -53,6 +55,9 @@ class FrameArray:
     dtype: str = "float64"
     flags: bool = False
     since: int = 1
+    #: left out of the builtins when every value is NaN (the record of a cell that never fills it keeps the
+    #: form it had before the array existed)
+    sparse: bool = False
 
     def empty(self, frames: int) -> np.ndarray:
         """Every frame NaN: the row of a frame not (yet) scored."""
@@ -78,6 +83,7 @@ FRAME_ARRAYS: tuple[FrameArray, ...] = (
     FrameArray("bit1", ()), *(FrameArray(k, (), since=2) for k in PDMS_FIELDS), FrameArray("map_scored", (), since=2),
     *(FrameArray(k, (), since=4) for k in EPDMS_FIELDS),
     FrameArray("collision", (HORIZON_STEPS,), flags=True), FrameArray("collision_vru", (HORIZON_STEPS,), flags=True),
+    FrameArray("command_target", (HORIZON_STEPS, 2), since=7, sparse=True),
 )
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
 #: that cell is the null control and is asserted bit-identical to clean too.
@@ -89,7 +95,7 @@ Property = tuple[str, "str | float | int"]
 
 def cell_id(family: str, severity: int) -> str:
     """The stable id of a cell: `clean`, `null`, `blind` or `<family>-s<severity>` (e.g. `jpeg-s3`)."""
-    return family if family in DIAGNOSTIC or family in (EGO_BLIND, COMMAND_BLIND) else f"{family}-s{int(severity)}"
+    return family if family in DIAGNOSTIC or family in (EGO_BLIND, *COMMAND_FAMILIES) else f"{family}-s{int(severity)}"
 
 
 def is_ego(family: str) -> bool:
@@ -111,10 +117,10 @@ def is_camera_ladder(family: str) -> bool:
 def run_order(families: Iterable[str], severities: Iterable[int], *,
               ego: Iterable[str] | bool = INPUT_FAMILIES) -> list[tuple[str, int]]:
     """(family, severity) of every cell in run order: clean first, the ladder, the ego cells (`ego_noise` at the
-    same severities, then `ego_blind`, then `command_blind`: those of `ego` that are asked for; ``ego=False`` for
-    none), blind, and the
-    null control last, so that under xdist the clean result is already stored when the null control and the
-    baseline gate compare against it, and no worker computes clean twice."""
+    same severities, then `ego_blind`, then `command_blind` and `command_swap`: those of `ego` that are asked
+    for; ``ego=False`` for none), blind, and the null control last, so that under xdist the clean result is
+    already stored when the null control and the baseline gate compare against it, and no worker computes clean
+    twice."""
     sev = list(severities)
     wanted = set(INPUT_FAMILIES if ego is True else () if ego is False else ego)
     ego_cells = [*((EGO_NOISE, s) for s in sev if EGO_NOISE in wanted),
@@ -232,6 +238,9 @@ class CellRecord:
     hc: np.ndarray = field(default_factory=_absent)
     ec: np.ndarray = field(default_factory=_absent)
     epdms: np.ndarray = field(default_factory=_absent)
+    #: command_swap's junction frames (record version 7): the privileged expert's path for the alternative command
+    #: minus the logged future, (F, 6, 2); NaN at every other frame and in every other cell
+    command_target: np.ndarray = field(default_factory=_absent)
     data_errors: list[str] = field(default_factory=list)
     reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
     #: --drivedegrade-adaptive: the units of the draw order this cell ran (a prefix; 0: a skipped severity) and
@@ -281,7 +290,8 @@ class CellRecord:
     def to_builtins(self) -> dict[str, Any]:
         """Plain lists / floats / ints / strs only: safe for xdist, JSON and ``user_properties``."""
         out: dict[str, Any] = {k: getattr(self, k) for k in ("cell", "family", "severity", "frames")}
-        out.update({a.name: a.to_builtins(self.array(a.name)) for a in FRAME_ARRAYS})
+        out.update({a.name: a.to_builtins(self.array(a.name)) for a in FRAME_ARRAYS
+                    if not (a.sparse and np.isnan(self.array(a.name)).all())})
         out["seconds"] = {str(k): float(v) for k, v in self.seconds.items()}
         out["errors"] = [str(e) for e in self.errors]
         out["data_errors"] = [str(e) for e in self.data_errors]

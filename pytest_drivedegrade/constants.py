@@ -44,6 +44,10 @@ EGO_NOISE, EGO_BLIND = "ego_noise", "ego_blind"
 #: The command cell (spec 5, issue 40), outside the camera axes: every frame given the same command (STRAIGHT, the
 #: lane-following command), so the command carries no information about the frame (cell id ``command_blind``).
 COMMAND_BLIND = "command_blind"
+#: The command-swap cell (spec 5, issue 40): at a frame where another command is meaningful (`data.junctions`) the
+#: planner is given that alternative command; elsewhere the logged one (cell id ``command_swap``). Its record
+#: keeps, per junction frame, the privileged expert's change of path for the alternative (``command_target``).
+COMMAND_SWAP = "command_swap"
 #: The confidence sequence adaptive cells stop on (`scoring.sequential.METHOD`): part of an adaptive run's key,
 #: so a changed stopping rule never reuses cells a former rule stopped.
 ADAPTIVE_METHOD = "betting"

@@ -24,6 +24,7 @@ from .corruptions.ladder import FAMILIES, SPEC_VERSION
 from .data.content import content_fingerprint
 from .data.context import FrameContext
 from .data.frame import Frame
+from .data.junctions import Alternative, alternative
 from .data.nuscenes import UNSCORED, NuScenesReader
 from .errors import DataError, DriveDegradeError
 from .metrics.pdms import EgoStates, PreparedFrame, tracked_experts
@@ -156,6 +157,7 @@ class RunContext:
     #: the run frames' experts tracked (`tracked_experts`), by the horizon scored (6 or 8 poses)
     _experts: dict[int, dict[str, EgoStates]] = field(default_factory=dict)
     _truth: dict[str, FrameTruth] = field(default_factory=dict)
+    _alternatives: dict[str, Alternative | None] = field(default_factory=dict)
 
     @classmethod
     def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
@@ -325,6 +327,14 @@ class RunContext:
         if found is None:
             found = self._truth[frame.token] = FrameTruth.of(frame)
         return found
+
+    def alternative_of(self, frame: Frame) -> Alternative | None:
+        """The frame's alternative command and the expert's path for it (`data.junctions.alternative`), or None
+        away from junctions; once per process."""
+        if frame.token not in self._alternatives:
+            self._alternatives[frame.token] = alternative(self.reader.lane_map(frame), frame.pose, frame.gt_future,
+                                                          frame.command)
+        return self._alternatives[frame.token]
 
     def run_cell(self, planner: AnyPlanner, family: str, severity: int, *, unread: tuple[str, ...] | None = None,
                  seed: int | None = None, span: Span | None = None, clean: CellRecord | None = None,

@@ -17,9 +17,10 @@ from typing import Protocol
 import numpy as np
 
 from .cells import REAR_BLACKOUT_SEVERITY, CellRecord, RecordBuilder, cell_id, is_ego
-from .constants import CAMERAS, HORIZON_STEPS
+from .constants import CAMERAS, COMMAND_SWAP, HORIZON_STEPS
 from .data.context import FrameContext
 from .data.frame import Command, EgoStatus, Frame
+from .data.junctions import Alternative
 from .errors import DataError, DriveDegradeError, PlannerOutputError
 from .loader import CellSample, ahead, may_equal_clean, samples
 from .metrics.pdms import PreparedFrame
@@ -55,6 +56,8 @@ class Source(Protocol):
     def pdms_frame(self, frame: Frame, poses: int = ...) -> PreparedFrame: ...
 
     def frame_truth(self, frame: Frame) -> FrameTruth: ...
+
+    def alternative_of(self, frame: Frame) -> Alternative | None: ...
 
 
 #: The reuse control: the second reused frame of a cell (the first with a skipped call before it, where a planner
@@ -192,7 +195,7 @@ def _predict_batch(source: Source, planner: Planner, batch: list[CellSample]) ->
     try:
         with _calling(batch), time_limit(source.settings.timeout * len(batch)):
             call = getattr(planner, "predict_batch")  # noqa: B009 - optional: not in the Planner protocol
-            raw = call([s.view for s in batch], egos, [command_of(s) for s in batch], contexts)
+            raw = call([s.view for s in batch], egos, [command_of(s, source) for s in batch], contexts)
         raw = to_numpy(raw)
         if len(raw) != len(batch):
             raise PlannerOutputError(f"predict_batch() returned {len(raw)} plans for {len(batch)} frames")
@@ -223,18 +226,21 @@ def _inputs(source: Source, sample: CellSample, style: CallStyle) -> tuple[EgoSt
     return ego, context
 
 
-def command_of(sample: CellSample) -> Command:
+def command_of(sample: CellSample, source: Source) -> Command:
     """The command the planner is given: the frame's, or in the command cells the one the cell gives
-    (`corruptions.command.command_for`)."""
+    (`corruptions.command.command_for`; command_swap: the frame's alternative, `Source.alternative_of`)."""
     from .corruptions.command import command_for
 
+    if sample.family == COMMAND_SWAP:
+        alt = source.alternative_of(sample.frame)
+        return sample.frame.command if alt is None else alt.command
     return command_for(sample.frame.command, sample.family)
 
 
 def _predict(source: Source, planner: Planner, sample: CellSample, style: CallStyle) -> np.ndarray | str:
     frame = sample.frame
     ego, context = _inputs(source, sample, style)
-    command = command_of(sample)
+    command = command_of(sample, source)
     predict: Callable[..., object] = planner.predict
     try:
         with _calling([sample]), time_limit(source.settings.timeout):
@@ -331,6 +337,10 @@ def _score(source: Source, rows: RecordBuilder, i: int, sample: CellSample, plan
     m = frame_metrics(plan[:HORIZON_STEPS], sample.frame, source.frame_truth(sample.frame))  # L2: nuScenes' 3 s
     rows.put(i, plans=plan, l2=m["l2"], collision=m["collision"], collision_vru=m["collision_vru"], jerk=m["jerk"],
              bit1=bit1_density(sample.delivered) if sample.delivered else np.nan)
+    if sample.family == COMMAND_SWAP:  # what the following measure needs: the expert's change of path
+        alt = source.alternative_of(sample.frame)
+        if alt is not None:
+            rows.put(i, command_target=alt.path - np.asarray(sample.frame.gt_future, dtype=np.float64))
     clock.scoring["metrics"] += time.perf_counter() - start
 
 

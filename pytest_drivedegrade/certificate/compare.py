@@ -71,6 +71,9 @@ def certificate_row(cert: Mapping[str, Any], source: str = "") -> dict[str, obje
         "interval_basis": interval_basis(cert),
         # spec 5's plan movement: a certificate without it had its label read on accuracy alone
         "plan_movement": "recorded" if isinstance(cert.get("reliance"), Mapping) else "not recorded",
+        # spec 5's command_swap figure: empty for a certificate without it (spec 4, or no command_swap cell)
+        "command_following": _section(cert, "command").get("following"),
+        "command_label": _section(cert, "command").get("label"),
     }
     for fam, entry in sorted(_section(cert, "thresholds").items()):
         row.update((f"{fam}_{key}", t.value) for key, t in FamilyThresholds.from_builtins(entry).levels.items())

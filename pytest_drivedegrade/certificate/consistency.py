@@ -303,7 +303,9 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
 
     if isinstance(cert.get("axes_epdms"), Mapping) and any("epdms_retention" in c for c in cells):
         problems += check_axes(cert["axes_epdms"], cells, "epdms_retention", "axes_epdms", groups)
-    return problems + check_verdict(cert, cells, groups) + check_closed_loop(cert)
+    from .command_check import check_command  # the command-following figure (spec 5), from its stored sums
+
+    return problems + check_verdict(cert, cells, groups) + check_command(cert) + check_closed_loop(cert)
 
 
 def incompleteness(cert: Mapping[str, Any]) -> str | None:

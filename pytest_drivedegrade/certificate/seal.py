@@ -189,6 +189,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
                                                    "epdms_unscored": epdms_unscored(analysis)}),
         "floor": analysis.floor.to_builtins(),
         **({} if analysis.reliance is None else {"reliance": analysis.reliance.to_builtins()}),
+        **({} if analysis.command is None else {"command": analysis.command.to_builtins()}),
         "null_control": null_control_section(analysis.null_control),
         "verdict": analysis.verdict.to_builtins(),
         "settings": {**analysis.settings, "seed": provenance.seed, "timeout": provenance.timeout},

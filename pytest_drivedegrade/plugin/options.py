@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from ..constants import COMMAND_BLIND, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
+from ..constants import COMMAND_BLIND, COMMAND_SWAP, DEFAULT_FLAT, DEFAULT_TOLERANCE, EGO_BLIND, EGO_NOISE
 from ..errors import DriveDegradeError
 from ..settings import DEFAULTS, RunSettings, Shard
 from .pathcheck import check_utf8_paths
@@ -21,7 +21,8 @@ from .pathcheck import check_utf8_paths
 if TYPE_CHECKING:
     from ..raypool import RayOptions
 
-EGO_FAMILIES = (EGO_NOISE, EGO_BLIND, COMMAND_BLIND)  # the input cells besides the cameras: ego status, command
+#: the input cells besides the cameras: ego status, command
+EGO_FAMILIES = (EGO_NOISE, EGO_BLIND, COMMAND_BLIND, COMMAND_SWAP)
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "scene's middle contiguous run, scenes sharing N by their frame counts (default: all scorable "
                "frames); a subset's intervals speak for those frames, not for the full run's", {"metavar": "N"}),
     OptionSpec("--drivedegrade-families", "drivedegrade_families", "comma-separated ladder families, the ego "
-               "cells ego_noise, ego_blind and the command cell command_blind (default: all sixteen, both ego cells "
-               "and command_blind; a list runs only what it names)",
+               "cells ego_noise, ego_blind and the command cells command_blind, command_swap (default: all sixteen, "
+               "both ego cells and both command cells; a list runs only what it names)",
                {"metavar": "LIST"}),
     OptionSpec("--drivedegrade-severities", "drivedegrade_severities", "comma-separated severities 1..5 (default: "
                "all five)", {"metavar": "LIST"}),

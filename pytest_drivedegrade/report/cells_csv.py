@@ -16,6 +16,7 @@ from typing import Any
 
 from ..atomic import atomic_write_text
 from ..certificate.seal import DIGITS, Provenance
+from ..constants import COMMAND_SWAP
 from ..scoring.records import RunAnalysis
 from .columns import CSV as CSV_COLUMNS
 
@@ -55,8 +56,19 @@ def cell_rows(analysis: RunAnalysis, provenance: Provenance) -> list[dict[str, s
              "dataset_fingerprint": provenance.dataset_fingerprint, "split": provenance.split,
              "spec_version": provenance.spec_version, "seed": provenance.seed,
              "convention": analysis.settings.get("convention", "")}
-    rows = ({**s.flat(), **extra} for s in analysis.summaries)  # each summary flattened once, not per column
+    command = command_columns(analysis)
+    rows = ({**s.flat(), **extra, **(command if s.cell == COMMAND_SWAP else {})}  # each summary flattened once
+            for s in analysis.summaries)
     return [{col: _field(row.get(col)) for col in CSV_COLUMNS} for row in rows]
+
+
+def command_columns(analysis: RunAnalysis) -> dict[str, object]:
+    """The command_swap row's following columns (`columns.COMMAND`); none when the cell did not run."""
+    if analysis.command is None:
+        return {}
+    f = analysis.command.following
+    return {"command_following": f.value, "command_following_ci_low": f.low, "command_following_ci_high": f.high,
+            "command_label": f.label, "command_frames": f.frames, "junction_frames": analysis.command.junction_frames}
 
 
 def cells_csv_text(analysis: RunAnalysis, provenance: Provenance) -> str:

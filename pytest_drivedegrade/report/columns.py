@@ -10,7 +10,7 @@ from __future__ import annotations
 from ..certificate.fields import EPDMS, EXTRA, IDENTITY, PDMS, STABLE, per_horizon
 from ..metrics.trajectory import CONVENTIONS
 
-__all__ = ["CSV", "EPDMS", "EXTRA", "HORIZONS", "IDENTITY", "L2_AVG", "PDMS", "PROVENANCE", "STABLE",
+__all__ = ["COMMAND", "CSV", "EPDMS", "EXTRA", "HORIZONS", "IDENTITY", "L2_AVG", "PDMS", "PROVENANCE", "STABLE",
            "TESTCASE", "per_horizon"]
 
 #: Mean L2 over the three horizons in each convention (``l2_avg`` is the stp3 one).
@@ -22,8 +22,12 @@ HORIZONS: tuple[str, ...] = tuple(name for kind in ("l2", "collision", "vru") fo
 PROVENANCE: tuple[str, ...] = ("planner", "planner_fingerprint", "dataset_fingerprint", "split", "spec_version",
                                "seed", "convention")
 
+#: The command_swap cell's following figure (spec 5, issue 40), on its row of cells.csv only (empty on every other
+#: row): the figure, its 95 % interval, the label, the frames scored and the junction frames (an alternative given).
+COMMAND: tuple[str, ...] = ("command_following", "command_following_ci_low", "command_following_ci_high",
+                            "command_label", "command_frames", "junction_frames")
 #: cells.csv, in this order.
-CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *EPDMS, *PROVENANCE)
+CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *EPDMS, *PROVENANCE, *COMMAND)
 #: JUnit testcase properties of a cell item, known as soon as the cell ran (no retention yet: clean may run on
 #: another worker).
 TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "data_errors", "l2_avg", *per_horizon("l2", "stp3"),

@@ -70,6 +70,11 @@ def suite_properties(analysis: RunAnalysis) -> list[tuple[str, str | float | int
         for name in RELIANCE_INPUTS:
             got = analysis.reliance.of(name)
             out += [(f"reliance_{name}_shift", got.shift), (f"reliance_{name}_moves", got.moves)]
+    if analysis.command is not None:  # the command_swap cell's following figure (spec 5)
+        f = analysis.command.following
+        out += [("command_following", f.value), ("command_following_ci_low", f.low),
+                ("command_following_ci_high", f.high), ("command_label", f.label), ("command_frames", f.frames),
+                ("command_junction_frames", analysis.command.junction_frames)]
     for fam, t in sorted(analysis.thresholds.items()):
         out += [(f"threshold_{fam}_{key}", x.value) for key, x in t.levels.items()]
     return [(SUITE_PREFIX + name, plain(value)) for name, value in out]

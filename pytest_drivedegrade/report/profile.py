@@ -11,6 +11,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 from ..constants import COMMAND_BLIND
+from ..scoring.command import Following
 from ..scoring.records import Axes, CellSummary, format_value
 from ..scoring.reliance import INPUT_NAMES, RELIANCE_INPUTS, Reliance, gains
 
@@ -26,10 +27,11 @@ def command_retention(summaries: Sequence[CellSummary]) -> float | None:
     return next((s.retention for s in summaries if s.cell == COMMAND_BLIND), None)
 
 
-def profile_rows(reliance: Reliance, axes: Axes, flat: float,
-                 command: float | None = None) -> list[dict[str, object]]:
-    """One row per input: name, shift (m, None: not probed), moves, retention (the command's: `command`) and what
-    accuracy did ("falls", "holds", "rises" beyond its interval, "n/a")."""
+def profile_rows(reliance: Reliance, axes: Axes, flat: float, command: float | None = None,
+                 following: Following | None = None) -> list[dict[str, object]]:
+    """One row per input: name, shift (m, None: not probed), moves, retention (the command's: `command`), what
+    accuracy did ("falls", "holds", "rises" beyond its interval, "n/a") and, for the command, whether the plan
+    goes where the command says (`following`: command_swap's figure; None when that cell did not run)."""
     rows: list[dict[str, object]] = []
     for name in RELIANCE_INPUTS:
         got, axis = reliance.of(name), ACCURACY_AXIS[name]
@@ -41,18 +43,19 @@ def profile_rows(reliance: Reliance, axes: Axes, flat: float,
         else:
             accuracy = "rises" if axis in ("quality", "removal") and gains(axes, axis) else "holds"
         rows.append({"input": name, "name": INPUT_NAMES[name], "shift": got.shift, "moves": got.moves,
-                     "cells": len(got.cells), "moved": len(got.moved), "retention": value, "accuracy": accuracy})
+                     "cells": len(got.cells), "moved": len(got.moved), "retention": value, "accuracy": accuracy,
+                     "following": following if name == "command" else None})
     return rows
 
 
 def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, planner: str,
-                     command: float | None = None) -> str | None:
+                     command: float | None = None, following: Following | None = None) -> str | None:
     """The profile chart as a data URI; None without a reliance (a certificate of spec 4)."""
     if reliance is None:
         return None
     from .plots import INK, MUTED, _figure, _label, _style, to_data_uri
 
-    rows = profile_rows(reliance, axes, flat, command)
+    rows = profile_rows(reliance, axes, flat, command, following)
     fig = _figure(6.4, 2.9)
     ax = fig.add_subplot(1, 1, 1)
     _style(ax)
@@ -63,7 +66,8 @@ def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, plan
     for y, row in enumerate(rows):
         shift = row["shift"]
         if not isinstance(shift, float):
-            ax.text(BASE * 1.1, y, "not probed (no cell ran)", va="center", fontsize=8, color=MUTED)
+            ax.text(BASE * 1.1, y, "not probed (no cell ran)" + _following_words(row.get("following")), va="center",
+                    fontsize=8, color=MUTED)
             continue
         if shift > BASE:
             ax.barh([y], [shift - BASE], left=BASE, color=colours[str(row["accuracy"])], height=0.6)
@@ -84,17 +88,29 @@ def reliance_profile(reliance: Reliance | None, axes: Axes, flat: float, *, plan
 def _annotation(row: Mapping[str, object]) -> str:
     moved = "moves" if row["moves"] else "within the null"
     return (f"{format_value(row['shift'], 2)} m, {moved}; retention {format_value(row['retention'])} "
-            f"({row['accuracy']})")
+            f"({row['accuracy']}){_following_words(row.get('following'))}")
 
 
-def profile_lines(reliance: Reliance | None, axes: Axes, flat: float, command: float | None = None) -> Sequence[str]:
+def _following_words(got: object) -> str:
+    """The command bar's following figure (command_swap), or nothing when that cell did not run."""
+    if not isinstance(got, Following):
+        return ""
+    if got.value is None:
+        return "; following not measured (no junction frame)"
+    spread = "" if got.low is None else f" [{format_value(got.low)} .. {format_value(got.high)}]"
+    return f"; following {format_value(got.value)}{spread} over {got.frames} junction frames ({got.label})"
+
+
+def profile_lines(reliance: Reliance | None, axes: Axes, flat: float, command: float | None = None,
+                  following: Following | None = None) -> Sequence[str]:
     """The profile as terminal lines (one per input)."""
     if reliance is None:
         return []
     out = []
-    for row in profile_rows(reliance, axes, flat, command):
+    for row in profile_rows(reliance, axes, flat, command, following):
         if row["shift"] is None:
-            out.append(f"  {row['name']}: not probed")
+            gone = " (command_blind did not run)" if row.get("following") is not None else ""
+            out.append(f"  {row['name']}: not probed{gone}{_following_words(row.get('following'))}")
         else:
             out.append(f"  {row['name']}: plans {_annotation(row)}")
     return out

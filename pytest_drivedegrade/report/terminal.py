@@ -92,7 +92,8 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
         from .profile import command_retention, profile_lines
 
         lines += ["reliance profile (plan movement against the null's wander, and accuracy):",
-                  *profile_lines(analysis.reliance, ax, analysis.verdict.flat, command_retention(analysis.summaries))]
+                  *profile_lines(analysis.reliance, ax, analysis.verdict.flat, command_retention(analysis.summaries),
+                                None if analysis.command is None else analysis.command.following)]
     return lines
 
 

@@ -12,9 +12,10 @@ from dataclasses import replace
 from typing import Any
 
 from ..cells import DIAGNOSTIC, CellRecord, is_camera_ladder
-from ..constants import DEFAULT_FLAT, DEFAULT_TOLERANCE
+from ..constants import COMMAND_SWAP, DEFAULT_FLAT, DEFAULT_TOLERANCE
 from ..errors import InvalidInput
 from . import intervals as iv
+from .command import CommandProbe, swap_probe
 from .records import Axes, CellSummary, FamilyThresholds, NullControl, RunAnalysis, Threshold, Verdict, report_order
 from .reliance import Reliance, read_movement, run_movement
 from .retention import DEFAULT_RESAMPLES, THRESHOLD_LEVELS, summarise_cell, thresholds
@@ -88,11 +89,22 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
+    probe = command_probe(by_cell, seed=seed, n_resamples=n_resamples if intervals else 0)
+    v = v if probe is None else replace(v, text=f"{v.text} {probe.following.text()}")
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res, basis=basis),
-                       axes_pdms=ax_pdms, axes_epdms=ax_epdms, reliance=moved)
+                       axes_pdms=ax_pdms, axes_epdms=ax_epdms, reliance=moved, command=probe)
+
+
+def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int) -> CommandProbe | None:
+    """The command_swap cell's following figure against clean (`scoring.command.swap_probe`); None when the cell
+    did not run. Frames away from junctions are not scored."""
+    swap = by_cell.get(COMMAND_SWAP)
+    if swap is None:
+        return None
+    return swap_probe(by_cell["clean"].plans, swap.plans, swap.command_target, n_resamples=n_resamples, seed=seed)
 
 
 def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:

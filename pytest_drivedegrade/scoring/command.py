@@ -83,6 +83,13 @@ def following(p0: np.ndarray, p1: np.ndarray, logged: np.ndarray, target: np.nda
     """The command-following figure of a planner's plans at the scored frames (each (F, steps, 2)); frames whose
     plans are not finite in both drop out."""
     num, den = frame_sums(p0, p1, logged, target)
+    return from_sums(num, den, n_resamples=n_resamples, seed=seed)
+
+
+def from_sums(num: np.ndarray, den: np.ndarray, *, n_resamples: int = 1000, seed: int = 0) -> Following:
+    """The figure, its interval and label from each frame's two sums (`frame_sums`); a frame whose sums are not
+    finite, or whose manoeuvres do not part (den 0), drops out."""
+    num, den = np.asarray(num, np.float64), np.asarray(den, np.float64)
     ok = np.isfinite(num) & np.isfinite(den) & (den > 0)
     num, den = num[ok], den[ok]
     if not num.size:
@@ -94,3 +101,43 @@ def following(p0: np.ndarray, p1: np.ndarray, logged: np.ndarray, target: np.nda
         ratios = num[idx].sum(axis=1) / den[idx].sum(axis=1)
         low, high = (float(v) for v in np.percentile(ratios, [2.5, 97.5]))
     return Following(value, low, high, int(num.size), command_label(low, high, value))
+
+
+@dataclass(frozen=True)
+class CommandProbe:
+    """The command_swap cell read by the following measure: the figure (`Following`), how many of the run's
+    frames are junction frames (an alternative command was given), and each scored frame's two sums rounded to
+    `SUM_DIGITS` decimals (``num``, ``den``): the figure is computed from exactly what the certificate stores, so
+    ``drivedegrade verify`` recomputes it bit for bit."""
+
+    following: Following
+    junction_frames: int
+    num: tuple[float, ...]
+    den: tuple[float, ...]
+
+    def to_builtins(self) -> dict[str, object]:
+        """The certificate's ``command`` section."""
+        f = self.following
+        return {"cell": "command_swap", "following": f.value, "low": f.low, "high": f.high, "label": f.label,
+                "frames": f.frames, "junction_frames": self.junction_frames,
+                "sums": [[n, d] for n, d in zip(self.num, self.den)]}
+
+
+#: The decimals each frame's sums are kept to (the certificate's precision).
+SUM_DIGITS = 6
+
+
+def swap_probe(clean_plans: np.ndarray, swap_plans: np.ndarray, target: np.ndarray, *, n_resamples: int,
+               seed: int) -> CommandProbe:
+    """The following figure of a run from its clean plans (under the logged command), command_swap's plans (the
+    alternative at junction frames) and command_swap's ``command_target`` (the expert's change of path; NaN away
+    from junctions: those frames are not scored), each (F, 6, 2)."""
+    target = np.asarray(target, np.float64)
+    junction = np.isfinite(target).reshape(len(target), -1).all(axis=1)
+    zero = np.zeros_like(target[junction])
+    num, den = frame_sums(np.asarray(clean_plans)[junction], np.asarray(swap_plans)[junction], zero, target[junction])
+    ok = np.isfinite(num) & np.isfinite(den) & (den > 0)
+    nums = tuple(round(float(v), SUM_DIGITS) + 0.0 for v in num[ok])
+    dens = tuple(round(float(v), SUM_DIGITS) + 0.0 for v in den[ok])
+    got = from_sums(np.array(nums), np.array(dens), n_resamples=n_resamples, seed=seed)
+    return CommandProbe(got, int(junction.sum()), nums, dens)

@@ -17,6 +17,7 @@ from ..constants import REPORT_HORIZONS_S
 from ..metrics.trajectory import CONVENTIONS, at_horizons
 
 if TYPE_CHECKING:
+    from .command import CommandProbe
     from .reliance import Reliance
 
 
@@ -311,6 +312,7 @@ class RunAnalysis:
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
     axes_epdms: Axes | None = None  #: the axes on EPDMS retention (spec 4.1)
     reliance: Reliance | None = None  #: each input's plan movement (spec 5, issue 40)
+    command: CommandProbe | None = None  #: the command_swap cell's following figure (spec 5, issue 40)
 
     def to_builtins(self) -> Builtins:
         return {"summaries": [s.flat() for s in self.summaries],
@@ -320,7 +322,8 @@ class RunAnalysis:
                 "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
                 "axes_pdms": self.axes_pdms.to_builtins(),
                 **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()}),
-                **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()})}
+                **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()}),
+                **({} if self.command is None else {"command": self.command.to_builtins()})}
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""

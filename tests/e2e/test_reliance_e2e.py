@@ -42,3 +42,89 @@ def test_plan_movement_beside_accuracy(dd, cameras, scale, label, says) -> None:
     assert 'alt="reliance profile chart"' in html
     if cameras:
         assert cert["axes"]["quality"] > 1.0 and cert["axes"]["removal"] > 1.0
+
+
+def test_the_command_swap_cell_runs_and_its_figure_reaches_every_output(dd) -> None:
+    """command_swap as a cell of the run: the small world has no frame where another command is meaningful, so
+    the figure is "not measured" (0 junction frames), said in the verdict, the certificate (verify agrees), the
+    cells.csv row, the JUnit properties and the profile's command line."""
+    from plugin_support import by_cell, read_csv
+
+    from pytest_drivedegrade.certificate.command_check import check_command
+
+    dd.write_planner()
+    result = dd.run("--junitxml=r.xml", families="jpeg,command_blind,command_swap", severities="5")
+    result.assert_outcomes(passed=6)
+    result.stdout.fnmatch_lines(["*command: plans*following not measured (no junction frame)*"])
+    cert = load_json(dd.folder() / "certificate.json")
+    assert cert["command"] == {"cell": "command_swap", "following": None, "low": None, "high": None,
+                               "label": "undetermined", "frames": 0, "junction_frames": 0, "sums": []}
+    assert "Command: not measured" in cert["verdict"]["text"]
+    assert check_consistency(cert) == [] and check_command(cert) == []
+    row = by_cell(read_csv(dd.folder() / "cells.csv"))["command_swap"]
+    assert (row["junction_frames"], row["command_label"], row["command_following"]) == ("0", "undetermined", "")
+    suite, _ = junit(dd.pytester.path / "r.xml")
+    assert suite["drivedegrade_command_label"] == "undetermined"
+    assert suite["drivedegrade_command_junction_frames"] == "0"
+
+
+COMMAND_PLANNER = '''
+import numpy as np
+import pytest
+
+
+class CommandPlanner:
+    """Reads no camera; plans the logged future plus 0.5 m. `follows`: told a command other than the logged one,
+    it plans the privileged expert's path for it (test-only bookkeeping: the logged future, command and the lane
+    map's alternative are read from the data set by the planner itself; the suite hands it none of them)."""
+
+    cameras = ()
+    name = "cmdplanner"
+    deterministic = True
+
+    def __init__(self, root, split, follows):
+        self.root, self.split, self.follows, self.truth = root, split, follows, None
+
+    def frame_truth(self, token):
+        if self.truth is None:
+            from pytest_drivedegrade.data.junctions import alternative
+            from pytest_drivedegrade.data.nuscenes import NuScenesReader
+
+            reader = NuScenesReader(self.root, split=self.split)
+            self.truth = {{f.token: (f.gt_future, int(f.command), alternative(reader.lane_map(f), f.pose,
+                                                                               f.gt_future, f.command))
+                          for f in reader.scorable_frames(agents=False)}}
+        return self.truth[token]
+
+    def predict(self, images, ego, cmd, context):
+        future, logged, alt = self.frame_truth(context.token)
+        if self.follows and int(cmd) != logged and alt is not None and int(cmd) == int(alt.command):
+            return np.array(alt.path, dtype=float) + [0.5, 0.0]
+        return np.array(future, dtype=float) + [0.5, 0.0]
+
+
+@pytest.fixture(scope="session")
+def planner(request):
+    return CommandPlanner(request.config.getoption("drivedegrade_data"),
+                          request.config.getoption("drivedegrade_split") or "val", {follows!r})
+'''
+
+
+@pytest.mark.parametrize("follows, label, value", [(False, "command-insensitive", 0.0),
+                                                   (True, "command-following", 1.0)])
+def test_hidden_behaviour_planners_get_their_command_label_on_real_junction_frames(dd, two_scene_world, follows,
+                                                                                     label, value) -> None:
+    """The 11-scene world (seed 1) has 4 val frames where another command is meaningful: a planner that ignores
+    the command scores 0 with the interval [0, 0], one that plans the expert's path when told the other command
+    scores 1 with [1, 1]: each interval excludes the other label, and verify recomputes both."""
+    dd.pytester.makepyfile(cmdplanner=COMMAND_PLANNER.format(follows=follows))
+    args = [a if a != "4" else "68" for a in dd.args(planner="cmdplanner.py", families="command_swap",
+                                                       severities="5", data=two_scene_world)]
+    result = dd.pytester.runpytest_inprocess(*args)
+    result.stdout.fnmatch_lines([f"*command: *following {value:.3f} [[]{value:.3f} .. {value:.3f}[]] over 4 "
+                                 f"junction frames ({label})*"])
+    cert = load_json(dd.folder("cmdplanner") / "certificate.json")
+    got = cert["command"]
+    assert (got["label"], got["following"], got["low"], got["high"]) == (label, value, value, value)
+    assert got["frames"] == got["junction_frames"] == 4 and len(got["sums"]) == 4
+    assert check_consistency(cert) == []

@@ -29,13 +29,13 @@ def test_adaptive_shards_own_disjoint_whole_families_covering_the_run(count):
     for family in ("jpeg", "fog", "blackout", "ego_noise"):
         holders = [i for i, part in enumerate(owned) if any(f == family for f, _ in part)]
         assert len(holders) == 1, family  # a family's schedule runs in one shard
-    # clean+blind+null, 3 ladder, ego_noise, ego_blind, command_blind (issue 40)
-    assert [len(g) for g in adaptive_groups(CELLS)] == [3, 5, 5, 5, 5, 1, 1]
+    # clean+blind+null, 3 ladder, ego_noise, ego_blind, command_blind, command_swap (issue 40)
+    assert [len(g) for g in adaptive_groups(CELLS)] == [3, 5, 5, 5, 5, 1, 1, 1]
 
 
 def test_more_adaptive_shards_than_groups_is_refused():
-    with pytest.raises(DriveDegradeError, match="has 7 group.*use at most 7 shards"):
-        adaptive_owned(CELLS, Shard(1, 8))
+    with pytest.raises(DriveDegradeError, match="has 8 group.*use at most 8 shards"):
+        adaptive_owned(CELLS, Shard(1, 9))
 
 
 @settings(max_examples=40, deadline=None)

@@ -81,8 +81,8 @@ BUS = np.arange(18, dtype=float)
 
 def test_ego_cells_follow_the_ladder_and_stay_outside_the_camera_axes():
     order = [cell_id(f, s) for f, s in run_order(["jpeg"], [1, 2, 3, 4, 5])]
-    assert order[-9:] == ["ego_noise-s1", "ego_noise-s2", "ego_noise-s3", "ego_noise-s4", "ego_noise-s5",
-                          "ego_blind", "command_blind", "blind", "null"]  # command_blind: issue 40
+    assert order[-10:] == ["ego_noise-s1", "ego_noise-s2", "ego_noise-s3", "ego_noise-s4", "ego_noise-s5",
+                           "ego_blind", "command_blind", "command_swap", "blind", "null"]  # command cells: issue 40
     assert is_ego("ego_noise") and is_ego("ego_blind") and not is_ego("blind")
 
 

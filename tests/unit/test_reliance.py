@@ -207,5 +207,5 @@ def test_command_blind_gives_every_frame_the_constant_command_and_runs_after_the
         [c for c in Command for _ in range(3)]
     assert cell_id("command_blind", 0) == "command_blind" and is_input("command_blind")
     assert not is_camera_ladder("command_blind")
-    assert run_order(["fog"], [5])[-3:] == [("command_blind", 0), ("blind", 0), ("null", 0)]
+    assert run_order(["fog"], [5])[-4:] == [("command_blind", 0), ("command_swap", 0), ("blind", 0), ("null", 0)]
     assert ("command_blind", 0) not in run_order(["fog"], [5], ego=("ego_noise", "ego_blind"))

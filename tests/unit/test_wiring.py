@@ -95,8 +95,8 @@ def test_bad_option_is_a_usage_error_naming_it(tmp_path, dest, raw, message):
 
 def test_cell_ids_and_run_order():
     assert [cell_id(f, s) for f, s in run_order(["jpeg", "fog"], [1, 5])] == \
-        ["clean", "jpeg-s1", "jpeg-s5", "fog-s1", "fog-s5", "ego_noise-s1", "ego_noise-s5", "ego_blind", "blind",
-         "null"]
+        ["clean", "jpeg-s1", "jpeg-s5", "fog-s1", "fog-s5", "ego_noise-s1", "ego_noise-s5", "ego_blind",
+         "command_blind", "command_swap", "blind", "null"]
     assert [cell_id(f, s) for f, s in run_order(["jpeg"], [1], ego=False)] == ["clean", "jpeg-s1", "blind", "null"]
     assert sorted(["ego_blind", "fog-s1", "null", "ego_noise-s2", "jpeg-s5", "clean", "blind", "jpeg-s1"],
                   key=lambda c: report_order(*(c.split("-s")[0], int(c.split("-s")[1])) if "-s" in c else (c, 0),
