@@ -118,7 +118,11 @@ def test_k_selects_cells_and_the_store_supplies_the_rest(dd):
     assert len(read_csv(dd.folder() / "cells.csv")) == 9
 
 
-@pytest.mark.parametrize("cameras, label", [((), "not-shown-to-use-cameras"), (("CAM_FRONT",), "camera-reliant")])
+#: Without cameras the test planner is an oracle (ground truth + 0.5 m): blind equals clean and beats the ego-only
+#: floor, the memo check's case. On 4 frames that gap is not significant, which cleared it as
+#: not-shown-to-use-cameras before issue 37; the ego-only planner's not-shown-to-use-cameras is tested in
+#: test_plugin_pdms_ego.py.
+@pytest.mark.parametrize("cameras, label", [((), "undetermined"), (("CAM_FRONT",), "camera-reliant")])
 def test_verdict(dd, cameras, label):
     dd.write_planner(cameras=cameras)
     result = dd.run("--junitxml=verdict.xml", families=AXIS_FAMILIES, severities="5")
