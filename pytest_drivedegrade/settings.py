@@ -101,6 +101,7 @@ class RunSettings:
     closed_routes: int | None = None  #: the first N routes only (None: every route)
     closed_steps: int | None = None  #: at most N planner calls per run (None: to the route's end)
     closed_agents: str = "log"  #: the other agents: log (replayed) or reactive (IDM along their paths)
+    closed_collisions: str = "all"  #: which collisions the DS counts: all (the leaderboard) or at_fault (NAVSIM)
 
     @property
     def data_source(self) -> str:
@@ -297,7 +298,8 @@ TABLE: tuple[Setting, ...] = (
         ("closed_hz", "closed-loop plan rate", "--drivedegrade-closed-hz"),
         ("closed_routes", "closed-loop routes", "--drivedegrade-closed-routes"),
         ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"),
-        ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"))),
+        ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"),
+        ("closed_collisions", "closed-loop collisions", "--drivedegrade-closed-collisions"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 

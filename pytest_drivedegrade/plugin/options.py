@@ -120,6 +120,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-closed-agents", "drivedegrade_closed_agents", "the other road users of the closed "
                "loop: log (default: they replay their logs) or reactive (they follow their logged paths and brake "
                "for the ego by IDM)", {"metavar": "log|reactive"}),
+    OptionSpec("--drivedegrade-closed-collisions", "drivedegrade_closed_collisions", "which collisions the "
+               "closed-loop Driving Score counts: all (default: every collision, as the CARLA leaderboard) or "
+               "at_fault (NAVSIM's rule: only those the ego is at fault for)", {"metavar": "all|at_fault"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
@@ -334,7 +337,17 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
                    closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None),
-                   closed_agents=_agents(config))
+                   closed_agents=_agents(config), closed_collisions=_collisions(config))
+
+
+def _collisions(config: pytest.Config) -> str:
+    """--drivedegrade-closed-collisions, checked: all or at_fault."""
+    from ..closedloop.leaderboard import COLLISION_RULES
+
+    rule = str(value(config, "drivedegrade_closed_collisions") or DEFAULTS.closed_collisions).strip().lower()
+    if rule not in COLLISION_RULES:
+        raise _fail("drivedegrade_closed_collisions", f"expected {' or '.join(COLLISION_RULES)}, got {rule!r}")
+    return rule
 
 
 def _agents(config: pytest.Config) -> str:
