@@ -1,7 +1,7 @@
 """What the world says about the simulated ego at one 10 Hz step: its collisions (with the open-loop PDMS rule for
 who is at fault, `metrics.pdms.rules.at_fault`, for the at-fault option), whether it is outside its route's lanes
-(off the driving and parking lanes, or in an oncoming lane: the leaderboard's OutsideRouteLanesTest), the
-speed the minimum-speed test compares with (MinimumSpeedRouteTest), and whether the road ahead is free (for the blocked end)."""
+(off the driving and parking lanes, or in an oncoming lane: the leaderboard's OutsideRouteLanesTest), the speed
+the minimum-speed test compares with (MinimumSpeedRouteTest), and whether the road ahead is free (blocked end)."""
 
 from __future__ import annotations
 

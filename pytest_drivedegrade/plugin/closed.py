@@ -93,10 +93,11 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
 
 def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]], family: str, severity: int,
                      plan_every: int, max_steps: int | None, agents: str = "log",
-                     rules: Rules = Rules()) -> ClosedRecord:
+                     rules: Rules | None = None) -> ClosedRecord:
     """The cell's runs on Ray planner actors (`closedloop.remote.drive_one`), collected in run order."""
     from ..raypool import RayPlanner
 
+    rules = rules or Rules()
     if not isinstance(planner, RayPlanner):
         raise DriveDegradeError("closed-loop cells run on Ray planner actors or in this process only")
     got = planner.jobs("pytest_drivedegrade.closedloop.remote:drive_one",

@@ -26,10 +26,10 @@ from pytest_drivedegrade.closedloop import (
 )
 from pytest_drivedegrade.closedloop.camera import RouteCameras
 from pytest_drivedegrade.closedloop.expert import WorldExpert
-from pytest_drivedegrade.closedloop.loop_io import ego_status, frame_context, route_command
 from pytest_drivedegrade.closedloop.leaderboard import driving_score
-from pytest_drivedegrade.closedloop.simulate import Rules
+from pytest_drivedegrade.closedloop.loop_io import ego_status, frame_context, route_command
 from pytest_drivedegrade.closedloop.results import END_BLOCKED, END_DEVIATED, END_UNSCORED
+from pytest_drivedegrade.closedloop.simulate import Rules
 from pytest_drivedegrade.data.context import FrameContext
 from pytest_drivedegrade.data.frame import Command, EgoStatus
 from pytest_drivedegrade.data.nuscenes import NuScenesReader
