@@ -104,7 +104,8 @@ def collisions(route: Route, pose: Pose, step: int, astray: bool) -> list[tuple[
     for j in hits(pose.xy, pose.yaw, boxes, EGO_SIZE):
         agent = route.scene.agents[int(j)]
         contact = Contact.of(0, boxes, int(j), np.arange(len(boxes)), velocities)
-        kind = "collision_pedestrian" if agent.kind in ("pedestrian", "cyclist") else "collision_vehicle"
+        kind = "collision_pedestrian" if agent.kind == "pedestrian" else "collision_vehicle"  # CARLA: a bicycle
+        # is a vehicle.* actor
         out.append((kind, int(j), at_fault(states, contact, np.array([astray]), agent.parked)))
     props = route.scene.props
     near = [i for i, p in enumerate(props) if np.hypot(*(np.asarray(p.xy) - pose.xy)) < PROP_REACH]
