@@ -58,7 +58,7 @@ class ClosedState:
     def route_list(self, context: RunContext) -> list[Route]:
         if self.routes is None:
             limit = context.settings.closed_routes
-            self.routes = load_routes(context.reader.root)[:limit]
+            self.routes = load_routes(context.reader.root, limit=limit)
         return self.routes
 
 
