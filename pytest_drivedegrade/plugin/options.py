@@ -123,6 +123,9 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-closed-collisions", "drivedegrade_closed_collisions", "which collisions the "
                "closed-loop Driving Score counts: all (default: every collision, as the CARLA leaderboard) or "
                "at_fault (NAVSIM's rule: only those the ego is at fault for)", {"metavar": "all|at_fault"}),
+    OptionSpec("--drivedegrade-closed-scenarios", "drivedegrade_closed_scenarios", "scenario routes the closed "
+               "loop drives after the val routes (default 18: 24 routes on the default world; 0: val routes only)",
+               {"metavar": "N"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
@@ -337,7 +340,9 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
                    closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None),
-                   closed_agents=_agents(config), closed_collisions=_collisions(config))
+                   closed_agents=_agents(config), closed_collisions=_collisions(config),
+                   closed_scenarios=_number(config, "drivedegrade_closed_scenarios", int, DEFAULTS.closed_scenarios, 0,
+                                            None))
 
 
 def _collisions(config: pytest.Config) -> str:
