@@ -318,7 +318,9 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
 
 def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
     """The closed-loop settings (SPEC section 13), each checked."""
+    from ..closedloop.agents import AGENT_MODES
     from ..closedloop.cells import HZ_CHOICES, selection
+    from ..closedloop.leaderboard import COLLISION_RULES
 
     loop = str(value(config, "drivedegrade_loop") or DEFAULTS.loop).strip().lower()
     if loop not in ("open", "closed", "both"):
@@ -340,29 +342,19 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
                    closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None),
-                   closed_agents=_agents(config), closed_collisions=_collisions(config),
+                   closed_agents=_one_of(config, "drivedegrade_closed_agents", DEFAULTS.closed_agents, AGENT_MODES),
+                   closed_collisions=_one_of(config, "drivedegrade_closed_collisions", DEFAULTS.closed_collisions,
+                                             COLLISION_RULES),
                    closed_scenarios=_number(config, "drivedegrade_closed_scenarios", int, DEFAULTS.closed_scenarios, 0,
                                             None))
 
 
-def _collisions(config: pytest.Config) -> str:
-    """--drivedegrade-closed-collisions, checked: all or at_fault."""
-    from ..closedloop.leaderboard import COLLISION_RULES
-
-    rule = str(value(config, "drivedegrade_closed_collisions") or DEFAULTS.closed_collisions).strip().lower()
-    if rule not in COLLISION_RULES:
-        raise _fail("drivedegrade_closed_collisions", f"expected {' or '.join(COLLISION_RULES)}, got {rule!r}")
-    return rule
-
-
-def _agents(config: pytest.Config) -> str:
-    """--drivedegrade-closed-agents, checked: log or reactive."""
-    from ..closedloop.agents import AGENT_MODES
-
-    agents = str(value(config, "drivedegrade_closed_agents") or DEFAULTS.closed_agents).strip().lower()
-    if agents not in AGENT_MODES:
-        raise _fail("drivedegrade_closed_agents", f"expected {' or '.join(AGENT_MODES)}, got {agents!r}")
-    return agents
+def _one_of(config: pytest.Config, name: str, default: str, allowed: tuple[str, ...]) -> str:
+    """A closed-loop choice option (--drivedegrade-closed-agents, --drivedegrade-closed-collisions), checked."""
+    got = str(value(config, name) or default).strip().lower()
+    if got not in allowed:
+        raise _fail(name, f"expected {' or '.join(allowed)}, got {got!r}")
+    return got
 
 
 def _adaptive(config: pytest.Config) -> bool:
