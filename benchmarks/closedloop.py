@@ -7,6 +7,9 @@ shared one it is what the wall would be without the neighbours).
 
     python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive] [--prefetch N]
                                     [--planners expert,constant_velocity,floor,camera_cnn]
+                                    [--collisions all|at_fault] [--routes N]
+
+`--routes N` drives the first N routes only (quick mode; default: the 6 val routes and the 18 scenario routes).
 
 `--prefetch N` (N > 0) drives as the plugin does under `--drivedegrade-prefetch N`: N + 1 threads render a step's
 cameras at once and judge the last plan's steps while the next cameras render (same runs, bit for bit); compare
@@ -28,7 +31,7 @@ import torch
 
 from pytest_drivedegrade.closedloop import Corruption, load_routes, run_cell
 from pytest_drivedegrade.closedloop.expert import WorldExpert
-from pytest_drivedegrade.closedloop.simulate import Timings
+from pytest_drivedegrade.closedloop.simulate import Rules, Timings
 
 ROOT = Path(__file__).resolve().parents[1]
 CELLS = (Corruption(), Corruption("blackout", 5))
@@ -56,6 +59,11 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
     return {name: make[name]() for name in names}
 
 
+def _short(route: str) -> str:
+    """A route's column label: the val scene's number, or s<number> for a scenario route."""
+    return f"s{route.split('-')[1][-3:]}" if route.startswith("scenario-") else route[-4:]
+
+
 def _route_cell(ds: list[float | None]) -> str:
     """A route's mean DS over its seeds, or "unsc" when a run of it is unscored."""
     scored = [d for d in ds if d is not None]
@@ -70,16 +78,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--slice", action="store_true", help="the paper's seven cells instead of clean and S5 blackout")
     parser.add_argument("--agents", default="log", choices=("log", "reactive"))
     parser.add_argument("--prefetch", type=int, default=0, help="threads beside the planner: N + 1 (0: serial)")
+    parser.add_argument("--collisions", default="all", choices=("all", "at_fault"))
+    parser.add_argument("--routes", type=int, default=None, help="the first N routes only")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     from pytest_drivedegrade.data.world import ensure_default_world
 
     root = ensure_default_world(args.cache_root)
-    routes = load_routes(root)
+    routes = load_routes(root, limit=args.routes)
     print("routes: " + ", ".join(f"{r.name} ({r.length:.0f} m)" for r in routes))
     pool = ThreadPoolExecutor(args.prefetch + 1, "closed") if args.prefetch > 0 else None
-    header = f"{'planner':<18} {'cell':<18} " + " ".join(f"{r.name[-4:]:>6}" for r in routes) + \
+    header = f"{'planner':<18} {'cell':<18} " + " ".join(f"{_short(r.name):>6}" for r in routes) + \
         "   mean  bounds          render  plan  track  score  wall   cpu"
     print(header)
     for name, planner in planners(args.planners.split(","), routes, args.cache_root, root).items():
@@ -87,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         for corruption in SLICE if args.slice else CELLS:
             timings, start, cpu = Timings(), time.perf_counter(), time.process_time()
             cell = run_cell(planner, routes, corruption, tuple(range(args.seeds)), timings, agents=args.agents,
-                            pool=pool)
+                            pool=pool, rules=Rules(args.collisions))
             wall, cpu = time.perf_counter() - start, time.process_time() - cpu
             walls.append(cpu)
             cols = " ".join(_route_cell([r.ds for r in cell.runs if r.route == route.name]) for route in routes)
@@ -96,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{name:<18} {cell.cell:<18} {cols} {mean}  [{lo:5.1f}, {hi:5.1f}]  {timings.render:6.1f} "
                   f"{timings.plan:5.1f} {timings.track:6.1f} {timings.score:6.1f} {wall:5.1f} {cpu:5.1f}")
             kinds = ", ".join(f"{k} {v}" for k, v in cell.infractions.items()) or "none"
-            ends = ", ".join(f"{r.route[-4:]}:{r.end}" for r in cell.runs)
+            ends = ", ".join(f"{_short(r.route)}:{r.end}" for r in cell.runs)
             print(f"{'':<18} infractions: {kinds}; ends: {ends}")
         print(f"{name}: {len(walls)} cells, {sum(walls):.1f} CPU s serial; projected wall with -n 2: "
               f"{two_workers(walls):.1f} s")

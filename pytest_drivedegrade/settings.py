@@ -102,6 +102,8 @@ class RunSettings:
     closed_routes: int | None = None  #: the first N routes only (None: every route)
     closed_steps: int | None = None  #: at most N planner calls per run (None: to the route's end)
     closed_agents: str = "log"  #: the other agents: log (replayed) or reactive (IDM along their paths)
+    closed_collisions: str = "all"  #: which collisions the DS counts: all (the leaderboard) or at_fault (NAVSIM)
+    closed_scenarios: int = 18  #: scenario routes after the val routes (`data.world.scenarios`)
 
     @property
     def data_source(self) -> str:
@@ -300,7 +302,9 @@ TABLE: tuple[Setting, ...] = (
         ("closed_hz", "closed-loop plan rate", "--drivedegrade-closed-hz"),
         ("closed_routes", "closed-loop routes", "--drivedegrade-closed-routes"),
         ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"),
-        ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"))),
+        ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"),
+        ("closed_collisions", "closed-loop collisions", "--drivedegrade-closed-collisions"),
+        ("closed_scenarios", "closed-loop scenario routes", "--drivedegrade-closed-scenarios"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 
@@ -342,7 +346,7 @@ def _decode(name: str, raw: object) -> object:
             return raw
         if isinstance(default, float):
             return float(raw)
-        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps") or \
+        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps", "closed_scenarios") or \
             isinstance(default, int) else str(raw)
     except (ValueError, DriveDegradeError) as exc:
         raise InvalidInput(f"setting {name!r}: {exc}") from None

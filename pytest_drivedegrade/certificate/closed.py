@@ -11,7 +11,15 @@ from datetime import datetime, timezone
 
 from ..closedloop.analysis import CLEAN, NULL, parting_step
 from ..closedloop.cells import ClosedPayload, ClosedRecord, Json
-from ..closedloop.results import PENALTIES
+from ..closedloop.leaderboard import (
+    BLOCKED_S,
+    BLOCKED_SPEED,
+    DEVIATION_M,
+    DEVIATION_SHARE,
+    MIN_SPEED_CHECKPOINTS,
+    PENALTIES,
+    PERCENT_PENALTIES,
+)
 from ..scoring.closed_loop import ClosedAnalysis, analyse_rows, check_section
 from ..scoring.verdict import VERDICT_LABELS
 from ..settings import RunSettings
@@ -22,8 +30,19 @@ SIMULATOR: dict[str, Json] = {
     "world": "the embedded world, rendered at the simulated pose (only the cameras the planner reads)",
     "tracker": "NAVSIM LQR tracker and kinematic bicycle model at 10 Hz",
     "agents": "non-reactive: the other agents replay their logs",
+    "score": "the CARLA leaderboard's Driving Score (spec/leaderboard.md): 100 x route completion x the product of "
+             "every infraction's factor; the collisions counted are closed_collisions' (all: every collision, as "
+             "the leaderboard; at_fault: NAVSIM's at-fault rule)",
     "penalties": {k: v for k, v in PENALTIES.items()},
-    "off_road": "driving outside the drivable area removes the completion it covers"}
+    "percentage_penalties": {k: [c, d] for k, (c, d) in PERCENT_PENALTIES.items()},
+    "outside_route_lanes": "the share of the driven route covered with the ego's centre outside the driving and "
+                           "parking lanes (by more than 0.5 m) or in an oncoming lane of the route's road",
+    "min_speed": f"{MIN_SPEED_CHECKPOINTS} route checkpoints, the ego's mean speed against the logged expert's over "
+                 "the same ticks (the world has no background flow around the ego)",
+    "route_deviation": f"the run ends {DEVIATION_M:g} m from the route, or once over {DEVIATION_SHARE:.0%} of the "
+                       f"route was driven more than {DEVIATION_M / 2:g} m from it",
+    "blocked": f"the run ends after the ego stood (slower than {BLOCKED_SPEED:g} m/s) with the road ahead free for "
+               f"half the scene's duration (the leaderboard's {BLOCKED_S:g} s, scaled: a scene lasts 20 s)"}
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,8 @@ SLICE: tuple[tuple[str, int], ...] = (("clean", 0), ("gaussian_blur", 3), ("gaus
                                       ("motion_blur", 5), ("blackout", 5), ("blackout", 3))
 #: The null control's cell: blackout S3 darkens exactly the rear three cameras.
 NULL_CELL = ("blackout", 3)
-#: Version of a stored closed cell (part of its run key).
+#: Version of a stored closed cell (part of its run key). 2 (spec 5): runs scored as the CARLA leaderboard scores
+#: them (every collision, percentage infractions with their value, route deviation and blocked ends).
 CLOSED_RECORD_VERSION = 2
 #: The plan rates the loop supports: 10 Hz sim steps divide evenly into planner calls.
 HZ_CHOICES = (1, 2, 5, 10)
@@ -133,15 +134,17 @@ def shard_runs(runs: Sequence[tuple[str, int]], index: int, count: int) -> list[
 def run_to_builtins(run: RunResult) -> dict[str, Json]:
     trace: list[Json] = [[float(v) for v in row] for row in np.asarray(run.trace, dtype=np.float64).reshape(-1, 3)]
     return {"route": run.route, "seed": int(run.seed), "ds": run.ds, "completion": run.completion, "end": run.end,
-            "infractions": [[i.kind, int(i.step), int(i.sim_step), i.what] for i in run.infractions],
+            "infractions": [[i.kind, int(i.step), int(i.sim_step), i.what,
+                             *([] if i.value is None else [float(i.value)])] for i in run.infractions],
             "trace": trace, "error": run.error, "steps": int(run.steps)}
 
 
 def run_from_builtins(data: Mapping[str, object]) -> RunResult:
     infractions = []
     for item in as_list(data["infractions"], "infractions"):
-        kind, step, sim_step, what = as_list(item, "infraction")
-        infractions.append(Infraction(str(kind), as_int(step), as_int(sim_step), str(what)))
+        kind, step, sim_step, what, *value = as_list(item, "infraction")
+        infractions.append(Infraction(str(kind), as_int(step), as_int(sim_step), str(what),
+                                      as_float(value[0], "infraction value") if value else None))
     return RunResult(str(data["route"]), as_int(data["seed"], "seed"), as_opt_float(data["ds"], "ds"),
                      as_opt_float(data["completion"], "completion"), str(data["end"]), tuple(infractions),
                      np.asarray(data["trace"], dtype=np.float64).reshape(-1, 3), str(data.get("error", "")),

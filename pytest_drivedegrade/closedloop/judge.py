@@ -1,6 +1,7 @@
-"""What the world says about the simulated ego at one 10 Hz step: at-fault collisions (with the open-loop PDMS
-rule for who is at fault, `metrics.pdms.rules.at_fault`), whether it is off the drivable area and how far, and
-whether the road ahead is free (for the blocked end)."""
+"""What the world says about the simulated ego at one 10 Hz step: its collisions (with the open-loop PDMS rule for
+who is at fault, `metrics.pdms.rules.at_fault`, for the at-fault option), whether it is outside its route's lanes
+(off the driving and parking lanes, or in an oncoming lane: the leaderboard's OutsideRouteLanesTest), the speed
+the minimum-speed test compares with (MinimumSpeedRouteTest), and whether the road ahead is free (blocked end)."""
 
 from __future__ import annotations
 
@@ -11,11 +12,15 @@ import numpy as np
 from ..constants import EGO_LENGTH, EGO_WIDTH
 from ..data.frame import AgentBoxes
 from ..data.nuscenes import coarse_category
-from ..data.world.roads import distance_to_roads
+from ..data.world.roads import distance_to_roads, in_junction
 from ..metrics.pdms.agents import hits
 from ..metrics.pdms.motion import EgoStates
 from ..metrics.pdms.rules import Contact, at_fault
+from .leaderboard import ALLOWED_OUT_M, BLOCKED_SPEED
 from .routes import Route
+
+__all__ = ["BLOCKED_SPEED", "Pose", "collisions", "outside_m", "outside_route_lanes", "road_ahead_free",
+           "traffic_speed"]
 
 EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
 #: Props (buildings, trees, poles) farther than this from the ego are not tested for contact (m).
@@ -51,6 +56,28 @@ def outside_m(route: Route, pose: Pose) -> float:
     return float(distance_to_roads(route.scene.net, footprint(pose)).max())
 
 
+def outside_route_lanes(route: Route, pose: Pose) -> bool:
+    """The ego's centre outside every driving and parking lane by more than ALLOWED_OUT_M (the carriageway and
+    junction squares are those lanes), or in an oncoming lane of the route's road (left of its centreline, outside
+    junctions, where the leaderboard does not judge lanes either)."""
+    net = route.scene.net
+    if float(distance_to_roads(net, pose.xy)[0]) > ALLOWED_OUT_M:
+        return True
+    if bool(in_junction(net, pose.xy)[0]):
+        return False
+    _, d = net.route.center.project(pose.xy)
+    return bool(0.0 < float(d[0]) <= net.route.half_width)
+
+
+def traffic_speed(route: Route, step: int) -> float:
+    """The speed (m/s) the minimum-speed test compares the ego's with at log `step`: the logged expert's on this
+    route. The leaderboard compares with its background vehicles, which flow around the ego at the town's speed
+    limits; the world's other vehicles do not (they drive other roads and the oncoming lanes, or are the scenario's
+    own), so the flow the route allows is the expert's, who obeyed every event on it."""
+    ego = route.scene.ego
+    return abs(float(ego.speed[min(step, len(ego.speed) - 1)]))
+
+
 def _states(pose: Pose) -> EgoStates:
     heading = np.array([pose.yaw])
     vel = pose.speed * np.array([[np.cos(pose.yaw), np.sin(pose.yaw)]])
@@ -77,7 +104,8 @@ def collisions(route: Route, pose: Pose, step: int, astray: bool) -> list[tuple[
     for j in hits(pose.xy, pose.yaw, boxes, EGO_SIZE):
         agent = route.scene.agents[int(j)]
         contact = Contact.of(0, boxes, int(j), np.arange(len(boxes)), velocities)
-        kind = "collision_pedestrian" if agent.kind in ("pedestrian", "cyclist") else "collision_vehicle"
+        kind = "collision_pedestrian" if agent.kind == "pedestrian" else "collision_vehicle"  # CARLA: a bicycle
+        # is a vehicle.* actor
         out.append((kind, int(j), at_fault(states, contact, np.array([astray]), agent.parked)))
     props = route.scene.props
     near = [i for i, p in enumerate(props) if np.hypot(*(np.asarray(p.xy) - pose.xy)) < PROP_REACH]

@@ -1,4 +1,5 @@
-"""Typed results of the closed loop: one run (route, seed) and one cell (its runs), CARLA-leaderboard style."""
+"""Typed results of the closed loop: one run (route, seed) and one cell (its runs), as the CARLA leaderboard
+scores them (`leaderboard`)."""
 
 from __future__ import annotations
 
@@ -6,22 +7,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Leaderboard penalties per at-fault infraction kind (multiplied into the Driving Score).
-PENALTIES: dict[str, float] = {"collision_pedestrian": 0.50, "collision_vehicle": 0.60, "collision_static": 0.65}
-#: Why a run ended.
+from .leaderboard import PENALTIES, PERCENT_PENALTIES
+
+__all__ = ["PENALTIES", "PERCENT_PENALTIES", "Infraction", "RunResult", "CellResult"]
+#: Why a run ended (END_DEVIATED: farther from the route than the leaderboard allows; END_OFF_ROAD is read in
+#: records of spec 4, whose runs ended 2 m off the carriageway).
 END_COMPLETE, END_BLOCKED, END_OFF_ROAD, END_SCENE, END_UNSCORED = "complete", "blocked", "off_road", "scene_end", \
     "unscored"
+END_DEVIATED = "route_deviation"
 
 
 @dataclass(frozen=True)
 class Infraction:
-    """An at-fault infraction: its kind (a PENALTIES key, or "off_road" which costs completion instead), the
-    route step (planner call) it happened in, the 10 Hz sim step, and what it involved (agent role or prop)."""
+    """An infraction: its kind (a PENALTIES or PERCENT_PENALTIES key; "off_road" in records of spec 4), the
+    route step (planner call) it happened in, the 10 Hz sim step, what it involved (agent role or prop), and for
+    a percentage infraction its percentage (outside route lanes: share of the route driven outside them; min
+    speed: the ego's mean speed as a share of the traffic's)."""
 
     kind: str
     step: int
     sim_step: int
     what: str = ""
+    value: float | None = None
 
 
 @dataclass(frozen=True)

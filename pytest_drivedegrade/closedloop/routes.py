@@ -1,4 +1,6 @@
-"""Routes: each val scene of the embedded world is one route, regenerated from the world's manifest.
+"""Routes: each val scene of the embedded world is one route, regenerated from the world's manifest, and so is
+each of the world's scenario scenes (`data.world.scenarios`: generated for the closed loop only, so the open-loop
+frames never change; `SCENARIO_ROUTES` of them follow the val routes).
 
 A route starts at the logged ego state of the scene's first keyframe and follows the scene's lane (the path the
 logged expert drove); its length is the distance the logged ego covers over the scene's keyframes. The world's
@@ -19,8 +21,12 @@ from ..data.nuscenes import WORLD_MANIFEST
 from ..data.world.expert import KEY_EVERY
 from ..data.world.rig import Rig
 from ..data.world.roads import Path as LanePath
+from ..data.world.scenarios import scenario_scene
 from ..data.world.scene import KEYFRAMES, Scene, make_scene
 from ..errors import DataError
+
+#: Scenario routes after the val routes: with the default world's 6 val scenes, 24 distinct routes.
+SCENARIO_ROUTES = 18
 
 
 @dataclass(frozen=True)
@@ -55,9 +61,11 @@ def route_of(scene: Scene, rig: Rig | None = None) -> Route:
     return Route(scene.name, scene, rig or Rig.nuscenes_like(False), start, float(scene.ego.s[start]), length)
 
 
-def load_routes(root: str | os.PathLike[str]) -> list[Route]:
-    """The routes of a world data root: its val scenes, in split order. A data root that is not the embedded
-    world (no manifest) has no geometry to render at a new pose: DataError."""
+def load_routes(root: str | os.PathLike[str], scenarios: int = SCENARIO_ROUTES,
+                limit: int | None = None) -> list[Route]:
+    """The routes of a world data root: its val scenes, in split order, then its first `scenarios` scenario
+    scenes; the first `limit` of them only (None: all). A data root that is not the embedded world (no manifest)
+    has no geometry to render at a new pose: DataError."""
     manifest_path = Path(root) / WORLD_MANIFEST
     if not manifest_path.is_file():
         raise DataError(f"{root}: the closed loop needs the embedded world (no {WORLD_MANIFEST}); real logs cannot "
@@ -67,7 +75,9 @@ def load_routes(root: str | os.PathLike[str]) -> list[Route]:
     train, val = list(manifest["splits"]["train"]), list(manifest["splits"]["val"])
     names = train + val
     rig = Rig.nuscenes_like(full_size)
-    return [route_of(make_scene(seed, names.index(name), name), rig) for name in val]
+    limit = len(val) + scenarios if limit is None else limit
+    return [*(route_of(make_scene(seed, names.index(name), name), rig) for name in val[:limit]),
+            *(route_of(scenario_scene(seed, i), rig) for i in range(min(scenarios, max(limit - len(val), 0))))]
 
 
 def lane_progress(route: Route, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

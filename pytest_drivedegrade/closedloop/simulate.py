@@ -1,7 +1,8 @@
 """One closed-loop run: planner at 2 Hz on cameras rendered at the simulated pose and degraded by the cell's
 corruption, its plan executed at 10 Hz by NAVSIM's LQR tracker and kinematic bicycle model
-(`metrics.tracking`), scored CARLA-leaderboard style. Other agents replay their logs (non-reactive,
-`agents="log"`) or follow IDM along their logged paths and brake for the ego (`agents="reactive"`, `agents.py`)."""
+(`metrics.tracking`), scored as the CARLA leaderboard scores a route (`leaderboard`: every collision by default,
+NAVSIM's at-fault rule as `collisions="at_fault"`). Other agents replay their logs (non-reactive, `agents="log"`)
+or follow IDM along their logged paths and brake for the ego (`agents="reactive"`, `agents.py`)."""
 
 from __future__ import annotations
 
@@ -15,17 +16,18 @@ import numpy as np
 from ..data.world.agents import DT
 from ..metrics.tracking import InitialState, interpolate_plan, track
 from ..planning import Planner, call_style, planner_cameras, validate_output
+from ..stream import time_limit
 from . import judge
 from .agents import ReactiveAgents, run_world
 from .camera import RouteCameras
+from .leaderboard import DEVIATION_SHARE, CollisionFilter, Limits, MinSpeed, check_rule, driving_score
 from .loop_io import ego_status, frame_context, route_command
 from .results import (
     END_BLOCKED,
     END_COMPLETE,
-    END_OFF_ROAD,
+    END_DEVIATED,
     END_SCENE,
     END_UNSCORED,
-    PENALTIES,
     CellResult,
     Infraction,
     RunResult,
@@ -35,15 +37,8 @@ from .view import StepImages
 
 #: 10 Hz sim steps per planner call (2 Hz) and executed per plan: the first 0.5 s of each tracked plan.
 PLAN_EVERY = 5
-#: Blocked: no 0.5 m of progress for this many sim steps (10 s) while the road ahead is free.
-BLOCKED_STEPS = 100
-PROGRESS_MARK_M = 0.5
-#: Off-road end: the ego box this far (m) outside the drivable area (a car wholly off the carriageway).
-OFF_ROAD_END_M = 2.0
-#: Progress counts only within this lateral distance (m) of the route's lane (not along a parallel road).
-LANE_REACH_M = 4.0
-#: A planner call slower than this (s) leaves the run unscored.
-PLAN_TIMEOUT_S = 30.0
+#: A planner call slower than this (s) leaves the run unscored when no --drivedegrade-timeout is given.
+PLAN_TIMEOUT_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -70,21 +65,25 @@ class Timings:
 
 @dataclass
 class _Run:
-    """The mutable state of a run in progress."""
+    """The mutable state of a run in progress (what the leaderboard's criteria track for a route)."""
 
     route: Route
     pose: judge.Pose
     yaw_rate: float
+    limits: Limits
+    collisions: str = "all"  # the collision rule (leaderboard.COLLISION_RULES)
     steering: float = 0.0
     best: float = 0.0  # farthest progress along the route (m)
-    lost: float = 0.0  # progress made while outside the drivable area (m)
-    mark_m: float = 0.0
-    mark_step: int = 0
+    wrong: float = 0.0  # progress made outside the driving lanes or in an oncoming lane (m)
+    wrong_at: tuple[int, int] | None = None  # (route step, sim step) where it began
+    out_route: float = 0.0  # progress made farther than half the deviation limit from the route (m)
+    still_since: int = 0  # the sim step since which the ego stands (slower than BLOCKED_SPEED)
     history: list[tuple[float, float, float]] = field(default_factory=list)
     trace: list[tuple[float, float, float]] = field(default_factory=list)
     infractions: list[Infraction] = field(default_factory=list)
     touched: set[int] = field(default_factory=set)
-    off_road: bool = False
+    seen: CollisionFilter = field(default_factory=CollisionFilter)
+    min_speed: MinSpeed | None = None
     world: ReactiveAgents | None = None  # the reactive agents, None when they replay their logs
 
     @property
@@ -92,69 +91,112 @@ class _Run:
         return (self.pose.x, self.pose.y, self.pose.yaw)
 
     def completion(self) -> float:
-        return float(np.clip((self.best - self.lost) / max(self.route.length, 1e-9), 0.0, 1.0))
+        return float(np.clip(self.best / max(self.route.length, 1e-9), 0.0, 1.0))
+
+    def closing(self) -> list[Infraction]:
+        """The percentage infractions the leaderboard records when a route ends: outside route lanes (one, with
+        its share of the driven route) and the last min-speed checkpoint."""
+        out = []
+        if self.wrong > 0 and self.wrong_at is not None:
+            out.append(Infraction("outside_route_lanes", *self.wrong_at, value=100.0 * self.wrong / self.best))
+        last = self.min_speed.finish(self.best) if self.min_speed is not None else None
+        if last is not None:
+            k, t = len(self.history), self.route.start_step + len(self.trace) - 1
+            out.append(Infraction("min_speed", k, t, value=last))
+        return out
 
 
-def _start(route: Route) -> _Run:
+def _start(route: Route, collisions: str = "all") -> _Run:
     ego, t = route.scene.ego, route.start_step
     yaw_rate = float((ego.yaw[t + 1] - ego.yaw[t]) / DT)
     pose = judge.Pose(float(ego.xy[t, 0]), float(ego.xy[t, 1]), float(ego.yaw[t]), float(ego.speed[t]),
                       float(ego.accel[t]))
-    run = _Run(route, pose, yaw_rate, mark_step=t)
+    limits = Limits.of((route.end_step - route.start_step) * DT)
+    run = _Run(route, pose, yaw_rate, limits, check_rule(collisions), still_since=t,
+               min_speed=MinSpeed(route.length))
     run.trace.append(run.xyyaw)
     return run
 
 
-def _judge_step(run: _Run, pose: judge.Pose, k: int, t: int) -> str | None:
-    """Score sim step `t` (the ego moved to `pose` there): progress, off-road, collisions; the end reason if any."""
+def _progress(run: _Run, pose: judge.Pose, k: int, t: int) -> float:
+    """Advance the route's progress to `pose` (RouteCompletionTest, OutsideRouteLanesTest, InRouteTest); the
+    ego's distance (m) from the route's lane."""
     route = run.route
-    outside = judge.outside_m(route, pose)
     s, d = lane_progress(route, pose.xy)
-    progress = float(np.clip(s[0], 0.0, route.length))
-    if abs(float(d[0])) < LANE_REACH_M and progress > run.best:
+    progress, lateral = float(np.clip(s[0], 0.0, route.length)), abs(float(d[0]))
+    if lateral < run.limits.deviation_m and progress > run.best:
         gain = min(progress - run.best, pose.speed * DT + 1.0)
         run.best += gain
-        run.lost += gain if outside > 0 else 0.0
-    for kind, who, fault in judge.collisions(route, pose, t, outside > 0):
-        if who not in run.touched:  # an agent is judged by its first contact
+        if judge.outside_route_lanes(route, pose):
+            run.wrong += gain
+            run.wrong_at = run.wrong_at or (k, t)
+        if lateral >= run.limits.deviation_m / 2:
+            run.out_route += gain
+    return lateral
+
+
+def _collide(run: _Run, pose: judge.Pose, k: int, t: int) -> None:
+    """Record step `t`'s collisions: every one the leaderboard's CollisionTest counts, or (rule "at_fault")
+    NAVSIM's at-fault ones, an agent judged by its first contact."""
+    route = run.route
+    astray = run.collisions == "at_fault" and judge.outside_m(route, pose) > 0
+    run.seen.update(pose.xy, t * DT)
+    for kind, who, fault in judge.collisions(route, pose, t, astray):
+        what = route.scene.agents[who].role if who >= 0 else route.scene.props[-1 - who].kind
+        if run.collisions == "at_fault":
+            if who in run.touched:
+                continue
             run.touched.add(who)
             if not fault:
                 continue
-            what = route.scene.agents[who].role if who >= 0 else route.scene.props[-1 - who].kind
-            run.infractions.append(Infraction(kind, k, t, what))
-    if outside > 0 and not run.off_road:  # one off-road infraction per excursion
-        run.infractions.append(Infraction("off_road", k, t))
-    run.off_road = outside > 0
+        elif not run.seen.counts(who if who >= 0 else None, pose.xy, pose.speed, t * DT):
+            continue
+        run.infractions.append(Infraction(kind, k, t, what))
+
+
+def _judge_step(run: _Run, pose: judge.Pose, k: int, t: int) -> str | None:
+    """Score sim step `t` (the ego moved to `pose` there) as the leaderboard's criteria do: progress, lanes,
+    collisions, minimum speed; the end reason if any (complete, route deviation, blocked)."""
+    route = run.route
+    lateral = _progress(run, pose, k, t)
+    _collide(run, pose, k, t)
+    if run.min_speed is not None:
+        failed = run.min_speed.tick(run.best, pose.speed, judge.traffic_speed(route, t))
+        if failed is not None:
+            run.infractions.append(Infraction("min_speed", k, t, value=failed))
     if run.best >= route.length - 1e-6:
         return END_COMPLETE
-    if outside > OFF_ROAD_END_M:
-        return END_OFF_ROAD
-    if run.best - run.mark_m >= PROGRESS_MARK_M:
-        run.mark_m, run.mark_step = run.best, t
-    elif t - run.mark_step >= BLOCKED_STEPS:
+    if lateral >= run.limits.deviation_m or run.out_route > DEVIATION_SHARE * route.length:
+        return END_DEVIATED
+    if pose.speed >= judge.BLOCKED_SPEED:
+        run.still_since = t
+    elif (t - run.still_since) * DT > run.limits.blocked_s:
         if judge.road_ahead_free(route, pose, t):
             return END_BLOCKED
-        run.mark_step = t
+        run.still_since = t
     return None
 
 
 def _plan(planner: Planner, run: _Run, k: int, images: Mapping[str, np.ndarray], takes_context: bool,
-          timings: Timings) -> np.ndarray:
-    """The planner's validated plan at route step `k` (raises what the planner raises, or PlannerOutputError)."""
+          timings: Timings, timeout: float = PLAN_TIMEOUT_S) -> np.ndarray:
+    """The planner's validated plan at route step `k` (raises what the planner raises, PlannerOutputError, or
+    PlannerTimeout once predict has run `timeout` s: interrupted where the loop runs on the main thread, judged
+    after the call elsewhere; 0: no limit)."""
     route = run.route
     status = ego_status(run.history, run.xyyaw, run.pose.speed, run.pose.accel, run.yaw_rate)
     cmd = route_command(route, run.xyyaw, run.pose.speed)
     token = f"{route.name}/closed/{k}"
     t0 = time.perf_counter()
-    if takes_context:
-        ctx = frame_context(route, k, run.xyyaw, status)
-        raw = planner.predict(images, status, cmd, context=ctx)  # type: ignore[call-arg]
-    else:
-        raw = planner.predict(images, status, cmd)
+    with time_limit(timeout):
+        if takes_context:
+            ctx = frame_context(route, k, run.xyyaw, status)
+            raw = planner.predict(images, status, cmd, context=ctx)  # type: ignore[call-arg]
+        else:
+            raw = planner.predict(images, status, cmd)
     elapsed = time.perf_counter() - t0
     timings.plan += elapsed
-    if elapsed > PLAN_TIMEOUT_S:
-        raise TimeoutError(f"predict took {elapsed:.1f} s (limit {PLAN_TIMEOUT_S:.0f} s)")
+    if timeout > 0 and elapsed > timeout:
+        raise TimeoutError(f"predict took {elapsed:.1f} s (limit {timeout:g} s)")
     return validate_output(raw, token)
 
 
@@ -221,19 +263,29 @@ def _judge_while_rendering(pool: Executor, stream: StepImages, run: _Run, steps:
 
 
 def _result(run: _Run, seed: int, end: str, steps: int) -> RunResult:
-    penalty = float(np.prod([PENALTIES[i.kind] for i in run.infractions if i.kind in PENALTIES]))
+    infractions = (*run.infractions, *run.closing())
     completion = run.completion()
-    return RunResult(run.route.name, seed, 100.0 * completion * penalty, completion, end, tuple(run.infractions),
-                     np.array(run.trace), steps=steps)
+    ds = driving_score(completion, [(i.kind, i.value) for i in infractions])
+    return RunResult(run.route.name, seed, ds, completion, end, infractions, np.array(run.trace), steps=steps)
+
+
+@dataclass(frozen=True)
+class Rules:
+    """How a run is scored and bounded: the collision rule (leaderboard.COLLISION_RULES) and the seconds one
+    predict() may take (--drivedegrade-timeout; 0: no limit)."""
+
+    collisions: str = "all"
+    timeout: float = PLAN_TIMEOUT_S
 
 
 def run_route(planner: Planner, route: Route, corruption: Corruption = Corruption(), seed: int = 0,
               timings: Timings | None = None, *, plan_every: int = PLAN_EVERY,
-              max_steps: int | None = None, agents: str = "log", pool: Executor | None = None) -> RunResult:
+              max_steps: int | None = None, agents: str = "log", pool: Executor | None = None,
+              rules: Rules = Rules()) -> RunResult:
     """Drive `route` with `planner` under `corruption` (corruption seed `seed`, frame key "<route>/<step>"),
     calling it every `plan_every` 0.1 s steps, at most `max_steps` times (then the run ends as at the scene's end),
-    the other agents replayed (`agents="log"`) or reactive (`"reactive"`). A planner that raises, times out or
-    returns a bad plan leaves the run unscored (ds None, `error` set).
+    the other agents replayed (`agents="log"`) or reactive (`"reactive"`), scored by `rules`. A planner that
+    raises, times out or returns a bad plan leaves the run unscored (ds None, `error` set).
 
     With a thread `pool` (``--drivedegrade-prefetch`` above 0) a step's cameras render and corrupt on its threads,
     and the steps an executed plan drove are judged on one of them while the next step's cameras render (the
@@ -247,14 +299,14 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
     timings.render += time.perf_counter() - t0
     if style.resets:
         planner.reset(route.name)  # type: ignore[attr-defined]
-    run = _start(route)
+    run = _start(route, rules.collisions)
     run.world = world
     k, t = 0, route.start_step
     images: Mapping[str, np.ndarray] | None = None
     while t + plan_every <= route.end_step and (max_steps is None or k < max_steps):
         images = stream.at(run.xyyaw, t, k) if images is None else images
         try:
-            plan = _plan(planner, run, k, images, style.takes_context, timings)
+            plan = _plan(planner, run, k, images, style.takes_context, timings, rules.timeout)
         except Exception as exc:  # noqa: BLE001 - any failure of the planner leaves the run unscored
             return RunResult(route.name, seed, None, None, END_UNSCORED, tuple(run.infractions),
                              np.array(run.trace), f"step {k}: {type(exc).__name__}: {exc}", k)
@@ -273,8 +325,8 @@ def run_route(planner: Planner, route: Route, corruption: Corruption = Corruptio
 
 def run_cell(planner: Planner, routes: list[Route], corruption: Corruption = Corruption(),
              seeds: tuple[int, ...] = (0,), timings: Timings | None = None, *, agents: str = "log",
-             pool: Executor | None = None) -> CellResult:
-    """Every route under every seed: the cell's runs, route-major (`pool`: as `run_route` takes it)."""
-    runs = [run_route(planner, route, corruption, seed, timings, agents=agents, pool=pool)
+             pool: Executor | None = None, rules: Rules = Rules()) -> CellResult:
+    """Every route under every seed: the cell's runs, route-major (`pool`, `rules`: as `run_route` takes them)."""
+    runs = [run_route(planner, route, corruption, seed, timings, agents=agents, pool=pool, rules=rules)
             for route in routes for seed in seeds]
     return CellResult.of(f"closed-{corruption.name}", runs)

@@ -29,7 +29,7 @@ from ..closedloop.cells import (
 )
 from ..closedloop.results import RunResult
 from ..closedloop.routes import Route, load_routes
-from ..closedloop.simulate import Corruption, Timings, run_route
+from ..closedloop.simulate import Corruption, Rules, Timings, run_route
 from ..errors import DriveDegradeError, InvalidInput
 from ..pacing import closed_threads, opencv_share
 from ..planning import planner_name
@@ -58,7 +58,7 @@ class ClosedState:
     def route_list(self, context: RunContext) -> list[Route]:
         if self.routes is None:
             limit = context.settings.closed_routes
-            self.routes = load_routes(context.reader.root)[:limit]
+            self.routes = load_routes(context.reader.root, context.settings.closed_scenarios, limit=limit)
         return self.routes
 
 
@@ -67,7 +67,9 @@ def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
     s = context.settings
     return {**context.run_key(planner), "closed_record_version": CLOSED_RECORD_VERSION,
             "closed_seeds": s.closed_seeds, "closed_hz": s.closed_hz, "closed_routes": s.closed_routes,
-            "closed_steps": s.closed_steps, **({"closed_agents": s.closed_agents} if s.closed_agents != "log" else {})}
+            "closed_steps": s.closed_steps, "closed_scenarios": s.closed_scenarios,
+            **({"closed_agents": s.closed_agents} if s.closed_agents != "log" else {}),
+            **({"closed_collisions": s.closed_collisions} if s.closed_collisions != "all" else {})}
 
 
 def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: str, severity: int) -> ClosedRecord:
@@ -79,27 +81,31 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
         runs = shard_runs(runs, s.shard.index, s.shard.count)
     if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own
         return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps,
-                                s.closed_agents)
+                                s.closed_agents, Rules(s.closed_collisions, s.timeout), s.closed_scenarios)
     timings, out, threads = Timings(), [], closed_threads(s)
     with opencv_share(), ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
         for route, seed in runs:
             out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
                                  plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents,
-                                 pool=pool))
+                                 pool=pool, rules=Rules(s.closed_collisions, s.timeout)))
     seconds = {"render": timings.render, "plan": timings.plan, "track": timings.track, "score": timings.score}
     return ClosedRecord(closed_id(family, severity), family, severity, tuple(out), seconds=seconds)
 
 
 def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]], family: str, severity: int,
-                     plan_every: int, max_steps: int | None, agents: str = "log") -> ClosedRecord:
+                     plan_every: int, max_steps: int | None, agents: str = "log",
+                     rules: Rules | None = None, scenarios: int = 0) -> ClosedRecord:
     """The cell's runs on Ray planner actors (`closedloop.remote.drive_one`), collected in run order."""
     from ..raypool import RayPlanner
 
+    rules = rules or Rules()
     if not isinstance(planner, RayPlanner):
         raise DriveDegradeError("closed-loop cells run on Ray planner actors or in this process only")
     got = planner.jobs("pytest_drivedegrade.closedloop.remote:drive_one",
                        [{"family": family, "severity": severity, "route": route, "seed": seed,
-                         "plan_every": plan_every, "max_steps": max_steps, "agents": agents} for route, seed in runs])
+                         "plan_every": plan_every, "max_steps": max_steps, "agents": agents,
+                         "collisions": rules.collisions, "timeout": rules.timeout, "scenarios": scenarios}
+                        for route, seed in runs])
     seconds: dict[str, float] = {}
     out: list[RunResult] = []
     for item in got:

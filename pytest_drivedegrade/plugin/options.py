@@ -125,6 +125,12 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-closed-agents", "drivedegrade_closed_agents", "the other road users of the closed "
                "loop: log (default: they replay their logs) or reactive (they follow their logged paths and brake "
                "for the ego by IDM)", {"metavar": "log|reactive"}),
+    OptionSpec("--drivedegrade-closed-collisions", "drivedegrade_closed_collisions", "which collisions the "
+               "closed-loop Driving Score counts: all (default: every collision, as the CARLA leaderboard) or "
+               "at_fault (NAVSIM's rule: only those the ego is at fault for)", {"metavar": "all|at_fault"}),
+    OptionSpec("--drivedegrade-closed-scenarios", "drivedegrade_closed_scenarios", "scenario routes the closed "
+               "loop drives after the val routes (default 18: 24 routes on the default world; 0: val routes only)",
+               {"metavar": "N"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
@@ -325,7 +331,9 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
 
 def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
     """The closed-loop settings (SPEC section 13), each checked."""
+    from ..closedloop.agents import AGENT_MODES
     from ..closedloop.cells import HZ_CHOICES, selection
+    from ..closedloop.leaderboard import COLLISION_RULES
 
     loop = str(value(config, "drivedegrade_loop") or DEFAULTS.loop).strip().lower()
     if loop not in ("open", "closed", "both"):
@@ -347,17 +355,19 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_seeds=_number(config, "drivedegrade_closed_seeds", int, DEFAULTS.closed_seeds, 1, None),
                    closed_routes=_number(config, "drivedegrade_closed_routes", int, None, 1, None),
                    closed_steps=_number(config, "drivedegrade_closed_steps", int, None, 1, None),
-                   closed_agents=_agents(config))
+                   closed_agents=_one_of(config, "drivedegrade_closed_agents", DEFAULTS.closed_agents, AGENT_MODES),
+                   closed_collisions=_one_of(config, "drivedegrade_closed_collisions", DEFAULTS.closed_collisions,
+                                             COLLISION_RULES),
+                   closed_scenarios=_number(config, "drivedegrade_closed_scenarios", int, DEFAULTS.closed_scenarios, 0,
+                                            None))
 
 
-def _agents(config: pytest.Config) -> str:
-    """--drivedegrade-closed-agents, checked: log or reactive."""
-    from ..closedloop.agents import AGENT_MODES
-
-    agents = str(value(config, "drivedegrade_closed_agents") or DEFAULTS.closed_agents).strip().lower()
-    if agents not in AGENT_MODES:
-        raise _fail("drivedegrade_closed_agents", f"expected {' or '.join(AGENT_MODES)}, got {agents!r}")
-    return agents
+def _one_of(config: pytest.Config, name: str, default: str, allowed: tuple[str, ...]) -> str:
+    """A closed-loop choice option (--drivedegrade-closed-agents, --drivedegrade-closed-collisions), checked."""
+    got = str(value(config, name) or default).strip().lower()
+    if got not in allowed:
+        raise _fail(name, f"expected {' or '.join(allowed)}, got {got!r}")
+    return got
 
 
 def _adaptive(config: pytest.Config) -> bool:

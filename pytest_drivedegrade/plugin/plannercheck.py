@@ -311,30 +311,58 @@ def _stored(planner: Planner, context: RunContext, store: ResultStore | None,
         return frozenset()
 
 
+@dataclass(frozen=True)
+class Found:
+    """What checking a built planner found: the problems (a usage error), notes, the probe and the stored cells."""
+
+    problems: tuple[str, ...]
+    notes: tuple[str, ...]
+    probe: Probe | None
+    stored: frozenset[str]
+
+
+def inspect_planner(planner: Planner, context: RunContext, store: ResultStore | None,
+                    cells: Sequence[tuple[str, int]]) -> Found:
+    """The declared needs against the data, one clean frame predicted and validated, the stored cells: what the
+    controller runs under -n 0 and `isolated` runs in a process of its own under -n N."""
+    problems, notes = declared_problems(planner, context)
+    probe = None
+    if not problems:
+        probe, problems, more = probe_first_frame(planner, context)
+        notes += more
+    stored = _stored(planner, context, store, cells) if not problems else frozenset()
+    return Found(tuple(problems), tuple(notes), probe, stored)
+
+
 def _check(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
            module: ModuleType | None, store: ResultStore | None = None,
            cells: Sequence[tuple[str, int]] = ()) -> Checked:
-    """What the check found; a usage error naming every problem."""
+    """What the check found; a usage error naming every problem. Under -n N the planner is built and checked in
+    a process of its own (`isolated`): the controller, which decides the exit status, never runs planner code."""
     if options.ray is not None:
         return Checked(None, "the planner is built in the Ray actors")
-    built = build_planner(config, options, context, collect_path, module)
-    if isinstance(built, str):
-        return Checked(None, built)
-    planner, close = built
-    try:
-        problems, notes = declared_problems(planner, context)
-        probe = None
-        if not problems:
-            probe, problems, more = probe_first_frame(planner, context)
-            notes += more
-        stored = _stored(planner, context, store, cells) if not problems else frozenset()
-    finally:
-        close()
-        del planner
-    if problems:
-        listed = "\n".join(f"  - {p}" for p in problems)
+    if config.getoption("numprocesses", default=None):
+        from .context import cache_root
+        from .isolated import check_in_child
+
+        found: Found | str = check_in_child(options, context, collect_path, module, store, cells,
+                                            cache_root(config) / "digests")
+    else:
+        built = build_planner(config, options, context, collect_path, module)
+        if isinstance(built, str):
+            return Checked(None, built)
+        planner, close = built
+        try:
+            found = inspect_planner(planner, context, store, cells)
+        finally:
+            close()
+            del planner
+    if isinstance(found, str):
+        return Checked(None, found)
+    if found.problems:
+        listed = "\n".join(f"  - {p}" for p in found.problems)
         raise pytest.UsageError(f"{HEAD}: the planner and the data disagree, so no cell ran:\n{listed}")
-    return Checked(probe, "", tuple(notes), stored)
+    return Checked(found.probe, "", found.notes, found.stored)
 
 
 def preflight_lines(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,

@@ -101,8 +101,10 @@ def _lead(run: ClosedRun | None) -> str:
         return CARLA_LEAD
     return (f"The planner drives the embedded world ({run.settings.closed_hz} Hz plans, LQR tracker and bicycle "
             "model at 10 Hz, other agents replaying their logs) through the degraded cameras. Driving Score = 100 x "
-            "route completion x the penalties of at-fault collisions; an unscored run (the planner raised, timed "
-            "out or returned a bad plan) is bounded, never dropped: bounds put it at 0 and at 100.")
+            "route completion x the CARLA leaderboard's infraction factors, counting "
+            f"{'every collision' if run.settings.closed_collisions == 'all' else 'at-fault collisions only'}; "
+            "an unscored run (the planner raised, timed out or returned a bad plan) is bounded, never dropped: "
+            "bounds put it at 0 and at 100.")
 
 
 def _null_text(analysis: ClosedAnalysis, imported: bool, imported_null: str = "blackout S3") -> str:

@@ -19,9 +19,12 @@ if TYPE_CHECKING:
 
     from ..certificate.seal import Provenance
 
-#: closed_loop.csv's columns: the run, its score, why it ended, its at-fault infractions by kind, its path.
+#: Infraction kinds closed_loop.csv counts, a column each (off_road: runs of spec-4 records).
+CSV_KINDS = ("collision_pedestrian", "collision_vehicle", "collision_static", "off_road", "outside_route_lanes",
+             "min_speed", "red_light")
+#: closed_loop.csv's columns: the run, its score, why it ended, its infractions by kind, its path.
 CSV_COLUMNS = ("planner", "cell", "family", "severity", "route", "seed", "ds", "completion", "end", "steps",
-               "collision_pedestrian", "collision_vehicle", "collision_static", "off_road", "trace_digest", "error")
+               *CSV_KINDS, "trace_digest", "error")
 
 
 def _num(value: float | None) -> str:
@@ -36,7 +39,7 @@ def closed_csv_text(planner: str, run: ClosedRun) -> str:
     for cell, record in run.records.items():
         for r in record.runs:
             row = RunRow.of(r)
-            kinds = [row.infractions.get(k, 0) for k in CSV_COLUMNS[10:14]]
+            kinds = [row.infractions.get(k, 0) for k in CSV_KINDS]
             writer.writerow([planner, cell, record.family, record.severity, r.route, r.seed, _num(r.ds),
                              _num(r.completion), row.end, r.steps, *kinds, row.trace, r.error])
     return out.getvalue()

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pytest_drivedegrade.closedloop import Corruption, Route, route_of, run_route
-from pytest_drivedegrade.closedloop.results import END_OFF_ROAD
+from pytest_drivedegrade.closedloop.results import END_DEVIATED
 from pytest_drivedegrade.data.frame import Command, EgoStatus
 from pytest_drivedegrade.data.world.scene import make_scene
 
@@ -65,6 +65,6 @@ def test_a_run_on_threads_is_the_serial_run_bit_for_bit(route: Route, corruption
 
 def test_a_run_that_ends_early_on_threads_ends_where_the_serial_one_does(route: Route) -> None:
     (a, seen_a), (b, seen_b) = both(route, Corruption("gaussian_blur", 3), swerve=0.6, max_steps=None)
-    assert a.end == b.end == END_OFF_ROAD and a.steps == b.steps < 30
+    assert a.end == b.end == END_DEVIATED and a.steps == b.steps < 30
     assert seen_a == seen_b and len(seen_a) == a.steps + 1  # no plan asked for after the end
     assert a.trace.tobytes() == b.trace.tobytes() and (a.ds, a.infractions) == (b.ds, b.infractions)
