@@ -46,8 +46,9 @@ def _tail(text: str, lines: int = 8) -> str:
 
 
 def check_in_child(options: RunOptions, context: RunContext, collect_path: Path, module: ModuleType | None,
-                   store: ResultStore | None, cells: Sequence[tuple[str, int]], digests: Path) -> Found:
-    """`inspect_planner` run in a child process; a usage error when the child gives no answer."""
+                   store: ResultStore | None, cells: Sequence[tuple[str, int]], digests: Path) -> Found | str:
+    """`inspect_planner` run in a child process, or why no frame could be checked (a fixture that cannot be built
+    outside pytest); a usage error when the child gives no answer or the planner cannot be built."""
     limit = START_SECONDS + 3 * (options.settings.timeout or 60.0)
     with tempfile.TemporaryDirectory(prefix="drivedegrade-preflight-") as tmp:
         req, ans = Path(tmp) / "request.json", Path(tmp) / "answer.json"
@@ -64,8 +65,12 @@ def check_in_child(options: RunOptions, context: RunContext, collect_path: Path,
                                     f"{done.returncode}) without an answer, so no cell ran: planner code that ends "
                                     f"its process (os._exit, a crash) fails the run. Its last output:\n{why}")
         answer = json.loads(ans.read_text())
-    if "error" in answer:
-        raise pytest.UsageError(f"{HEAD}: building the planner failed, so no cell ran: {answer['error']}")
+    if "unavailable" in answer:
+        return str(answer["unavailable"])
+    if "error" in answer:  # an import failure already reads "--drivedegrade: importing FILE failed: ..."
+        error = str(answer["error"])
+        raise pytest.UsageError(error if error.startswith("--drivedegrade:") else
+                                f"{HEAD}: building the planner failed, so no cell ran: {error}")
     probe = answer["probe"]
     return Found(tuple(answer["problems"]), tuple(answer["notes"]),
                  None if probe is None else Probe(probe["token"], float(probe["seconds"]), tuple(probe["read"]),
@@ -76,7 +81,7 @@ def check_in_child(options: RunOptions, context: RunContext, collect_path: Path,
 def _answer(request: dict[str, object]) -> dict[str, object]:
     from ..planning import DEVICE_ENV
     from ..rayactor import ActorRun
-    from .actors import PlannerFile
+    from .actors import FixtureUnavailable, PlannerFile
 
     run = ActorRun(request["settings"], str(request["root"]), request["planner_path"],  # type: ignore[arg-type]
                    request["digest_cache"])  # type: ignore[arg-type]
@@ -85,6 +90,8 @@ def _answer(request: dict[str, object]) -> dict[str, object]:
     try:
         planner, close = PlannerFile(Path(str(request["collect_path"])), request["module"])(  # type: ignore[arg-type]
             context)
+    except FixtureUnavailable as exc:  # as `plannercheck.build_planner` says it in process
+        return {"unavailable": str(exc).split(", which a Ray actor")[0]}
     except DriveDegradeError as exc:
         return {"error": str(exc)}
     spec = request["store"]
