@@ -25,7 +25,8 @@ if str(HERE.parent) not in sys.path:  # run from anywhere, against this checkout
 SECTIONS: dict[str, tuple[str, ...]] = {
     "What is certified": ("--drivedegrade", "--drivedegrade-data", "--drivedegrade-split", "--drivedegrade-frames",
                           "--drivedegrade-families", "--drivedegrade-severities", "--drivedegrade-seed",
-                          "--drivedegrade-seeds", "--drivedegrade-metric", "--drivedegrade-flat"),
+                          "--drivedegrade-seeds", "--drivedegrade-metric", "--drivedegrade-flat",
+                          "--drivedegrade-ego-box"),
     "How the planner is called": ("--drivedegrade-batch", "--drivedegrade-no-reuse", "--drivedegrade-device",
                                   "--drivedegrade-timeout", "--drivedegrade-prefetch", "--drivedegrade-dry-run"),
     "Reports, resuming and the CI gate": (
@@ -36,7 +37,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "Adaptive certification": ("--drivedegrade-adaptive", "--drivedegrade-alpha"),
     "Closed loop": ("--drivedegrade-loop", "--drivedegrade-closed-cells", "--drivedegrade-closed-seeds",
                     "--drivedegrade-closed-hz", "--drivedegrade-closed-routes", "--drivedegrade-closed-agents",
-                    "--drivedegrade-closed-steps"),
+                    "--drivedegrade-closed-steps", "--drivedegrade-closed-collisions",
+                    "--drivedegrade-closed-scenarios"),
 }
 
 _H = {"1s": "1 s", "2s": "2 s", "3s": "3 s"}
@@ -82,6 +84,13 @@ COLUMNS: dict[str, str] = {
     "dataset_fingerprint": "digest of the content of every file the scored frames read",
     "split": "the split scored", "spec_version": "the ladder's spec version", "seed": "the corruption seed",
     "convention": "the L2 convention of `l2_avg`",
+    "command_following": "command_swap row: how far the plans follow an alternative command at junction frames "
+                         "(0: they ignore it, 1: as the privileged expert with the swapped route)",
+    "command_following_ci_low": "low end of its 95 % interval (junction frames resampled)",
+    "command_following_ci_high": "high end of the same interval",
+    "command_label": "command_swap row: command-following, command-insensitive or undetermined",
+    "command_frames": "command_swap row: the junction frames the figure is scored on",
+    "junction_frames": "command_swap row: the scored frames where another command is meaningful",
 }
 
 
@@ -168,7 +177,7 @@ def cli_page() -> str:
     from pytest_drivedegrade.cli import build_parser
 
     parser = build_parser()
-    lines = ["# The drivedegrade command", "", "Generated from `pytest_drivedegrade/cli.py` by "
+    lines = ["# The drivedegrade command", "", "Generated from `pytest_drivedegrade/cli/` by "
              "`docs/gen_reference.py`: the `--help` of the command and of each subcommand.", "",
              "```text", _help(parser).rstrip(), "```", ""]
     subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))  # noqa: SLF001

@@ -154,7 +154,7 @@ MIXED_NOTE = ("mixes adaptive and full certificates: an adaptive certificate's r
               "over every frame; compare like with like for a ranking (column certification)")
 
 
-def mixed_note(certs: Sequence[tuple[str, Mapping[str, Any]]]) -> str | None:
+def mixed_note(certs: Sequence[tuple[str, Mapping[str, object]]]) -> str | None:
     """`MIXED_NOTE` naming the adaptive certificates when the comparison mixes both kinds, else None."""
     adaptive = [path for path, cert in certs if cert.get("adaptive")]
     if not adaptive or len(adaptive) == len(certs):

@@ -334,19 +334,22 @@ def inspect_planner(planner: Planner, context: RunContext, store: ResultStore | 
     return Found(tuple(problems), tuple(notes), probe, stored)
 
 
+#: The check run in a process of its own (`isolated.check_in_child`, its digest folder bound): the planner built
+#: and `inspect_planner` run there, or why no frame could be checked.
+ChildCheck = Callable[[RunOptions, RunContext, Path, "ModuleType | None", "ResultStore | None",
+                       Sequence[tuple[str, int]]], "Found | str"]
+
+
 def _check(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
            module: ModuleType | None, store: ResultStore | None = None,
-           cells: Sequence[tuple[str, int]] = ()) -> Checked:
-    """What the check found; a usage error naming every problem. Under -n N the planner is built and checked in
-    a process of its own (`isolated`): the controller, which decides the exit status, never runs planner code."""
+           cells: Sequence[tuple[str, int]] = (), child: ChildCheck | None = None) -> Checked:
+    """What the check found; a usage error naming every problem. With `child` (under -n N: `isolated`) the
+    planner is built and checked in a process of its own: the controller, which decides the exit status, never
+    runs planner code."""
     if options.ray is not None:
         return Checked(None, "the planner is built in the Ray actors")
-    if config.getoption("numprocesses", default=None):
-        from .context import cache_root
-        from .isolated import check_in_child
-
-        found: Found | str = check_in_child(options, context, collect_path, module, store, cells,
-                                            cache_root(config) / "digests")
+    if child is not None:
+        found: Found | str = child(options, context, collect_path, module, store, cells)
     else:
         built = build_planner(config, options, context, collect_path, module)
         if isinstance(built, str):
@@ -367,12 +370,12 @@ def _check(config: pytest.Config, options: RunOptions, context: RunContext, coll
 
 def preflight_lines(config: pytest.Config, options: RunOptions, context: RunContext, collect_path: Path,
                     module: ModuleType | None, cells: Sequence[tuple[str, int]], closed: int,
-                    store: ResultStore | None = None) -> list[str]:
+                    store: ResultStore | None = None, child: ChildCheck | None = None) -> list[str]:
     """The pre-flight check's lines (the estimate first); pytest.UsageError on a mismatch, before any cell."""
     from ..cells import cell_id
     from ..certificate.estimate import count_predictions, estimate_line, run_wall_seconds
 
-    checked = _check(config, options, context, collect_path, module, store, cells)
+    checked = _check(config, options, context, collect_path, module, store, cells, child)
     probe, why, notes = checked.probe, checked.why, list(checked.notes)
     todo = [(f, s) for f, s in cells if cell_id(f, s) not in checked.stored]
     if checked.stored:

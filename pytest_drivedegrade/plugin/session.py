@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Generator, Mapping
+from functools import partial
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, cast
@@ -233,8 +234,14 @@ class DriveDegradeSession:
         printed; --drivedegrade-dry-run ends the session here."""
         from .plannercheck import preflight_lines
 
+        child = None
+        if self.config.getoption("numprocesses", default=None):  # the controller runs no planner code (issue 37)
+            from .context import cache_root
+            from .isolated import check_in_child
+
+            child = partial(check_in_child, digests=cache_root(self.config) / "digests")
         lines = preflight_lines(self.config, self.options, context, self.collect_path, self.planner_module,
-                                self.owned_cells(), len(self.closed), self.store)
+                                self.owned_cells(), len(self.closed), self.store, child)
         for line in lines:
             if reporter is not None:
                 reporter.write_line(line)

@@ -11,20 +11,17 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from .errors import DriveDegradeError
-
-if TYPE_CHECKING:
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+from ..errors import DriveDegradeError
+from .keys import signing_key
 
 
 def _spec(args: argparse.Namespace) -> int:
-    from .corruptions.spec import render_spec
+    from ..corruptions.spec import render_spec
 
     text = render_spec(args.format)
     if args.out:
-        from .atomic import atomic_write_text
+        from ..atomic import atomic_write_text
 
         atomic_write_text(args.out, text)
         print(f"wrote {args.out}", file=sys.stderr)
@@ -34,7 +31,7 @@ def _spec(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from .corruptions.preview import write_preview
+    from ..corruptions.preview import write_preview
 
     path = write_preview(args.images, severity=args.severity, family=args.family, out=args.out,
                          seed=args.seed, width=args.width)
@@ -43,7 +40,7 @@ def _preview(args: argparse.Namespace) -> int:
 
 
 def _world(args: argparse.Namespace) -> int:
-    from .data.world import cli_world
+    from ..data.world import cli_world
 
     return cli_world(args)
 
@@ -52,10 +49,10 @@ def _verify(args: argparse.Namespace) -> int:
     """Exit 0 when the certificate is intact (and signed by --public-key's key when given) and its arithmetic
     adds up, 1 when it was edited, its signature fails or its thresholds / axes / verdict disagree with its
     cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
-    from .certificate.adaptive_check import check_adaptive
-    from .certificate.consistency import check_consistency, incompleteness
-    from .certificate.seal import CertificateMismatch, verify
-    from .certificate.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
+    from ..certificate.adaptive_check import check_adaptive
+    from ..certificate.consistency import check_consistency, incompleteness
+    from ..certificate.seal import CertificateMismatch, verify
+    from ..certificate.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
 
     public_key = load_public_key(args.public_key) if args.public_key else None
     try:
@@ -64,7 +61,7 @@ def _verify(args: argparse.Namespace) -> int:
     except (CertificateMismatch, SignatureFailure) as exc:
         print(f"drivedegrade: verify: FAILED: {exc}", file=sys.stderr)
         return 1
-    from .certificate.adaptive_check import missing_results
+    from ..certificate.adaptive_check import missing_results
 
     missing_files = missing_results(cert, Path(args.file).parent / "cells")
     if missing_files:  # not an edit: what verify needs is not there (exit 2, naming it)
@@ -75,7 +72,7 @@ def _verify(args: argparse.Namespace) -> int:
         return 2
     inconsistent = check_consistency(cert) + check_adaptive(cert, Path(args.file).parent / "cells")
     if args.baseline:  # a gate run's recorded test parts recomputed from the baseline itself
-        from .certificate.adaptive_check import check_gate_baseline
+        from ..certificate.adaptive_check import check_gate_baseline
 
         inconsistent += check_gate_baseline(cert, Path(args.file).parent / "cells", Path(args.baseline))
     if inconsistent:
@@ -108,7 +105,7 @@ def _verify(args: argparse.Namespace) -> int:
 
 def _imported_level(cert: dict, level: str) -> str:
     """What an imported certificate proves, before its seal's level (unchanged for a run's certificate)."""
-    from .certificate.fields import IMPORTED_TEXT, imported_source, is_imported
+    from ..certificate.fields import IMPORTED_TEXT, imported_source, is_imported
 
     return f"{IMPORTED_TEXT} (from {imported_source(cert)}); {level}" if is_imported(cert) else level
 
@@ -116,8 +113,8 @@ def _imported_level(cert: dict, level: str) -> str:
 def _reproduce(args: argparse.Namespace) -> int:
     """Exit 0 when every rerun cell is bit-identical to the certificate, 1 when one differs, 2 for a usage error
     (a missing file, a certificate that does not verify)."""
-    from .certificate.reproduce import reproduce
-    from .progress import Sink
+    from ..certificate.reproduce import reproduce
+    from ..progress import Sink
 
     return reproduce(Path(args.certificate), Path(args.planner), n=args.cells, data=args.data,
                      salt=None if args.seed is None else str(args.seed), public_key=args.public_key, keep=args.keep,
@@ -126,7 +123,7 @@ def _reproduce(args: argparse.Namespace) -> int:
 
 def _keygen(args: argparse.Namespace) -> int:
     """Write NAME.key (private, mode 0600) and NAME.pub."""
-    from .certificate.signing import fingerprint, keygen, load_private_key
+    from ..certificate.signing import fingerprint, keygen, load_private_key
 
     key_path, pub_path = keygen(args.name)
     fp = fingerprint(load_private_key(key_path.read_bytes(), str(key_path)).public_key())
@@ -134,35 +131,16 @@ def _keygen(args: argparse.Namespace) -> int:
     return 0
 
 
-def _merge_signing_key(args: argparse.Namespace, flag: str = "--sign-key") -> Ed25519PrivateKey | None:
-    """`flag`'s PATH (--sign-key, or sign's --key), else $DRIVEDEGRADE_SIGNING_KEY (a path or the PEM text: key
-    text only there), else None; a key file readable by its group or others is warned about."""
-    import os
-
-    from .certificate.signing import ENV_VAR, key_file_path, load_private_key, loose_permissions, read_key_source
-
-    given = getattr(args, flag.lstrip("-").replace("-", "_"))
-    source, where = (given, flag) if given else (os.environ.get(ENV_VAR), ENV_VAR)
-    if not source:
-        return None
-    key = load_private_key(read_key_source(source, where, pem_allowed=where == ENV_VAR), where)
-    path = key_file_path(source)
-    loose = loose_permissions(path) if path is not None else None
-    if loose:
-        print(f"drivedegrade: warning: {where}: {loose}", file=sys.stderr)
-    return key
-
-
 def _sign(args: argparse.Namespace) -> int:
     """Sign a finished run's certificate (issue 37 H1): this command runs no planner code, so the key never
     shares a process with one. Exit 0 signed, 1 when the certificate does not verify, 2 for a usage error."""
-    from .certificate.adaptive_check import check_adaptive
-    from .certificate.consistency import check_consistency
-    from .certificate.seal import CertificateMismatch, verify
-    from .certificate.signing import ENV_VAR
-    from .report.resign import sign_file
+    from ..certificate.adaptive_check import check_adaptive
+    from ..certificate.consistency import check_consistency
+    from ..certificate.seal import CertificateMismatch, verify
+    from ..certificate.signing import ENV_VAR
+    from ..report.resign import sign_file
 
-    key = _merge_signing_key(args, "--key")
+    key = signing_key(args, "--key")
     if key is None:
         raise DriveDegradeError(f"sign: no key: give --key PATH (from `drivedegrade keygen NAME`) or set {ENV_VAR}")
     try:
@@ -176,25 +154,25 @@ def _sign(args: argparse.Namespace) -> int:
         for line in problems:
             print(f"  {line}", file=sys.stderr)
         return 1
-    sealed, written = sign_file(args.file, key)
-    print(f"signed {args.file} with the key of fingerprint {sealed['signature']['public_key_fingerprint']} (digest "
-          f"{sealed['digest']}); wrote {', '.join(map(str, written))}")
+    fingerprint, digest, written = sign_file(args.file, key)
+    print(f"signed {args.file} with the key of fingerprint {fingerprint} (digest {digest}); wrote "
+          f"{', '.join(map(str, written))}")
     return 0
 
 
 def _merge(args: argparse.Namespace) -> int:
     """Join shard folders into one run's outputs; a missing shard is an error naming it (exit 2)."""
-    from .certificate.merge import merge_shards
-    from .progress import Sink
-    from .report.publish import publish
-    from .settings import shown_arg
+    from ..certificate.merge import merge_shards
+    from ..progress import Sink
+    from ..report.publish import publish
+    from ..settings import shown_arg
 
     here = Path.cwd()
     command = "drivedegrade merge " + " ".join(shown_arg(a, here) for a in [*args.shards, "--out", args.out])
-    key = _merge_signing_key(args)
+    key = signing_key(args)
     baseline = None
     if args.baseline:  # loaded first: a bad baseline is refused before anything is written
-        from .plugin.merge_gate import load_verified_baseline
+        from ..plugin.merge_gate import load_verified_baseline
 
         baseline = load_verified_baseline(Path(args.baseline), Path(args.baseline_public_key)
                                           if args.baseline_public_key else None)
@@ -215,8 +193,8 @@ def _merge(args: argparse.Namespace) -> int:
         for cell, path in merged.cell_files.items():
             shutil.copyfile(path, cells / f"{cell}.json")
     if baseline is not None:
-        from .certificate.seal import load_certificate
-        from .plugin.merge_gate import gate_merged
+        from ..certificate.seal import load_certificate
+        from ..plugin.merge_gate import gate_merged
 
         cert = load_certificate(Path(args.out) / merged.provenance.planner_name / "certificate.json")
         lines, failed = gate_merged(cert, baseline, args.tolerance)
@@ -229,8 +207,8 @@ def _merge(args: argparse.Namespace) -> int:
 def _compare(args: argparse.Namespace) -> int:
     """Compare certificates: compare.csv and compare.html in --out; exit 2 for an unreadable, edited,
     inconsistent (verify's arithmetic) or incomparable certificate; an incomplete one is compared and marked."""
-    from .certificate.compare import write_compare
-    from .certificate.seal import CertificateMismatch
+    from ..certificate.compare import write_compare
+    from ..certificate.seal import CertificateMismatch
 
     try:
         csv_path, html_path, df = write_compare(args.certificates, args.out, force=args.force)
@@ -254,11 +232,11 @@ def _compare(args: argparse.Namespace) -> int:
 
 def _estimate(args: argparse.Namespace) -> int:
     """Wall time of a certification from a planner's frames/s (and a certificate's measured overhead)."""
-    from .certificate.estimate import estimate, estimate_lines, overhead_per_prediction
+    from ..certificate.estimate import estimate, estimate_lines, overhead_per_prediction
 
     overhead = 0.0
     if args.certificate:
-        from .certificate.seal import verify
+        from ..certificate.seal import verify
 
         overhead = overhead_per_prediction(verify(args.certificate).get("cost"))
     try:
@@ -268,106 +246,6 @@ def _estimate(args: argparse.Namespace) -> int:
     for line in estimate_lines(rows, args.fps, args.frames, args.cells, overhead):
         print(line)
     return 0
-
-
-def _closed_loop_import(args: argparse.Namespace) -> int:
-    """CARLA leaderboard results files (one per cell) through the closed-loop analysis into closed_loop.csv,
-    closed_loop_summary.json and report.html."""
-    from .report.closed_import import NullChoice, import_results
-
-    lines, null_ok = import_results(args.files, Path(args.out), args.flat, NullChoice(args.null, args.null_identical))
-    for line in lines:
-        print(line)
-    return 0 if null_ok else 1
-
-
-def _add_closed_loop_commands(sub: argparse._SubParsersAction) -> None:
-    """closed-loop import: runs of a real simulator into the closed-loop analysis."""
-    from .constants import DEFAULT_FLAT
-
-    p = sub.add_parser("closed-loop", help="closed-loop results from a simulator: import CARLA leaderboard runs")
-    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
-    q = actions.add_parser("import", help="read CARLA leaderboard results files (one per cell, clean among them) "
-                                          "into the closed-loop analysis: closed_loop.csv, closed_loop_summary.json "
-                                          "and report.html")
-    q.add_argument("files", nargs="+", metavar="RESULTS.json",
-                   help="the leaderboard's --checkpoint files, one per cell: CELL=FILE (e.g. blackout-s5=bo5.json), or "
-                        "FILE named by its \"drivedegrade\": {\"cell\": ...} object or its file name")
-    q.add_argument("--out", required=True, help="output folder")
-    q.add_argument("--null", choices=("blackout-s3", "clean-rerun"),
-                   help="the null control's results: blackout-s3 (the rear views a front-camera agent never reads), "
-                        "or clean-rerun (a second clean run, given as clean-rerun=FILE: for an agent that reads its "
-                        "rear cameras); default: clean-rerun when such a file is given, else blackout-s3")
-    q.add_argument("--null-identical", action="store_true",
-                   help="blackout S3 must reproduce clean run for run (DS and end): a front-only agent on a "
-                        "deterministic CARLA setup; exit 1 naming the first route that differs")
-    q.add_argument("--flat", type=float, default=DEFAULT_FLAT, metavar="F",
-                   help=f"retention at or above which an axis counts as flat (default {DEFAULT_FLAT}; the plugin's "
-                        "--drivedegrade-flat)")
-    q.set_defaults(func=_closed_loop_import)
-
-
-def _analyse(args: argparse.Namespace) -> int:
-    """A per-cell table computed by a model's own evaluator through the suite's analysis, per model."""
-    from .report.table_import import analyse_table
-
-    for line in analyse_table(args.table, args.out, convention=args.convention, flat=args.flat, metric=args.metric,
-                              floor=args.floor, floor_l2=args.floor_l2, models=args.model or (), split=args.split,
-                              null_identical=args.null_identical, signing_key=_merge_signing_key(args)):
-        print(line)
-    return 0
-
-
-def _ladder(args: argparse.Namespace) -> int:
-    """Print the cells a certification needs, for a model's own evaluation under patch_loader."""
-    from .foreign.ladder import ladder_cells, render
-
-    families = [f for f in args.families.split(",") if f] if args.families else None
-    severities = [int(s) for s in args.severities.split(",") if s] if args.severities else None
-    sys.stdout.write(render(list(ladder_cells(args.set, families=families, severities=severities, seed=args.seed,
-                                              seeds=args.seeds)), args.format))
-    return 0
-
-
-def _add_foreign_commands(sub: argparse._SubParsersAction) -> None:
-    """analyse and ladder: the paper's workflow, a model's own evaluator run once per cell."""
-    from .constants import DEFAULT_FLAT
-
-    p = sub.add_parser("analyse", help="analyse a per-cell table from a model's own evaluator: cells.csv, "
-                                       "report.html and an imported certificate per model")
-    p.add_argument("table", metavar="TABLE", help="the per-cell CSV (docs/how-to/foreign-evaluator.md)")
-    p.add_argument("--out", required=True, help="output folder: writes <out>/<model>/cells.csv, report.html and "
-                                                "certificate.json")
-    p.add_argument("--convention", choices=("stp3", "uniad"),
-                   help="the L2 convention to analyse (default: stp3 when the table gives it, else uniad)")
-    p.add_argument("--metric", choices=("l2", "pdms", "epdms"),
-                   help="the retention the verdict is put on (default: L2 when clean has it, else PDMS, else EPDMS)")
-    p.add_argument("--flat", type=float, default=DEFAULT_FLAT, metavar="F",
-                   help=f"retention at or above which an axis counts as flat (default {DEFAULT_FLAT})")
-    p.add_argument("--floor", metavar="MODEL", help="a model of the table whose clean L2 is the ego-only floor")
-    p.add_argument("--floor-l2", type=float, metavar="M", help="the ego-only floor's clean L2 (metres)")
-    p.add_argument("--model", action="append", metavar="MODEL", help="analyse only this model (repeatable)")
-    p.add_argument("--split", default="as given", help="the split the figures were computed on (recorded)")
-    p.add_argument("--null-identical", action="store_true",
-                   help="blackout-s3 must give every figure clean gives (models that read no rear camera): a "
-                        "difference fails the null control and makes the verdict undetermined")
-    p.add_argument("--sign-key", metavar="PATH", help="sign the certificates with this Ed25519 private key "
-                                                       "(default: $DRIVEDEGRADE_SIGNING_KEY)")
-    p.set_defaults(func=_analyse)
-
-    p = sub.add_parser("ladder", help="print the cells (family, severity, seed) a model's own evaluation must run "
-                                      "under patch_loader, one per line")
-    p.add_argument("--set", choices=("full", "axes", "slice"), default="full",
-                   help="full: every family at S1..S5; axes: every family at S5 (the verdict); slice: the paper's "
-                        "seven-cell slice (default full)")
-    p.add_argument("--families", metavar="LIST", help="comma-separated families to keep")
-    p.add_argument("--severities", metavar="LIST", help="comma-separated severities to keep (1..5)")
-    p.add_argument("--seed", type=int, default=0, help="the first corruption seed (default 0)")
-    p.add_argument("--seeds", type=int, default=1, metavar="N", help="seeds per random family (default 1)")
-    p.add_argument("--format", choices=("text", "csv", "json", "shell"), default="text",
-                   help="text (aligned), csv (the table's key columns), json, or shell ('CELL FAMILY SEVERITY "
-                        "SEED' per line, for `while read`)")
-    p.set_defaults(func=_ladder)
 
 
 def _add_input_commands(sub: argparse._SubParsersAction) -> None:
@@ -486,8 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_input_commands(sub)
     _add_run_commands(sub)
     _add_certificate_commands(sub)
-    _add_closed_loop_commands(sub)
-    _add_foreign_commands(sub)
+    from .imports import add_closed_loop_commands, add_foreign_commands
+
+    add_closed_loop_commands(sub)
+    add_foreign_commands(sub)
     return parser
 
 
