@@ -193,11 +193,11 @@ def reuse(frames: int | None) -> None:
 
 
 def estimates() -> None:
-    from pytest_drivedegrade.certificate.estimate import estimate
+    from pytest_drivedegrade.certificate.estimate import DEFAULT_CELLS, estimate
 
     for fps in (1.8, 45.0):
         rows = estimate(fps, 6019, [1, 8, 64])
-        print(f"nuScenes val (89 cells x 6019 frames) at {fps:g} frames/s: " +
+        print(f"nuScenes val ({DEFAULT_CELLS} cells x 6019 frames) at {fps:g} frames/s: " +
               ", ".join(f"{r.gpus} GPU(s) {r.wall_hours:.1f} h" for r in rows))
 
 

@@ -7,9 +7,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-#: The cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise S1..S5, ego_blind and
-#: command_blind).
-DEFAULT_CELLS = 90
+#: The cells of a default run (clean, null, blind, the 16 x 5 ladder, ego_noise S1..S5, ego_blind, command_blind
+#: and command_swap); tests/unit/test_scale.py checks it against `cells.run_order`.
+DEFAULT_CELLS = 91
 
 
 @dataclass(frozen=True)

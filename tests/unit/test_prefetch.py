@@ -139,9 +139,10 @@ class _Prepared:
     def __init__(self, reader):
         self.reader, self.cache = reader, {}
 
-    def pdms_frame(self, frame):
+    def pdms_frame(self, frame, poses=6):
         from pytest_drivedegrade.metrics.pdms import PreparedFrame
 
+        assert poses == 6  # these plans are six-pose; an 8-pose preparation is `run.RunContext`'s
         if frame.token not in self.cache:
             self.cache[frame.token] = PreparedFrame.of(frame, self.reader.drivable_area(frame),
                                                        lane_map=self.reader.lane_map(frame))

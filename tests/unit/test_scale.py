@@ -158,9 +158,14 @@ def test_cost_ledger_counts_predictions_and_seconds(world, camera_cnn):
 
 
 def test_estimate_known_answers():
-    rows = estimate(1.8, 6019, [1, 8, 64])  # the default run's 89 cells
-    assert rows[0].predictions == 89 * 6019
-    assert rows[0].wall_hours == pytest.approx(89 * 6019 / 1.8 / 3600)  # 82.7 h, as `drivedegrade estimate` prints
+    from pytest_drivedegrade import FAMILIES
+    from pytest_drivedegrade.cells import run_order
+    from pytest_drivedegrade.certificate.estimate import DEFAULT_CELLS
+
+    assert DEFAULT_CELLS == len(run_order(FAMILIES, (1, 2, 3, 4, 5))) == 91  # the default run's cells
+    rows = estimate(1.8, 6019, [1, 8, 64])
+    assert rows[0].predictions == 91 * 6019
+    assert rows[0].wall_hours == pytest.approx(91 * 6019 / 1.8 / 3600)  # 84.5 h, as `drivedegrade estimate` prints
     assert rows[1].wall_hours == pytest.approx(rows[0].wall_hours / 8)
     over = overhead_per_prediction({"predictions": 100, "seconds": {"decode": 1.0, "inject": 2.0, "metrics": 0.5,
                                                                     "pdms": 0.5, "check": 1.0, "planner": 50.0}})
