@@ -135,8 +135,12 @@ def _device(planner: Planner, device: str) -> list[str]:
 
 
 def _frame(context: RunContext, cameras: Sequence[str]) -> tuple[Frame | None, dict[str, np.ndarray]]:
-    """The first of `PROBE_FRAMES` run frames whose declared cameras all decode, with their images."""
+    """The first of `PROBE_FRAMES` run frames whose declared cameras all decode, with their images. A frame with
+    a non-finite planner input (`Frame.input_fault`) is skipped: it is the data set's fault in every cell, and a
+    planner that passes the NaN on into its plan is not in breach of its contract (issue 37)."""
     for frame in context.frames[:PROBE_FRAMES]:
+        if frame.input_fault:
+            continue
         try:
             return frame, {c: _readonly(context.decode(frame, c)) for c in cameras}
         except DataError:
@@ -178,7 +182,7 @@ def probe_first_frame(planner: Planner, context: RunContext) -> tuple[Probe | No
     frame, images = _frame(context, cameras)
     if frame is None:
         return None, [], [f"no clean frame checked: the declared cameras of the first {PROBE_FRAMES} frames do "
-                          "not decode (the cells report the data errors)"]
+                          "not decode or hold a non-finite input (the cells report the data errors)"]
     read: list[str] = []
     try:
         with opencv_share():  # as the cells call it: OpenCV's thread count the run's, and put back after
