@@ -12,7 +12,9 @@ contradict:
   the cameras" means);
 * plans move and accuracy falls: ``camera-reliant`` / ``quality-insensitive`` (the axes' labels, unchanged);
 * plans move and accuracy does not fall: ``camera-sensitive`` (case ``accuracy-holds``), or accuracy rises beyond
-  its interval (case ``gains-from-loss``): the planner reads its cameras without gaining accuracy from them.
+  its interval (case ``gains-from-loss``): the planner reads its cameras without gaining accuracy from them;
+* no camera cell's movement measured (an imported table, whose plans the suite never sees): the axes' label, said
+  to be read on accuracy alone (never "its plans do not move").
 
 Retention above 1 with its whole 95 % interval above 1 is its own finding and is never worded as "flat".
 
@@ -139,6 +141,10 @@ def read_movement(v: Verdict, axes: Axes, reliance: Reliance | None) -> Verdict:
         return v
     up = [axis for axis in ("quality", "removal") if gains(axes, axis)]
     if v.label == "not-shown-to-use-cameras":
+        if reliance.of("quality").moves is None and reliance.of("presence").moves is None:
+            # no camera cell's movement measured (an imported table: plans not seen): read on accuracy alone
+            return replace(v, text=v.text + " Whether its plans move with its cameras is not known: no camera "
+                           "cell's plan movement was measured.")
         if not reliance.cameras_move():
             return replace(v, text=v.text + f" Its plans do not move: {_shift_words(reliance)}.")
         case = "gains-from-loss" if up else "accuracy-holds"
