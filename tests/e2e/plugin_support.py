@@ -97,7 +97,7 @@ class TestPlanner:
         # Test-only shortcut: the ground truth and the clean image come from the data set, so the plan's error
         # is a known function of how much the delivered front image differs from the clean one.
         future, front = self.frame_truth(context.token)
-        plan = np.array(future, dtype=float) + [0.5, 0.0]
+        plan = np.array(future, dtype=float) + [{ahead!r}, 0.0]
         if "CAM_FRONT" in self.cameras:
             delivered = images["CAM_FRONT"]  # first: a data fault in it is the suite's to report
             clean = cv2.imread(front)  # None where the test broke the file on purpose
@@ -151,10 +151,11 @@ FRAGILE = "40.0 * d"
 
 def planner_source(*, cameras: tuple[str, ...] = ("CAM_FRONT",), name: str | None = "testplanner",
                    faults: dict[str, tuple[str, str | None]] | None = None, read_back: bool = False,
-                   marker: str = "", count_file: str = "", scale: str = REACTIVE) -> str:
-    """Source of a planner file; `faults` maps cell id -> (fault, frame token or None)."""
+                   marker: str = "", count_file: str = "", scale: str = REACTIVE, ahead: float = 0.5) -> str:
+    """Source of a planner file; `faults` maps cell id -> (fault, frame token or None); `ahead`: its clean plan's
+    offset along x from the ground truth, in m (0.5 m beats the ego-only floor on the small world)."""
     return PLANNER.format(cameras=tuple(cameras), name=name, faults=dict(faults or {}), read_back=read_back,
-                          marker=marker, count_file=count_file, scale_expr=scale)
+                          marker=marker, count_file=count_file, scale_expr=scale, ahead=float(ahead))
 
 
 @dataclass

@@ -3,7 +3,7 @@ gets every closed cell "not separable from the null" and no robust closed label;
 
 The planner's noise comes from a generator the suite does not seed (here a fixed one, so the test is repeatable
 serially: the point is that the suite's corruption seeds do not control it). A 34-scene world (4 val scenes: 4
-routes), four planner calls a run.
+routes; the scenario routes are switched off), four planner calls a run.
 """
 
 from __future__ import annotations
@@ -53,14 +53,15 @@ def six_route_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from pytest_drivedegrade.data.world import write_world
 
     root = write_world(tmp_path_factory.mktemp("w36"), scenes=34, seed=5)
-    assert len(load_routes(root)) == 4  # 4 val scenes: 4 routes
+    assert len(load_routes(root, scenarios=0)) == 4  # 4 val scenes: 4 routes (no scenario routes)
     return root
 
 
 def test_a_planner_with_unseeded_noise_has_every_closed_cell_not_separable(dd, six_route_world: Path) -> None:
     dd.pytester.makepyfile(noisy=NOISY)
     result = dd.run("--drivedegrade-loop", "closed", "--drivedegrade-closed-steps", "4", "-p", "no:randomly",
-                    "-p", "no:xdist", planner="noisy.py", data=six_route_world)
+                    "-p", "no:xdist", "--drivedegrade-closed-scenarios", "0", planner="noisy.py",
+                    data=six_route_world)
     assert result.ret == 0, result.stdout.str()
     cert = load_json(dd.folder("noisy") / "certificate.json")
     section = cert["closed_loop"]

@@ -20,12 +20,17 @@ pytest_plugins = ["plugin_support"]
 MISLED = "0.6 - min(8.0 * d, 0.6)"
 
 
-@pytest.mark.parametrize("cameras, scale, label, says", [
-    (("CAM_FRONT",), MISLED, "camera-sensitive", "Camera-sensitive without reliance"),
-    ((), "0.0", "not-shown-to-use-cameras", "Its plans do not move"),
+#: The camera-free case plans 2 m ahead of the ground truth (clean L2 2.0 m), worse than the ego-only floor (1.34 m
+#: on the small world). Its blind plans equal clean's; at 0.5 m it would also beat the floor, which is the memo
+#: check's case (issue 37: plans better than ego status allows with no image at all came from elsewhere, so the
+#: run is undetermined on any number of frames). Above the floor nothing points at a memo and the axes'
+#: not-shown-to-use-cameras stands, which is what this case tests.
+@pytest.mark.parametrize("cameras, scale, ahead, label, says", [
+    (("CAM_FRONT",), MISLED, 0.5, "camera-sensitive", "Camera-sensitive without reliance"),
+    ((), "0.0", 2.0, "not-shown-to-use-cameras", "Its plans do not move"),
 ])
-def test_plan_movement_beside_accuracy(dd, cameras, scale, label, says) -> None:
-    dd.write_planner(cameras=cameras, scale=scale)
+def test_plan_movement_beside_accuracy(dd, cameras, scale, ahead, label, says) -> None:
+    dd.write_planner(cameras=cameras, scale=scale, ahead=ahead)
     result = dd.run("--junitxml=r.xml", families=AXIS_FAMILIES + ",command_blind", severities="5")
     result.assert_outcomes(passed=14)
     result.stdout.fnmatch_lines([f"verdict: {label} - *", "reliance profile (plan movement*",
