@@ -74,3 +74,18 @@ def test_under_n2_a_planner_file_that_fails_to_import_is_still_a_usage_error_nam
     assert result.ret == pytest.ExitCode.USAGE_ERROR, result.stdout.str()
     # the pre-flight's own process imports it first: the usage error, before any cell and any worker
     result.stderr.fnmatch_lines(["ERROR: --drivedegrade: importing *bad.py:3 failed: RuntimeError: boom at import"])
+
+
+def test_under_n2_a_planner_that_ends_the_pre_flights_process_fails_the_run_before_any_cell(dd):
+    """The pre-flight builds and calls the planner in a process of its own under -n 2 (`plugin.isolated`): a
+    planner that ends that process with status 0 (here at its first predict) leaves no answer, and the run is a
+    usage error naming what happened, with no cell run; never a pass."""
+    dd.pytester.makepyfile(ender='import os\n\nimport pytest\n\n\nclass Ender:\n    cameras = ("CAM_FRONT",)\n\n'
+                                 '    def predict(self, images, ego, cmd):\n        os._exit(0)\n\n\n'
+                                 '@pytest.fixture(scope="session")\ndef planner():\n    return Ender()\n')
+    result = dd.run("-n", "2", planner="ender.py", families="jpeg", severities="1", report="ended",
+                    subprocess=True)
+    assert result.ret == pytest.ExitCode.USAGE_ERROR, result.stdout.str() + result.stderr.str()
+    result.stderr.fnmatch_lines(["*drivedegrade pre-flight: the process that builds and checks the planner ended "
+                                 "(exit 0) without an answer, so no cell ran*"])
+    assert not (dd.pytester.path / "ended").exists()
