@@ -220,7 +220,9 @@ def cli_world(args) -> int:
                        junction_scenes=getattr(args, "junction_scenes", 0))
     manifest = json.loads((root / MANIFEST).read_text())
     ev = manifest["events"]["val"]
-    print(f"wrote {root} ({manifest['scenes']} scenes, fingerprint {manifest['fingerprint']}) in "
+    junction = len(manifest["splits"].get(JUNCTION_SPLIT, []))
+    also = f" and {junction} junction scenes" if junction else ""
+    print(f"wrote {root} ({manifest['scenes']} scenes{also}, fingerprint {manifest['fingerprint']}) in "
           f"{time.perf_counter() - start:.1f} s; val frames with a camera-only event: {ev['fraction']:.0%}",
           file=sys.stderr)
     return 0
