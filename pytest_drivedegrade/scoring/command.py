@@ -145,15 +145,17 @@ class CommandProbe:
     scenes: tuple[int, ...] | None = None
 
     def to_builtins(self) -> dict[str, object]:
-        """The certificate's ``command`` section (``scenes`` and ``basis`` where the scenes are known)."""
+        """The certificate's ``command`` section (``scenes`` and ``basis`` where the scenes are known and a frame
+        was scored)."""
         f = self.following
         out: dict[str, object] = {
             "cell": "command_swap", "following": f.value, "low": f.low, "high": f.high, "label": f.label,
             "frames": f.frames, "junction_frames": self.junction_frames,
             "sums": [[n, d] for n, d in zip(self.num, self.den)]}
-        if self.scenes is not None:
+        if self.scenes is not None and self.num:  # nothing scored: the section as before, no basis to name
             out["scenes"] = list(self.scenes)
-            out["basis"] = f"scene-cluster bootstrap, {f.scenes} scenes" if f.scenes else "frame bootstrap"
+            out["basis"] = f"scene-cluster bootstrap, {f.scenes} scenes" if f.scenes else \
+                "frame bootstrap" if f.low is not None else "no interval"
         return out
 
 

@@ -241,3 +241,12 @@ def test_the_run_analysis_gives_the_probe_the_frames_scenes() -> None:
     assert res.command is not None and res.command.following.scenes == 3
     assert res.command.scenes == tuple(i % 3 for i in range(24))  # junction frames only, in order
     assert check_command(certificate(res)) == []
+
+
+def test_the_section_names_its_basis_only_where_a_frame_was_scored() -> None:
+    logged, target, _, own = frames(3)
+    one = swap_probe(own[:1], own[:1] + (target - logged)[:1], (target - logged)[:1], n_resamples=100, seed=0,
+                     scenes=["a"])
+    assert one.following.low is None and one.to_builtins()["basis"] == "no interval"
+    none = swap_probe(own, own, np.full_like(target, np.nan), n_resamples=100, seed=0, scenes=["a", "b", "c"])
+    assert "scenes" not in none.to_builtins() and "basis" not in none.to_builtins()  # the 5.0.0 section's form
