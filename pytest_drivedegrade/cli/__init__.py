@@ -273,6 +273,9 @@ def _add_input_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--future", type=int, choices=(3, 4), default=3,
                    help="seconds of future every scored frame holds: 3 (nuScenes, the default) or 4 (NAVSIM's eight "
                         "poses: for a planner declaring poses = 8)")
+    p.add_argument("--junction-scenes", type=int, default=0, metavar="N",
+                   help="add N scenes turning at a junction, in a split of their own (junction), rendered: the "
+                        "frames a command label needs (--drivedegrade-split junction); default 0")
     p.set_defaults(func=_world)
 
 

@@ -25,7 +25,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-data", "drivedegrade_data", "nuScenes data root (default: the embedded world, "
                "rendered into pytest's cache on first use)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-split", "drivedegrade_split", "split to score: val (default), train, mini_val, "
-               "mini_train, all", {"metavar": "SPLIT"}),
+               "mini_train, all, junction (a world's junction scenes: drivedegrade world --junction-scenes N)",
+               {"metavar": "SPLIT"}),
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic subset of N frames: each "
                "scene's middle contiguous run, scenes sharing N by their frame counts (default: all scorable "
                "frames); a subset's intervals speak for those frames, not for the full run's", {"metavar": "N"}),

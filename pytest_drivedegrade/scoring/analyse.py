@@ -89,7 +89,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
-    probe = command_probe(by_cell, seed=seed, n_resamples=n_resamples if intervals else 0)
+    probe = command_probe(by_cell, seed=seed, n_resamples=n_resamples if intervals else 0, scenes=frame_scenes)
     v = v if probe is None else replace(v, text=f"{v.text} {probe.following.text()}")
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
@@ -98,13 +98,16 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
                        axes_pdms=ax_pdms, axes_epdms=ax_epdms, reliance=moved, command=probe)
 
 
-def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int) -> CommandProbe | None:
-    """The command_swap cell's following figure against clean (`scoring.command.swap_probe`); None when the cell
-    did not run. Frames away from junctions are not scored."""
+def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int,
+                  scenes: Sequence[str] | None = None) -> CommandProbe | None:
+    """The command_swap cell's following figure against clean (`scoring.command.swap_probe`; its interval a
+    scene-cluster bootstrap with `scenes`, each clean frame's scene); None when the cell did not run. Frames away
+    from junctions are not scored."""
     swap = by_cell.get(COMMAND_SWAP)
     if swap is None:
         return None
-    return swap_probe(by_cell["clean"].plans, swap.plans, swap.command_target, n_resamples=n_resamples, seed=seed)
+    return swap_probe(by_cell["clean"].plans, swap.plans, swap.command_target, n_resamples=n_resamples, seed=seed,
+                      scenes=scenes)
 
 
 def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:
