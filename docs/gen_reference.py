@@ -88,7 +88,7 @@ COLUMNS: dict[str, str] = {
                          "(0: they ignore it, 1: as the privileged expert with the swapped route)",
     "command_following_ci_low": "low end of its 95 % interval (junction frames resampled)",
     "command_following_ci_high": "high end of the same interval",
-    "command_label": "command_swap row: command-following, command-insensitive or undetermined",
+    "command_label": "command_swap row: command-following, command-partial, command-insensitive or undetermined",
     "command_frames": "command_swap row: the junction frames the figure is scored on",
     "junction_frames": "command_swap row: the scored frames where another command is meaningful",
 }

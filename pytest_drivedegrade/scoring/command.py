@@ -19,10 +19,15 @@ read at the expanded percentile levels for that many scenes, as the run's other 
 otherwise frames (paired), percentile method. Seeded either way. Frames at one junction share its road and the
 planner's state, so a frame bootstrap over them would state a precision the scenes do not have.
 
-Label: ``command-following`` when the interval's lower bound is at or above `FOLLOWING_LINE` (the plan moves at
-least half as far toward the told manoeuvre as the expert's); ``command-insensitive`` when its upper bound is below
-`INSENSITIVE_LINE` (the plan moves less than a tenth of the way); otherwise ``undetermined`` (partial following,
-or too few frames), with the figure. So each label's interval excludes the other label.
+Label: ``command-following`` when the interval's lower bound is at or above `FOLLOWING_LINE` (the plan is shown to
+move at least half as far toward the told manoeuvre as the expert's); ``command-partial`` when its lower bound is at
+or above `INSENSITIVE_LINE` but below `FOLLOWING_LINE` (the command is shown to steer the plan, but not shown to
+take it half way: the reference planners that read the command as an input do this); ``command-insensitive`` when
+its upper bound is below `INSENSITIVE_LINE` (the plan moves less than a tenth of the way); otherwise
+``undetermined`` (the interval straddles the tenth, or the junction frames come from one scene: one junction's
+frames share its road and the planner's state, so they cannot label a planner). Each label's interval excludes
+every other label's region below it, so ``command-following`` and ``command-partial`` exclude
+``command-insensitive``.
 
 Pure functions over arrays; nothing here reads files or touches a planner.
 """
@@ -36,7 +41,7 @@ import numpy as np
 
 from .clusters import MIN_SCENES, cluster_counts, percentile_interval
 
-COMMAND_LABELS: tuple[str, ...] = ("command-following", "command-insensitive", "undetermined")
+COMMAND_LABELS: tuple[str, ...] = ("command-following", "command-partial", "command-insensitive", "undetermined")
 FOLLOWING_LINE = 0.5
 INSENSITIVE_LINE = 0.1
 
@@ -61,8 +66,10 @@ class Following:
             f" (scene-cluster bootstrap, {self.scenes} scenes)" if self.scenes else " (frame bootstrap)"
         spread = "" if self.low is None else f", 95 % interval {self.low:.3f} .. {self.high:.3f}{basis}"
         what = {"command-following": "the plan goes where the command says",
+                "command-partial": "the command steers the plan, but it is not shown to go half as far as the "
+                                   "expert's",
                 "command-insensitive": "the plan does not go where the command says",
-                "undetermined": "partial, or too few frames to tell"}[self.label]
+                "undetermined": "too few junctions, or too little movement, to tell"}[self.label]
         return (f"Command: following {self.value:.3f}{spread} over {self.frames} junction frame"
                 f"{'s' if self.frames != 1 else ''} (0: ignores the command, 1: the privileged expert given the "
                 f"other route); {self.label}: {what}.")
@@ -84,6 +91,8 @@ def command_label(low: float | None, high: float | None, value: float | None) ->
         return "undetermined"
     if round(lo, 6) >= FOLLOWING_LINE:
         return "command-following"
+    if round(lo, 6) >= INSENSITIVE_LINE:
+        return "command-partial"
     if round(hi, 6) < INSENSITIVE_LINE:
         return "command-insensitive"
     return "undetermined"
@@ -120,7 +129,9 @@ def from_sums(num: np.ndarray, den: np.ndarray, *, n_resamples: int = 1000, seed
         idx = np.random.default_rng(seed).integers(0, num.size, size=(n_resamples, num.size))
         ratios = num[idx].sum(axis=1) / den[idx].sum(axis=1)
         low, high = (float(v) for v in np.percentile(ratios, [2.5, 97.5]))
-    return Following(value, low, high, int(num.size), command_label(low, high, value))
+    # frames of one known scene are one junction: the frame interval is shown, but it cannot label the planner
+    label = "undetermined" if labels is not None else command_label(low, high, value)
+    return Following(value, low, high, int(num.size), label)
 
 
 def _relabel(scenes: np.ndarray) -> np.ndarray:

@@ -115,13 +115,14 @@ def planner(request):
 '''
 
 
-@pytest.mark.parametrize("follows, label, value", [(False, "command-insensitive", 0.0),
-                                                   (True, "command-following", 1.0)])
-def test_hidden_behaviour_planners_get_their_command_label_on_real_junction_frames(dd, two_scene_world, follows,
-                                                                                     label, value) -> None:
-    """The 11-scene world (seed 1) has 4 val frames where another command is meaningful: a planner that ignores
-    the command scores 0 with the interval [0, 0], one that plans the expert's path when told the other command
-    scores 1 with [1, 1]: each interval excludes the other label, and verify recomputes both."""
+@pytest.mark.parametrize("follows, value", [(False, 0.0), (True, 1.0)])
+def test_hidden_behaviour_planners_get_their_command_figure_on_real_junction_frames(dd, two_scene_world, follows,
+                                                                                    value) -> None:
+    """The 11-scene world (seed 1) has 4 val frames where another command is meaningful, all at one junction: a
+    planner that ignores the command scores 0 with the frame interval [0, 0], one that plans the expert's path when
+    told the other command scores 1 with [1, 1], and neither is labelled (one junction cannot label a planner;
+    the junction split below does); verify recomputes both."""
+    label = "undetermined"
     dd.pytester.makepyfile(cmdplanner=COMMAND_PLANNER.format(follows=follows))
     args = [a if a != "4" else "68" for a in dd.args(planner="cmdplanner.py", families="command_swap",
                                                        severities="5", data=two_scene_world)]

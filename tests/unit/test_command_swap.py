@@ -59,7 +59,7 @@ def certificate(res) -> dict:
 @pytest.mark.parametrize("plan_of, label, low, high", [
     (ignores, "command-insensitive", 0.0, 0.0),
     (follows, "command-following", 0.9, 0.9),
-    (follows_when_shown, "undetermined", None, None),
+    (follows_when_shown, "command-partial", None, None),
 ])
 def test_each_hidden_behaviour_gets_its_label_and_verify_recomputes_it(plan_of, label, low, high) -> None:
     res = analyse_run(swap_run(plan_of), groups=GROUPS, n_resamples=500)
@@ -232,6 +232,22 @@ def test_the_interval_resamples_scenes_when_the_frames_scenes_are_known() -> Non
     assert check_command(bad)[0].startswith("command.scenes: not a list of 12 scene indices")
     old = {**cert, "command": {k: v for k, v in by_frames.to_builtins().items()}}  # as spec 5.0.0 wrote it
     assert "scenes" not in old["command"] and check_command(old) == []
+
+
+def test_a_spec_5_0_certificate_between_the_lines_still_verifies_as_undetermined() -> None:
+    """Spec 5.0.0 had no `command-partial`: a frame-bootstrap figure of 0.5 [0.17, 0.83] was `undetermined` there
+    and verifies so; the same section under a later spec must say `command-partial`."""
+    logged, target, _, own = frames(12)
+    target = logged + np.stack([np.zeros(6), np.linspace(0.5, 3.0, 6)], axis=-1)
+    told = own + (target - logged) * (np.arange(12) < 6)[:, None, None]
+    section = swap_probe(own, told, target - logged, n_resamples=400, seed=1).to_builtins()
+    assert section["label"] == "command-partial"
+    settings = {"seed": 1, "n_resamples": 400}
+    old = canonicalize({"spec_version": "5.0.0", "settings": settings, "cells": [{"cell": "command_swap"}],
+                        "command": {**section, "label": "undetermined"}})
+    assert check_command(old) == []
+    new = {**old, "spec_version": "5.1.0"}
+    assert check_command(new) == ["command.label: certificate says 'undetermined', its sums give 'command-partial'"]
 
 
 def test_the_run_analysis_gives_the_probe_the_frames_scenes() -> None:
