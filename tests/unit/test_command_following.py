@@ -10,7 +10,7 @@ import pytest
 from pytest_drivedegrade.data.frame import Command
 from pytest_drivedegrade.data.junctions import alternative, ego_lane, manoeuvre
 from pytest_drivedegrade.data.maps import Lane, LaneMap
-from pytest_drivedegrade.scoring.command import command_label, frame_sums, from_sums, following
+from pytest_drivedegrade.scoring.command import command_label, following, frame_sums, from_sums
 
 STEPS = np.arange(1, 7) * 0.5
 
