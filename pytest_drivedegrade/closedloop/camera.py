@@ -19,7 +19,6 @@ import numpy as np
 from ..data.world import models, render, texture
 from ..data.world.agents import DT
 from ..data.world.export import camera_jpeg, scene_backdrop
-from ..data.world.lights import light_parts
 from .routes import Route
 
 #: Agents farther than this from the ego (m) have no part the renderer draws (a part's centre within 6 m of its
@@ -85,7 +84,7 @@ class RouteCameras:
         near = [a for a in self.route.scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
         render.agent_parts(parts, near, step)
         if self.route.scene.lights:
-            light_parts(parts, self.route.scene.net, self.route.scene.lights, step, DT)
+            models.light_parts(parts, self.route.scene.net, self.route.scene.lights, step, DT)
         return parts
 
     def one(self, cam: str, parts: models.Parts, pose: tuple[float, float, float], step: int) -> np.ndarray:

@@ -20,7 +20,7 @@ from . import models, render, sensing, texture
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
 from .lanemap import lane_layers
-from .lights import light_parts, map_layers
+from .lights import map_layers
 from .rig import Rig
 from .roads import drivable_polygons
 from .scene import Scene
@@ -281,7 +281,7 @@ def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
         parts = models.Parts(list(static.boxes), list(static.colours), dict(static.decals))
         render.agent_parts(parts, scene.agents, step)
         if scene.lights:
-            light_parts(parts, scene.net, scene.lights, step, DT)
+            models.light_parts(parts, scene.net, scene.lights, step, DT)
         for cam in CAMERAS:
             buf = camera_jpeg(scene, rig, cam, pre[cam], backdrop, parts, pose, step)
             path = root / image_name(scene, cam, k)

@@ -106,14 +106,6 @@ def segments_cross(a: np.ndarray, b: np.ndarray) -> bool:
         (d3 == 0 and on(a[0], a[1], b[0])) or (d4 == 0 and on(a[0], a[1], b[1]))
 
 
-def light_parts(parts, net: RoadNet, lights, step: int, dt: float) -> None:
-    """Add each light's pole, mast arm and head to `parts` (`models.Parts`), its lamps lit by its state at `step`."""
-    from .models import traffic_light
-
-    for light in lights:
-        traffic_light(parts, light.pole(net), light.head(net), light.state_at(step * dt))
-
-
 def map_layers(lights, net: RoadNet, token: Callable[..., str], seed: int, index: int, time0: int,
                ) -> dict[str, list[dict]]:
     """The lights as nuScenes map-expansion records: `node`, `line` and `polygon` rows to add, and the
@@ -149,5 +141,5 @@ def map_layers(lights, net: RoadNet, token: Callable[..., str], seed: int, index
     return out
 
 
-__all__ = ["AREA_M", "GREEN", "RED", "STATES", "YELLOW", "YELLOW_S", "TrafficLight", "light_parts", "map_layers",
+__all__ = ["AREA_M", "GREEN", "RED", "STATES", "YELLOW", "YELLOW_S", "TrafficLight", "map_layers",
            "segments_cross"]

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .lights import DARK, GREEN, HEAD_Z, HOUSING, LIT, RED, YELLOW
+
 GLASS = (45, 55, 70)
 TYRE = (28, 28, 30)
 
@@ -153,11 +155,16 @@ def pole(p: Parts, prop, rng) -> None:
     p.add(x, y, prop.yaw, prop.size[2], prop.size[2] + 0.25, 0.7, 0.35, (60, 60, 62))
 
 
+def light_parts(p: Parts, net, lights, step: int, dt: float) -> None:
+    """Add each traffic light's pole, mast arm and head (`lights.TrafficLight`), its lamps lit by its state at sim
+    `step` (`dt` s each)."""
+    for light in lights:
+        traffic_light(p, light.pole(net), light.head(net), light.state_at(step * dt))
+
+
 def traffic_light(p: Parts, pole_at, head_at, state: str) -> None:
     """A traffic light on a mast arm: pole on the curb, arm over the lanes, head facing the approaching traffic with
     three lamps (red, yellow, green from the top), the one of `state` lit (`lights.LIT`, `lights.DARK`)."""
-    from .lights import DARK, GREEN, HEAD_Z, HOUSING, LIT, RED, YELLOW
-
     px, py, pyaw = pole_at
     hx, hy, hyaw = head_at
     top = HEAD_Z[1] + 0.2
