@@ -264,3 +264,27 @@ def test_a_light_stop_line_spans_the_lanes_of_its_direction() -> None:
     assert float(np.hypot(*(line[1] - line[0]))) == pytest.approx(light.lanes * 3.5, abs=1e-6)
     _, d = scene.net.route.center.project(line)
     assert d[0] == pytest.approx(0.0, abs=0.2) and d[1] == pytest.approx(-light.lanes * 3.5, abs=0.2)
+
+
+def test_tlc_reads_the_lights_from_the_map_in_the_frame_of_the_ego(routes: list[Route]) -> None:
+    """The map's light, moved into the ego frame at a keyframe where the expert waits at the red: a plan that
+    drives on at 10 m/s enters the controlled lanes while red (tlc 0), the expert's standstill does not (1)."""
+    from pytest_drivedegrade.metrics.pdms.lights import red_areas
+    from pytest_drivedegrade.metrics.pdms.tracked import initial_state, tracked_states
+
+    scene = routes[0].scene
+    light = scene.lights[0]
+    lane_map = parse_lane_map(map_expansion(scene, SEED), "x")
+    waiting = [k for k in range(40) if scene.ego.speed[5 * k] < 0.3 and light.state_at(
+        (5 * k + 30) * DT) == RED]
+    assert waiting, "the expert waits at the red for at least 3 s at some keyframe"
+    step = 5 * waiting[0]
+    pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
+    areas = red_areas(lane_map, pose, timestamp(scene, waiting[0]), 6)
+    assert areas is not None and len(areas) == 1 and areas[0].red.all()
+    assert 0.0 < float(areas[0].polygon[:, 0].min()) < 5.0  # the controlled lanes start just ahead of the ego
+    start = initial_state((0.0, 0.0))
+    go = tracked_states(np.array([[[5.0 * (k + 1), 0.0] for k in range(6)]]), [initial_state((10.0, 0.0))])[0]
+    wait = tracked_states(np.array([[[0.0, 0.0]] * 6]), [start])[0]
+    assert traffic_light_compliance(go, areas) == 0.0 and traffic_light_compliance(wait, areas) == 1.0
+    assert red_areas(parse_lane_map(map_expansion(make_scene(SEED, 3, "s"), SEED), "y"), pose, 0, 6) is None
