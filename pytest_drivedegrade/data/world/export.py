@@ -243,7 +243,8 @@ def scene_backdrop(scene: Scene) -> tuple[texture.GroundMap, np.ndarray, models.
     """What every render of a scene starts from, logged or at a simulated pose (`closedloop.camera`): the ground
     texture, the sky panorama and the static scenery, drawn from the scene's own random stream in this order."""
     rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
-    ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng)
+    lines = [(*light.stop_line(scene.net), light.along(scene.net)) for light in scene.lights]
+    ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng, lines)
     sky = texture.sky_panorama(scene.style, rng)
     static = models.Parts()
     for prop in scene.props:

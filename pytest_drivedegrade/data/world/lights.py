@@ -64,6 +64,11 @@ class TrafficLight:
         """(2, 2) the line's ends: the route's centreline, and the outer edge of its direction's last lane."""
         return _across(net, self.s_line, 0.0, -self.lanes * LANE_WIDTH)
 
+    def along(self, net: RoadNet) -> np.ndarray:
+        """(2,) the unit vector along the route at the stop line (the direction of travel)."""
+        _, _, yaw = net.route.center.at(self.s_line)
+        return np.array([np.cos(yaw), np.sin(yaw)])
+
     def area(self, net: RoadNet) -> np.ndarray:
         """(4, 2) the controlled area, counter-clockwise: the lanes from the stop line AREA_M on."""
         a = _across(net, self.s_line, 0.0, -self.lanes * LANE_WIDTH)

@@ -137,7 +137,8 @@ def scenario_scene(seed: int, i: int) -> Scene:
 #: Light scenes (`light_scene`) are numbered from here, on a random stream of their own.
 LIGHT_BASE, LIGHT_KEY = 200_000, 0x119B7
 #: The stop line lies this far (m of route centreline) past the ego's start; a junction square that close to it
-#: moves it to 2 m before the square.
+#: moves it to the junction's painted stop line (`texture._paint_markings`: its bar from 0.75 to 0.25 m before
+#: the square).
 LIGHT_AHEAD_M = (45.0, 85.0)
 
 
@@ -151,7 +152,7 @@ def _light(rng, net, s0: float, v0: float) -> TrafficLight:
     s_line = EGO_START_S + float(rng.uniform(*LIGHT_AHEAD_M))
     for j in net.junctions:
         if abs(j.s_route - s_line) < j.half + 12.0:
-            s_line = float(j.s_route - j.half - 2.0)
+            s_line = float(j.s_route - j.half - 0.75)
     t_arrive = max(s_line - s0, 0.0) / max(v0, 1.0)
     t_yellow = max(t_arrive - float(rng.uniform(3.0, 6.0)), 0.5)
     return TrafficLight(s_line, net.route.lanes, t_yellow, t_arrive + float(rng.uniform(4.0, 9.0)))
