@@ -25,7 +25,8 @@ from ..data.world.scenarios import light_scene, scenario_scene
 from ..data.world.scene import KEYFRAMES, Scene, make_scene
 from ..errors import DataError
 
-#: Scenario routes after the val routes: with the default world's 6 val scenes, 24 distinct routes.
+#: Scenario routes after the val routes: with the default world's 6 val scenes, 24 distinct routes (30 with the
+#: light routes).
 SCENARIO_ROUTES = 18
 #: Light routes (`data.world.scenarios.light_scene`: a traffic light whose red meets the ego) after them.
 LIGHT_ROUTES = 6

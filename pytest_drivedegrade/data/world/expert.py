@@ -163,6 +163,9 @@ def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_st
     """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`;
     `lights`: the traffic lights it obeys)."""
     v_allow = allowed_speed(lane, v_cruise)
+    if lights is not None:  # a fresh drive: no light braked for or passed yet
+        lights.braking[:] = False
+        lights.going[:] = False
     s_obs, v_obs, block = corridor_obstacles(lane, agents, projections)
     vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
     half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2

@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ...constants import EGO_LENGTH
 from .agents import (
     DT,
     EGO_START_S,
@@ -161,7 +162,7 @@ def _light(rng, net, s0: float, v0: float) -> TrafficLight:
 def ran_red(lane, light: TrafficLight, net, ego) -> bool:
     """Whether the logged ego's front crosses the light's stop line while it is red."""
     s_stop = float(lane.project(light.stop_line(net).mean(0)[None])[0][0])
-    front = ego.s + 2.5
+    front = ego.s + EGO_LENGTH / 2
     crossed = np.flatnonzero((front[:-1] <= s_stop) & (front[1:] > s_stop))
     return any(light.state_at((t + 1) * DT) == "red" for t in crossed)
 
