@@ -38,7 +38,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "Closed loop": ("--drivedegrade-loop", "--drivedegrade-closed-cells", "--drivedegrade-closed-seeds",
                     "--drivedegrade-closed-hz", "--drivedegrade-closed-routes", "--drivedegrade-closed-agents",
                     "--drivedegrade-closed-steps", "--drivedegrade-closed-collisions",
-                    "--drivedegrade-closed-scenarios"),
+                    "--drivedegrade-closed-scenarios", "--drivedegrade-closed-lights"),
 }
 
 _H = {"1s": "1 s", "2s": "2 s", "3s": "3 s"}

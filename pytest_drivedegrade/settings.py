@@ -104,6 +104,7 @@ class RunSettings:
     closed_agents: str = "log"  #: the other agents: log (replayed) or reactive (IDM along their paths)
     closed_collisions: str = "all"  #: which collisions the DS counts: all (the leaderboard) or at_fault (NAVSIM)
     closed_scenarios: int = 18  #: scenario routes after the val routes (`data.world.scenarios`)
+    closed_lights: int = 6  #: light routes after the scenario routes (`data.world.scenarios.light_scene`)
 
     @property
     def data_source(self) -> str:
@@ -304,7 +305,8 @@ TABLE: tuple[Setting, ...] = (
         ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"),
         ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"),
         ("closed_collisions", "closed-loop collisions", "--drivedegrade-closed-collisions"),
-        ("closed_scenarios", "closed-loop scenario routes", "--drivedegrade-closed-scenarios"))),
+        ("closed_scenarios", "closed-loop scenario routes", "--drivedegrade-closed-scenarios"),
+        ("closed_lights", "closed-loop light routes", "--drivedegrade-closed-lights"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 
@@ -346,7 +348,8 @@ def _decode(name: str, raw: object) -> object:
             return raw
         if isinstance(default, float):
             return float(raw)
-        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps", "closed_scenarios") or \
+        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps", "closed_scenarios",
+                                   "closed_lights") or \
             isinstance(default, int) else str(raw)
     except (ValueError, DriveDegradeError) as exc:
         raise InvalidInput(f"setting {name!r}: {exc}") from None

@@ -237,7 +237,8 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_collisions=_one_of(config, "drivedegrade_closed_collisions", DEFAULTS.closed_collisions,
                                              COLLISION_RULES),
                    closed_scenarios=_number(config, "drivedegrade_closed_scenarios", int, DEFAULTS.closed_scenarios, 0,
-                                            None))
+                                            None),
+                   closed_lights=_number(config, "drivedegrade_closed_lights", int, DEFAULTS.closed_lights, 0, None))
 
 
 def _one_of(config: pytest.Config, name: str, default: str, allowed: tuple[str, ...]) -> str:

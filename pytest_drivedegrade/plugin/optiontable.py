@@ -115,8 +115,12 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "closed-loop Driving Score counts: all (default: every collision, as the CARLA leaderboard) or "
                "at_fault (NAVSIM's rule: only those the ego is at fault for)", {"metavar": "all|at_fault"}),
     OptionSpec("--drivedegrade-closed-scenarios", "drivedegrade_closed_scenarios", "scenario routes the closed "
-               "loop drives after the val routes (default 18: 24 routes on the default world; 0: val routes only)",
+               "loop drives after the val routes (default 18: with the 6 light routes, 30 routes on the default "
+               "world; 0: none)",
                {"metavar": "N"}),
+    OptionSpec("--drivedegrade-closed-lights", "drivedegrade_closed_lights", "light routes (a traffic light whose "
+               "red meets the ego) the closed loop drives after the scenario routes (default 6: 30 routes on the "
+               "default world; 0: none)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "

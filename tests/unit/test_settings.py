@@ -33,7 +33,8 @@ CHANGED = {"data": Path("/elsewhere/nuscenes"), "split": "mini_val", "frames": 6
            "batch": 8, "reuse": False, "device": "cuda:1", "timeout": 5.0, "metric": "pdms", "flat": 0.9,
            "ego_box": "pacifica", "shard": Shard(2, 3), "prefetch": 3, "adaptive": True, "alpha": 0.1,
            "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5, "closed_routes": 2,
-           "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault", "closed_scenarios": 5}
+           "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault", "closed_scenarios": 5,
+           "closed_lights": 2}
 #: Who sees that change, written out here rather than read off the table: (run key, merge, gate, rerun argv).
 SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, True),
            "frames": (False, True, False, True), "seed": (True, True, True, True), "seeds": (True, True, True, True),
@@ -49,7 +50,8 @@ SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, Tr
            # a rerun repeats the closed settings only of a run whose loop was closed (its closed_loop section)
            "loop": (False, True, False, True),
            **dict.fromkeys(("closed_cells", "closed_seeds", "closed_hz", "closed_routes", "closed_steps",
-                            "closed_agents", "closed_collisions", "closed_scenarios"), (False, True, False, False))}
+                            "closed_agents", "closed_collisions", "closed_scenarios", "closed_lights"),
+                         (False, True, False, False))}
 
 
 def test_every_field_has_one_row_in_field_order_and_a_reason() -> None:
