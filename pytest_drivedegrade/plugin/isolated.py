@@ -17,6 +17,7 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -26,8 +27,42 @@ from ..store import ResultStore
 from .options import RunOptions
 from .plannercheck import HEAD, Found, Probe, inspect_planner
 
+if TYPE_CHECKING:
+    from .childplanner import ChildPlanner
+
 #: Seconds the child may take beyond two planner calls' limit: the interpreter, torch, the data index, the build.
 START_SECONDS = 600.0
+
+
+#: Prefixes of the variables a planner's process never gets: pytest's and xdist's (``PYTEST_CURRENT_TEST`` names
+#: the running cell, ``PYTEST_XDIST_WORKER`` the worker) and the suite's own (the signing key, which a run
+#: refuses anyway, and the device, which the child sets from the run's settings).
+UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_")
+
+
+def clean_environment() -> dict[str, str]:
+    """The environment a process that runs planner code starts with (the pre-flight's, `childplanner`'s): this
+    one's without `UNCLEAN_PREFIXES`. The kernel keeps it as the child's ``/proc/PID/environ``."""
+    return {k: v for k, v in os.environ.items() if not k.upper().startswith(UNCLEAN_PREFIXES)}
+
+
+def start_isolated(config: pytest.Config, options: RunOptions, context: RunContext,
+                   collect_path: Path) -> ChildPlanner:
+    """--drivedegrade-isolate: the planner built in a child process of this worker (`childplanner`), and its
+    stand-in here; DriveDegradeError saying why it cannot be built."""
+    from functools import partial
+
+    from ..pacing import OPENCV_THREADS_ENV, opencv_threads
+    from .childplanner import spawn, start_child_planner
+    from .context import cache_root
+
+    assert options.planner_path is not None  # `options.parse` refuses --drivedegrade-isolate without a file
+    request = {"run": {"settings": options.settings.to_builtins(), "root": str(context.reader.root),
+                       "planner_path": str(options.planner_path),
+                       "digest_cache": str(cache_root(config) / "digests")},
+               "collect_path": str(collect_path), "module": None, "default_name": options.planner_path.stem,
+               "opencv_threads": 0 if os.environ.get(OPENCV_THREADS_ENV) else opencv_threads()}
+    return start_child_planner(partial(spawn, request), options.settings.timeout)
 
 
 def _request(options: RunOptions, context: RunContext, collect_path: Path, module: ModuleType | None,
@@ -55,7 +90,7 @@ def check_in_child(options: RunOptions, context: RunContext, collect_path: Path,
         req.write_text(json.dumps(_request(options, context, collect_path, module, store, cells, digests)))
         try:
             done = subprocess.run([sys.executable, "-m", __name__, str(req), str(ans)], capture_output=True,
-                                  text=True, timeout=limit, check=False)
+                                  text=True, timeout=limit, check=False, env=clean_environment())
         except subprocess.TimeoutExpired:
             raise pytest.UsageError(f"{HEAD}: the planner's check did not finish within {limit:.0f} s (building "
                                     "the planner and two clean predictions), so no cell ran") from None

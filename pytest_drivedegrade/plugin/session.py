@@ -45,6 +45,7 @@ from .options import RunOptions, parse
 if TYPE_CHECKING:
     from ..raypool import RayPlanner
     from ..run import AnyPlanner
+    from .childplanner import ChildPlanner
     from .adaptive import AdaptiveRunner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
@@ -81,6 +82,19 @@ def _certify_closed_in_actors(request: pytest.FixtureRequest) -> None:
     session.run_closed_item(item, session.remote)
 
 
+def _certify_isolated(request: pytest.FixtureRequest) -> None:
+    """One cell (open or closed loop) under --drivedegrade-isolate: the planner is this process's stand-in for
+    the one its child built (`childplanner`); no process of the run builds it."""
+    session = request.config.stash[SESSION_KEY]
+    item = request.node
+    planner = session.isolated_planner()
+    if isinstance(item, ClosedItem):
+        session.run_closed_item(item, planner)
+    else:
+        assert isinstance(item, CellItem)
+        session.run_item(item, planner)
+
+
 def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
     """One cell under --drivedegrade-ray: the planner is the actors' (the controller never builds it)."""
     session = request.config.stash[SESSION_KEY]
@@ -115,6 +129,7 @@ class DriveDegradeSession:
         self.horizon_error: str | None = None  # the planner horizon's check against the data's, likewise
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
+        self.isolated: ChildPlanner | str | None = None  # --drivedegrade-isolate: the stand-in, or why none
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
@@ -126,7 +141,7 @@ class DriveDegradeSession:
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
         options = parse(config)
-        elsewhere = planner_runs_elsewhere(config, options.ray)
+        elsewhere = planner_runs_elsewhere(config, options.ray, options.settings.isolate)
         guarded = not elsewhere and not _is_worker(config)  # -n 0: the planner shares the status's process
         if guarded:
             exitguard.arm()
@@ -157,6 +172,8 @@ class DriveDegradeSession:
         collections pytest runs after this hook (five, for unraisable exceptions) do not walk them: 2.5 s at the
         end of the main job."""
         self._close_actors()
+        if self.isolated is not None and not isinstance(self.isolated, str):
+            self.isolated.close()
         preflight.restore_device(self._device_env)
         if self.floor is not None:
             self.floor.close()
@@ -173,9 +190,11 @@ class DriveDegradeSession:
             return None
         collector = CellCollector.from_parent(parent, path=file_path)
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
+        closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
+        if self.options.settings.isolate:
+            call = closed_call = _certify_isolated
         collector.module, collector.cells, collector.call = self.planner_module, self.owned_cells(), call
-        collector.closed = self.closed
-        collector.closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
+        collector.closed, collector.closed_call = self.closed, closed_call
         return collector
 
     def owned_cells(self) -> list[tuple[str, int]]:
@@ -235,7 +254,8 @@ class DriveDegradeSession:
         from .plannercheck import preflight_lines
 
         child = None
-        if self.config.getoption("numprocesses", default=None):  # the controller runs no planner code (issue 37)
+        if self.config.getoption("numprocesses", default=None) or self.options.settings.isolate:  # no planner code
+            # runs in the controller (issue 37), nor in any process of an isolated run
             from .context import cache_root
             from .isolated import check_in_child
 
@@ -248,6 +268,20 @@ class DriveDegradeSession:
         if self.options.dry_run:
             pytest.exit("drivedegrade: --drivedegrade-dry-run: stopped after the pre-flight check; no cell ran",
                         returncode=pytest.ExitCode.OK)
+
+    def isolated_planner(self) -> ChildPlanner:
+        """--drivedegrade-isolate: this process's stand-in for the planner, its child started at the first cell;
+        a planner that cannot be built there fails every cell, saying why."""
+        from .isolated import start_isolated
+
+        if self.isolated is None:
+            try:
+                self.isolated = start_isolated(self.config, self.options, self.run_context(), self.collect_path)
+            except DriveDegradeError as exc:
+                self.isolated = f"--drivedegrade-isolate: the planner could not be built in its process: {exc}"
+        if isinstance(self.isolated, str):
+            pytest.fail(self.isolated, pytrace=False)
+        return self.isolated
 
     def run_item(self, item: CellItem, planner: object) -> None:
         from .checks import certify, prefetch
