@@ -36,17 +36,33 @@ import numpy as np
 from ..data.context import FrameContext
 from ..errors import DataError, DriveDegradeError
 from ..loader import planner_view
-from ..run import PlannerApart, PlannerInfo
+from ..run import PlannerApart
 
 #: The planner's optional attributes the stand-in mirrors, so the suite reads them as it reads the planner's.
 MIRRORED = ("cameras", "name", "poses", "deterministic", "lidar")
 #: Child processes a run may start after the first one ended (a crash, os._exit, a timeout).
 RESTARTS = 3
-#: Seconds the child may take to open the data and build the planner.
-START_SECONDS = 600.0
+START_SECONDS = 600.0  #: seconds the child may take to open the data and build the planner
 #: Seconds past --drivedegrade-timeout the worker waits for a call's answer before it stops the child (the
 #: timeout's own SIGALRM, in this process, normally ends the wait first).
 GRACE_SECONDS = 5.0
+
+
+#: Prefixes of the variables a planner's process never gets: pytest's and xdist's (``PYTEST_CURRENT_TEST`` names
+#: the running cell, ``PYTEST_XDIST_WORKER`` the worker) and the suite's own (the signing key, which a run
+#: refuses anyway, and the device, which the child sets from the run's settings).
+UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_")
+
+
+def clean_environment() -> dict[str, str]:
+    """The environment a process that runs planner code starts with (the pre-flight's, `childplanner`'s): this
+    one's without `UNCLEAN_PREFIXES`. The kernel keeps it as the child's ``/proc/PID/environ``."""
+    return {k: v for k, v in os.environ.items() if not k.upper().startswith(UNCLEAN_PREFIXES)}
+
+
+#: What crosses the socket: the child's description of the planner, and one message (a call, a read, an answer).
+Described = dict[str, Any]
+Message = tuple[Any, ...]
 
 
 class ChildEnded(DriveDegradeError):
@@ -146,7 +162,7 @@ def _portable(value: object) -> object:
 # --- the worker's side ---------------------------------------------------------------------------------------------
 
 #: Starts a child over the images' memfd: its process, the connection to it and what it said of the planner.
-Launch = Callable[[SharedImages], tuple["subprocess.Popen[bytes]", Connection, dict[str, Any]]]
+Launch = Callable[[SharedImages], tuple["subprocess.Popen[bytes]", Connection, Described]]
 
 
 class ChildPlanner(PlannerApart):
@@ -154,8 +170,8 @@ class ChildPlanner(PlannerApart):
     child computed it, and every call forwarded (`start_child_planner` makes the subclass that has exactly the
     planner's optional methods, so the suite calls it as it would call the planner)."""
 
-    def __init__(self, launch: Launch, timeout: float, images: SharedImages, started: tuple[Any, Connection],
-                 described: dict[str, Any]) -> None:
+    def __init__(self, launch: Launch, timeout: float, images: SharedImages,
+                 started: tuple[subprocess.Popen[bytes], Connection], described: Described) -> None:
         self.launch, self.timeout, self.images = launch, timeout, images
         self.process: subprocess.Popen[bytes] | None = started[0]
         self.conn: Connection | None = started[1]
@@ -163,7 +179,7 @@ class ChildPlanner(PlannerApart):
         self.apart_fingerprint = str(described.get("fingerprint", ""))
 
     @property
-    def pid(self) -> int:
+    def pid(self) -> int:  # the child's, now
         return int(self.described["pid"])
 
     def _predict(self, images: Mapping[str, np.ndarray], ego: object, cmd: object) -> object:
@@ -211,7 +227,7 @@ class ChildPlanner(PlannerApart):
             return
         conn.send(("image", *self.images.put(np.asarray(image))))
 
-    def _receive(self, conn: Connection, what: str) -> tuple[Any, ...]:
+    def _receive(self, conn: Connection, what: str) -> Message:
         limit = self.timeout + GRACE_SECONDS if self.timeout > 0 else None
         if not conn.poll(limit):
             self._stop()
@@ -240,8 +256,7 @@ class ChildPlanner(PlannerApart):
         self.described = described
         return conn
 
-    def _stop(self) -> int | None:
-        """End the child now (its call is lost); its exit status."""
+    def _stop(self) -> int | None:  # end the child now (its call is lost); its exit status
         process, conn, self.process, self.conn = self.process, self.conn, None, None
         if conn is not None:
             conn.close()
@@ -295,7 +310,7 @@ def start_child_planner(launch: Launch, timeout: float) -> ChildPlanner:
         process.wait()
         images.close()
         raise DriveDegradeError(str(described["error"]))
-    body: dict[str, Any] = dict(described["attributes"])
+    body: Described = dict(described["attributes"])
     body["predict"] = ChildPlanner._predict_context if described["takes_context"] else ChildPlanner._predict
     if described["resets"]:
         body["reset"] = ChildPlanner._reset
@@ -305,11 +320,9 @@ def start_child_planner(launch: Launch, timeout: float) -> ChildPlanner:
     return cls(launch, timeout, images, (process, conn), described)
 
 
-def spawn(request: dict[str, Any], images: SharedImages) -> tuple[subprocess.Popen[bytes], Connection, dict[str, Any]]:
+def spawn(request: Described, images: SharedImages) -> tuple[subprocess.Popen[bytes], Connection, Described]:
     """`Launch`: the child (``python -m`` this module) with a clean environment, given the socket and the
     memfd by descriptor and `request` (`ActorRun`'s fields, the planner file) as its first message."""
-    from .isolated import clean_environment
-
     mine, theirs = socket.socketpair()
     process = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno()), str(images.fd)],
                                env=clean_environment(), pass_fds=(theirs.fileno(), images.fd),
@@ -357,30 +370,31 @@ class _Reads:
                 if not np.array_equal(copy.reshape(-1).view(np.uint8), self.sent[cam].reshape(-1).view(np.uint8))]
 
 
-def _ego(ego: Any) -> Any:
-    if isinstance(getattr(ego, "past_xy", None), np.ndarray):
-        ego.past_xy.setflags(write=False)
+def _ego(ego: object) -> object:  # read-only, as in process
+    past = getattr(ego, "past_xy", None)
+    if isinstance(past, np.ndarray):
+        past.setflags(write=False)
     return ego
 
 
-def _answer(planner: Any, conn: Connection, shared: SharedImages, message: tuple[Any, ...],
-            takes_context: bool) -> tuple[Any, ...]:
+def _answer(planner: object, conn: Connection, shared: SharedImages, message: Message,
+            takes_context: bool) -> Message:
     """One call of the planner on the inputs of `message`: ("done", plan, written) or ("raised", ...)."""
     reads: list[_Reads] = []
     try:
         if message[0] == "reset":
-            planner.reset(message[1])
+            getattr(planner, "reset")(message[1])  # noqa: B009 - optional: not in the Planner protocol
             return ("done", None, [])
         if message[0] == "predict":
             reads = [_Reads(conn, shared, 0)]
             args = (planner_view(reads[0].read), _ego(message[1]), message[2])
-            raw = planner.predict(*args, context=unpack_context(message[3])) if takes_context else \
-                planner.predict(*args)
+            predict = getattr(planner, "predict")  # noqa: B009 - the stand-in's own check found it
+            raw = predict(*args, context=unpack_context(message[3])) if takes_context else predict(*args)
             return ("done", _portable(raw), reads[0].written())
         reads = [_Reads(conn, shared, i) for i in range(len(message[1]))]
         contexts = None if message[3] is None else [unpack_context(c) for c in message[3]]
-        raw = planner.predict_batch([planner_view(r.read) for r in reads], [_ego(e) for e in message[1]],
-                                    message[2], contexts)
+        views = [planner_view(r.read) for r in reads]
+        raw = getattr(planner, "predict_batch")(views, [_ego(e) for e in message[1]], message[2], contexts)  # noqa: B009
         plans = [_portable(p) for p in raw] if isinstance(raw, (list, tuple)) else _portable(raw)
         return ("done", plans, [w for r in reads for w in r.written()])
     except Exception as exc:  # noqa: BLE001 - the planner's failure, raised again in the worker
@@ -432,9 +446,5 @@ def serve(conn: Connection, shared: SharedImages) -> int:
         conn.send(_answer(actor.planner, conn, shared, message, takes_context))
 
 
-def main(argv: Sequence[str]) -> int:
-    return serve(Connection(int(argv[0])), SharedImages(int(argv[1])))
-
-
 if __name__ == "__main__":  # pragma: no cover - started by `spawn`
-    raise SystemExit(main(sys.argv[1:]))
+    raise SystemExit(serve(Connection(int(sys.argv[1])), SharedImages(int(sys.argv[2]))))

@@ -17,33 +17,23 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import pytest
 
 from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
+from .childplanner import clean_environment
 from .options import RunOptions
 from .plannercheck import HEAD, Found, Probe, inspect_planner
 
 if TYPE_CHECKING:
+    from ..run import AnyPlanner
     from .childplanner import ChildPlanner
 
 #: Seconds the child may take beyond two planner calls' limit: the interpreter, torch, the data index, the build.
 START_SECONDS = 600.0
-
-
-#: Prefixes of the variables a planner's process never gets: pytest's and xdist's (``PYTEST_CURRENT_TEST`` names
-#: the running cell, ``PYTEST_XDIST_WORKER`` the worker) and the suite's own (the signing key, which a run
-#: refuses anyway, and the device, which the child sets from the run's settings).
-UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_")
-
-
-def clean_environment() -> dict[str, str]:
-    """The environment a process that runs planner code starts with (the pre-flight's, `childplanner`'s): this
-    one's without `UNCLEAN_PREFIXES`. The kernel keeps it as the child's ``/proc/PID/environ``."""
-    return {k: v for k, v in os.environ.items() if not k.upper().startswith(UNCLEAN_PREFIXES)}
 
 
 def start_isolated(config: pytest.Config, options: RunOptions, context: RunContext,
@@ -63,6 +53,30 @@ def start_isolated(config: pytest.Config, options: RunOptions, context: RunConte
                "collect_path": str(collect_path), "module": None, "default_name": options.planner_path.stem,
                "opencv_threads": 0 if os.environ.get(OPENCV_THREADS_ENV) else opencv_threads()}
     return start_child_planner(partial(spawn, request), options.settings.timeout)
+
+
+def certify_isolated(request: pytest.FixtureRequest) -> None:
+    """One cell (open or closed loop) under --drivedegrade-isolate, the function its item runs: the planner is
+    this process's stand-in (`childplanner`), its child started at the first cell; a planner that cannot be
+    built there fails every cell, saying why. No process of the run builds the planner itself."""
+    from . import SESSION_KEY
+    from .items import ClosedItem
+
+    session = request.config.stash[SESSION_KEY]
+    if session.isolated is None:
+        try:
+            session.isolated = start_isolated(session.config, session.options, session.run_context(),
+                                              session.collect_path)
+        except DriveDegradeError as exc:
+            session.isolated = f"--drivedegrade-isolate: the planner could not be built in its process: {exc}"
+    if isinstance(session.isolated, str):
+        pytest.fail(session.isolated, pytrace=False)
+    planner = cast("AnyPlanner", session.isolated)  # called as the planner it stands in for
+    item = request.node
+    if isinstance(item, ClosedItem):
+        session.run_closed_item(item, planner)
+    else:
+        session.run_item(item, planner)
 
 
 def _request(options: RunOptions, context: RunContext, collect_path: Path, module: ModuleType | None,

@@ -45,8 +45,8 @@ from .options import RunOptions, parse
 if TYPE_CHECKING:
     from ..raypool import RayPlanner
     from ..run import AnyPlanner
-    from .childplanner import ChildPlanner
     from .adaptive import AdaptiveRunner
+    from .childplanner import ChildPlanner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
 
@@ -80,19 +80,6 @@ def _certify_closed_in_actors(request: pytest.FixtureRequest) -> None:
     item = request.node
     assert isinstance(item, ClosedItem) and session.remote is not None
     session.run_closed_item(item, session.remote)
-
-
-def _certify_isolated(request: pytest.FixtureRequest) -> None:
-    """One cell (open or closed loop) under --drivedegrade-isolate: the planner is this process's stand-in for
-    the one its child built (`childplanner`); no process of the run builds it."""
-    session = request.config.stash[SESSION_KEY]
-    item = request.node
-    planner = session.isolated_planner()
-    if isinstance(item, ClosedItem):
-        session.run_closed_item(item, planner)
-    else:
-        assert isinstance(item, CellItem)
-        session.run_item(item, planner)
 
 
 def _certify_cell_in_actors(request: pytest.FixtureRequest) -> None:
@@ -192,7 +179,9 @@ class DriveDegradeSession:
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
         closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
         if self.options.settings.isolate:
-            call = closed_call = _certify_isolated
+            from .isolated import certify_isolated
+
+            call = closed_call = certify_isolated
         collector.module, collector.cells, collector.call = self.planner_module, self.owned_cells(), call
         collector.closed, collector.closed_call = self.closed, closed_call
         return collector
@@ -268,20 +257,6 @@ class DriveDegradeSession:
         if self.options.dry_run:
             pytest.exit("drivedegrade: --drivedegrade-dry-run: stopped after the pre-flight check; no cell ran",
                         returncode=pytest.ExitCode.OK)
-
-    def isolated_planner(self) -> ChildPlanner:
-        """--drivedegrade-isolate: this process's stand-in for the planner, its child started at the first cell;
-        a planner that cannot be built there fails every cell, saying why."""
-        from .isolated import start_isolated
-
-        if self.isolated is None:
-            try:
-                self.isolated = start_isolated(self.config, self.options, self.run_context(), self.collect_path)
-            except DriveDegradeError as exc:
-                self.isolated = f"--drivedegrade-isolate: the planner could not be built in its process: {exc}"
-        if isinstance(self.isolated, str):
-            pytest.fail(self.isolated, pytrace=False)
-        return self.isolated
 
     def run_item(self, item: CellItem, planner: object) -> None:
         from .checks import certify, prefetch
