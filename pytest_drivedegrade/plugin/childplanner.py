@@ -421,8 +421,8 @@ def serve(conn: Connection, shared: SharedImages) -> int:
     from .actors import PlannerFile
 
     request = conn.recv()
-    actor = PlannerActor(ActorRun(**request["run"]), PlannerFile(Path(request["collect_path"]), request["module"]),
-                         request["default_name"])
+    build = PlannerFile(Path(request["collect_path"]), request["module"], option="--drivedegrade-isolate")
+    actor = PlannerActor(ActorRun(**request["run"]), build, request["default_name"])
     described = actor.start()
     if "error" not in described:
         import cv2

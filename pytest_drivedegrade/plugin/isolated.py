@@ -140,7 +140,7 @@ def _answer(request: dict[str, object]) -> dict[str, object]:
         planner, close = PlannerFile(Path(str(request["collect_path"])), request["module"])(  # type: ignore[arg-type]
             context)
     except FixtureUnavailable as exc:  # as `plannercheck.build_planner` says it in process
-        return {"unavailable": str(exc).split(", which a Ray actor")[0]}
+        return {"unavailable": str(exc).split(", which a ")[0]}
     except DriveDegradeError as exc:
         return {"error": str(exc)}
     spec = request["store"]
