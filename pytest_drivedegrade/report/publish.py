@@ -130,5 +130,5 @@ def publish_closed(run: FinishedRun, report_dir: Path, signing_key: Ed25519Priva
 
     assert run.closed is not None
     cert, lines = publish_closed_only(report_dir, run.provenance, run.closed, run.settings.flat,
-                                      signing_key=signing_key)
+                                      signing_key=signing_key, isolated=run.settings.isolate)
     return Published(cert, None, [*lines, *run.notes])

@@ -185,6 +185,38 @@ def test_isolated_the_stack_walking_planner_finds_no_cell_and_is_not_certified_c
     verified = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "verify", str(cert_path)],
                               capture_output=True, text=True, check=False)
     assert verified.returncode == 0 and "planner isolated: yes" in verified.stdout, verified.stdout
+    if workers == "0":  # reproduce reruns it isolated (the setting is in the certificate): bit for bit again
+        again = subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", "reproduce", str(cert_path),
+                                str(dd.pytester.path / planner), "--cells", "1", "--data", str(dd.world)],
+                               capture_output=True, text=True, check=False, cwd=dd.pytester.path)
+        assert again.returncode == 0, again.stdout + again.stderr
+
+
+@pytest.mark.parametrize("extra, said", [
+    (("--drivedegrade-ray", "local"), "--drivedegrade-isolate: cannot be combined with --drivedegrade-ray"),
+    ((), "--drivedegrade-isolate: needs the planner as a file")])
+def test_isolate_refuses_ray_and_a_conftest_planner(dd, extra, said):
+    """Ray's actors run each cell's stream beside the planner, and a conftest.py is imported by pytest in every
+    process: --drivedegrade-isolate with either is a usage error saying so, before anything runs."""
+    planner, _ = write_walker(dd)
+    if not extra:
+        dd.pytester.makeconftest((dd.pytester.path / planner).read_text())
+    result = dd.run("--drivedegrade-isolate", *extra, planner=planner if extra else None, families="jpeg",
+                    severities="1")
+    assert result.ret == pytest.ExitCode.USAGE_ERROR
+    assert said in result.stderr.str() + result.stdout.str()
+
+
+def test_isolated_a_planner_fixture_that_needs_pytest_fails_every_cell_saying_why(dd):
+    """A planner fixture that asks for pytest's `request` cannot be built in the child: every cell fails with
+    one line naming the fixture and the option, the run exits 1."""
+    dd.pytester.makepyfile(needy=CRASHER.format(fault="pass").replace("def planner():", "def planner(request):"))
+    result = dd.run("--drivedegrade-isolate", planner="needy.py", families="jpeg", severities="1")
+    text = result.stdout.str()
+    assert result.ret == 1, text
+    result.assert_outcomes(failed=4)
+    assert "the planner could not be built in its process" in text, text
+    assert "which a child process cannot provide: with --drivedegrade-isolate" in text, text
 
 
 CAMERA_CNN_CELLS = "gaussian_blur,blackout,frame_dropout"
