@@ -12,7 +12,7 @@ images it reads, its data faults and its energy are the in-process run's). Image
 processes map (`SharedImages`; ``benchmarks/isolation.py`` measures it against a pipe of raw buffers).
 
 A child that ends (``os._exit``, a crash) or is stopped at the timeout fails the call it was in, naming its pid
-and exit status; the next call starts a new one, up to `RESTARTS` times a run, after which every call fails.
+and exit status; the next call starts a new one, up to `RESTARTS` times a cell, after which the cell's calls fail.
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from ..run import PlannerApart
 
 #: The planner's optional attributes the stand-in mirrors, so the suite reads them as it reads the planner's.
 MIRRORED = ("cameras", "name", "poses", "deterministic", "lidar")
-#: Child processes a run may start after the first one ended (a crash, os._exit, a timeout).
+#: Child processes a cell may start after one ended (a crash, os._exit, a timeout); `new_cell` counts anew.
 RESTARTS = 3
 START_SECONDS = 600.0  #: seconds the child may take to open the data and build the planner
 #: Seconds past --drivedegrade-timeout the worker waits for a call's answer before it stops the child (the
@@ -60,9 +60,8 @@ def clean_environment() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.upper().startswith(UNCLEAN_PREFIXES)}
 
 
-#: What crosses the socket: the child's description of the planner, and one message (a call, a read, an answer).
-Described = dict[str, Any]
-Message = tuple[Any, ...]
+Described = dict[str, Any]  #: what the child says of the planner it built
+Message = tuple[Any, ...]  #: one message across the socket: a call, a read, an answer
 
 
 class ChildEnded(DriveDegradeError):
@@ -178,6 +177,9 @@ class ChildPlanner(PlannerApart):
         self.described, self.restarts = described, 0
         self.apart_fingerprint = str(described.get("fingerprint", ""))
 
+    def new_cell(self) -> None:  # `RESTARTS` counted anew
+        self.restarts = 0
+
     @property
     def pid(self) -> int:  # the child's, now
         return int(self.described["pid"])
@@ -244,8 +246,8 @@ class ChildPlanner(PlannerApart):
         if self.conn is not None:
             return self.conn
         if self.restarts >= RESTARTS:
-            raise ChildEnded(f"the planner's process ended {self.restarts + 1} times; no other is started (the run "
-                             "fails)")
+            raise ChildEnded(f"the planner's process ended {self.restarts + 1} times in this cell; no other is "
+                             "started before the next cell")
         self.restarts += 1
         process, conn, described = self.launch(self.images)
         self.process, self.conn = process, conn
@@ -305,10 +307,8 @@ def start_child_planner(launch: Launch, timeout: float) -> ChildPlanner:
     images = SharedImages()
     process, conn, described = launch(images)
     if "error" in described:
-        conn.close()
-        process.kill()
-        process.wait()
-        images.close()
+        for end in (conn.close, process.kill, process.wait, images.close):
+            end()
         raise DriveDegradeError(str(described["error"]))
     body: Described = dict(described["attributes"])
     body["predict"] = ChildPlanner._predict_context if described["takes_context"] else ChildPlanner._predict

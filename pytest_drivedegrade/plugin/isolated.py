@@ -71,6 +71,7 @@ def certify_isolated(request: pytest.FixtureRequest) -> None:
             session.isolated = f"--drivedegrade-isolate: the planner could not be built in its process: {exc}"
     if isinstance(session.isolated, str):
         pytest.fail(session.isolated, pytrace=False)
+    session.isolated.new_cell()
     planner = cast("AnyPlanner", session.isolated)  # called as the planner it stands in for
     item = request.node
     if isinstance(item, ClosedItem):

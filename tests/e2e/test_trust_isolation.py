@@ -276,7 +276,7 @@ def planner():
 def test_isolated_a_planner_that_ends_its_process_or_hangs_fails_its_cells(dd, fault, said):
     """Under --drivedegrade-isolate a planner that calls os._exit(0) in its child, or hangs there, fails the
     cells where it does (naming the process and its exit status, or the timeout), the run exits 1, never 0, and
-    the other cells still run (a new child is started)."""
+    the other cells still run (a new child is started: up to three a cell, counted anew at each cell)."""
     dd.pytester.makepyfile(crasher=CRASHER.format(fault=fault))
     result = dd.run("--drivedegrade-isolate", "--drivedegrade-timeout", "2", planner="crasher.py",
                     families="jpeg,blackout", severities="5", subprocess=True)
