@@ -159,6 +159,25 @@ def test_the_stack_walking_planner_is_certified_camera_free_in_process_the_known
     in_cells = [r for r in routes if r["stack"]]
     assert len(in_cells) >= 13 * 4 - 4 and all(r["env"] == r["stack"] == r["threads"] for r in in_cells), routes
     assert any(r.get("gc") for r in in_cells), routes[:3]
+    cert_path = dd.folder("walker") / "certificate.json"
+    said = _cli("verify", str(cert_path))
+    assert said.returncode == 0 and "planner isolated: no" in said.stdout, said.stdout
+    # a certificate from before the field existed: it still verifies, with a note; sign warns and signs
+    from pytest_drivedegrade.certificate.seal import seal, write_certificate
+    from pytest_drivedegrade.certificate.signing import keygen
+
+    del cert["settings"]["planner_isolated"]
+    write_certificate(cert_path, seal(cert))
+    said = _cli("verify", str(cert_path))
+    assert said.returncode == 0 and "planner isolated: not recorded" in said.stdout, said.stdout + said.stderr
+    key, _ = keygen(dd.pytester.path / "issuer")
+    signed = _cli("sign", str(cert_path), "--key", str(key))
+    assert signed.returncode == 0 and "warning" in signed.stderr and "not recorded" in signed.stderr, signed.stderr
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pytest_drivedegrade.cli", *args], capture_output=True, text=True,
+                          check=False)
 
 
 @pytest.mark.parametrize("workers", ["0", "2"])
