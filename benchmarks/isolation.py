@@ -1,8 +1,8 @@
 """What --drivedegrade-isolate costs per frame: the median time of one ``predict`` call in process and through the
 isolated stand-in (`plugin.childplanner`: the planner in a child process, each camera it reads sent through a
-memfd on request), for camera_cnn on the embedded world's val frames, measured in the same process, calls
-interleaved (in process, isolated, in process, ...) so a shared machine's load falls on both alike. A second
-planner that reads the same three cameras and returns at once measures the transport alone.
+memfd on request), for camera_cnn on the embedded world's val frames, measured in the same process, in whole
+passes over the frames alternated (in process, isolated, in process, ...) so a shared machine's load falls on
+both alike. A second planner that reads the same three cameras and returns at once measures the transport alone.
 
     python benchmarks/isolation.py --quick        # 16 frames, 3 rounds
     python benchmarks/isolation.py --frames 64 --rounds 5
@@ -72,10 +72,9 @@ def measure(path: Path, context, root: Path, settings, inputs, rounds: int) -> t
         same = all(np.array_equal(np.asarray(here.predict(*x)), np.asarray(apart.predict(*x))) for x in inputs)
         a: list[float] = []
         b: list[float] = []
-        for _ in range(rounds):
-            for x in inputs:
-                a += timed(here, [x])
-                b += timed(apart, [x])
+        for _ in range(rounds):  # whole passes, alternated: a run calls one planner frame after frame, and a
+            a += timed(here, inputs)  # process that waited through the other's call starts cold (calls
+            b += timed(apart, inputs)  # interleaved one by one doubled the isolated time here)
     finally:
         apart.close()
     return statistics.median(a), statistics.median(b), same
