@@ -241,18 +241,20 @@ def test_isolated_a_planner_fixture_that_needs_pytest_fails_every_cell_saying_wh
 CAMERA_CNN_CELLS = "gaussian_blur,blackout,frame_dropout"
 
 
-@pytest.mark.parametrize("planner", ["camera_cnn", "temporal_cnn"])
-def test_isolated_cells_equal_the_in_process_cells_bit_for_bit(dd, planner):
+@pytest.mark.parametrize("planner, batch", [("camera_cnn", "1"), ("camera_cnn", "3"), ("temporal_cnn", "1")])
+def test_isolated_cells_equal_the_in_process_cells_bit_for_bit(dd, planner, batch):
     """The same run with and without --drivedegrade-isolate: every stored cell record (plans, figures, energy,
-    failures) is identical but for the timings, for camera_cnn and for a temporal planner (context, reset)."""
+    failures) is identical but for the timings, for camera_cnn (one frame a call, and predict_batch by three)
+    and for a temporal planner (context, reset)."""
     from pathlib import Path
 
     source = Path(__file__).resolve().parents[2] / "planners" / f"{planner}.py"
     dd.pytester.makepyfile(**{name: source.with_name(f"{name}.py").read_text() for name in {planner, "camera_cnn"}})
     for name in ("camera_cnn.pt", "camera_cnn.json"):
         (dd.pytester.path / name).write_bytes(source.with_name(name).read_bytes())
-    plain = dd.run(planner=f"{planner}.py", families=CAMERA_CNN_CELLS, severities="1,5", report="plain")
-    isolated = dd.run("--drivedegrade-isolate", planner=f"{planner}.py", families=CAMERA_CNN_CELLS,
+    batching = ("--drivedegrade-batch", batch)
+    plain = dd.run(*batching, planner=f"{planner}.py", families=CAMERA_CNN_CELLS, severities="1,5", report="plain")
+    isolated = dd.run("--drivedegrade-isolate", *batching, planner=f"{planner}.py", families=CAMERA_CNN_CELLS,
                       severities="1,5", report="iso")
     assert plain.ret == 0 and isolated.ret == 0, isolated.stdout.str()
     [plain_dir] = (dd.pytester.path / "plain").iterdir()
