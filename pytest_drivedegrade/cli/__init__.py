@@ -191,6 +191,9 @@ def _merge(args: argparse.Namespace) -> int:
                                 "--allow-incomplete to write a certificate that says completeness: false")
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
+    if key is not None and not merged.settings.isolate:  # as `sign` says it
+        print("drivedegrade: merge: warning: signed a certificate whose planner was not isolated (planner isolated: "
+              "no); a certificate to be published is best made with --drivedegrade-isolate", file=sys.stderr)
     if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
         import shutil
 

@@ -32,8 +32,9 @@ BASE = RunSettings(data=Path("/data/nuscenes"), split="val", frames=8, seed=0, b
 CHANGED = {"data": Path("/elsewhere/nuscenes"), "split": "mini_val", "frames": 6, "seed": 3, "seeds": 2,
            "batch": 8, "reuse": False, "device": "cuda:1", "timeout": 5.0, "metric": "pdms", "flat": 0.9,
            "ego_box": "pacifica", "shard": Shard(2, 3), "prefetch": 3, "adaptive": True, "alpha": 0.1,
-           "isolate": True, "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5, "closed_routes": 2,
-           "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault", "closed_scenarios": 5}
+           "isolate": True, "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5,
+           "closed_routes": 2, "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault",
+           "closed_scenarios": 5}
 #: Who sees that change, written out here rather than read off the table: (run key, merge, gate, rerun argv).
 SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, True),
            "frames": (False, True, False, True), "seed": (True, True, True, True), "seeds": (True, True, True, True),
