@@ -28,7 +28,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                           "--drivedegrade-seeds", "--drivedegrade-metric", "--drivedegrade-flat",
                           "--drivedegrade-ego-box"),
     "How the planner is called": ("--drivedegrade-batch", "--drivedegrade-no-reuse", "--drivedegrade-device",
-                                  "--drivedegrade-timeout", "--drivedegrade-prefetch", "--drivedegrade-dry-run"),
+                                  "--drivedegrade-timeout", "--drivedegrade-prefetch", "--drivedegrade-dry-run",
+                                  "--drivedegrade-isolate"),
     "Reports, resuming and the CI gate": (
         "--drivedegrade-report", "--drivedegrade-report-overwrite", "--drivedegrade-no-resume",
         "--drivedegrade-baseline", "--drivedegrade-baseline-public-key", "--drivedegrade-baseline-partial",

@@ -106,6 +106,14 @@ class PlannerElsewhere:
         """Start the cell on every frame now; a later `run_cell` with the same arguments collects it."""
 
 
+class PlannerApart:
+    """A planner called from this process but built and run in a child (`plugin.childplanner`, under
+    --drivedegrade-isolate): the suite calls it as a planner here; its fingerprint is the one the child computed
+    of the planner itself (`apart_fingerprint`)."""
+
+    apart_fingerprint: str
+
+
 #: A planner the run calls: one in this process, or one that runs elsewhere (Ray actors).
 AnyPlanner = Union[Planner, "PlannerElsewhere"]
 
@@ -203,7 +211,9 @@ class RunContext:
             return planner.info
         key = id(planner)
         if key not in self._planner:
-            self._planner[key] = PlannerInfo(planner_cameras(planner), planner_fingerprint(planner, self.planner_path))
+            fingerprint = planner.apart_fingerprint if isinstance(planner, PlannerApart) else \
+                planner_fingerprint(planner, self.planner_path)
+            self._planner[key] = PlannerInfo(planner_cameras(planner), fingerprint)
         return self._planner[key]
 
     def run_key(self, planner: AnyPlanner) -> dict[str, Builtin]:

@@ -94,6 +94,7 @@ class RunSettings:
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
     adaptive: bool = False  #: cells stop when their anytime-valid interval settles their decisions (spec 14)
     alpha: float = 0.05  #: --drivedegrade-alpha: the adaptive run's error level (the whole certificate's)
+    isolate: bool = False  #: --drivedegrade-isolate: every planner call in a child process given only its inputs
     # The closed loop (SPEC section 13): held in the certificate's closed_loop section and the closed cells' key.
     loop: str = "open"  #: --drivedegrade-loop: open (the replayed frames), closed (the simulator), both
     closed_cells: str = "slice"  #: --drivedegrade-closed-cells: slice, all or a list of cells
@@ -296,6 +297,10 @@ TABLE: tuple[Setting, ...] = (
     Setting("alpha", "alpha", "--drivedegrade-alpha", (("adaptive", "alpha"),), _F, "it sets how sure an adaptive "
             "cell is when it stops, not what it estimates; the run key holds it in an adaptive run",
             keyed=lambda s: s.adaptive),
+    Setting("isolate", "isolated planner", "--drivedegrade-isolate", (("settings", "planner_isolated"),), _F,
+            "it changes where the planner runs, never a plan (the cells are the in-process run's bit for bit); "
+            "the run key holds it, so an isolated run never reuses a cell computed beside the stream",
+            keyed=lambda s: s.isolate),
     *(Setting(name, label, flag, (("closed_loop", name),), _F, "the closed loop is certified in its own section, "
               "beside the open-loop cells the gate compares") for name, label, flag in (
         ("loop", "loop", "--drivedegrade-loop"), ("closed_cells", "closed-loop cells", "--drivedegrade-closed-cells"),

@@ -51,3 +51,29 @@ def imported_source(cert: object) -> str:
     """The table an imported certificate's figures came from ("" for any other certificate)."""
     prov = cert.get("provenance") if isinstance(cert, dict) else None
     return str(prov.get("table", "")) if isinstance(prov, dict) else ""
+
+
+#: Where a certificate records whether its planner ran isolated (--drivedegrade-isolate, issue 37).
+ISOLATED_KEY = "planner_isolated"
+
+
+def planner_isolated(cert: object) -> bool | None:
+    """Whether the run's planner was called only in a child process given its inputs (True), beside the stream
+    in the run's own processes (False), or None where the certificate does not say (one written before the
+    field existed, or imported)."""
+    settings = cert.get("settings") if isinstance(cert, dict) else None
+    found = settings.get(ISOLATED_KEY) if isinstance(settings, dict) else None
+    return found if isinstance(found, bool) else None
+
+
+def isolation_text(cert: object) -> str:
+    """`planner_isolated` in words, as `drivedegrade verify` and `sign` print it."""
+    isolated = planner_isolated(cert)
+    if isolated:
+        return ("planner isolated: yes (--drivedegrade-isolate: each call in a child process given only the "
+                "frame's inputs)")
+    if isolated is None:
+        return ("planner isolated: not recorded (a certificate from before the field existed: its planner ran "
+                "beside the stream, not isolated)")
+    return ("planner isolated: no (its code ran in the run's processes, where it could find which cell was "
+            "running; --drivedegrade-isolate closes that)")

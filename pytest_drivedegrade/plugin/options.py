@@ -204,6 +204,7 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         prefetch=_prefetch(config),
         adaptive=_adaptive(config),
         alpha=_number(config, "drivedegrade_alpha", float, DEFAULTS.alpha, 1e-9, 0.5),
+        isolate=_flag(config, "drivedegrade_isolate"),
     ))
 
 
@@ -335,6 +336,11 @@ def parse(config: pytest.Config) -> RunOptions:
         ray=_ray(config),
         dry_run=_flag(config, "drivedegrade_dry_run"),
     )
+    if settings.isolate and (planner_path is None or options.ray is not None):
+        raise _fail("drivedegrade_isolate", "needs the planner as a file (pytest --drivedegrade PLANNER.py): a "
+                    "conftest.py is imported by pytest itself in every process" if planner_path is None else
+                    "cannot be combined with --drivedegrade-ray: the actors run each cell's stream beside the "
+                    "planner; isolate it with -n N instead")
     if settings.adaptive and settings.shard is not None:  # an adaptive shard owns whole families' cells
         from ..cells import run_order
         from ..shards import adaptive_owned

@@ -131,6 +131,11 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
                "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
                {"metavar": "X"}),
+    OptionSpec("--drivedegrade-isolate", "drivedegrade_isolate", "run every planner call (build, predict, "
+               "predict_batch, reset) in a child process started with a clean environment that receives only the "
+               "frame's inputs, so planner code cannot find which cell is running from the stack, the garbage "
+               "collector or PYTEST_CURRENT_TEST; the certificate records it (settings.planner_isolated). Needs a "
+               "planner file; not with --drivedegrade-ray", {"action": "store_true"}),
     OptionSpec("--drivedegrade-dry-run", "drivedegrade_dry_run", "stop after the pre-flight check (the planner's "
                "declared needs against the data, one clean frame predicted and validated, the run's predictions "
                "counted and its wall time estimated): no cell runs", {"action": "store_true"}),

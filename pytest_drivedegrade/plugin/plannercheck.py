@@ -240,7 +240,7 @@ def build_planner(config: pytest.Config, options: RunOptions, context: RunContex
     try:
         return PlannerFile(collect_path, loaded=module)(context)
     except FixtureUnavailable as exc:
-        return str(exc).split(", which a Ray actor")[0]
+        return str(exc).split(", which a ")[0]
     except DriveDegradeError as exc:
         raise pytest.UsageError(f"{HEAD}: building the planner failed, so no cell ran: {exc}") from None
 

@@ -43,6 +43,7 @@ def analyse(run: FinishedRun) -> RunAnalysis:
                            scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
+    analysis.settings["planner_isolated"] = settings.isolate  # --drivedegrade-isolate (issue 37)
     # the horizon the PDMS and EPDMS scored: 3 s (six poses), or 4 s for a planner declaring NAVSIM's eight; L2
     # is always the first six poses' (nuScenes' 3 s convention)
     poses = max((r.plans.shape[1] for r in run.records.values()), default=HORIZON_STEPS)
@@ -129,5 +130,5 @@ def publish_closed(run: FinishedRun, report_dir: Path, signing_key: Ed25519Priva
 
     assert run.closed is not None
     cert, lines = publish_closed_only(report_dir, run.provenance, run.closed, run.settings.flat,
-                                      signing_key=signing_key)
+                                      signing_key=signing_key, isolated=run.settings.isolate)
     return Published(cert, None, [*lines, *run.notes])
