@@ -90,7 +90,8 @@ class RunSettings:
     metric: str = "l2"  #: the retention the verdict is put on (l2, pdms, epdms or epdms2)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     ego_box: str = "nuscenes"  #: the ego box the PDMS and EPDMS score with (`metrics.pdms.constants.EGO_BOXES`)
-    #: --drivedegrade-two-stage: each cell also scored by NAVSIM v2's two-stage pseudo-simulation (`closedloop.twostage`)
+    #: --drivedegrade-two-stage: each cell also scored by NAVSIM v2's two-stage pseudo-simulation
+    #: (`closedloop.twostage`)
     two_stage: bool = False
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)

@@ -38,14 +38,14 @@ from ..data.context import FrameContext
 from ..data.frame import AgentBoxes, EgoStatus, Frame
 from ..data.junctions import Alternative
 from ..data.nuscenes import WORLD_MANIFEST
+from ..data.world.rig import Rig
+from ..data.world.scene import make_scene
 from ..errors import DataError
 from ..metrics.pdms import PreparedFrame, tracked_states
 from ..metrics.pdms.two_stage import group_score, stage_two_weights, weighted_average
 from ..metrics.trajectory import FrameTruth
 from ..planning import Planner
 from ..settings import RunSettings
-from ..data.world.rig import Rig
-from ..data.world.scene import make_scene
 from .camera import images_at
 from .routes import Route, route_of
 
@@ -98,7 +98,8 @@ def stage_two_frame(frame: Frame, pose: tuple[float, float, float], index: int) 
         frame.future_tail
     height = frame.ego_pose[1][2] if len(frame.ego_pose[1]) > 2 else 0.0
     token = f"{frame.token}~stage2~{index}"
-    return replace(frame, token=token, scene_token=f"{frame.scene_token}~stage2~{frame.index}~{index}", ego=moved, gt_future=to_new(frame.gt_future),
+    scene = f"{frame.scene_token}~stage2~{frame.index}~{index}"
+    return replace(frame, token=token, scene_token=scene, ego=moved, gt_future=to_new(frame.gt_future),
                    agents=tuple(_boxes(b, to_new, turn) for b in frame.agents),
                    pose=(float(pose[0]), float(pose[1]), float(pose[2])),
                    ego_pose=(geo.yaw_to_quat(pose[2]), (float(pose[0]), float(pose[1]), float(height))),

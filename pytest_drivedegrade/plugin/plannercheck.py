@@ -90,6 +90,11 @@ def declared_problems(planner: Planner, context: RunContext) -> tuple[list[str],
     except (TypeError, ValueError):
         problems.append("planner.reset must take one argument, the scene token (reset(scene_token)); "
                         f"its signature is reset{_signature(reset)}")
+    if style.resets and getattr(context.settings, "two_stage", False):
+        problems.append("--drivedegrade-two-stage cannot score a planner with reset(): its stage two starts from "
+                        "poses the car never drove, where NAVSIM gives the planner the stage-one history; the suite "
+                        "does not replay that history into a stateful planner before each start. Run it without "
+                        "--drivedegrade-two-stage")
     batch = context.settings.batch
     if batch > 1 and not callable(getattr(planner, "predict_batch", None)):
         notes.append(f"--drivedegrade-batch {batch} has no effect: the planner has no predict_batch()")

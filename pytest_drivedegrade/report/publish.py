@@ -43,6 +43,8 @@ def analyse(run: FinishedRun) -> RunAnalysis:
                            scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
+    if settings.two_stage:  # only then: a one-stage certificate keeps its form (absent reads as false)
+        analysis.settings["two_stage"] = True
     # the horizon the PDMS and EPDMS scored: 3 s (six poses), or 4 s for a planner declaring NAVSIM's eight; L2
     # is always the first six poses' (nuScenes' 3 s convention)
     poses = max((r.plans.shape[1] for r in run.records.values()), default=HORIZON_STEPS)

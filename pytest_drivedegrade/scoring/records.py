@@ -311,6 +311,7 @@ class RunAnalysis:
     settings: dict[str, Any]
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
     axes_epdms: Axes | None = None  #: the axes on EPDMS retention (spec 4.1)
+    axes_epdms2: Axes | None = None  #: the axes on two-stage EPDMS retention (--drivedegrade-two-stage)
     reliance: Reliance | None = None  #: each input's plan movement (spec 5, issue 40)
     command: CommandProbe | None = None  #: the command_swap cell's following figure (spec 5, issue 40)
 
@@ -322,6 +323,7 @@ class RunAnalysis:
                 "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
                 "axes_pdms": self.axes_pdms.to_builtins(),
                 **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()}),
+                **({} if self.axes_epdms2 is None else {"axes_epdms2": self.axes_epdms2.to_builtins()}),
                 **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()}),
                 **({} if self.command is None else {"command": self.command.to_builtins()})}
 
