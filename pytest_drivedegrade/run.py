@@ -12,7 +12,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Union
+from typing import Protocol, Union
 
 import numpy as np
 
@@ -34,9 +34,6 @@ from .pacing import processes_here
 from .planning import CallStyle, Planner, call_style, planner_cameras, planner_fingerprint
 from .settings import Builtin, RunSettings
 from .shards import shard_frames
-
-if TYPE_CHECKING:
-    from .closedloop.twostage import StageTwoWorld
 
 MAX_MESSAGES = 5  # per cell, the first few per-frame failures are spelled out
 #: Decoded clean images kept per process for reuse by later cells: a fixed budget, so memory is flat in the
@@ -73,6 +70,13 @@ class PlannerInfo:
 def unread_cameras(cameras: tuple[str, ...]) -> tuple[str, ...]:
     """The cameras a planner declares it does not read (blacked out by the null control, never decoded)."""
     return tuple(c for c in CAMERAS if c not in cameras)
+
+
+class StageTwoStep(Protocol):
+    """`RunContext.stage_two`: a whole cell's record with its stage two added (`closedloop.twostage`)."""
+
+    def __call__(self, context: RunContext, planner: Planner, record: CellRecord, *, seed: int,
+                 unread: tuple[str, ...]) -> CellRecord: ...
 
 
 #: The frames ``[start, stop)`` of a run's frame list (`RunContext.frames`).
@@ -161,7 +165,11 @@ class RunContext:
     _experts: dict[int, dict[str, EgoStates]] = field(default_factory=dict)
     _truth: dict[str, FrameTruth] = field(default_factory=dict)
     _alternatives: dict[str, Alternative | None] = field(default_factory=dict)
-    _stage_two: StageTwoWorld | None = None  #: --drivedegrade-two-stage: its routes and renders, once per process
+    #: --drivedegrade-two-stage: the step that adds stage two to a whole open-loop cell's record (the plugin sets
+    #: `closedloop.twostage.add_stage_two`: the run sits below the closed loop's renderer), and what it keeps per
+    #: process (its routes and renders)
+    stage_two: StageTwoStep | None = None
+    stage_two_cache: object = None
 
     @classmethod
     def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
@@ -179,10 +187,6 @@ class RunContext:
         if not chosen:
             raise DriveDegradeError(f"{root}: split {settings.split!r} has no scorable frames (frames need six "
                                     f"future keyframes); skipped: {dict(reader.skipped)}")
-        if settings.two_stage:
-            from .closedloop.twostage import require_world
-
-            require_world(root)
         chosen = checked_frames(chosen)
         total = len(chosen)
         fingerprint = content_fingerprint(reader, chosen, digest_cache)
@@ -363,18 +367,11 @@ class RunContext:
         record = stream.run_cell(self, planner, family, severity, self.frames[start:stop], unread=unread, seed=seed,
                                  clean=clean, history=self.scene_history(start), pdms=pdms)
         if self.settings.two_stage and pdms and span is None:  # the two-stage mode: every whole open-loop cell
-            from .closedloop.twostage import add_stage_two
-
-            record = add_stage_two(self, planner, record, seed=seed, unread=unread)
+            if self.stage_two is None:
+                raise DriveDegradeError("--drivedegrade-two-stage: this run has no stage-two step (set "
+                                        "RunContext.stage_two to closedloop.twostage.add_stage_two)")
+            record = self.stage_two(self, planner, record, seed=seed, unread=unread)
         return record
-
-    def stage_two_world(self) -> StageTwoWorld:
-        """What stage two reads in this process (`closedloop.twostage.StageTwoWorld`), built at the first use."""
-        if self._stage_two is None:
-            from .closedloop.twostage import StageTwoWorld
-
-            self._stage_two = StageTwoWorld.of(self)
-        return self._stage_two
 
     def scene_history(self, start: int) -> list[Frame]:
         """The run's frames of frame `start`'s scene before it (none at a scene's start)."""

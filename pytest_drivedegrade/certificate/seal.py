@@ -146,8 +146,7 @@ def compute_digest(cert: Mapping[str, object]) -> str:
 
 #: Why an EPDMS term may go unscored, as the certificate says it (`epdms_unscored`).
 EPDMS_UNSCORED_REASONS: dict[str, str] = {
-    "tlc": "the data have no traffic lights",
-    "ddc": "the map has no lane layers", "lk": "the map has no lane layers",
+    "tlc": "the data have no traffic lights", "ddc": "the map has no lane layers", "lk": "the map has no lane layers",
     "ec": "no frame has its scene's previous keyframe in the run"}
 
 
@@ -158,18 +157,6 @@ def epdms_unscored(analysis: RunAnalysis) -> dict[str, str]:
     metrics = clean.metrics if clean is not None else {}
     return {k: why for k, why in EPDMS_UNSCORED_REASONS.items()
             if not math.isfinite(float(metrics.get(k, math.nan)))}
-
-
-def two_stage_section() -> dict[str, object]:
-    """How a two-stage run (--drivedegrade-two-stage) scored its stage two: the start poses around the logged ego
-    at the stage-two keyframe (forward m, left m, yaw rad), the kernel's variance, and the aggregation."""
-    from ..closedloop.twostage import STAGE_TWO_STARTS
-    from ..metrics.pdms.two_stage import SIGMA_SQUARED
-
-    return {"starts": [list(s) for s in STAGE_TWO_STARTS], "sigma_squared": SIGMA_SQUARED,
-            "aggregation": "per frame: stage one's EPDMS x the Gaussian-weighted mean of its stage-two starts' EPDMS "
-                           "(NAVSIM v2); the cell's epdms2 is the mean over the frames with a stage two",
-            "render": "embedded world, at each start pose; corrupted by the cell's operator"}
 
 
 def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created: str | None = None,
@@ -199,8 +186,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "axes_pdms": analysis.axes_pdms.to_builtins(),
         **({} if analysis.axes_epdms is None else {"axes_epdms": analysis.axes_epdms.to_builtins(),
                                                    "epdms_unscored": epdms_unscored(analysis)}),
-        **({} if analysis.axes_epdms2 is None else {"axes_epdms2": analysis.axes_epdms2.to_builtins(),
-                                                    "two_stage": two_stage_section()}),
+        **analysis.two_stage_sections(),
         "floor": analysis.floor.to_builtins(),
         **({} if analysis.reliance is None else {"reliance": analysis.reliance.to_builtins()}),
         **({} if analysis.command is None else {"command": analysis.command.to_builtins()}),

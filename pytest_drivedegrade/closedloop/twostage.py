@@ -42,7 +42,7 @@ from ..data.world.rig import Rig
 from ..data.world.scene import make_scene
 from ..errors import DataError
 from ..metrics.pdms import PreparedFrame, tracked_states
-from ..metrics.pdms.two_stage import group_score, stage_two_weights, weighted_average
+from ..metrics.pdms.two_stage import STAGE_TWO_STARTS, group_score, stage_two_weights, weighted_average
 from ..metrics.trajectory import FrameTruth
 from ..planning import Planner
 from ..settings import RunSettings
@@ -52,12 +52,6 @@ from .routes import Route, route_of
 if TYPE_CHECKING:
     from ..run import RunContext
 
-#: The stage-two start poses, (forward m, left m, yaw rad) from the logged ego pose in its own frame: the logged
-#: pose, half a metre to each side, a metre ahead and behind, 5 degrees to each side. NAVSIM's come from its
-#: synthetic-scene data set (navhard_two_stage), which the suite does not have: an adaptation.
-STAGE_TWO_STARTS: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, -0.5, 0.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0),
-    (0.0, 0.0, math.radians(5.0)), (0.0, 0.0, -math.radians(5.0)))
 
 
 def start_poses(pose: tuple[float, float, float],
@@ -176,6 +170,21 @@ class StageTwoWorld:
         return found
 
 
+def stage_two_world(context: RunContext) -> StageTwoWorld:
+    """The run's `StageTwoWorld` in this process (kept on the context: ``stage_two_cache``), built at first use."""
+    found = context.stage_two_cache
+    if not isinstance(found, StageTwoWorld):
+        found = context.stage_two_cache = StageTwoWorld.of(context)
+    return found
+
+
+def enable(context: RunContext) -> RunContext:
+    """`context` ready for the two-stage mode: its data checked (`require_world`) and its stage-two step set."""
+    require_world(Path(context.reader.root))
+    context.stage_two = add_stage_two
+    return context
+
+
 class StageTwoSource:
     """The run as a `stream.Source` whose frames are stage-two frames: their images rendered at their start pose
     (`StageTwoWorld.render`) instead of decoded; contexts, PDMS preparations and truths from the run's caches."""
@@ -232,7 +241,7 @@ def stage_two_cell(context: RunContext, planner: Planner, record: CellRecord, *,
     the module. `unread`: the cameras the null control blacks out."""
     if record.frames != [f.token for f in context.frames]:
         raise DataError(f"cell {record.cell!r}: stage two runs on a whole cell of the run's frames")
-    world = context.stage_two_world()
+    world = stage_two_world(context)
     moved, where, ends = _stage_two_frames(context, world, record, offsets)
     stage = stream.run_cell(StageTwoSource(context, world, where), planner, record.family, record.severity, moved,
                             unread=unread, seed=context.seed if seed is None else seed)
@@ -255,3 +264,4 @@ def add_stage_two(context: RunContext, planner: Planner, record: CellRecord, *, 
     record.errors = [*record.errors, *(f"stage two: {e}" for e in two.errors)]
     record.data_errors = [*record.data_errors, *(f"stage two: {e}" for e in two.data_errors)]
     return record
+

@@ -81,10 +81,7 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     partial_families = {by_cell[c].family for c in partial}
     per = axis_resamples(summaries, res, groups)
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
-    ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
-    ax_epdms = replace(run_axes(summaries, groups, "epdms"), partial=partial)
-    two_stage = any("epdms2_retention" in s.metrics for s in summaries)
-    ax_epdms2 = replace(run_axes(summaries, groups, "epdms2"), partial=partial) if two_stage else None
+    ax_pdms, ax_epdms, ax_epdms2 = score_axes(summaries, groups, partial)
     moved = run_movement(summaries, nc.max_l2_change if nc is not None else None, groups.quality, groups.removal)
     on = {"pdms": ax_pdms, "epdms": ax_epdms, "epdms2": ax_epdms2}.get(metric) or ax
     v = run_verdict(on, per, metric=metric, flat=flat, basis=basis, reliance=moved)
@@ -98,6 +95,15 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res, basis=basis),
                        axes_pdms=ax_pdms, axes_epdms=ax_epdms, axes_epdms2=ax_epdms2, reliance=moved, command=probe)
+
+
+def score_axes(summaries: list[CellSummary], groups: FamilyGroups, partial: tuple[str, ...]
+               ) -> tuple[Axes, Axes, Axes | None]:
+    """The axes on PDMS, EPDMS and two-stage EPDMS retention (None: not a two-stage run), flagged `partial`."""
+    two_stage = any("epdms2_retention" in s.metrics for s in summaries)  # --drivedegrade-two-stage
+    ax_pdms, ax_epdms, *rest = (replace(run_axes(summaries, groups, m), partial=partial)
+                                for m in ("pdms", "epdms", *(("epdms2",) if two_stage else ())))
+    return ax_pdms, ax_epdms, rest[0] if rest else None
 
 
 def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int) -> CommandProbe | None:

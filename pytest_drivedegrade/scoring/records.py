@@ -327,6 +327,15 @@ class RunAnalysis:
                 **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()}),
                 **({} if self.command is None else {"command": self.command.to_builtins()})}
 
+    def two_stage_sections(self) -> Builtins:
+        """The certificate's two-stage sections (--drivedegrade-two-stage): ``axes_epdms2`` and ``two_stage`` (how
+        stage two was scored: `metrics.pdms.two_stage.certificate_section`); none in a one-stage run."""
+        from ..metrics.pdms.two_stage import certificate_section
+
+        if self.axes_epdms2 is None:
+            return {}
+        return {"axes_epdms2": self.axes_epdms2.to_builtins(), "two_stage": certificate_section()}
+
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""
         return {s.family: s.retention for s in self.summaries

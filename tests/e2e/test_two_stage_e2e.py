@@ -17,8 +17,9 @@ from plugin_support import load_json, no_traceback, read_csv, stored_records, ve
 
 pytest_plugins = ["plugin_support"]
 
-#: A planner that reads the front camera: constant acceleration ahead, drifting sideways as the front image darkens (so a corruption, or a moved camera, moves its plan); it needs nothing but its inputs, so it plans
-#: at stage two's start poses as at the logged ones.
+#: A planner that reads the front camera: constant acceleration ahead, drifting sideways as the front image
+#: darkens (so a corruption, or a moved camera, moves its plan); it needs nothing but its inputs, so it plans at
+#: stage two's start poses as at the logged ones.
 PLANNER = '''
 import numpy as np
 import pytest

@@ -126,7 +126,7 @@ def test_stage_two_of_a_cell(world, family, severity):
     operator with the per-frame seed rule keyed by the stage-two token), plans there and scores; the frame's
     two-stage EPDMS is stage one's times stage two's; the images equal a fresh render under the operator."""
     from pytest_drivedegrade.closedloop import camera
-    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell, start_poses
+    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell, stage_two_world, start_poses
     from pytest_drivedegrade.corruptions.api import corrupt_sample
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.run import RunContext
@@ -153,7 +153,7 @@ def test_stage_two_of_a_cell(world, family, severity):
     expected = corrupted(logged, 0)
     assert all(np.array_equal(spy.seen[0][c], expected[c]) for c in FRONT)  # at the logged pose: the data's
     assert all(not np.array_equal(spy.seen[1][c], expected[c]) for c in FRONT)  # half a metre left: not
-    route = context.stage_two_world().routes[first.scene_name]
+    route = stage_two_world(context).routes[first.scene_name]
     fresh = corrupted(camera.images_at(route, FRONT, start_poses(first.pose)[1], first.index), 1)
     assert all(np.array_equal(spy.seen[1][c], fresh[c]) for c in FRONT)  # a fresh render, corrupted alike
 
