@@ -112,6 +112,8 @@ class StageTwo:
     starts: int
     errors: tuple[str, ...] = ()
     data_errors: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)  #: stage two's cost (`stream.run_cell`'s seconds)
+    calls: int = 0  #: stage-two frames the planner was given (frames with a stage two x starts)
 
     @property
     def frames(self) -> int:
@@ -252,14 +254,20 @@ def stage_two_cell(context: RunContext, planner: Planner, record: CellRecord, *,
         weights = stage_two_weights(end, [where[f.token][:2] for f in moved[j * k:(j + 1) * k]])
         stage_two[i] = weighted_average(scores, weights)
         two_stage[i] = group_score(float(record.epdms[i]), scores, weights)
-    return StageTwo(stage_two, two_stage, k, tuple(stage.errors), tuple(stage.data_errors))
+    return StageTwo(stage_two, two_stage, k, tuple(stage.errors), tuple(stage.data_errors), dict(stage.seconds),
+                    len(moved))
 
 
 def add_stage_two(context: RunContext, planner: Planner, record: CellRecord, *, seed: int,
                   unread: tuple[str, ...]) -> CellRecord:
     """`record` with its stage two (`stage_two_cell`): ``epdms_stage2`` and ``epdms2`` per frame, the stage-two
-    failures added to its own (prefixed ``stage two:``), so a planner failing there fails the cell's contract."""
+    failures added to its own (prefixed ``stage two:``), so a planner failing there fails the cell's contract; its
+    seconds added to the cell's (the cost ledger's parts and walls include stage two; ``stage_two_calls`` counts
+    its planner calls)."""
     two = stage_two_cell(context, planner, record, seed=seed, unread=unread)
+    seconds = {k: float(record.seconds.get(k, 0.0)) + float(two.seconds.get(k, 0.0))
+               for k in (*record.seconds, *(k for k in two.seconds if k not in record.seconds))}
+    record.seconds = {**seconds, "stage_two_calls": float(two.calls)}
     record.epdms_stage2, record.epdms2 = two.stage_two, two.two_stage
     record.errors = [*record.errors, *(f"stage two: {e}" for e in two.errors)]
     record.data_errors = [*record.data_errors, *(f"stage two: {e}" for e in two.data_errors)]

@@ -83,8 +83,9 @@ def cost_line(cost: Mapping[str, Any]) -> str:
     """The cost ledger in one line of the terminal summary."""
     sec = cost["seconds"]
     fps = cost.get("planner_frames_per_second")
-    return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
-            f"cells: planner "
+    staged = f" and {cost['stage_two_calls']} stage-two calls" if cost.get("stage_two_calls") else ""
+    return (f"cost: {cost['predictions']} predictions{staged}, {cost['reused']} frames reused the clean plan; "
+            f"seconds in cells: planner "
             f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
             f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}"
             + _busy(cost))

@@ -361,7 +361,9 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     totals = dict.fromkeys(COST_PARTS, 0.0)
     walls: dict[str, list[float]] = {}
     predictions = reused = 0
+    records_seen: list[CellRecord] = []
     for record in records:
+        records_seen.append(record)
         runs = [record, *getattr(record, "seed_runs", [])]
         saved = sum(int(getattr(r, "reused", 0)) for r in runs)
         made = sum(len(r.frames) if getattr(r, "passes", None) is None else r.passes for r in runs) - saved
@@ -377,8 +379,11 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     processes = sorted(({"wall": w, "planner_busy": _share(p, w)} for w, p in walls.values()),
                        key=lambda p: -float(p["wall"] or 0.0))
     wall = sum(w for w, _ in walls.values())
+    # --drivedegrade-two-stage: the stage-two calls, in the planner's seconds (a one-stage ledger keeps its form)
+    staged = int(sum(float(r.seconds.get("stage_two_calls", 0.0)) for r in records_seen))
     return {"predictions": predictions, "reused": reused, "seconds": totals, "cells": per_cell,
-            "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None,
+            **({"stage_two_calls": staged} if staged else {}),
+            "planner_frames_per_second": (predictions + staged) / totals["planner"] if totals["planner"] > 0 else None,
             "wall": wall if walls else None, "planner_busy": _share(sum(p for _, p in walls.values()), wall),
             "processes": processes}
 

@@ -78,8 +78,16 @@ def test_two_stage_columns_certificate_report_and_verdict(dd):
     assert cert["axes_epdms2"]["removal"] == pytest.approx(by_cell["blackout-s5"]["epdms2_retention"], abs=1e-6)
     verified = verify_cli(folder / "certificate.json")
     assert verified.returncode == 0, verified.stdout + verified.stderr
+    from pytest_drivedegrade.certificate.consistency import check_consistency
+
+    assert not check_consistency(cert)
+    edited = {**cert, "axes_epdms2": {**cert["axes_epdms2"], "removal": 0.5}}  # verify recomputes it from the cells
+    assert any(p.startswith("axes_epdms2.removal") for p in check_consistency(edited)), check_consistency(edited)
     stored = load_json(folder / "cells" / "jpeg-s5.json")["record"]
     assert len(stored["epdms2"]) == len(stored["frames"]) and any(math.isfinite(v) for v in stored["epdms2"])
+    assert stored["seconds"]["stage_two_calls"] == 7 * int(rows["jpeg-s5"]["epdms2_frames"])  # in the cost
+    assert cert["cost"]["stage_two_calls"] == sum(7 * int(r["epdms2_frames"]) for r in rows.values())
+    result.stdout.fnmatch_lines(["cost: * predictions and * stage-two calls*"])
     html = (folder / "report.html").read_text()
     assert 'id="two-stage"' in html and "two-stage retention" in html
     junit = (dd.pytester.path / "two.xml").read_text()
@@ -98,6 +106,7 @@ def test_one_stage_run_leaves_the_two_stage_columns_empty(dd):
     assert "axes_epdms2" not in cert and "two_stage" not in cert and "two_stage" not in cert["settings"]
     assert all("epdms2" not in c for c in cert["cells"])
     assert "epdms2" not in load_json(folder / "cells" / "clean.json")["record"]
+    assert "stage_two_calls" not in cert["cost"]
 
 
 def test_two_stage_cells_are_bit_identical_with_two_workers(dd):
