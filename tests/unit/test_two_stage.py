@@ -177,3 +177,37 @@ def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(
         terms = ExtendedTerms(*(float(record.array(k)[j]) for k in ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk")),
                               1.0)
         assert at_log.stage_two[i] == pytest.approx(epdms_score(terms, math.nan), abs=1e-9), j
+
+
+def test_epdms2_retention_summary_and_gate():
+    """A cell's two-stage figures (`pdms_metrics`): the means over the frames that have a stage two, the paired
+    retention over frames finite in both; absent without a stage two; the baseline gate reads `epdms2_retention`
+    under --drivedegrade-metric epdms2 and names the metric."""
+    from pytest_drivedegrade.cells import CellRecord
+    from pytest_drivedegrade.scoring.baseline import cell_regression
+    from pytest_drivedegrade.scoring.retention import pdms_metrics
+    from pytest_drivedegrade.scoring.verdict import retention_of
+
+    def record(cell, epdms2, stage2):
+        n = len(epdms2)
+        return CellRecord(cell, cell.split("-")[0], 3 if "-" in cell else 0, [f"t{i}" for i in range(n)],
+                          np.zeros((n, 6, 2)), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros(n),
+                          np.zeros(n), epdms=np.ones(n), epdms2=np.array(epdms2), epdms_stage2=np.array(stage2))
+
+    clean = record("clean", [0.8, 0.4, np.nan, 0.6], [0.8, 0.4, np.nan, 0.6])
+    cell = record("jpeg-s3", [0.4, 0.4, 0.9, np.nan], [0.4, 0.4, 0.9, np.nan])
+    got = pdms_metrics(cell, clean, n_resamples=0)
+    assert got["epdms2"] == pytest.approx((0.4 + 0.4 + 0.9) / 3) and got["epdms2_frames"] == 3
+    assert got["epdms2_retention"] == pytest.approx(0.8 / 1.2)  # frames 0 and 1: finite in both
+    assert "epdms2" not in pdms_metrics(record("clean", [np.nan] * 2, [np.nan] * 2),
+                                        record("clean", [np.nan] * 2, [np.nan] * 2), n_resamples=0)
+
+    class Summary:
+        metrics = got
+        retention = 1.0
+
+    assert retention_of(Summary(), "epdms2") == pytest.approx(0.8 / 1.2)  # type: ignore[arg-type]
+    baseline = {"cells": [{"cell": "jpeg-s3", "retention": 0.5, "epdms2_retention": 0.9}]}
+    reg = cell_regression("jpeg-s3", 0.7, baseline, 0.05, "epdms2")
+    assert reg is not None and reg.baseline == 0.9 and "two-stage EPDMS retention" in reg.message()
+    assert cell_regression("jpeg-s3", 0.7, baseline, 0.05, "l2") is None  # L2: baseline 0.5, no drop
