@@ -87,9 +87,12 @@ class RunSettings:
     reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
     device: str = "cpu"  #: where a planner that supports it runs (`planning.planner_device`)
     timeout: float = 60.0  #: seconds one predict() may take (0: no limit)
-    metric: str = "l2"  #: the retention the verdict is put on (l2, pdms or epdms)
+    metric: str = "l2"  #: the retention the verdict is put on (l2, pdms, epdms or epdms2)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     ego_box: str = "nuscenes"  #: the ego box the PDMS and EPDMS score with (`metrics.pdms.constants.EGO_BOXES`)
+    #: --drivedegrade-two-stage: each cell also scored by NAVSIM v2's two-stage pseudo-simulation
+    #: (`closedloop.twostage`)
+    two_stage: bool = False
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
     adaptive: bool = False  #: cells stop when their anytime-valid interval settles their decisions (spec 14)
@@ -284,6 +287,9 @@ TABLE: tuple[Setting, ...] = (
             "retentions, which the flat line only labels"),
     Setting("ego_box", "ego box", "--drivedegrade-ego-box", (("settings", "ego_box"),), _S, "another ego box "
             "scores other collisions, TTC and drivable-area verdicts", keyed=lambda s: s.ego_box != "nuscenes"),
+    Setting("two_stage", "two-stage", "--drivedegrade-two-stage", (("settings", "two_stage"),), _S, "a two-stage "
+            "run adds the stage-two EPDMS its verdict may be put on; the run key holds it, so neither run reuses the "
+            "other's stored cells", keyed=lambda s: s.two_stage),
     Setting("shard", "shard", "--drivedegrade-shard", (), _F, "each shard scores its own part of a run; a "
             "certificate is of a whole run", rerun="never", per_shard=True),
     Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "

@@ -84,11 +84,17 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-ray-gpus", "drivedegrade_ray_gpus", "GPUs each planner actor asks for (default 0; "
                "fractional allowed, e.g. 0.5 puts two actors on one GPU)", {"metavar": "G"}),
     OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
-               "M = mean L2), pdms (the PDMS-like score) or epdms (NAVSIM v2's extended score); all are always "
-               "computed and reported",
+               "M = mean L2), pdms (the PDMS-like score), epdms (NAVSIM v2's extended score) or epdms2 (the two-stage "
+               "EPDMS, with --drivedegrade-two-stage); all are always computed and reported",
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-ego-box", "drivedegrade_ego_box", "the ego box the PDMS and EPDMS score with: "
                "nuscenes (default, 4.084 x 1.85 m) or pacifica (NAVSIM's, 5.176 x 2.297 m)", {"metavar": "BOX"}),
+    OptionSpec("--drivedegrade-two-stage", "drivedegrade_two_stage", "score every open-loop cell also by NAVSIM "
+               "v2's two-stage pseudo-simulation: per frame, a second stage from start poses around where the plan "
+               "ends, its cameras rendered there by the embedded world and corrupted by the cell; the cell's "
+               "two-stage EPDMS (epdms2) and its retention join the outputs (embedded world only; not with "
+               "--drivedegrade-ray, --drivedegrade-adaptive, --drivedegrade-seeds above 1 or a planner with "
+               "reset())", {"action": "store_true"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
     OptionSpec("--drivedegrade-prefetch", "drivedegrade_prefetch", "frames decoded and corrupted ahead of the "

@@ -31,8 +31,8 @@ BASE = RunSettings(data=Path("/data/nuscenes"), split="val", frames=8, seed=0, b
 #: One other value per setting.
 CHANGED = {"data": Path("/elsewhere/nuscenes"), "split": "mini_val", "frames": 6, "seed": 3, "seeds": 2,
            "batch": 8, "reuse": False, "device": "cuda:1", "timeout": 5.0, "metric": "pdms", "flat": 0.9,
-           "ego_box": "pacifica", "shard": Shard(2, 3), "prefetch": 3, "adaptive": True, "alpha": 0.1,
-           "isolate": True, "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5,
+           "ego_box": "pacifica", "two_stage": True, "shard": Shard(2, 3), "prefetch": 3, "adaptive": True,
+           "alpha": 0.1, "isolate": True, "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5,
            "closed_routes": 2, "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault",
            "closed_scenarios": 5, "closed_lights": 2}
 #: Who sees that change, written out here rather than read off the table: (run key, merge, gate, rerun argv).
@@ -41,6 +41,7 @@ SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, Tr
            "batch": (True, True, True, True), "reuse": (True, True, True, True), "device": (True, True, True, True),
            "timeout": (False, True, False, True), "metric": (False, True, True, True),
            "flat": (False, True, False, True), "ego_box": (True, True, True, True),
+           "two_stage": (True, True, True, True),
            "shard": (False, False, False, False),
            "prefetch": (False, False, False, False), "adaptive": (True, True, False, True),
            # alpha alone in a full run: no run key holds it and no certificate records it (an option parse refuses
