@@ -1,6 +1,6 @@
 """NAVSIM v2.2's scorer on the neutral cases of `benchmarks/navsim_reference.py` (run inside NAVSIM's environment).
 
-    <navsim python> benchmarks/navsim_driver.py cases.json navsim.json
+    <navsim python> benchmarks/navsim_driver.py cases.json navsim.json [keyframes|interpolated]
 
 It imports NAVSIM and nuPlan's devkit only, never the project. The environment (not the project's): NAVSIM at
 commit 359c7f7 (tag v2.2 with the 2025-09-29 human-filter fix), nuPlan's devkit at tag nuplan-devkit-v1.2, both
@@ -9,14 +9,16 @@ asks for (see docs/explanation/navsim-reference.md).
 
 Per frame it builds, in the frame's ego frame (the ego's rear axle at the origin, heading 0):
 
-- the ego: `EgoState.build_from_rear_axle` with the frame's velocity, acceleration and yaw rate, and
+- the ego: `EgoState.build_from_rear_axle` with the frame's velocity and acceleration (no yaw rate, no steering
+  angle: NAVSIM's `ego_status_to_ego_state`), and
   `VehicleParameters` of the project's box (length, width) centred on the rear axle (front = rear length = half
   the length: the project tracks and boxes the same point) with the Pacifica's wheel base, which both trackers use;
 - the expert and each plan: NAVSIM `Trajectory`s of six 0.5 s poses (the project's waypoint headings);
 - the agents: `DetectionsTracks` at every 0.1 s step of 3 s, holding the frame's boxes at the six waypoint times
   (0.5 .. 3 s) and none between (the project scores agents where the data annotate them: this keeps the inputs
-  the same); a box is an `Agent` (vehicle, pedestrian, bicycle) with the project's track id as its track token and
-  its track's velocity, or a `StaticObject` (generic object) for the category "other";
+  the same), or (``interpolated``) NAVSIM's own 10 Hz interpolation of those annotations (`detections`); a box
+  is an `Agent` (vehicle, pedestrian, bicycle) with the project's track id as its track token and its track's
+  first-seen velocity, or a `StaticObject` (generic object) for the category "other";
 - the map: a `PDMDrivableMap` of the drivable area's polygons (`DRIVABLE_AREA`), the lanes (`LANE`, connectors
   `LANE_CONNECTOR`) and intersections (`INTERSECTION`); the centreline a `PDMPath` through the project's route
   centreline (what PDM-Closed's `centerline` is in NAVSIM); the route lanes the lanes the case file names;
@@ -90,24 +92,49 @@ def vehicle(frame: dict) -> VehicleParameters:
                              vehicle_name="project_box", vehicle_type="gen1", height=1.777)
 
 
-def ego_state(pose, velocity, accel, time_us: int, params: VehicleParameters, yaw_rate: float = 0.0) -> EgoState:
+def ego_state(pose, velocity, accel, time_us: int, params: VehicleParameters) -> EgoState:
     return EgoState.build_from_rear_axle(StateSE2(*pose), StateVector2D(*velocity), StateVector2D(*accel), 0.0,
-                                         TimePoint(int(time_us)), params, angular_vel=yaw_rate)
+                                         TimePoint(int(time_us)), params)
 
 
-def detections(frame: dict) -> list[DetectionsTracks]:
-    """The agents at 0.1 s steps 0 .. 30: boxes at steps 5, 10, .., 30, none elsewhere."""
-    steps = [[] for _ in range(PROPOSAL.num_poses + 1)]
+def _box(b: dict, x: float, y: float, yaw: float, t_us: int):
+    """A box of the case file as nuPlan's tracked object (an `Agent`, or a `StaticObject` for "other")."""
+    box = OrientedBox(StateSE2(x, y, yaw), b["length"], b["width"], 1.5)
+    token = f"track_{b['id']}"
+    meta = SceneObjectMetadata(t_us, token, b["id"], token)
+    kind = TYPES[b["category"]]
+    return StaticObject(kind, box, meta) if b["category"] == "other" else \
+        Agent(kind, box, StateVector2D(b["vx"], b["vy"]), meta)
+
+
+def detections(frame: dict, agents: str = "keyframes") -> list[DetectionsTracks]:
+    """The agents at 0.1 s steps 0 .. 30. "keyframes": the boxes at steps 5, 10, .., 30 and none elsewhere (the
+    project's inputs). "interpolated": as NAVSIM's metric cache builds them from 2 Hz annotations
+    (`MetricCacheProcessor._interpolate_gt_observation`): each track's boxes interpolated linearly (heading
+    unwrapped) at every step between its first and last keyframe, a track seen once kept at every step."""
+    if agents not in ("keyframes", "interpolated"):
+        raise ValueError(f"agents {agents!r}: 'keyframes' or 'interpolated'")
+    steps: list[list] = [[] for _ in range(PROPOSAL.num_poses + 1)]
+    tracks: dict[int, list[tuple[int, dict]]] = {}
     for k, boxes in enumerate(frame["agents"]):
-        t_us = T0_US + (k + 1) * 500_000
         for b in boxes:
-            box = OrientedBox(StateSE2(b["x"], b["y"], b["yaw"]), b["length"], b["width"], 1.5)
-            token = f"track_{b['id']}"
-            meta = SceneObjectMetadata(t_us, token, b["id"], token)
-            kind = TYPES[b["category"]]
-            obj = StaticObject(kind, box, meta) if b["category"] == "other" else \
-                Agent(kind, box, StateVector2D(b["vx"], b["vy"]), meta)
-            steps[5 * (k + 1)].append(obj)
+            tracks.setdefault(b["id"], []).append((5 * (k + 1), b))
+    for seen in tracks.values():
+        first = seen[0][1]
+        if agents == "keyframes":
+            for step, b in seen:
+                steps[step].append(_box(b, b["x"], b["y"], b["yaw"], T0_US + step * 100_000))
+            continue
+        if len(seen) == 1:
+            for step in range(len(steps)):
+                steps[step].append(_box(first, first["x"], first["y"], first["yaw"], T0_US))
+            continue
+        t = np.array([s for s, _ in seen], dtype=np.float64)
+        xyh = np.array([[b["x"], b["y"], b["yaw"]] for _, b in seen])
+        xyh[:, 2] = np.unwrap(xyh[:, 2])
+        for step in range(int(t[0]), int(t[-1]) + 1):
+            x, y, h = (float(np.interp(step, t, xyh[:, j])) for j in range(3))
+            steps[step].append(_box(first, x, y, h, T0_US))
     return [DetectionsTracks(TrackedObjects(objs)) for objs in steps]
 
 
@@ -151,12 +178,13 @@ def past(frame: dict, params: VehicleParameters, now: EgoState) -> InterpolatedT
     return InterpolatedTrajectory(states + [now])
 
 
-def metric_cache(frame: dict) -> MetricCache:
+def metric_cache(frame: dict, agents: str) -> MetricCache:
     params = vehicle(frame)
     e = frame["ego"]
-    now = ego_state((0.0, 0.0, 0.0), (e["vx"], e["vy"]), (e["ax"], e["ay"]), T0_US, params, e["yaw_rate"])
+    # as NAVSIM's `ego_status_to_ego_state` builds it: no yaw rate, no steering angle
+    now = ego_state((0.0, 0.0, 0.0), (e["vx"], e["vy"]), (e["ax"], e["ay"]), T0_US, params)
     expert = Trajectory(np.asarray(frame["expert"], dtype=np.float64), PLAN)
-    tracks = detections(frame)
+    tracks = detections(frame, agents)
     observation = PDMObservation(PROPOSAL, PROPOSAL, 100.0, observation_sample_res=1, extend_observation_for_ttc=False)
     observation.update_detections_tracks(tracks)
     m = frame["map"]
@@ -173,18 +201,18 @@ def epdms(row: dict) -> float:
     return mult * (5 * row["f_ep"] + 5 * row["f_ttc"] + 2 * row["f_lk"] + 2 * row["f_hc"]) / 14
 
 
-def score_frame(frame: dict, previous: dict) -> dict:
+def score_frame(frame: dict, previous: dict, agents: str) -> dict:
     params = vehicle(frame)
     scorers = {"": PDMScorer(PROPOSAL, PDMScorerConfig(human_penalty_filter=False), params),
                "f_": PDMScorer(PROPOSAL, PDMScorerConfig(human_penalty_filter=True), params)}
     simulator = PDMSimulator(PROPOSAL)
-    agents = LogReplayTrafficAgents(PROPOSAL)
+    policy = LogReplayTrafficAgents(PROPOSAL)
     out = {}
     for case in frame["cases"]:
         plan = Trajectory(np.asarray(case["poses"], dtype=np.float64), PLAN)
         row: dict = {}
         for prefix, scorer in scorers.items():
-            result, states = pdm_score(metric_cache(frame), plan, PROPOSAL, simulator, scorer, agents)
+            result, states = pdm_score(metric_cache(frame, agents), plan, PROPOSAL, simulator, scorer, policy)
             row.update({prefix + k: float(result[c].iloc[0]) for k, c in COLUMNS.items()})
         row["epdms"] = epdms(row)
         row["xy"] = states[:, StateIndex.POINT].tolist()
@@ -200,10 +228,11 @@ def score_frame(frame: dict, previous: dict) -> dict:
 
 def main() -> None:
     cases, result = sys.argv[1], sys.argv[2]
+    agents = sys.argv[3] if len(sys.argv) > 3 else "keyframes"
     with open(cases) as fh:
         data = json.load(fh)
     previous: dict = {}
-    out = {f["token"]: score_frame(f, previous) for f in data["frames"]}
+    out = {f["token"]: score_frame(f, previous, agents) for f in data["frames"]}
     with open(result, "w") as fh:
         json.dump(out, fh)
 

@@ -10,6 +10,7 @@ EC between the same kind of plan on consecutive frames of a scene). The inputs g
 v2 EPDMS config, the human filter on, the expert as the progress reference), then the table compares the two:
 
     python benchmarks/navsim_reference.py --navsim-python /tmp/navsim-venv/bin/python [--scenes 2 --seed 7]
+        [--agents keyframes|interpolated]
 
 Quick mode: the defaults (2 scenes). Without --navsim-python the cases are built and scored by the project only
 (`--out cases.json` keeps the neutral file). How the NAVSIM side's environment is made, and what the adapter
@@ -219,6 +220,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--navsim-python", default="", help="the Python of an environment holding NAVSIM v2.2")
     ap.add_argument("--out", default="", help="keep the neutral cases file here")
+    ap.add_argument("--agents", choices=("keyframes", "interpolated"), default="keyframes",
+                    help="NAVSIM's agents: the project's (boxes at the six waypoint times only) or NAVSIM's own "
+                         "10 Hz interpolation of them (what the keyframe grid adaptation moves)")
     args = ap.parse_args()
     data = build(args.scenes, args.seed)
     workdir = tempfile.mkdtemp(prefix="ddnavref-io-")
@@ -232,7 +236,7 @@ def main() -> None:
     result = os.path.join(workdir, "navsim.json")
     driver = os.path.join(os.path.dirname(os.path.abspath(__file__)), "navsim_driver.py")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # NAVSIM's environment only
-    subprocess.run([args.navsim_python, driver, cases, result], check=True, env=env)
+    subprocess.run([args.navsim_python, driver, cases, result, args.agents], check=True, env=env)
     with open(result) as fh:
         navsim = json.load(fh)
     _table(data, navsim)
