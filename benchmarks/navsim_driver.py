@@ -5,7 +5,7 @@
 It imports NAVSIM and nuPlan's devkit only, never the project. The environment (not the project's): NAVSIM at
 commit 359c7f7 (tag v2.2 with the 2025-09-29 human-filter fix), nuPlan's devkit at tag nuplan-devkit-v1.2, both
 unpacked from their GitHub snapshots onto a path file of a fresh venv, plus the PyPI packages their import chain
-asks for (see docs/explanation/navsim-reference.md).
+asks for (docs/explanation/navsim.md, "Checked against NAVSIM v2.2's own scorer").
 
 Per frame it builds, in the frame's ego frame (the ego's rear axle at the origin, heading 0):
 
