@@ -239,6 +239,7 @@ def main() -> None:
     subprocess.run([args.navsim_python, driver, cases, result, args.agents], check=True, env=env)
     with open(result) as fh:
         navsim = json.load(fh)
+    print(f"NAVSIM v2.2's pdm_score, agents: {args.agents}")
     _table(data, navsim)
     _by_kind(data, navsim)
 
