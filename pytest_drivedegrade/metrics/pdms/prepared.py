@@ -262,9 +262,9 @@ class PreparedFrame:
         plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
         expert_mult = self.expert_multiplier * (1.0 if np.isnan(expert_ddc) else expert_ddc)
         plan_m, expert_m = result.progress_m, self.expert_m
-        if self.route_expert_m is not None:  # NAVSIM's: along the route centreline, box centre at 0 s to at the end
-            assert self.lanes is not None and self.lanes.route is not None
-            plan_m, expert_m = route_progress(self.lanes.route, ps.xy[0], ps.xy[-1]), self.route_expert_m
+        route = self.lanes.route if self.lanes is not None else None
+        if route is not None and self.route_expert_m is not None:  # NAVSIM's: along the route centreline
+            plan_m, expert_m = route_progress(route, ps.xy[0], ps.xy[-1]), self.route_expert_m
         ep = ep_v2(plan_m, plan_mult, expert_m, expert_mult)
         lk = lane_keeping(ps, self.lanes, query)
         hc = history_comfort(ps, self.past)
