@@ -36,8 +36,9 @@ TERMS: tuple[str, ...] = ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk", "hc")
 ROWS: tuple[str, ...] = TERMS + tuple("f_" + k for k in TERMS) + ("ec", "epdms")
 #: Lanes, intersections and drivable polygons whose points come within this of the ego go to NAVSIM (m).
 RADIUS_M = 80.0
-#: A lane is on the route (NAVSIM's route roadblocks' lanes, which nuScenes maps lack) when a point of its
-#: centreline lies within this of the route centreline (m) running within ROUTE_ANGLE of the route's direction there.
+#: A lane is on the route (NAVSIM's route roadblocks' lanes, which nuScenes maps lack) when of its centreline's
+#: segments starting within this of the route centreline (m) at least half run within ROUTE_ANGLE of the route's
+#: direction there (half, not one: the route's joints between lanes and a lane's own kinks point anywhere).
 ROUTE_NEAR_M, ROUTE_ANGLE = 5.5, math.pi / 4
 
 
@@ -89,7 +90,8 @@ def _route_lanes(lanes: list[dict[str, Any]], route: np.ndarray | None) -> list[
         d = np.hypot(*(a[None] + t[..., None] * ab[None] - pts[:-1, None]).transpose(2, 0, 1))
         k = d.argmin(axis=1)
         turn = np.abs((lane_yaw - yaw[k] + np.pi) % (2 * np.pi) - np.pi)
-        if ((d[np.arange(len(k)), k] <= ROUTE_NEAR_M) & (turn < ROUTE_ANGLE)).any():
+        near = d[np.arange(len(k)), k] <= ROUTE_NEAR_M
+        if near.any() and 2 * int((near & (turn < ROUTE_ANGLE)).sum()) >= int(near.sum()):
             on.append(lane["token"])
     return on
 
