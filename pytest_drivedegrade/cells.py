@@ -35,8 +35,9 @@ INPUT_FAMILIES: tuple[str, ...] = (*EGO_FAMILIES, *COMMAND_FAMILIES)
 #: (`data_errors`) kept apart from the planner's contract failures (`errors`). 4: PDMS on tracked states (spec 4.1).
 #: 5: the tracker's velocity fit as NAVSIM's code does it (spec 4.2). 6: the EPDMS terms and NC/TTC's side rule as
 #: NAVSIM v2.2's code (issue 39). 7: ``command_target``, the expert's change of path at command_swap's junction
-#: frames (issue 40).
-RECORD_VERSION = 7
+#: frames (issue 40). 8: the EPDMS's hc at NAVSIM's centre, its TTC window and its progress along the route, as
+#: NAVSIM v2.2's scorer gives them on the same inputs (issue 39, benchmarks/navsim_reference.py).
+RECORD_VERSION = 8
 #: The per-frame PDMS arrays of a record (spec 3): the score and its sub-scores, each (F,), NaN where unscored.
 PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The per-frame EPDMS arrays (spec 4.1, NAVSIM v2): its own terms (before the human filter) and the score; NaN

@@ -108,7 +108,7 @@ class TrackedStates:
         vel = rotate(self.velocity_x[b], self.velocity_y[b])
         return EgoStates(np.stack([self.x[b], self.y[b]], axis=-1), vel,
                          rotate(self.acceleration_x[b], self.acceleration_y[b]), h.copy(),
-                         np.hypot(vel[:, 0], vel[:, 1]))
+                         np.hypot(vel[:, 0], vel[:, 1]), self.yaw_rate[b].copy())
 
 
 # -- the reference ---------------------------------------------------------------------------------------------

@@ -268,3 +268,94 @@ def test_the_route_fit_over_nearby_segments_equals_the_fit_over_all(seed):
     got = view._route_fit(pts)
     want = LaneView._segments_fit(pts, route[:-1], route[1:])
     assert got[0].tobytes() == want[0].tobytes() and got[1].tobytes() == want[1].tobytes()
+
+
+# -- checked against NAVSIM v2.2's own scorer (benchmarks/navsim_reference.py) ---------------------------------
+
+def test_centre_lon_accel_is_navsims_shift_to_the_pacificas_centre():
+    # get_acceleration_shifted with displacement (1.461, 0): a_x + 1.461 w^2 + 1.461 alpha, a_y unchanged; NAVSIM's
+    # t = 0 state has no yaw rate, so w = (0, 0.5, 0.5) and alpha = (0, 5, 0) whatever the tracker's w[0]
+    lon = np.array([1.0, 1.0, 1.0])
+    got = X.centre_lon_accel(lon, np.array([0.3, 0.5, 0.5]))
+    np.testing.assert_allclose(got, [1.0, 1.0 + 1.461 * 0.25 + 1.461 * 5.0, 1.0 + 1.461 * 0.25], rtol=0, atol=1e-12)
+    assert X.HC_CENTRE_M == 1.461
+
+
+def _turning(base: float, rate_per_state: float) -> P.EgoStates:
+    """Straight states (heading 0, as the test needs only the accelerations) with longitudinal acceleration
+    `base` and the tracker's yaw rate growing by `rate_per_state` each state."""
+    s = straight(10.0)
+    accel = np.zeros((P.N_STATES, 2))
+    accel[:, 0] = base
+    return P.EgoStates(s.xy, s.velocity, accel, s.heading, s.speed, rate_per_state * np.arange(P.N_STATES))
+
+
+@pytest.mark.parametrize("rate,expected", [
+    (0.0, 1.0),  # no turn: 1 m/s^2 throughout
+    (0.02, 1.0),  # w up to 0.6 rad/s, alpha 0.2: at most 1 + 1.461 (0.36 + 0.2) = 1.82 < 2.40 m/s^2
+    (0.04, 0.0),  # w up to 1.2 rad/s, alpha 0.4: 1 + 1.461 (1.44 + 0.4) = 3.69 > 2.40 (the code before: 1)
+])
+def test_history_comfort_reads_the_longitudinal_acceleration_at_navsims_centre(rate, expected):
+    past = np.array([[-2e6, 0, 1.0, 0], [-1.5e6, 0, 1.0, 0], [-1e6, 0, 1.0, 0], [-0.5e6, 0, 1.0, 0]])
+    assert X.history_comfort(_turning(1.0, rate), X.history(past, (1.0, 0.0))) == expected
+
+
+def test_tracked_states_carry_the_trackers_yaw_rate():
+    from pytest_drivedegrade.metrics import tracking
+
+    plan = np.stack([10.0 * T, 0.3 * T**2], 1)
+    start = tracking.InitialState(10.0)
+    ps = P.tracked_states(plan[None], [start])[0]
+    assert ps.yaw_rate is not None
+    np.testing.assert_array_equal(ps.yaw_rate, tracking.track_plans(plan[None], [start]).yaw_rate[0])
+
+
+def test_epdms_ttc_looks_only_at_states_whose_longest_projection_ends_in_the_horizon():
+    # NAVSIM v2.2: n_proposal_steps_to_evaluate = num_poses - 9: states 0 .. 21 of six poses' 31, 0 .. 31 of 41
+    def contact(state: int) -> P.Contact:
+        return P.Contact(state, state, np.array([12.0 + state, 0.0]), np.array([4.0, 1.8]), 0.0, "vehicle",
+                         np.array([5.0, 0.0]))
+
+    contacts = [contact(i) for i in (0, 21, 22, 30)]
+    assert [c.state for c in X.ttc_v2_window(contacts, 31)] == [0, 21]
+    assert [c.state for c in X.ttc_v2_window(contacts, 41)] == [0, 21, 22, 30]
+    # an agent ahead met only from state 22 on: NAVSIM v1.1 (the PDMS) fails TTC, v2.2 (the EPDMS) does not
+    s, late = straight(10.0), [contact(22)]
+    ahead = np.zeros(P.N_STATES, bool)
+    assert P.ttc_score(s, late, ahead) == 0.0
+    assert P.ttc_score(s, X.ttc_v2_window(late, P.N_STATES), ahead) == 1.0
+
+
+def test_route_progress_known_answers():
+    from pytest_drivedegrade.metrics.pdms.route import route_progress
+
+    route = np.array([[-5.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # 15 m along x, then 10 m along y
+    assert route_progress(route, np.zeros(2), np.array([11.0, 5.0])) == pytest.approx(15.0)  # 20 - 5
+    assert route_progress(route, np.zeros(2), np.array([-9.0, 0.0])) == 0.0  # behind: clamped, at least 0
+    assert route_progress(route, np.zeros(2), np.array([10.0, 30.0])) == pytest.approx(20.0)  # clamped at the end
+    repeated = np.array([[-5.0, 0.0], [0.0, 0.0], [0.0, 0.0], [10.0, 0.0]])  # a repeated point: no NaN
+    assert route_progress(repeated, np.zeros(2), np.array([4.0, 1.0])) == pytest.approx(4.0)
+
+
+def test_epdms_progress_is_measured_along_the_route_centreline():
+    # the expert drives straight on; the route bends left after 10 m (a junction's connector): NAVSIM measures the
+    # plan's and the expert's progress along the route, so a plan following the bend makes full progress
+    expert = np.stack([5.0 * T, np.zeros(6)], 1)
+    x = np.linspace(-20.0, 10.0, 31)
+    bend = np.array([[10.0 + 10 * np.sin(a), 10 - 10 * np.cos(a)] for a in np.linspace(0, np.pi / 2, 20)[1:]])
+    route = np.vstack([np.stack([x, np.zeros_like(x)], 1), bend])
+    view = road(1.0)
+    lanes = LaneView(view.start, view.end, view.yaw, view.lane, view.polygons, view.intersections, route)
+    ego = EgoStatus((5.0, 0.0), (0.0, 0.0), 0.0, EGO.past_xy)
+    prepared = P.PreparedFrame.prepare(expert, [], ego, lanes=lanes)
+    ps = P.tracked_states(expert[None], [prepared.initial])[0]
+    from pytest_drivedegrade.metrics.pdms.route import route_progress
+
+    assert prepared.route_expert_m == pytest.approx(route_progress(route, ps.xy[0], ps.xy[-1]))
+    assert prepared.extended(ps, prepared.score(expert)).ep == 1.0  # the expert against itself
+    plan = np.stack([5.0 * T, 0.4 * T**2], 1)  # drifting left into the bend: more progress along the route
+    pp = P.tracked_states(plan[None], [prepared.initial])[0]
+    result = prepared.score(plan)
+    on_route = route_progress(route, pp.xy[0], pp.xy[-1])
+    assert prepared.extended(pp, result).ep == pytest.approx(min(on_route / prepared.route_expert_m, 1.0))
+    assert prepared.extended(pp, result).ep != pytest.approx(min(result.progress_m / result.expert_progress_m, 1.0))

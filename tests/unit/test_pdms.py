@@ -378,12 +378,16 @@ def test_prepared_frame_scores_exactly_as_pdm_score(plan, expert, boxes, v, driv
 @settings(max_examples=150, deadline=None)
 @given(waypoints, agent_steps(), st.tuples(st.floats(-2.0, 20.0), st.floats(-2.0, 2.0)), maps)
 def test_the_prepared_experts_own_judgement_is_the_references(expert, boxes, v, drivable):
-    """`prepare` judges the expert with the frame's vectorised contacts: the NC, TTC and multiplier `pdm_score`
-    (contacts found literally) gives the expert as a plan."""
+    """`prepare` judges the expert with the frame's vectorised contacts: the NC and multiplier `pdm_score`
+    (contacts found literally) gives the expert as a plan, and the EPDMS's TTC (NAVSIM v2.2's window) of the expert
+    judged as a plan."""
     frame = P.PreparedFrame.prepare(expert, boxes, v, drivable)
     as_plan = P.pdm_score(expert, expert, boxes, v, drivable)
     assert frame.human is not None
-    assert (frame.human.nc, frame.human.ttc, frame.human.dac) == (as_plan.nc, as_plan.ttc, as_plan.dac)
+    assert (frame.human.nc, frame.human.dac) == (as_plan.nc, as_plan.dac)
+    arr = np.asarray(expert, dtype=np.float64)
+    ps = P.tracked_states(arr[None], [frame.initial])[0]
+    assert frame.human.ttc == frame.extended(ps, frame.score_tracked(arr, ps)).ttc
     assert frame.expert_multiplier == as_plan.nc * as_plan.dac
 
 

@@ -5,6 +5,7 @@ world at a start pose off the logged one."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -163,7 +164,8 @@ def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(
     from the same state), the same terms; its EPDMS is the cell's without the terms stage two does not score (ec:
     no previous plan; hc: no past)."""
     from pytest_drivedegrade.closedloop.twostage import stage_two_cell
-    from pytest_drivedegrade.metrics.pdms.extended import ExtendedTerms, epdms_score
+    from pytest_drivedegrade.metrics.pdms import tracked_states
+    from pytest_drivedegrade.metrics.pdms.extended import epdms_score
     from pytest_drivedegrade.run import RunContext
     from pytest_drivedegrade.settings import RunSettings
 
@@ -172,10 +174,15 @@ def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(
     record = context.run_cell(spy, "clean", 0)
     at_log = stage_two_cell(context, spy, record, offsets=((0.0, 0.0, 0.0),))
     for j in (6, 12, 20):
-        assert context.frames[j].index == j
+        later = context.frames[j]
+        assert later.index == j and later.pose is not None
         i = j - 6  # the frame whose stage two starts at keyframe j
-        terms = ExtendedTerms(*(float(record.array(k)[j]) for k in ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk")),
-                              1.0)
+        # the cell's own EPDMS terms of that keyframe's plan (ep along the route and NAVSIM v2.2's TTC window are
+        # the EPDMS's, not the record's PDMS columns), hc 1
+        prepared = context.pdms_frame(later)
+        plan = np.asarray(record.array("plans")[j], dtype=np.float64)
+        terms = replace(prepared.judged(plan, tracked_states(plan[None], [prepared.initial])[0])[1], hc=1.0)
+        assert (terms.nc, terms.dac, terms.lk) == tuple(float(record.array(k)[j]) for k in ("nc", "dac", "lk"))
         assert at_log.stage_two[i] == pytest.approx(epdms_score(terms, math.nan), abs=1e-9), j
 
 

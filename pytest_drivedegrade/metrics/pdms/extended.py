@@ -11,16 +11,17 @@ scores 0 on is set to 1 for the plan (a rule the human driver also broke is not 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from ...constants import STEP_SECONDS
-from .constants import PROGRESS_DISTANCE_THRESHOLD, SIM_DT
+from .constants import PROGRESS_DISTANCE_THRESHOLD, SIM_DT, TTC_PROJECTIONS_S
 from .lanes import LaneQuery, LaneView
 from .motion import EgoStates, savgol, within_comfort
+from .rules import Contact
 
 #: PDMScorerConfig (v2): driving direction over a 1 s window, compliant below 2 m, violated from 6 m; lane keeping
 #: fails after 2 s continuously more than 0.5 m off the centreline.
@@ -38,6 +39,9 @@ EC_THRESHOLDS: tuple[float, float, float, float] = (0.7, 0.5, 0.1, 0.1)
 #: History comfort pads the plan with the ego's past keyframes 1.5, 1.0 and 0.5 s back (NAVSIM's
 #: ``get_ego_past_trajectory(0, 1.5)``: three past 2 Hz frames) and the current one.
 PAST_HC: int = 3
+#: NAVSIM's history comfort reads accelerations at the Pacifica's centre, this far ahead of the tracked rear axle
+#: (nuPlan's `get_pacifica_parameters().rear_axle_to_center`: (4.049 - 1.127) / 2 m), whatever box is scored.
+HC_CENTRE_M: float = (4.049 + 1.127) / 2 - 1.127  # 1.461, as nuPlan computes it (half length - rear length)
 #: Consecutive frames at most this far apart (s) are "the previous frame" for EC (NAVSIM asserts < 0.55 s).
 EC_MAX_INTERVAL_S: float = 0.55
 
@@ -74,6 +78,15 @@ def ep_v2(plan_m: float, plan_multiplier: float, expert_m: float, expert_multipl
     [0, 1]; 1 when that larger value is at most the 5 m threshold (v1 gave 0 to a plan multiplied by 0)."""
     top = max(max(plan_m, 0.0) * plan_multiplier, max(expert_m, 0.0) * expert_multiplier)
     return min(max(max(plan_m, 0.0) / top, 0.0), 1.0) if top > PROGRESS_DISTANCE_THRESHOLD else 1.0
+
+
+def ttc_v2_window(contacts: Iterable[Contact], n_states: int) -> list[Contact]:
+    """The projected contacts (in NAVSIM's order) NAVSIM v2.2's TTC looks at among `n_states` tracked states: those
+    projected from a state whose longest projection (0.9 s) still ends inside the horizon, states 0 .. n_states - 1
+    - 9 (``n_proposal_steps_to_evaluate``: 0 .. 3.1 s on NAVSIM's 4 s, 0 .. 2.1 s on six poses' 3 s). NAVSIM v1.1,
+    the PDMS's, projects from every state."""
+    last = n_states - 1 - round(max(TTC_PROJECTIONS_S) / SIM_DT)
+    return [c for c in contacts if c.state <= last]
 
 
 def lane_query(states: EgoStates, lanes: LaneView | None) -> LaneQuery | None:
@@ -120,13 +133,16 @@ def _body_accel(states: EgoStates) -> tuple[np.ndarray, np.ndarray]:
     return states.lon_accel, states.lat_accel
 
 
-def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> float:
+def comfortable_v2(heading: np.ndarray, lon: np.ndarray, lat: np.ndarray, lon_raw: np.ndarray | None = None
+                   ) -> float:
     """NAVSIM v2's comfort verdict over any number of 10 Hz states: accelerations smoothed over 8 states, jerks
     their derivative over 15, yaw rate and yaw acceleration from the heading over 5 (orders 2, 3), within
-    COMFORT_BOUNDS (strict), values rounded to 1e-8."""
+    COMFORT_BOUNDS (strict), values rounded to 1e-8. `lon_raw`: the longitudinal acceleration the jerk's
+    magnitude reads where it differs from `lon` (NAVSIM shifts `lon` to the vehicle's centre, not the magnitude's
+    input: `centre_lon_accel`)."""
     n = len(heading)
     lon_s, lat_s = savgol(lon, min(8, n), 2), savgol(lat, min(8, n), 2)
-    mag = savgol(np.hypot(lon, lat), min(8, n), 2)
+    mag = savgol(np.hypot(lon if lon_raw is None else lon_raw, lat), min(8, n), 2)
     terms = {"lon_accel": lon_s, "lat_accel": lat_s, "jerk": savgol(np.round(mag, 8), min(15, n), 2, 1),
              "lon_jerk": savgol(np.round(lon_s, 8), min(15, n), 2, 1),
              "yaw_rate": savgol(heading, min(5, n), 2, 1), "yaw_accel": savgol(heading, min(5, n), 3, 2)}
@@ -157,14 +173,31 @@ def history(past_motion: npt.ArrayLike, acceleration: npt.ArrayLike = (0.0, 0.0)
     return (np.interp(t, t_us, heading), np.interp(t, t_us, knots[:, 2]), np.interp(t, t_us, knots[:, 3]))
 
 
+def centre_lon_accel(lon: np.ndarray, yaw_rate: np.ndarray) -> np.ndarray:
+    """The tracked states' longitudinal acceleration (N,) as NAVSIM v2's history comfort reads it: moved from the
+    rear axle the bicycle model tracks to the vehicle's centre (`state_array_to_center_state_array` with
+    `ego_is_comfortable`'s default vehicle, the Pacifica, HC_CENTRE_M ahead, whatever the scored box), with
+    NAVSIM's `get_acceleration_shifted`, which adds both the centripetal and the angular-acceleration term to the
+    longitudinal component (lateral unchanged). The yaw rate at t = 0 is 0 (NAVSIM builds that state from the
+    ego status, which has none) and the yaw acceleration the bicycle model's difference of yaw rates from there."""
+    w = np.array(yaw_rate, dtype=np.float64)
+    w[0] = 0.0
+    alpha = np.zeros_like(w)
+    alpha[1:] = (w[1:] - w[:-1]) / SIM_DT
+    return lon + HC_CENTRE_M * w ** 2 + HC_CENTRE_M * alpha
+
+
 def history_comfort(states: EgoStates, past: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> float:
     """HC in {0, 1}: NAVSIM v2's comfort over the ego's past (`history`) followed by the plan's tracked states;
-    1 without a past, as NAVSIM gives it (its human-filter run is scored so, hence HC is never filtered)."""
+    1 without a past, as NAVSIM gives it (its human-filter run is scored so, hence HC is never filtered). The
+    plan's longitudinal acceleration is read at NAVSIM's centre (`centre_lon_accel`) where the states carry the
+    tracker's yaw rate; the past's is not moved (its keyframes' states have no yaw rate in NAVSIM either)."""
     if past is None:
         return 1.0
     lon, lat = _body_accel(states)
-    return comfortable_v2(np.concatenate([past[0], states.heading]), np.concatenate([past[1], lon]),
-                          np.concatenate([past[2], lat]))
+    centre = lon if states.yaw_rate is None else centre_lon_accel(lon, states.yaw_rate)
+    return comfortable_v2(np.concatenate([past[0], states.heading]), np.concatenate([past[1], centre]),
+                          np.concatenate([past[2], lat]), np.concatenate([past[1], lon]))
 
 
 def _features(states: EgoStates) -> tuple[np.ndarray, ...]:

@@ -38,6 +38,8 @@ class EgoStates:
     accel: np.ndarray  # (N, 2) m/s^2
     heading: np.ndarray  # (N,) rad, unwrapped
     speed: np.ndarray  # (N,) m/s
+    #: the bicycle model's yaw rate (rad/s) at each state, where the states were tracked (`tracking`); None else
+    yaw_rate: np.ndarray | None = None
 
     @property
     def lon_accel(self) -> np.ndarray:

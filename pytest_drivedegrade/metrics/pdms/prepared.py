@@ -40,6 +40,7 @@ from .extended import (
     history_comfort,
     lane_keeping,
     lane_query,
+    ttc_v2_window,
 )
 from .lanes import LaneView, astray
 from .lights import RedArea, red_areas, traffic_light_compliance
@@ -53,7 +54,7 @@ from .motion import (
     progress_along,
     waypoints,
 )
-from .route import route_centreline
+from .route import route_centreline, route_progress
 from .rules import Contact, collision_score, pdms_result, ttc_score
 from .tracked import initial_state, tracked_states
 
@@ -103,6 +104,8 @@ class PreparedFrame:
     human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
     ego_size: np.ndarray = field(default_factory=lambda: EGO_SIZE.copy())  # the ego box (length, width), m
     red_areas: tuple[RedArea, ...] | None = None  # the map's lights (EPDMS's tlc; None: no lights, not scored)
+    #: the expert's progress along the route centreline (EPDMS's ep, NAVSIM's; None: no route, the expert's path)
+    route_expert_m: float | None = None
     #: plans judged on this frame (`judged`), by their bytes, up to MEMO_PLANS of them
     memo: dict[bytes, tuple[PDMSResult, ExtendedTerms]] = field(default_factory=dict, compare=False, repr=False)
 
@@ -149,9 +152,11 @@ class PreparedFrame:
         query = lane_query(es, lanes)
         tlc = traffic_light_compliance(es, bare.red_areas, size)
         human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), tlc, 1.0,
-                              ttc_score(es, bare.projections(es), expert_ttc_astray),
+                              ttc_score(es, ttc_v2_window(bare.projections(es), len(es.xy)), expert_ttc_astray),
                               lane_keeping(es, lanes, query), 1.0)  # NAVSIM scores the human without a past
-        return replace(bare, expert_multiplier=expert_nc * dac, human=human)
+        route = lanes.route if lanes is not None else None
+        along = route_progress(route, es.xy[0], es.xy[-1]) if route is not None and len(route) >= 2 else None
+        return replace(bare, expert_multiplier=expert_nc * dac, human=human, route_expert_m=along)
 
     @classmethod
     def of(cls, frame: Frame, drivable: DrivableQuery | None = None, *,
@@ -219,14 +224,21 @@ class PreparedFrame:
 
     def score_tracked(self, plan: np.ndarray, ps: EgoStates) -> PDMSResult:
         """The PDMS of a plan (6, 2) whose tracked states `ps` are already simulated from `initial`."""
+        return self._scored(ps)[0]
+
+    def _scored(self, ps: EgoStates) -> tuple[PDMSResult, float]:
+        """`score_tracked`'s result and the EPDMS's TTC (NAVSIM v2.2's window, `ttc_v2_window`) from one set of
+        projected contacts."""
         plan_off = off_road(ps, self.drivable, self.ego_pose, self.ego_size)
         side, ttc_side = astray(ps, plan_off, self.path, self.lanes, self.ego_size)
         nc = collision_score(ps, self.collisions(ps), side, static_categories=self.static_categories,
                              size=self.ego_size)
-        ttc = ttc_score(ps, self.projections(ps), ttc_side)
+        contacts = list(self.projections(ps))
+        ttc = ttc_score(ps, contacts, ttc_side)
+        ttc_v2 = ttc_score(ps, ttc_v2_window(contacts, len(ps.xy)), ttc_side)
         dac = 0.0 if plan_off.any() else 1.0
         return pdms_result(nc, dac, ttc, is_comfortable(ps), progress_along(self.path, ps.xy[-1]),
-                           self.expert_m, self.expert_multiplier, self.drivable is not None)
+                           self.expert_m, self.expert_multiplier, self.drivable is not None), ttc_v2
 
 
     def judged(self, plan: np.ndarray, ps: EgoStates) -> tuple[PDMSResult, ExtendedTerms]:
@@ -237,26 +249,33 @@ class PreparedFrame:
         key = np.ascontiguousarray(plan, dtype=np.float64).tobytes()
         found = self.memo.get(key)
         if found is None:
-            result = self.score_tracked(plan, ps)
-            found = (result, self.extended(ps, result))
+            result, ttc_v2 = self._scored(ps)
+            found = (result, self.extended(ps, result, ttc_v2))
             if len(self.memo) < MEMO_PLANS:
                 self.memo[key] = found
         return found
 
-    def extended(self, ps: EgoStates, result: PDMSResult) -> ExtendedTerms:
+    def extended(self, ps: EgoStates, result: PDMSResult, ttc_v2: float | None = None) -> ExtendedTerms:
         """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
         ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
-        now with ddc), history comfort; tlc where the frame's map has traffic lights (`lights`)."""
+        now with ddc), NAVSIM v2.2's TTC (`ttc_v2`, from `_scored`; None: found here), history comfort; tlc where the
+        frame's map has traffic lights (`lights`)."""
+        if ttc_v2 is None:
+            ttc_v2 = self._scored(ps)[1]
         query = lane_query(ps, self.lanes)
         ddc = driving_direction(ps, self.lanes, query)
         expert_ddc = self.human.ddc if self.human is not None else float("nan")
         plan_mult = result.nc * result.dac * (1.0 if np.isnan(ddc) else ddc)
         expert_mult = self.expert_multiplier * (1.0 if np.isnan(expert_ddc) else expert_ddc)
-        ep = ep_v2(result.progress_m, plan_mult, self.expert_m, expert_mult)
+        plan_m, expert_m = result.progress_m, self.expert_m
+        route = self.lanes.route if self.lanes is not None else None
+        if route is not None and self.route_expert_m is not None:  # NAVSIM's: along the route centreline
+            plan_m, expert_m = route_progress(route, ps.xy[0], ps.xy[-1]), self.route_expert_m
+        ep = ep_v2(plan_m, plan_mult, expert_m, expert_mult)
         lk = lane_keeping(ps, self.lanes, query)
         hc = history_comfort(ps, self.past)
         tlc = traffic_light_compliance(ps, self.red_areas, self.ego_size)
-        return ExtendedTerms(result.nc, result.dac, ddc, tlc, ep, result.ttc, lk, hc)
+        return ExtendedTerms(result.nc, result.dac, ddc, tlc, ep, ttc_v2, lk, hc)
 
 
 def tracked_experts(frames: Sequence[Frame], poses: int = HORIZON_STEPS) -> dict[str, EgoStates]:

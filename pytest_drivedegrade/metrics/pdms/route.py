@@ -112,3 +112,21 @@ def route_centreline(lane_map: LaneMap, pose: Sequence[float], logged: npt.Array
     assert best is not None
     d = best[1] - [x, y]
     return np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+
+
+def route_progress(route: np.ndarray, start: np.ndarray, end: np.ndarray) -> float:
+    """NAVSIM v2's raw progress along its centreline (`PDMScorer._calculate_progress`): the arc length of `end`'s
+    nearest point on the route (K, 2) less `start`'s (shapely's `project`: clamped to the route's ends, the first
+    nearest segment), at least 0."""
+    a, b = route[:-1], route[1:]
+    ab = b - a
+    length = np.hypot(ab[:, 0], ab[:, 1])
+    at = np.concatenate([[0.0], np.cumsum(length)])
+
+    def along(point: np.ndarray) -> float:
+        den = np.where(length > 0, length**2, 1.0)
+        t = np.clip(((point - a) * ab).sum(1) / den, 0.0, 1.0)
+        k = int(np.hypot(*(a + t[:, None] * ab - point).T).argmin())
+        return float(at[k] + t[k] * length[k])
+
+    return max(along(np.asarray(end, dtype=np.float64)) - along(np.asarray(start, dtype=np.float64)), 0.0)
