@@ -49,9 +49,10 @@ GRACE_SECONDS = 5.0
 
 
 #: Prefixes of the variables a planner's process never gets: pytest's and xdist's (``PYTEST_CURRENT_TEST`` names
-#: the running cell, ``PYTEST_XDIST_WORKER`` the worker) and the suite's own (the signing key, which a run
-#: refuses anyway, and the device, which the child sets from the run's settings).
-UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_")
+#: the running cell, ``PYTEST_XDIST_WORKER`` the worker), the signing key (which a run refuses anyway) and the
+#: device (which the child sets from the run's settings). A user's own variables pass, ``DRIVEDEGRADE_``-named
+#: ones included (a planner's log path, say): none of the suite's names the cell.
+UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_SIGNING_KEY", "DRIVEDEGRADE_DEVICE")
 
 
 def clean_environment() -> dict[str, str]:

@@ -30,10 +30,13 @@ from pytest_drivedegrade.plugin.childplanner import (
 def test_the_clean_environment_holds_no_pytest_or_suite_variable(monkeypatch):
     monkeypatch.setenv("PYTEST_CURRENT_TEST", "planner.py::fog-s5 (call)")
     monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY", "-----BEGIN PRIVATE KEY-----")
+    monkeypatch.setenv("DRIVEDEGRADE_SIGNING_KEY_FILE", "/keys/ci.key")
+    monkeypatch.setenv("DRIVEDEGRADE_DEVICE", "cuda:1")
     monkeypatch.setenv("pytest_xdist_worker", "gw0")
+    monkeypatch.setenv("DRIVEDEGRADE_EXAMPLE_LOG", "/tmp/planner.log")  # the user's own: it passes
     env = clean_environment()
-    assert not [k for k in env if k.upper().startswith(("PYTEST_", "DRIVEDEGRADE_"))]
-    assert env["PATH"] == os.environ["PATH"]
+    assert not [k for k in env if k.upper().startswith(("PYTEST_", "DRIVEDEGRADE_SIGNING", "DRIVEDEGRADE_DEVICE"))]
+    assert env["PATH"] == os.environ["PATH"] and env["DRIVEDEGRADE_EXAMPLE_LOG"] == "/tmp/planner.log"
 
 
 def _context(small_world: Path) -> FrameContext:
