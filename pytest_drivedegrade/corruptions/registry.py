@@ -16,8 +16,10 @@ from typing import Any
 #: 4.2.0: the tracker's velocity fit with NAVSIM's penalty as its code applies it; 5.0.0, the ladder unchanged: what
 #: a stated probability means (scene-cluster intervals, non-asymptotic adaptive cells and gate, closed-loop
 #: statistics over routes), EPDMS equal to NAVSIM v2.2's terms, the leaderboard's Driving Score, plan movement beside
-#: accuracy and the command cells).
-SPEC_VERSION = "5.0.0"
+#: accuracy and the command cells; 5.1.0, the ladder unchanged: EPDMS's ep along the route centreline, hc's
+#: acceleration at NAVSIM's centre and v2.2's TTC window, found by running NAVSIM's own scorer; the command label
+#: command-partial; traffic lights in the closed loop's default slice, 30 routes).
+SPEC_VERSION = "5.1.0"
 
 #: Order of SPEC section 3: the twelve core families first, then the four contamination families.
 ORDER: tuple[str, ...] = (
