@@ -60,8 +60,11 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
 
 
 def _short(route: str) -> str:
-    """A route's column label: the val scene's number, or s<number> for a scenario route."""
-    return f"s{route.split('-')[1][-3:]}" if route.startswith("scenario-") else route[-4:]
+    """A route's column label: the val scene's number, s<number> for a scenario route, L<number> for a light
+    route."""
+    if route.startswith(("scenario-", "lights-")):
+        return f"{'s' if route.startswith('scenario-') else 'L'}{route.split('-')[1][-3:]}"
+    return route[-4:]
 
 
 def _route_cell(ds: list[float | None]) -> str:

@@ -6,7 +6,8 @@ poses around where its plans end), with the EPDMS retention of each corrupted ce
                                           [--planner navsim_style|camera_cnn] [--poses 6|8]
 
 Quick by default: a two-scene world generated into a temporary folder (one val scene), 8 frames, the NAVSIM-style
-example, clean and two corrupted cells. --data the default world (or any world root) for more frames.
+example, clean and two corrupted cells. --data the default world (or any world root) for more frames. A whole
+certification in this mode is ``pytest --drivedegrade PLANNER --drivedegrade-two-stage`` (docs/explanation/navsim.md).
 """
 
 from __future__ import annotations

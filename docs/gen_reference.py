@@ -26,9 +26,10 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "What is certified": ("--drivedegrade", "--drivedegrade-data", "--drivedegrade-split", "--drivedegrade-frames",
                           "--drivedegrade-families", "--drivedegrade-severities", "--drivedegrade-seed",
                           "--drivedegrade-seeds", "--drivedegrade-metric", "--drivedegrade-flat",
-                          "--drivedegrade-ego-box"),
+                          "--drivedegrade-ego-box", "--drivedegrade-two-stage"),
     "How the planner is called": ("--drivedegrade-batch", "--drivedegrade-no-reuse", "--drivedegrade-device",
-                                  "--drivedegrade-timeout", "--drivedegrade-prefetch", "--drivedegrade-dry-run"),
+                                  "--drivedegrade-timeout", "--drivedegrade-prefetch", "--drivedegrade-dry-run",
+                                  "--drivedegrade-isolate"),
     "Reports, resuming and the CI gate": (
         "--drivedegrade-report", "--drivedegrade-report-overwrite", "--drivedegrade-no-resume",
         "--drivedegrade-baseline", "--drivedegrade-baseline-public-key", "--drivedegrade-baseline-partial",
@@ -38,7 +39,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "Closed loop": ("--drivedegrade-loop", "--drivedegrade-closed-cells", "--drivedegrade-closed-seeds",
                     "--drivedegrade-closed-hz", "--drivedegrade-closed-routes", "--drivedegrade-closed-agents",
                     "--drivedegrade-closed-steps", "--drivedegrade-closed-collisions",
-                    "--drivedegrade-closed-scenarios"),
+                    "--drivedegrade-closed-scenarios", "--drivedegrade-closed-lights"),
 }
 
 _H = {"1s": "1 s", "2s": "2 s", "3s": "3 s"}
@@ -88,9 +89,17 @@ COLUMNS: dict[str, str] = {
                          "(0: they ignore it, 1: as the privileged expert with the swapped route)",
     "command_following_ci_low": "low end of its 95 % interval (junction frames resampled)",
     "command_following_ci_high": "high end of the same interval",
-    "command_label": "command_swap row: command-following, command-insensitive or undetermined",
+    "command_label": "command_swap row: command-following, command-partial, command-insensitive or undetermined",
     "command_frames": "command_swap row: the junction frames the figure is scored on",
     "junction_frames": "command_swap row: the scored frames where another command is meaningful",
+    "epdms_stage2": "--drivedegrade-two-stage: mean stage-two EPDMS (per frame, its start poses' EPDMS weighted by "
+                    "how close each start lies to where the stage-one plan ended); empty in a one-stage run",
+    "epdms2": "--drivedegrade-two-stage: mean two-stage EPDMS (per frame, the EPDMS times the stage-two EPDMS, as "
+              "NAVSIM v2 aggregates its two stages); empty in a one-stage run",
+    "epdms2_frames": "--drivedegrade-two-stage: frames with a stage two (its keyframe holds the future to score)",
+    "epdms2_retention": "two-stage EPDMS retention M(cell) / M(clean) over the frames with a stage two in both",
+    "epdms2_retention_ci_low": "low end of its 95 % paired bootstrap interval",
+    "epdms2_retention_ci_high": "high end of the same interval",
 }
 
 

@@ -42,6 +42,10 @@ PDMS_FIELDS: tuple[str, ...] = ("nc", "dac", "ttc", "ep", "comfort", "pdms")
 #: The per-frame EPDMS arrays (spec 4.1, NAVSIM v2): its own terms (before the human filter) and the score; NaN
 #: where not scored (no lanes: ddc, lk; no traffic lights: tlc; no previous plan of the scene: ec).
 EPDMS_FIELDS: tuple[str, ...] = ("ddc", "tlc", "lk", "hc", "ec", "epdms")
+#: The two-stage arrays (--drivedegrade-two-stage, issue 39; `closedloop.twostage`): stage two's weighted EPDMS
+#: and the frame's two-stage EPDMS (stage one's times stage two's); NaN in a one-stage run, which stores neither
+#: (sparse: its record keeps its form), and where a frame has no stage two.
+TWO_STAGE_FIELDS: tuple[str, ...] = ("epdms_stage2", "epdms2")
 
 
 @dataclass(frozen=True)
@@ -84,6 +88,7 @@ FRAME_ARRAYS: tuple[FrameArray, ...] = (
     *(FrameArray(k, (), since=4) for k in EPDMS_FIELDS),
     FrameArray("collision", (HORIZON_STEPS,), flags=True), FrameArray("collision_vru", (HORIZON_STEPS,), flags=True),
     FrameArray("command_target", (HORIZON_STEPS, 2), since=7, sparse=True),
+    *(FrameArray(k, (), since=7, sparse=True) for k in TWO_STAGE_FIELDS),
 )
 #: The blackout severity whose cameras are exactly the rear three: for a planner that does not read them,
 #: that cell is the null control and is asserted bit-identical to clean too.
@@ -241,6 +246,8 @@ class CellRecord:
     #: command_swap's junction frames (record version 7): the privileged expert's path for the alternative command
     #: minus the logged future, (F, 6, 2); NaN at every other frame and in every other cell
     command_target: np.ndarray = field(default_factory=_absent)
+    epdms_stage2: np.ndarray = field(default_factory=_absent)  #: the two-stage arrays (`TWO_STAGE_FIELDS`)
+    epdms2: np.ndarray = field(default_factory=_absent)
     data_errors: list[str] = field(default_factory=list)
     reused: int = 0  #: frames whose plan is the clean cell's, reused rather than predicted (equal inputs)
     #: --drivedegrade-adaptive: the units of the draw order this cell ran (a prefix; 0: a skipped severity) and

@@ -12,7 +12,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Union
+from typing import Protocol, Union
 
 import numpy as np
 
@@ -72,6 +72,13 @@ def unread_cameras(cameras: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(c for c in CAMERAS if c not in cameras)
 
 
+class StageTwoStep(Protocol):
+    """`RunContext.stage_two`: a whole cell's record with its stage two added (`closedloop.twostage`)."""
+
+    def __call__(self, context: RunContext, planner: Planner, record: CellRecord, *, seed: int,
+                 unread: tuple[str, ...]) -> CellRecord: ...
+
+
 #: The frames ``[start, stop)`` of a run's frame list (`RunContext.frames`).
 Span = tuple[int, int]
 
@@ -104,6 +111,14 @@ class PlannerElsewhere:
 
     def prefetch(self, context: RunContext, family: str, severity: int, *, unread: tuple[str, ...], seed: int) -> None:
         """Start the cell on every frame now; a later `run_cell` with the same arguments collects it."""
+
+
+class PlannerApart:
+    """A planner called from this process but built and run in a child (`plugin.childplanner`, under
+    --drivedegrade-isolate): the suite calls it as a planner here; its fingerprint is the one the child computed
+    of the planner itself (`apart_fingerprint`)."""
+
+    apart_fingerprint: str
 
 
 #: A planner the run calls: one in this process, or one that runs elsewhere (Ray actors).
@@ -158,6 +173,11 @@ class RunContext:
     _experts: dict[int, dict[str, EgoStates]] = field(default_factory=dict)
     _truth: dict[str, FrameTruth] = field(default_factory=dict)
     _alternatives: dict[str, Alternative | None] = field(default_factory=dict)
+    #: --drivedegrade-two-stage: the step that adds stage two to a whole open-loop cell's record (the plugin sets
+    #: `closedloop.twostage.add_stage_two`: the run sits below the closed loop's renderer), and what it keeps per
+    #: process (its routes and renders)
+    stage_two: StageTwoStep | None = None
+    stage_two_cache: object = None
 
     @classmethod
     def open(cls, settings: RunSettings, *, root: Path | None = None, planner_path: Path | None = None,
@@ -203,7 +223,9 @@ class RunContext:
             return planner.info
         key = id(planner)
         if key not in self._planner:
-            self._planner[key] = PlannerInfo(planner_cameras(planner), planner_fingerprint(planner, self.planner_path))
+            fingerprint = planner.apart_fingerprint if isinstance(planner, PlannerApart) else \
+                planner_fingerprint(planner, self.planner_path)
+            self._planner[key] = PlannerInfo(planner_cameras(planner), fingerprint)
         return self._planner[key]
 
     def run_key(self, planner: AnyPlanner) -> dict[str, Builtin]:
@@ -352,8 +374,14 @@ class RunContext:
         seed = self.seed if seed is None else seed
         if isinstance(planner, PlannerElsewhere):
             return planner.run_cell(self, family, severity, unread=unread, seed=seed, span=(start, stop))
-        return stream.run_cell(self, planner, family, severity, self.frames[start:stop], unread=unread, seed=seed,
-                               clean=clean, history=self.scene_history(start), pdms=pdms)
+        record = stream.run_cell(self, planner, family, severity, self.frames[start:stop], unread=unread, seed=seed,
+                                 clean=clean, history=self.scene_history(start), pdms=pdms)
+        if self.settings.two_stage and pdms and span is None:  # the two-stage mode: every whole open-loop cell
+            if self.stage_two is None:
+                raise DriveDegradeError("--drivedegrade-two-stage: this run has no stage-two step (set "
+                                        "RunContext.stage_two to closedloop.twostage.add_stage_two)")
+            record = self.stage_two(self, planner, record, seed=seed, unread=unread)
+        return record
 
     def scene_history(self, start: int) -> list[Frame]:
         """The run's frames of frame `start`'s scene before it (none at a scene's start)."""

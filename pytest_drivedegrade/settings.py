@@ -87,13 +87,17 @@ class RunSettings:
     reuse: bool = True  #: not --drivedegrade-no-reuse: frames whose inputs equal clean take the clean plan
     device: str = "cpu"  #: where a planner that supports it runs (`planning.planner_device`)
     timeout: float = 60.0  #: seconds one predict() may take (0: no limit)
-    metric: str = "l2"  #: the retention the verdict is put on (l2, pdms or epdms)
+    metric: str = "l2"  #: the retention the verdict is put on (l2, pdms, epdms or epdms2)
     flat: float = DEFAULT_FLAT  #: retention at or above which an axis counts as flat
     ego_box: str = "nuscenes"  #: the ego box the PDMS and EPDMS score with (`metrics.pdms.constants.EGO_BOXES`)
+    #: --drivedegrade-two-stage: each cell also scored by NAVSIM v2's two-stage pseudo-simulation
+    #: (`closedloop.twostage`)
+    two_stage: bool = False
     shard: Shard | None = None  #: the part of the run's scenes this process scores (None: all of them)
     prefetch: int | None = None  #: frames decoded and corrupted ahead of the planner (None: `pacing.prefetch_depth`)
     adaptive: bool = False  #: cells stop when their anytime-valid interval settles their decisions (spec 14)
     alpha: float = 0.05  #: --drivedegrade-alpha: the adaptive run's error level (the whole certificate's)
+    isolate: bool = False  #: --drivedegrade-isolate: every planner call in a child process given only its inputs
     # The closed loop (SPEC section 13): held in the certificate's closed_loop section and the closed cells' key.
     loop: str = "open"  #: --drivedegrade-loop: open (the replayed frames), closed (the simulator), both
     closed_cells: str = "slice"  #: --drivedegrade-closed-cells: slice, all or a list of cells
@@ -104,6 +108,7 @@ class RunSettings:
     closed_agents: str = "log"  #: the other agents: log (replayed) or reactive (IDM along their paths)
     closed_collisions: str = "all"  #: which collisions the DS counts: all (the leaderboard) or at_fault (NAVSIM)
     closed_scenarios: int = 18  #: scenario routes after the val routes (`data.world.scenarios`)
+    closed_lights: int = 6  #: light routes after the scenario routes (`data.world.scenarios.light_scene`)
 
     @property
     def data_source(self) -> str:
@@ -282,6 +287,9 @@ TABLE: tuple[Setting, ...] = (
             "retentions, which the flat line only labels"),
     Setting("ego_box", "ego box", "--drivedegrade-ego-box", (("settings", "ego_box"),), _S, "another ego box "
             "scores other collisions, TTC and drivable-area verdicts", keyed=lambda s: s.ego_box != "nuscenes"),
+    Setting("two_stage", "two-stage", "--drivedegrade-two-stage", (("settings", "two_stage"),), _S, "a two-stage "
+            "run adds the stage-two EPDMS its verdict may be put on; the run key holds it, so neither run reuses the "
+            "other's stored cells", keyed=lambda s: s.two_stage),
     Setting("shard", "shard", "--drivedegrade-shard", (), _F, "each shard scores its own part of a run; a "
             "certificate is of a whole run", rerun="never", per_shard=True),
     Setting("prefetch", "prefetch", "--drivedegrade-prefetch", (), _F, "it changes when a frame is decoded, "
@@ -295,6 +303,10 @@ TABLE: tuple[Setting, ...] = (
     Setting("alpha", "alpha", "--drivedegrade-alpha", (("adaptive", "alpha"),), _F, "it sets how sure an adaptive "
             "cell is when it stops, not what it estimates; the run key holds it in an adaptive run",
             keyed=lambda s: s.adaptive),
+    Setting("isolate", "isolated planner", "--drivedegrade-isolate", (("settings", "planner_isolated"),), _F,
+            "it changes where the planner runs, never a plan (the cells are the in-process run's bit for bit); "
+            "the run key holds it, so an isolated run never reuses a cell computed beside the stream",
+            keyed=lambda s: s.isolate),
     *(Setting(name, label, flag, (("closed_loop", name),), _F, "the closed loop is certified in its own section, "
               "beside the open-loop cells the gate compares") for name, label, flag in (
         ("loop", "loop", "--drivedegrade-loop"), ("closed_cells", "closed-loop cells", "--drivedegrade-closed-cells"),
@@ -304,7 +316,8 @@ TABLE: tuple[Setting, ...] = (
         ("closed_steps", "closed-loop steps", "--drivedegrade-closed-steps"),
         ("closed_agents", "closed-loop agents", "--drivedegrade-closed-agents"),
         ("closed_collisions", "closed-loop collisions", "--drivedegrade-closed-collisions"),
-        ("closed_scenarios", "closed-loop scenario routes", "--drivedegrade-closed-scenarios"))),
+        ("closed_scenarios", "closed-loop scenario routes", "--drivedegrade-closed-scenarios"),
+        ("closed_lights", "closed-loop light routes", "--drivedegrade-closed-lights"))),
 )
 _BY_NAME = {row.name: row for row in TABLE}
 
@@ -346,7 +359,8 @@ def _decode(name: str, raw: object) -> object:
             return raw
         if isinstance(default, float):
             return float(raw)
-        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps", "closed_scenarios") or \
+        return int(raw) if name in ("frames", "prefetch", "closed_routes", "closed_steps", "closed_scenarios",
+                                   "closed_lights") or \
             isinstance(default, int) else str(raw)
     except (ValueError, DriveDegradeError) as exc:
         raise InvalidInput(f"setting {name!r}: {exc}") from None

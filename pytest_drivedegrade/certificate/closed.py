@@ -95,8 +95,8 @@ class ClosedRun:
                 **self.analysis(open_label, flat).figures(), "record_digests": digests, "missing_cells": missing}
 
 
-def closed_only_certificate(prov: Provenance, run: ClosedRun, flat: float, created: str | None = None) \
-        -> dict[str, object]:
+def closed_only_certificate(prov: Provenance, run: ClosedRun, flat: float, created: str | None = None,
+                            isolated: bool = False) -> dict[str, object]:
     """The unsealed certificate of a run that drove closed cells only (``--drivedegrade-loop closed``): no open
     cell, so its open-loop axes are empty and its open-loop verdict undetermined; the ``closed_loop`` section
     says what the closed cells do."""
@@ -108,7 +108,7 @@ def closed_only_certificate(prov: Provenance, run: ClosedRun, flat: float, creat
                     "frames_unscored": prov.frames_unscored, "frames_requested": prov.frames_requested,
                     "source": prov.data_source},
         "cells": [], "thresholds": {}, "axes": {"quality": None, "removal": None, "gap": None, "mean": None},
-        "floor": {}, "null_control": {}, "settings": {"seed": prov.seed, "flat": flat},
+        "floor": {}, "null_control": {}, "settings": {"seed": prov.seed, "flat": flat, "planner_isolated": isolated},
         "verdict": {"label": "undetermined", "flat": flat,
                     "reason": "closed loop only (--drivedegrade-loop closed): no open-loop cell ran"},
         "tool": {"name": "pytest-drivedegrade", "version": prov.tool_version, "command": prov.command,

@@ -1,7 +1,10 @@
 """`drivedegrade verify` on the certificate's ``command`` section (spec 5, issue 40): the command-following figure,
 its 95 % interval and its label recomputed from the per-frame sums the certificate stores (``sums``: each scored
 junction frame's <plan change, expert change> and |expert change|^2, kept to the certificate's six decimals, which
-is what the run computed the figure from: `scoring.command.swap_probe`), under the run's seed and resample count.
+is what the run computed the figure from: `scoring.command.swap_probe`), under the run's seed and resample count,
+resampling the scenes the section's ``scenes`` names (each sum's scene; a section without it, as spec 5.0.0's
+first certificates, resamples frames as they did). Spec 5.0.0 had no ``command-partial`` label: a 5.0.x
+certificate's "undetermined" between the lines 0.1 and 0.5 is what its rule said, and verifies.
 
 The sums themselves come from the plans, which a certificate does not carry; the cell's ``plans_digest`` and the
 record digests tie them to the stored records. A certificate without the section (spec 4 and earlier, or a run
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -33,6 +37,16 @@ def _sums(section: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray] | str:
     return np.array([float(r[0]) for r in rows]), np.array([float(r[1]) for r in rows])
 
 
+def _scenes(section: Mapping[str, object], n: int) -> list[int] | None | str:
+    rows = section.get("scenes")
+    if rows is None:
+        return None
+    if not isinstance(rows, list) or len(rows) != n or not all(isinstance(x, int) and not isinstance(x, bool)
+                                                               and x >= 0 for x in rows):
+        return f"command.scenes: not a list of {n} scene indices (one per sum), so the interval cannot be recomputed"
+    return rows
+
+
 def check_command(cert: Mapping[str, object]) -> list[str]:
     """Every figure of the ``command`` section that its stored sums do not give, as ``command.<field>:
     certificate says X, its sums give Y``; empty without the section."""
@@ -44,6 +58,9 @@ def check_command(cert: Mapping[str, object]) -> list[str]:
     got = _sums(section)
     if isinstance(got, str):
         return [got]
+    scenes = _scenes(section, len(got[0]))
+    if isinstance(scenes, str):
+        return [scenes]
     settings = cert.get("settings")
     settings = settings if isinstance(settings, Mapping) else {}
     seed, n = settings.get("seed", 0), settings.get("n_resamples", 0)
@@ -51,7 +68,9 @@ def check_command(cert: Mapping[str, object]) -> list[str]:
     if isinstance(intervals, Mapping) and intervals.get("computed") is False:
         n = 0
     want = from_sums(*got, n_resamples=int(n) if isinstance(n, int) else 0, seed=int(seed) if isinstance(seed, int)
-                     else 0)
+                     else 0, scenes=scenes)
+    if str(cert.get("spec_version", "")).startswith("5.0.") and want.label == "command-partial":
+        want = replace(want, label="undetermined")  # spec 5.0.0 had no partial label: between its lines it said so
     problems = []
     for key, value in (("following", want.value), ("low", want.low), ("high", want.high)):
         said = _number(section.get(key))

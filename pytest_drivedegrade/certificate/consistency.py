@@ -223,7 +223,8 @@ def check_verdict(cert: Mapping[str, object], cells: Sequence[Cell] = (),
     if "flat" in settings:
         _compare(problems, "settings.flat", settings.get("flat"), flat, 0.0)
     metric = v.get("metric", "l2")
-    axes = _section(cert, {"pdms": "axes_pdms", "epdms": "axes_epdms"}.get(str(metric), "axes"))
+    axes = _section(cert, {"pdms": "axes_pdms", "epdms": "axes_epdms", "epdms2": "axes_epdms2"}.get(str(metric),
+                                                                                                    "axes"))
     # the label from the certificate's own axes (checked against its cells by `check_axes`)
     label = expected_label(axes, flat, reliance)
     failed = _failed(cells)
@@ -303,6 +304,8 @@ def check_consistency(cert: Mapping[str, Any], groups: FamilyGroups | None = Non
 
     if isinstance(cert.get("axes_epdms"), Mapping) and any("epdms_retention" in c for c in cells):
         problems += check_axes(cert["axes_epdms"], cells, "epdms_retention", "axes_epdms", groups)
+    if isinstance(cert.get("axes_epdms2"), Mapping) and any("epdms2_retention" in c for c in cells):
+        problems += check_axes(cert["axes_epdms2"], cells, "epdms2_retention", "axes_epdms2", groups)
     from .command_check import check_command  # the command-following figure (spec 5), from its stored sums
 
     return problems + check_verdict(cert, cells, groups) + check_command(cert) + check_closed_loop(cert)

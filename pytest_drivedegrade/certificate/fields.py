@@ -31,9 +31,16 @@ PDMS: tuple[str, ...] = ("pdms", "nc", "dac", "ttc", "ep", "comfort", "pdms_rete
 #: PDMS's), and EPDMS retention with its paired bootstrap CI; empty where not scored (tlc: no traffic lights).
 EPDMS: tuple[str, ...] = ("epdms", "ddc", "tlc", "lk", "hc", "ec", "epdms_retention", "epdms_retention_ci_low",
                           "epdms_retention_ci_high")
+#: The two-stage pseudo-simulation (--drivedegrade-two-stage, issue 39): the cell's mean stage-two EPDMS (the
+#: weighted stage-two scenes), its mean two-stage EPDMS (stage one's times stage two's, per frame), the frames
+#: with a stage two, and two-stage EPDMS retention with its paired bootstrap CI; absent (empty in cells.csv) in a
+#: one-stage run.
+TWO_STAGE: tuple[str, ...] = ("epdms_stage2", "epdms2", "epdms2_frames", "epdms2_retention",
+                              "epdms2_retention_ci_low", "epdms2_retention_ci_high")
 #: The certificate's per-cell fields (cells.csv carries every metric; key order is irrelevant in sealed JSON).
 CERTIFICATE_CELL: tuple[str, ...] = (*STABLE, *EXTRA, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"),
-                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored", *EPDMS)
+                                     *per_horizon("collision", "stp3"), "vru_3s_stp3", *PDMS, "map_scored", *EPDMS,
+                                     *TWO_STAGE)
 
 #: What a certificate made by `drivedegrade analyse` from a per-cell table proves, as its ``provenance``
 #: section says it (``kind`` IMPORTED_KIND) and `verify`, `reproduce` and `compare` repeat it.
@@ -51,3 +58,29 @@ def imported_source(cert: object) -> str:
     """The table an imported certificate's figures came from ("" for any other certificate)."""
     prov = cert.get("provenance") if isinstance(cert, dict) else None
     return str(prov.get("table", "")) if isinstance(prov, dict) else ""
+
+
+#: Where a certificate records whether its planner ran isolated (--drivedegrade-isolate, issue 37).
+ISOLATED_KEY = "planner_isolated"
+
+
+def planner_isolated(cert: object) -> bool | None:
+    """Whether the run's planner was called only in a child process given its inputs (True), beside the stream
+    in the run's own processes (False), or None where the certificate does not say (one written before the
+    field existed, or imported)."""
+    settings = cert.get("settings") if isinstance(cert, dict) else None
+    found = settings.get(ISOLATED_KEY) if isinstance(settings, dict) else None
+    return found if isinstance(found, bool) else None
+
+
+def isolation_text(cert: object) -> str:
+    """`planner_isolated` in words, as `drivedegrade verify` and `sign` print it."""
+    isolated = planner_isolated(cert)
+    if isolated:
+        return ("planner isolated: yes (--drivedegrade-isolate: each call in a child process given only the "
+                "frame's inputs)")
+    if isolated is None:
+        return ("planner isolated: not recorded (a certificate from before the field existed: its planner ran "
+                "beside the stream, not isolated)")
+    return ("planner isolated: no (its code ran in the run's processes, where it could find which cell was "
+            "running; --drivedegrade-isolate closes that)")

@@ -146,8 +146,7 @@ def compute_digest(cert: Mapping[str, object]) -> str:
 
 #: Why an EPDMS term may go unscored, as the certificate says it (`epdms_unscored`).
 EPDMS_UNSCORED_REASONS: dict[str, str] = {
-    "tlc": "the data have no traffic lights",
-    "ddc": "the map has no lane layers", "lk": "the map has no lane layers",
+    "tlc": "the data have no traffic lights", "ddc": "the map has no lane layers", "lk": "the map has no lane layers",
     "ec": "no frame has its scene's previous keyframe in the run"}
 
 
@@ -187,6 +186,7 @@ def build_certificate(analysis: RunAnalysis, provenance: Provenance, *, created:
         "axes_pdms": analysis.axes_pdms.to_builtins(),
         **({} if analysis.axes_epdms is None else {"axes_epdms": analysis.axes_epdms.to_builtins(),
                                                    "epdms_unscored": epdms_unscored(analysis)}),
+        **analysis.two_stage_sections(),
         "floor": analysis.floor.to_builtins(),
         **({} if analysis.reliance is None else {"reliance": analysis.reliance.to_builtins()}),
         **({} if analysis.command is None else {"command": analysis.command.to_builtins()}),

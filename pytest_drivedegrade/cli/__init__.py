@@ -51,6 +51,7 @@ def _verify(args: argparse.Namespace) -> int:
     cells (naming how), 2 when unreadable, 3 when intact and consistent but incomplete."""
     from ..certificate.adaptive_check import check_adaptive
     from ..certificate.consistency import check_consistency, incompleteness
+    from ..certificate.fields import isolation_text
     from ..certificate.seal import CertificateMismatch, verify
     from ..certificate.signing import UNSIGNED_TEXT, SignatureFailure, load_public_key, verify_signature
 
@@ -100,6 +101,7 @@ def _verify(args: argparse.Namespace) -> int:
         return 3
     print(f"{args.file}: OK, digest {cert['digest']} verifies, thresholds, axes and verdict agree with its cells "
           f"({what}); {level}")
+    print(f"{args.file}: {isolation_text(cert)}")
     return 0
 
 
@@ -136,6 +138,7 @@ def _sign(args: argparse.Namespace) -> int:
     shares a process with one. Exit 0 signed, 1 when the certificate does not verify, 2 for a usage error."""
     from ..certificate.adaptive_check import check_adaptive
     from ..certificate.consistency import check_consistency
+    from ..certificate.fields import isolation_text, planner_isolated
     from ..certificate.seal import CertificateMismatch, verify
     from ..certificate.signing import ENV_VAR
     from ..report.resign import sign_file
@@ -154,6 +157,9 @@ def _sign(args: argparse.Namespace) -> int:
         for line in problems:
             print(f"  {line}", file=sys.stderr)
         return 1
+    if not planner_isolated(cert):  # signed all the same: the signature says who issued it, verify shows how
+        print(f"drivedegrade: sign: warning: {args.file}: {isolation_text(cert)}; a certificate to be published is "
+              "best made with --drivedegrade-isolate (docs/explanation/trust-model.md)", file=sys.stderr)
     fingerprint, digest, written = sign_file(args.file, key)
     print(f"signed {args.file} with the key of fingerprint {fingerprint} (digest {digest}); wrote "
           f"{', '.join(map(str, written))}")
@@ -185,6 +191,9 @@ def _merge(args: argparse.Namespace) -> int:
                                 "--allow-incomplete to write a certificate that says completeness: false")
     for line in publish(merged, Path(args.out), signing_key=key).lines:
         print(line)
+    if key is not None and not merged.settings.isolate:  # as `sign` says it
+        print("drivedegrade: merge: warning: signed a certificate whose planner was not isolated (planner isolated: "
+              "no); a certificate to be published is best made with --drivedegrade-isolate", file=sys.stderr)
     if merged.cell_files:  # an adaptive run: verify recomputes its stops from the per-frame results beside it
         import shutil
 
@@ -273,6 +282,9 @@ def _add_input_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--future", type=int, choices=(3, 4), default=3,
                    help="seconds of future every scored frame holds: 3 (nuScenes, the default) or 4 (NAVSIM's eight "
                         "poses: for a planner declaring poses = 8)")
+    p.add_argument("--junction-scenes", type=int, default=0, metavar="N",
+                   help="add N scenes turning at a junction, in a split of their own (junction), rendered: the "
+                        "frames a command label needs (--drivedegrade-split junction); default 0")
     p.set_defaults(func=_world)
 
 

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from ..data.world import models, render, texture
+from ..data.world.agents import DT
 from ..data.world.export import camera_jpeg, scene_backdrop
 from .routes import Route
 
@@ -82,6 +83,8 @@ class RouteCameras:
         parts = models.Parts(list(back.static.boxes), list(back.static.colours), dict(back.static.decals))
         near = [a for a in self.route.scene.agents if np.hypot(*(a.xy[step] - pose[:2])) < SOLID_REACH]
         render.agent_parts(parts, near, step)
+        if self.route.scene.lights:
+            models.light_parts(parts, self.route.scene.net, self.route.scene.lights, step, DT)
         return parts
 
     def one(self, cam: str, parts: models.Parts, pose: tuple[float, float, float], step: int) -> np.ndarray:

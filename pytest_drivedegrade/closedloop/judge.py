@@ -12,15 +12,17 @@ import numpy as np
 from ..constants import EGO_LENGTH, EGO_WIDTH
 from ..data.frame import AgentBoxes
 from ..data.nuscenes import coarse_category
-from ..data.world.roads import distance_to_roads, in_junction
+from ..data.world.agents import DT
+from ..data.world.lights import RED, segments_cross
+from ..data.world.roads import LANE_WIDTH, distance_to_roads, in_junction
 from ..metrics.pdms.agents import hits
 from ..metrics.pdms.motion import EgoStates
 from ..metrics.pdms.rules import Contact, at_fault
-from .leaderboard import ALLOWED_OUT_M, BLOCKED_SPEED
+from .leaderboard import ALLOWED_OUT_M, BLOCKED_SPEED, RED_LIGHT_DISTANCE_M
 from .routes import Route
 
-__all__ = ["BLOCKED_SPEED", "Pose", "collisions", "outside_m", "outside_route_lanes", "road_ahead_free",
-           "traffic_speed"]
+__all__ = ["BLOCKED_SPEED", "Pose", "collisions", "outside_m", "outside_route_lanes", "red_lights_run",
+           "road_ahead_free", "traffic_speed"]
 
 EGO_SIZE = np.array([EGO_LENGTH, EGO_WIDTH])
 #: Props (buildings, trees, poles) farther than this from the ego are not tested for contact (m).
@@ -126,3 +128,30 @@ def road_ahead_free(route: Route, pose: Pose, step: int) -> bool:
     c, s = np.cos(pose.yaw), np.sin(pose.yaw)
     fwd, side = rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
     return not bool(((fwd > 0) & (fwd < AHEAD_M) & (np.abs(side) < AHEAD_HALF_WIDTH)).any())
+
+
+def red_lights_run(route: Route, pose: Pose, step: int) -> list[int]:
+    """The lights (indices into the scene's `lights`) the ego runs at sim `step`, as RunningRedLightTest judges:
+    the light red, its stop line within RED_LIGHT_DISTANCE_M of the ego, the ego heading along the lane, and the
+    segment behind the ego's centre from 0.8 x its half length to its half length + 1 m (its tail) crossing the
+    stop line, which reaches 0.1 lane width beyond the outer lanes (CARLA: 0.6 lane width either side of each
+    lane's waypoint). The caller counts a light once."""
+    scene = route.scene
+    out = []
+    heading = np.array([np.cos(pose.yaw), np.sin(pose.yaw)])
+    half = EGO_LENGTH / 2
+    tail = np.stack([pose.xy - 0.8 * half * heading, pose.xy - (half + 1.0) * heading])
+    for j, light in enumerate(scene.lights):
+        if light.state_at(step * DT) != RED:
+            continue
+        line = light.stop_line(scene.net)
+        if float(np.hypot(*(line.mean(0) - pose.xy))) > RED_LIGHT_DISTANCE_M:
+            continue
+        _, _, lane_yaw = scene.net.route.center.at(light.s_line)
+        if float(np.cos(pose.yaw - lane_yaw)) <= 0:
+            continue
+        along = (line[1] - line[0]) / max(float(np.hypot(*(line[1] - line[0]))), 1e-9)
+        wide = np.stack([line[0] - 0.1 * LANE_WIDTH * along, line[1] + 0.1 * LANE_WIDTH * along])
+        if segments_cross(tail, wide):
+            out.append(j)
+    return out

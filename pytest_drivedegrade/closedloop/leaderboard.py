@@ -36,6 +36,8 @@ ALLOWED_OUT_M = 0.5
 DEVIATION_M, DEVIATION_SHARE = 30.0, 0.30
 #: ActorBlockedTest (min_speed 0.1 m/s, max_time 180 s as the leaderboard sets them).
 BLOCKED_SPEED, BLOCKED_S = 0.1, 180.0
+#: RunningRedLightTest.DISTANCE_LIGHT: a light farther than this (m) from the ego is not checked.
+RED_LIGHT_DISTANCE_M = 15.0
 #: MinimumSpeedRouteTest(checkpoints=4); the last checkpoint is recorded when over 95 % of the route is done.
 MIN_SPEED_CHECKPOINTS, MIN_SPEED_LAST = 4, 0.95
 

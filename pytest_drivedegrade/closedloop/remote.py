@@ -7,20 +7,21 @@ from __future__ import annotations
 from ..planning import Planner
 from ..run import RunContext
 from .cells import run_to_builtins
-from .routes import SCENARIO_ROUTES, Route, load_routes
+from .routes import LIGHT_ROUTES, SCENARIO_ROUTES, Route, load_routes
 from .simulate import PLAN_TIMEOUT_S, Corruption, Rules, Timings, run_route
 
 #: The routes of each data root this actor drives (one in practice), built on its first run.
-_ROUTES: dict[tuple[str, int], dict[str, Route]] = {}
+_ROUTES: dict[tuple[str, int, int], dict[str, Route]] = {}
 
 
 def drive_one(context: RunContext, planner: Planner, *, family: str, severity: int, route: str, seed: int,
               plan_every: int, max_steps: int | None, agents: str = "log", collisions: str = "all",
-              timeout: float = PLAN_TIMEOUT_S, scenarios: int = SCENARIO_ROUTES) -> dict[str, object]:
+              timeout: float = PLAN_TIMEOUT_S, scenarios: int = SCENARIO_ROUTES, lights: int = LIGHT_ROUTES,
+              ) -> dict[str, object]:
     """Run (route, seed) of a cell with this actor's planner: {"run": builtins, "seconds": {...}}."""
-    root = (str(context.reader.root), scenarios)
+    root = (str(context.reader.root), scenarios, lights)
     if root not in _ROUTES:
-        _ROUTES[root] = {r.name: r for r in load_routes(context.reader.root, scenarios)}
+        _ROUTES[root] = {r.name: r for r in load_routes(context.reader.root, scenarios, lights=lights)}
     timings = Timings()
     result = run_route(planner, _ROUTES[root][route], Corruption(family, severity), seed, timings,
                        plan_every=plan_every, max_steps=max_steps, agents=agents, rules=Rules(collisions, timeout))

@@ -21,12 +21,15 @@ from ..data.nuscenes import WORLD_MANIFEST
 from ..data.world.expert import KEY_EVERY
 from ..data.world.rig import Rig
 from ..data.world.roads import Path as LanePath
-from ..data.world.scenarios import scenario_scene
+from ..data.world.scenarios import light_scene, scenario_scene
 from ..data.world.scene import KEYFRAMES, Scene, make_scene
 from ..errors import DataError
 
-#: Scenario routes after the val routes: with the default world's 6 val scenes, 24 distinct routes.
+#: Scenario routes after the val routes: with the default world's 6 val scenes, 24 distinct routes (30 with the
+#: light routes).
 SCENARIO_ROUTES = 18
+#: Light routes (`data.world.scenarios.light_scene`: a traffic light whose red meets the ego) after them.
+LIGHT_ROUTES = 6
 
 
 @dataclass(frozen=True)
@@ -62,10 +65,10 @@ def route_of(scene: Scene, rig: Rig | None = None) -> Route:
 
 
 def load_routes(root: str | os.PathLike[str], scenarios: int = SCENARIO_ROUTES,
-                limit: int | None = None) -> list[Route]:
+                limit: int | None = None, lights: int = LIGHT_ROUTES) -> list[Route]:
     """The routes of a world data root: its val scenes, in split order, then its first `scenarios` scenario
-    scenes; the first `limit` of them only (None: all). A data root that is not the embedded world (no manifest)
-    has no geometry to render at a new pose: DataError."""
+    scenes, then its first `lights` light scenes; the first `limit` of them only (None: all). A data root that is
+    not the embedded world (no manifest) has no geometry to render at a new pose: DataError."""
     manifest_path = Path(root) / WORLD_MANIFEST
     if not manifest_path.is_file():
         raise DataError(f"{root}: the closed loop needs the embedded world (no {WORLD_MANIFEST}); real logs cannot "
@@ -75,9 +78,11 @@ def load_routes(root: str | os.PathLike[str], scenarios: int = SCENARIO_ROUTES,
     train, val = list(manifest["splits"]["train"]), list(manifest["splits"]["val"])
     names = train + val
     rig = Rig.nuscenes_like(full_size)
-    limit = len(val) + scenarios if limit is None else limit
+    limit = len(val) + scenarios + lights if limit is None else limit
+    n_scenarios = min(scenarios, max(limit - len(val), 0))
     return [*(route_of(make_scene(seed, names.index(name), name), rig) for name in val[:limit]),
-            *(route_of(scenario_scene(seed, i), rig) for i in range(min(scenarios, max(limit - len(val), 0))))]
+            *(route_of(scenario_scene(seed, i), rig) for i in range(n_scenarios)),
+            *(route_of(light_scene(seed, i), rig) for i in range(min(lights, max(limit - len(val) - scenarios, 0))))]
 
 
 def lane_progress(route: Route, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

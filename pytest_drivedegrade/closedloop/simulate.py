@@ -82,6 +82,7 @@ class _Run:
     trace: list[tuple[float, float, float]] = field(default_factory=list)
     infractions: list[Infraction] = field(default_factory=list)
     touched: set[int] = field(default_factory=set)
+    lights_run: set[int] = field(default_factory=set)  # the lights already counted as run (once per light)
     seen: CollisionFilter = field(default_factory=CollisionFilter)
     min_speed: MinSpeed | None = None
     world: ReactiveAgents | None = None  # the reactive agents, None when they replay their logs
@@ -160,6 +161,10 @@ def _judge_step(run: _Run, pose: judge.Pose, k: int, t: int) -> str | None:
     route = run.route
     lateral = _progress(run, pose, k, t)
     _collide(run, pose, k, t)
+    for j in judge.red_lights_run(route, pose, t):
+        if j not in run.lights_run:
+            run.lights_run.add(j)
+            run.infractions.append(Infraction("red_light", k, t, f"light {j}"))
     if run.min_speed is not None:
         failed = run.min_speed.tick(run.best, pose.speed, judge.traffic_speed(route, t))
         if failed is not None:

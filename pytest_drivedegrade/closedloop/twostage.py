@@ -10,43 +10,48 @@ and map, all seen from the start pose. The stage-two scenes are weighted by how 
 the stage-one plan ended, and stage one's EPDMS is multiplied by the weighted mean of stage two's
 (`metrics.pdms.two_stage`, NAVSIM's aggregation).
 
-Not part of a certification yet: a library function and `benchmarks/navsim_two_stage.py` (docs/explanation/
-navsim.md says what is missing).
+A cell mode (``--drivedegrade-two-stage``): `RunContext.run_cell` adds stage two to every open-loop cell it runs
+whole (`add_stage_two`: the record's ``epdms_stage2`` and ``epdms2``), through the cell's own stream (`stream`:
+the loader corrupts each rendered camera with the cell's operator under the per-frame seed rule, keyed by the
+stage-two frame's own token; the ego and command cells perturb its inputs as they do a logged frame's; every
+call checked and timed as stage one's). Each stage-two start is a scene of its own: no state, no frame_dropout
+hold and no extended comfort crosses from one start to another (a planner with ``reset()``, which would need the
+stage-one history replayed before each start, is refused by the pre-flight check).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import threading
 from collections.abc import Callable
-from dataclasses import dataclass, replace
-from types import MappingProxyType
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .. import stream
 from ..cells import CellRecord
-from ..constants import CAMERAS
-from ..corruptions.api import corrupt_sample
 from ..data import geometry as geo
 from ..data.context import FrameContext
 from ..data.frame import AgentBoxes, EgoStatus, Frame
+from ..data.junctions import Alternative
+from ..data.nuscenes import WORLD_MANIFEST
+from ..data.world.rig import Rig
+from ..data.world.scene import make_scene
+from ..errors import DataError
 from ..metrics.pdms import PreparedFrame, tracked_states
-from ..metrics.pdms.constants import EGO_BOXES
-from ..metrics.pdms.extended import epdms_score
-from ..metrics.pdms.two_stage import group_score, stage_two_weights, weighted_average
-from ..planning import Planner, call_style, planner_cameras, validate_output
+from ..metrics.pdms.two_stage import STAGE_TWO_STARTS, group_score, stage_two_weights, weighted_average
+from ..metrics.trajectory import FrameTruth
+from ..planning import Planner
+from ..settings import RunSettings
 from .camera import images_at
-from .routes import Route, load_routes
+from .routes import Route, route_of
 
 if TYPE_CHECKING:
     from ..run import RunContext
 
-#: The stage-two start poses, (forward m, left m, yaw rad) from the logged ego pose in its own frame: the logged
-#: pose, half a metre to each side, a metre ahead and behind, 5 degrees to each side. NAVSIM's come from its
-#: synthetic-scene data set (navhard_two_stage), which the suite does not have: an adaptation.
-STAGE_TWO_STARTS: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, -0.5, 0.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0),
-    (0.0, 0.0, math.radians(5.0)), (0.0, 0.0, -math.radians(5.0)))
 
 
 def start_poses(pose: tuple[float, float, float],
@@ -71,8 +76,8 @@ def _boxes(boxes: AgentBoxes, to_new: Callable[[np.ndarray], np.ndarray], turn: 
 
 def stage_two_frame(frame: Frame, pose: tuple[float, float, float], index: int) -> Frame:
     """Logged keyframe `frame` as the ego at world `pose` sees it: its future, agents and past in the frame of
-    `pose`, its velocity and acceleration turned with it (the logged state, moved); a token of its own. No
-    history comfort (no past motion of the moved ego)."""
+    `pose`, its velocity and acceleration turned with it (the logged state, moved); a token and a scene token of
+    its own (each start is a scene of one frame). No history comfort (no past motion of the moved ego)."""
     if frame.pose is None:
         raise ValueError(f"frame {frame.token} has no global pose: it cannot be moved")
     turn = float(frame.pose[2] - pose[2])
@@ -86,7 +91,9 @@ def stage_two_frame(frame: Frame, pose: tuple[float, float, float], index: int) 
     tail = to_new(frame.future_tail) if frame.future_tail is not None and len(frame.future_tail) else \
         frame.future_tail
     height = frame.ego_pose[1][2] if len(frame.ego_pose[1]) > 2 else 0.0
-    return replace(frame, token=f"{frame.token}~stage2~{index}", ego=moved, gt_future=to_new(frame.gt_future),
+    token = f"{frame.token}~stage2~{index}"
+    scene = f"{frame.scene_token}~stage2~{frame.index}~{index}"
+    return replace(frame, token=token, scene_token=scene, ego=moved, gt_future=to_new(frame.gt_future),
                    agents=tuple(_boxes(b, to_new, turn) for b in frame.agents),
                    pose=(float(pose[0]), float(pose[1]), float(pose[2])),
                    ego_pose=(geo.yaw_to_quat(pose[2]), (float(pose[0]), float(pose[1]), float(height))),
@@ -97,11 +104,16 @@ def stage_two_frame(frame: Frame, pose: tuple[float, float, float], index: int) 
 @dataclass(frozen=True)
 class StageTwo:
     """A cell's two-stage figures per frame (NaN where a frame has no stage two: its stage-two keyframe lacks
-    the future to score, or its stage-one plan failed): stage two's weighted EPDMS, and stage one's times it."""
+    the future to score, or a plan of either stage failed): stage two's weighted EPDMS, and stage one's times it;
+    the stage-two frames' failures (each message names its frame's stage-two token)."""
 
     stage_two: np.ndarray
     two_stage: np.ndarray
     starts: int
+    errors: tuple[str, ...] = ()
+    data_errors: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)  #: stage two's cost (`stream.run_cell`'s seconds)
+    calls: int = 0  #: stage-two frames the planner was given (frames with a stage two x starts)
 
     @property
     def frames(self) -> int:
@@ -109,56 +121,155 @@ class StageTwo:
         return int(np.isfinite(self.two_stage).sum())
 
 
-def _scene_images(images: dict[str, np.ndarray], shape: tuple[int, ...]) -> dict[str, np.ndarray]:
-    """Six cameras: the rendered ones, the cameras the planner does not read black (it never looks at them)."""
-    return {cam: images.get(cam, np.zeros(shape, np.uint8)) for cam in CAMERAS}
+#: Rendered stage-two images a process keeps for the next cells (every cell renders the same poses): fill once,
+#: never evict, like the decode cache; past it an image is rendered again, to the same pixels.
+RENDER_CACHE_BYTES = 512 * 2**20
 
 
-def stage_two_scores(context: RunContext, planner: Planner, later: Frame, poses: int, family: str, severity: int, *,
-                     seed: int, starts: list[tuple[float, float, float]], route: Route) -> list[float]:
-    """The planner's stage-two EPDMS from each start pose at keyframe `later` under the cell's operator."""
-    style, cameras = call_style(planner), planner_cameras(planner)
-    out = []
-    for n, pose in enumerate(starts):
-        moved = stage_two_frame(later, pose, n)
-        rendered = images_at(route, cameras, pose, later.index)
-        shape = next(iter(rendered.values())).shape if rendered else (1, 1, 3)
-        images = corrupt_sample(_scene_images(rendered, shape), family, severity, seed=seed, frame=moved.token) \
-            if family != "clean" else _scene_images(rendered, shape)
-        for image in images.values():
-            image.setflags(write=False)
-        view = MappingProxyType(images)
-        if style.takes_context:
-            raw = planner.predict(view, moved.ego, moved.command, context=FrameContext.of(moved))  # type: ignore[call-arg]
-        else:
-            raw = planner.predict(view, moved.ego, moved.command)
-        plan = validate_output(raw, moved.token, poses)
-        prepared = PreparedFrame.of(moved, context.reader.drivable_area(later), lane_map=context.reader.lane_map(later),
-                                    ego_size=EGO_BOXES[context.settings.ego_box], poses=poses)
-        _, terms = prepared.judged(plan, tracked_states(plan[None], [prepared.initial])[0])
-        out.append(epdms_score(terms.filtered(prepared.human) if prepared.human is not None else terms, math.nan))
-    return out
+def require_world(root: Path) -> None:
+    """DataError unless `root` is a world the suite can render (its manifest): the two-stage mode's data check."""
+    if not (Path(root) / WORLD_MANIFEST).is_file():
+        raise DataError(f"--drivedegrade-two-stage needs the embedded world (a data root with {WORLD_MANIFEST}), "
+                        f"and {root} is not one: stage two renders the cameras at start poses the car never drove, "
+                        "and real logs (nuScenes) hold images only where it drove. Drop --drivedegrade-data (the "
+                        "default world) or --drivedegrade-two-stage")
+
+
+@dataclass
+class StageTwoWorld:
+    """What stage two reads in one process, built once and shared by its cells: the routes (one per scene, for
+    rendering), the keyframes stage two starts at, and the rendered images (`RENDER_CACHE_BYTES`)."""
+
+    routes: dict[str, Route]
+    keyframes: dict[tuple[str, int], Frame]
+    rendered: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    rendered_bytes: int = 0
+    #: the prefetch thread and the planner's thread may both render: one at a time (the pixels are the same)
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @classmethod
+    def of(cls, context: RunContext) -> StageTwoWorld:
+        root = Path(context.reader.root)
+        require_world(root)
+        manifest = json.loads((root / WORLD_MANIFEST).read_text())
+        names = [*manifest["splits"]["train"], *manifest["splits"]["val"]]
+        rig = Rig.nuscenes_like(bool(manifest.get("full_size", False)))
+        wanted = sorted({f.scene_name for f in context.frames}, key=names.index)
+        routes = {n: route_of(make_scene(int(manifest["seed"]), names.index(n), n), rig) for n in wanted}
+        keyframes = {(f.scene_name, f.index): f for f in context.reader.scorable_frames() if f.scene_name in routes}
+        return cls(routes, keyframes)
+
+    def render(self, frame: Frame, pose: tuple[float, float, float], camera: str) -> np.ndarray:
+        """`camera` at world `pose` at keyframe `frame` of its scene (read-only; cached within the budget)."""
+        key = (frame.token, camera)
+        with self.lock:
+            found = self.rendered.get(key)
+            if found is None:
+                found = images_at(self.routes[frame.scene_name], (camera,), pose, frame.index)[camera]
+                found.setflags(write=False)
+                if self.rendered_bytes + found.nbytes <= RENDER_CACHE_BYTES:
+                    self.rendered[key], self.rendered_bytes = found, self.rendered_bytes + found.nbytes
+        return found
+
+
+def stage_two_world(context: RunContext) -> StageTwoWorld:
+    """The run's `StageTwoWorld` in this process (kept on the context: ``stage_two_cache``), built at first use."""
+    found = context.stage_two_cache
+    if not isinstance(found, StageTwoWorld):
+        found = context.stage_two_cache = StageTwoWorld.of(context)
+    return found
+
+
+def enable(context: RunContext) -> RunContext:
+    """`context` ready for the two-stage mode: its data checked (`require_world`) and its stage-two step set."""
+    require_world(Path(context.reader.root))
+    context.stage_two = add_stage_two
+    return context
+
+
+class StageTwoSource:
+    """The run as a `stream.Source` whose frames are stage-two frames: their images rendered at their start pose
+    (`StageTwoWorld.render`) instead of decoded; contexts, PDMS preparations and truths from the run's caches."""
+
+    def __init__(self, context: RunContext, world: StageTwoWorld, poses: dict[str, tuple[float, float, float]]):
+        self.context, self.world, self.poses = context, world, poses
+
+    @property
+    def settings(self) -> RunSettings:
+        return self.context.settings
+
+    def decode(self, frame: Frame, camera: str) -> np.ndarray:
+        return self.world.render(frame, self.poses[frame.token], camera)
+
+    def context_of(self, frame: Frame) -> FrameContext:
+        return self.context.context_of(frame)
+
+    def pdms_frame(self, frame: Frame, poses: int = 6) -> PreparedFrame:
+        return self.context.pdms_frame(frame, poses)
+
+    def frame_truth(self, frame: Frame) -> FrameTruth:
+        return self.context.frame_truth(frame)
+
+    def alternative_of(self, frame: Frame) -> Alternative | None:
+        return self.context.alternative_of(frame)
+
+
+def _stage_two_frames(context: RunContext, world: StageTwoWorld, record: CellRecord,
+                      offsets: tuple[tuple[float, float, float], ...]
+                      ) -> tuple[list[Frame], dict[str, tuple[float, float, float]], dict[int, np.ndarray]]:
+    """Every cell frame's stage-two frames in order, their start poses by token, and each frame's stage-one plan
+    end point (global) by frame index: only frames with a stage-two keyframe and a stage-one plan."""
+    poses = int(record.plans.shape[1])
+    moved: list[Frame] = []
+    where: dict[str, tuple[float, float, float]] = {}
+    ends: dict[int, np.ndarray] = {}
+    for i, frame in enumerate(context.frames):
+        later = world.keyframes.get((frame.scene_name, frame.index + poses))
+        plan = record.plans[i]
+        if later is None or later.pose is None or not np.isfinite(plan).all():
+            continue
+        first = context.pdms_frame(frame, poses)
+        ends[i] = frame.to_global(tracked_states(plan[None], [first.initial])[0].xy[-1])
+        for n, pose in enumerate(start_poses(later.pose, offsets)):
+            moved.append(stage_two_frame(later, pose, n))
+            where[moved[-1].token] = pose
+    return moved, where, ends
 
 
 def stage_two_cell(context: RunContext, planner: Planner, record: CellRecord, *, seed: int | None = None,
+                   unread: tuple[str, ...] = (),
                    offsets: tuple[tuple[float, float, float], ...] = STAGE_TWO_STARTS) -> StageTwo:
-    """Stage two of every frame of the cell `record` (run by `context` on `planner`): see the module."""
-    poses = int(record.plans.shape[1])
-    routes = {r.name: r for r in load_routes(context.reader.root)}
-    later_of = {(f.scene_name, f.index): f for f in context.reader.scorable_frames()}
+    """Stage two of every frame of the cell `record` (run by `context` on `planner`, on all of its frames): see
+    the module. `unread`: the cameras the null control blacks out."""
+    if record.frames != [f.token for f in context.frames]:
+        raise DataError(f"cell {record.cell!r}: stage two runs on a whole cell of the run's frames")
+    world = stage_two_world(context)
+    moved, where, ends = _stage_two_frames(context, world, record, offsets)
+    stage = stream.run_cell(StageTwoSource(context, world, where), planner, record.family, record.severity, moved,
+                            unread=unread, seed=context.seed if seed is None else seed)
     stage_two, two_stage = (np.full(len(record.frames), np.nan) for _ in range(2))
-    for i, frame in enumerate(context.frames):
-        later = later_of.get((frame.scene_name, frame.index + poses))
-        plan = record.plans[i]
-        if later is None or later.pose is None or frame.scene_name not in routes or not np.isfinite(plan).all():
-            continue
-        first = context.pdms_frame(frame, poses)
-        end = frame.to_global(tracked_states(plan[None], [first.initial])[0].xy[-1])
-        starts = start_poses(later.pose, offsets)
-        scores = stage_two_scores(context, planner, later, poses, record.family, record.severity,
-                                  seed=context.seed if seed is None else seed, starts=starts,
-                                  route=routes[frame.scene_name])
-        weights = stage_two_weights(end, [p[:2] for p in starts])
+    k = len(offsets)
+    for j, (i, end) in enumerate(ends.items()):
+        scores = stage.epdms[j * k:(j + 1) * k]
+        weights = stage_two_weights(end, [where[f.token][:2] for f in moved[j * k:(j + 1) * k]])
         stage_two[i] = weighted_average(scores, weights)
         two_stage[i] = group_score(float(record.epdms[i]), scores, weights)
-    return StageTwo(stage_two, two_stage, len(offsets))
+    return StageTwo(stage_two, two_stage, k, tuple(stage.errors), tuple(stage.data_errors), dict(stage.seconds),
+                    len(moved))
+
+
+def add_stage_two(context: RunContext, planner: Planner, record: CellRecord, *, seed: int,
+                  unread: tuple[str, ...]) -> CellRecord:
+    """`record` with its stage two (`stage_two_cell`): ``epdms_stage2`` and ``epdms2`` per frame, the stage-two
+    failures added to its own (prefixed ``stage two:``), so a planner failing there fails the cell's contract; its
+    seconds added to the cell's (the cost ledger's parts and walls include stage two; ``stage_two_calls`` counts
+    its planner calls)."""
+    two = stage_two_cell(context, planner, record, seed=seed, unread=unread)
+    seconds = {k: float(record.seconds.get(k, 0.0)) + float(two.seconds.get(k, 0.0))
+               for k in (*record.seconds, *(k for k in two.seconds if k not in record.seconds))}
+    record.seconds = {**seconds, "stage_two_calls": float(two.calls)}
+    record.epdms_stage2, record.epdms2 = two.stage_two, two.two_stage
+    record.errors = [*record.errors, *(f"stage two: {e}" for e in two.errors)]
+    record.data_errors = [*record.data_errors, *(f"stage two: {e}" for e in two.data_errors)]
+    return record
+

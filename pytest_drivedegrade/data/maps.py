@@ -272,6 +272,39 @@ class MapArea:
     is_intersection: bool = False
 
 
+@dataclass(frozen=True)
+class MapLight:
+    """A traffic light of the map's `traffic_light` layer: the polygon of its stop line (`stop_line` layer: the
+    lanes it controls past the line), its stop line (2, 2), and its state changes (timestamp us, "GREEN" /
+    "YELLOW" / "RED"), in time order (the world's extension `states`; a light without them is never red)."""
+
+    token: str
+    area: MapPolygon
+    line: np.ndarray
+    changes: tuple[tuple[int, str], ...]
+
+    def status_at(self, timestamps: npt.ArrayLike) -> np.ndarray:
+        """The status at each timestamp (us): the last change at or before it ("GREEN" before the first)."""
+        times = np.array([t for t, _ in self.changes], dtype=np.int64)
+        names = np.array(["GREEN", *(s for _, s in self.changes)])
+        return names[np.searchsorted(times, np.asarray(timestamps, dtype=np.int64), side="right")]
+
+
+def parse_lights(data: dict, polygons: dict, nodes: dict, lines: dict) -> tuple[MapLight, ...]:
+    """The map's traffic lights with their stop lines (`stop_line` records of type TRAFFIC_LIGHT)."""
+    stops = {r["token"]: r for r in data.get("stop_line", [])}
+    out = []
+    for rec in data.get("traffic_light", []):
+        stop = stops.get(rec.get("stop_line_token", ""))
+        if stop is None or not stop.get("polygon_token"):
+            continue
+        line = np.array([nodes[n] for n in lines[rec["line_token"]]["node_tokens"]], dtype=np.float64) \
+            if rec.get("line_token") in lines else np.zeros((0, 2))
+        changes = tuple(sorted((int(c["timestamp"]), str(c["status"]).upper()) for c in rec.get("states", [])))
+        out.append(MapLight(rec["token"], _polygon_of(stop["polygon_token"], polygons, nodes), line, changes))
+    return tuple(out)
+
+
 def bounding_boxes(rings: Sequence[np.ndarray]) -> np.ndarray:
     """(K, 4) each point set's bounding box (x0, y0, x1, y1) over its first two columns, global metres; an empty
     one NaN (a box no overlap test keeps)."""
@@ -290,6 +323,7 @@ class LaneMap:
     ped_crossings: tuple[MapArea, ...]
     road_segments: tuple[MapArea, ...]
     drivable: DrivableArea
+    lights: tuple[MapLight, ...] = ()  # the `traffic_light` layer (`parse_lights`)
 
     @cached_property
     def centreline_boxes(self) -> np.ndarray:
@@ -361,7 +395,7 @@ def parse_lane_map(data: dict, location: str, source: str = "") -> LaneMap:
 
         out = LaneMap(location, tuple(lanes), line_layer("road_divider"), line_layer("lane_divider"),
                       area_layer("ped_crossing"), area_layer("road_segment"),
-                      parse_drivable_area(data, location, source))
+                      parse_drivable_area(data, location, source), parse_lights(data, polygons, nodes, lines))
     except (KeyError, TypeError, ValueError) as exc:
         raise DataError(f"map expansion {source or location} is malformed ({type(exc).__name__}: {exc}); "
                         f"re-extract or regenerate the map") from exc

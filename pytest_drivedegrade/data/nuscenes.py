@@ -31,7 +31,8 @@ from .tables import REQUIRED_TABLES, confined, load_can_bus, load_manifest, load
 WORLD_MANIFEST = "drivedegrade_world.json"
 #: The `skipped` reason of keyframes that are read but not scored (fewer than six future keyframes).
 UNSCORED = "fewer than six future keyframes (not scored)"
-SPLITS = ("train", "val", "mini_train", "mini_val", "all")
+#: ``junction``: a world's junction scenes (`world.junctionscenes`), in a world built with them only.
+SPLITS = ("train", "val", "mini_train", "mini_val", "all", "junction")
 
 
 def coarse_category(name: str) -> str:
@@ -131,6 +132,9 @@ class NuScenesReader:
             return list(self.scenes)
         if self.manifest is not None and self.split in self.manifest.get("splits", {}):
             names = set(self.manifest["splits"][self.split])
+        elif self.split == "junction":
+            raise DataError(f"{self.root}: no junction split: only a world built with junction scenes has one "
+                            f"(drivedegrade world --out DIR --junction-scenes N, then --drivedegrade-data DIR)")
         else:
             names = official_split(self.split)
         return [s for s in self.scenes if s["name"] in names]

@@ -48,6 +48,7 @@ class PlannerFile:
     path: Path
     module: str | None = None
     loaded: ModuleType | None = field(default=None, compare=False)
+    option: str = "--drivedegrade-ray"  #: the option that builds it outside pytest, as its errors name it
 
     def __call__(self, context: RunContext) -> tuple[Planner, Callable[[], list[str]]]:
         from .items import import_planner_file
@@ -67,11 +68,12 @@ class PlannerFile:
                 return built[name]
             if name not in table:
                 via = " -> ".join((*chain, name))
+                who, where = _OUTSIDE[self.option]
                 raise FixtureUnavailable(
-                    f"{self.path}: fixture {chain[-1]!r} requests {name!r} ({via}), which a Ray actor cannot provide: "
-                    f"with --drivedegrade-ray the planner is built in each actor from {self.path.name} alone, so its "
+                    f"{self.path}: fixture {chain[-1]!r} requests {name!r} ({via}), which {who} cannot provide: "
+                    f"with {self.option} the planner is built {where} from {self.path.name} alone, so its "
                     f"fixtures may request only fixtures of that file and {CONTEXT_FIXTURE}; build it without "
-                    f"{name!r}, or run without --drivedegrade-ray")
+                    f"{name!r}, or run without {self.option}")
             if name in chain:
                 cycle = " -> ".join((*chain, name))
                 raise DriveDegradeError(f"{self.path}: fixture {name!r} requests itself ({cycle})")
@@ -104,6 +106,11 @@ class PlannerFile:
             return problems
 
         return planner, close
+
+
+#: What builds the planner outside pytest under each option, and where (`PlannerFile`'s errors say it).
+_OUTSIDE = {"--drivedegrade-ray": ("a Ray actor", "in each actor"),
+            "--drivedegrade-isolate": ("a child process", "in a child process of each worker")}
 
 
 def _arguments(function: Callable[..., object]) -> list[str]:

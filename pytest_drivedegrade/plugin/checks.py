@@ -43,7 +43,8 @@ def properties(record: CellRecord, resumed: bool) -> tuple[Property, ...]:
                            "data_errors": len(record.data_errors), "resumed": int(resumed)}
     row["l2_avg"] = row["l2_avg_stp3"]
     row["pdms"] = finite_mean(record.pdms)
-    return tuple((name, plain(row[name])) for name in TESTCASE)
+    two_stage = (("epdms2", plain(finite_mean(record.epdms2))),) if np.isfinite(record.epdms2).any() else ()
+    return (*((name, plain(row[name])) for name in TESTCASE), *two_stage)
 
 
 def _conformance(record: CellRecord, seed: int | None = None) -> list[str]:
@@ -172,7 +173,7 @@ def gated_retention(clean: CellRecord, record: CellRecord, metric: str) -> float
     """The cell's retention on the verdict's metric, as its certificate row holds it: L2 (`record_retention`) or
     PDMS or EPDMS (M(cell) / M(clean) over the frames scored in both, averaged over seed runs), which the gate
     compares."""
-    if metric not in ("pdms", "epdms"):
+    if metric not in ("pdms", "epdms", "epdms2"):
         return record_retention(clean, record)
     values = [paired_retention(getattr(clean, metric), getattr(run, metric), "reward") for run in record.runs()]
     return values[0] if len(values) == 1 else finite_mean(values)

@@ -58,7 +58,8 @@ class ClosedState:
     def route_list(self, context: RunContext) -> list[Route]:
         if self.routes is None:
             limit = context.settings.closed_routes
-            self.routes = load_routes(context.reader.root, context.settings.closed_scenarios, limit=limit)
+            self.routes = load_routes(context.reader.root, context.settings.closed_scenarios, limit=limit,
+                                      lights=context.settings.closed_lights)
         return self.routes
 
 
@@ -68,6 +69,7 @@ def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
     return {**context.run_key(planner), "closed_record_version": CLOSED_RECORD_VERSION,
             "closed_seeds": s.closed_seeds, "closed_hz": s.closed_hz, "closed_routes": s.closed_routes,
             "closed_steps": s.closed_steps, "closed_scenarios": s.closed_scenarios,
+            **({"closed_lights": s.closed_lights} if s.closed_lights else {}),
             **({"closed_agents": s.closed_agents} if s.closed_agents != "log" else {}),
             **({"closed_collisions": s.closed_collisions} if s.closed_collisions != "all" else {})}
 
@@ -81,7 +83,8 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
         runs = shard_runs(runs, s.shard.index, s.shard.count)
     if isinstance(planner, PlannerElsewhere):  # Ray planner actors: each run is a job of its own
         return _drive_elsewhere(planner, runs, family, severity, SIM_HZ // s.closed_hz, s.closed_steps,
-                                s.closed_agents, Rules(s.closed_collisions, s.timeout), s.closed_scenarios)
+                                s.closed_agents, Rules(s.closed_collisions, s.timeout), s.closed_scenarios,
+                                s.closed_lights)
     timings, out, threads = Timings(), [], closed_threads(s)
     with opencv_share(), ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
         for route, seed in runs:
@@ -94,7 +97,7 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
 
 def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]], family: str, severity: int,
                      plan_every: int, max_steps: int | None, agents: str = "log",
-                     rules: Rules | None = None, scenarios: int = 0) -> ClosedRecord:
+                     rules: Rules | None = None, scenarios: int = 0, lights: int = 0) -> ClosedRecord:
     """The cell's runs on Ray planner actors (`closedloop.remote.drive_one`), collected in run order."""
     from ..raypool import RayPlanner
 
@@ -104,7 +107,8 @@ def _drive_elsewhere(planner: PlannerElsewhere, runs: Sequence[tuple[str, int]],
     got = planner.jobs("pytest_drivedegrade.closedloop.remote:drive_one",
                        [{"family": family, "severity": severity, "route": route, "seed": seed,
                          "plan_every": plan_every, "max_steps": max_steps, "agents": agents,
-                         "collisions": rules.collisions, "timeout": rules.timeout, "scenarios": scenarios}
+                         "collisions": rules.collisions, "timeout": rules.timeout, "scenarios": scenarios,
+                         "lights": lights}
                         for route, seed in runs])
     seconds: dict[str, float] = {}
     out: list[RunResult] = []

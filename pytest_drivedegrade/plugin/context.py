@@ -31,8 +31,13 @@ def build_run_context(config: pytest.Config, options: RunOptions) -> RunContext:
         from ..progress import Sink
 
         root = ensure_default_world(cache_root(config), progress=Sink.for_pytest(config))
-    return RunContext.open(options.settings, root=root, planner_path=options.planner_path,
-                           digest_cache=cache_root(config) / "digests")
+    context = RunContext.open(options.settings, root=root, planner_path=options.planner_path,
+                              digest_cache=cache_root(config) / "digests")
+    if options.settings.two_stage:  # its data checked, its step set (the run sits below the closed loop)
+        from ..closedloop.twostage import enable
+
+        enable(context)
+    return context
 
 
 @pytest.fixture(scope="session")

@@ -17,17 +17,67 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
+from typing import TYPE_CHECKING, cast
 
 import pytest
 
 from ..errors import DriveDegradeError
 from ..run import RunContext
 from ..store import ResultStore
+from .childplanner import clean_environment
 from .options import RunOptions
 from .plannercheck import HEAD, Found, Probe, inspect_planner
 
+if TYPE_CHECKING:
+    from ..run import AnyPlanner
+    from .childplanner import ChildPlanner
+
 #: Seconds the child may take beyond two planner calls' limit: the interpreter, torch, the data index, the build.
 START_SECONDS = 600.0
+
+
+def start_isolated(config: pytest.Config, options: RunOptions, context: RunContext,
+                   collect_path: Path) -> ChildPlanner:
+    """--drivedegrade-isolate: the planner built in a child process of this worker (`childplanner`), and its
+    stand-in here; DriveDegradeError saying why it cannot be built."""
+    from functools import partial
+
+    from ..pacing import OPENCV_THREADS_ENV, opencv_threads
+    from .childplanner import spawn, start_child_planner
+    from .context import cache_root
+
+    assert options.planner_path is not None  # `options.parse` refuses --drivedegrade-isolate without a file
+    request = {"run": {"settings": options.settings.to_builtins(), "root": str(context.reader.root),
+                       "planner_path": str(options.planner_path),
+                       "digest_cache": str(cache_root(config) / "digests")},
+               "collect_path": str(collect_path), "module": None, "default_name": options.planner_path.stem,
+               "opencv_threads": 0 if os.environ.get(OPENCV_THREADS_ENV) else opencv_threads()}
+    return start_child_planner(partial(spawn, request), options.settings.timeout)
+
+
+def certify_isolated(request: pytest.FixtureRequest) -> None:
+    """One cell (open or closed loop) under --drivedegrade-isolate, the function its item runs: the planner is
+    this process's stand-in (`childplanner`), its child started at the first cell; a planner that cannot be
+    built there fails every cell, saying why. No process of the run builds the planner itself."""
+    from . import SESSION_KEY
+    from .items import ClosedItem
+
+    session = request.config.stash[SESSION_KEY]
+    if session.isolated is None:
+        try:
+            session.isolated = start_isolated(session.config, session.options, session.run_context(),
+                                              session.collect_path)
+        except DriveDegradeError as exc:
+            session.isolated = f"--drivedegrade-isolate: the planner could not be built in its process: {exc}"
+    if isinstance(session.isolated, str):
+        pytest.fail(session.isolated, pytrace=False)
+    session.isolated.new_cell()
+    planner = cast("AnyPlanner", session.isolated)  # called as the planner it stands in for
+    item = request.node
+    if isinstance(item, ClosedItem):
+        session.run_closed_item(item, planner)
+    else:
+        session.run_item(item, planner)
 
 
 def _request(options: RunOptions, context: RunContext, collect_path: Path, module: ModuleType | None,
@@ -55,7 +105,7 @@ def check_in_child(options: RunOptions, context: RunContext, collect_path: Path,
         req.write_text(json.dumps(_request(options, context, collect_path, module, store, cells, digests)))
         try:
             done = subprocess.run([sys.executable, "-m", __name__, str(req), str(ans)], capture_output=True,
-                                  text=True, timeout=limit, check=False)
+                                  text=True, timeout=limit, check=False, env=clean_environment())
         except subprocess.TimeoutExpired:
             raise pytest.UsageError(f"{HEAD}: the planner's check did not finish within {limit:.0f} s (building "
                                     "the planner and two clean predictions), so no cell ran") from None
@@ -91,7 +141,7 @@ def _answer(request: dict[str, object]) -> dict[str, object]:
         planner, close = PlannerFile(Path(str(request["collect_path"])), request["module"])(  # type: ignore[arg-type]
             context)
     except FixtureUnavailable as exc:  # as `plannercheck.build_planner` says it in process
-        return {"unavailable": str(exc).split(", which a Ray actor")[0]}
+        return {"unavailable": str(exc).split(", which a ")[0]}
     except DriveDegradeError as exc:
         return {"error": str(exc)}
     spec = request["store"]

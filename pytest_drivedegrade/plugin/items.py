@@ -20,12 +20,15 @@ from ..cells import cell_id
 from .compat import is_fixture, register_module_fixtures
 
 
-def planner_runs_elsewhere(config: pytest.Config, ray: object) -> bool:
+def planner_runs_elsewhere(config: pytest.Config, ray: object, isolate: bool = False) -> bool:
     """Whether this process only controls the run (issue 37, "planner code runs in the process that decides the
     exit status"): the xdist controller under ``-n N`` (N >= 1), or any non-worker process under
     ``--drivedegrade-ray``. Such a process never imports the planner file: its code runs in the workers or the
     actors, so no module-level patch, ``atexit`` handler or ``os._exit`` of it can reach the gate's decision or
-    the exit status."""
+    the exit status. Under ``--drivedegrade-isolate`` no process of the run imports it: the planner's own
+    children do (`childplanner`)."""
+    if isolate:
+        return True
     if hasattr(config, "workerinput"):
         return False
     workers = getattr(config.option, "numprocesses", None)

@@ -182,8 +182,11 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
     except DriveDegradeError as exc:
         raise _fail("drivedegrade_shard", str(exc)) from None
     metric = str(value(config, "drivedegrade_metric") or DEFAULTS.metric).strip().lower()
-    if metric not in ("l2", "pdms", "epdms"):
-        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms, epdms")
+    if metric not in ("l2", "pdms", "epdms", "epdms2"):
+        raise _fail("drivedegrade_metric", f"unknown metric {metric!r}; valid metrics: l2, pdms, epdms, epdms2")
+    two_stage = _two_stage(config)
+    if metric == "epdms2" and not two_stage:
+        raise _fail("drivedegrade_metric", "epdms2 is the two-stage EPDMS: it needs --drivedegrade-two-stage")
     ego_box = str(value(config, "drivedegrade_ego_box") or DEFAULTS.ego_box).strip().lower()
     if ego_box not in EGO_BOXES:
         raise _fail("drivedegrade_ego_box", f"unknown ego box {ego_box!r}; valid boxes: {', '.join(EGO_BOXES)}")
@@ -200,10 +203,12 @@ def _settings(config: pytest.Config, here: Path) -> RunSettings:
         metric=metric,
         flat=_number(config, "drivedegrade_flat", float, DEFAULTS.flat, 0.0, 1.0),
         ego_box=ego_box,
+        two_stage=two_stage,
         shard=shard,
         prefetch=_prefetch(config),
         adaptive=_adaptive(config),
         alpha=_number(config, "drivedegrade_alpha", float, DEFAULTS.alpha, 1e-9, 0.5),
+        isolate=_flag(config, "drivedegrade_isolate"),
     ))
 
 
@@ -237,7 +242,8 @@ def _closed(config: pytest.Config, settings: RunSettings) -> RunSettings:
                    closed_collisions=_one_of(config, "drivedegrade_closed_collisions", DEFAULTS.closed_collisions,
                                              COLLISION_RULES),
                    closed_scenarios=_number(config, "drivedegrade_closed_scenarios", int, DEFAULTS.closed_scenarios, 0,
-                                            None))
+                                            None),
+                   closed_lights=_number(config, "drivedegrade_closed_lights", int, DEFAULTS.closed_lights, 0, None))
 
 
 def _one_of(config: pytest.Config, name: str, default: str, allowed: tuple[str, ...]) -> str:
@@ -246,6 +252,22 @@ def _one_of(config: pytest.Config, name: str, default: str, allowed: tuple[str, 
     if got not in allowed:
         raise _fail(name, f"expected {' or '.join(allowed)}, got {got!r}")
     return got
+
+
+def _two_stage(config: pytest.Config) -> bool:
+    """--drivedegrade-two-stage, checked: not with what runs a cell in parts or elsewhere (the stage two of a frame
+    is run beside its stage one, in the process that ran the cell), nor with several seeds (one run per cell)."""
+    if not _flag(config, "drivedegrade_two_stage"):
+        return False
+    for dest, why in (("drivedegrade_ray", "its planner actors run the cells' frames elsewhere"),
+                      ("drivedegrade_adaptive", "an adaptive cell runs in units and stops early")):
+        if value(config, dest):
+            raise _fail("drivedegrade_two_stage", f"cannot be combined with {_BY_DEST[dest].flag}: {why}, and the "
+                        "stage two of each frame runs beside the whole cell's stage one in one process")
+    if (_number(config, "drivedegrade_seeds", int, DEFAULTS.seeds, 1, None) or 1) > 1:
+        raise _fail("drivedegrade_two_stage", "cannot be combined with --drivedegrade-seeds above 1: the two-stage "
+                    "EPDMS is scored on one run of each cell")
+    return True
 
 
 def _adaptive(config: pytest.Config) -> bool:
@@ -334,6 +356,11 @@ def parse(config: pytest.Config) -> RunOptions:
         ray=_ray(config),
         dry_run=_flag(config, "drivedegrade_dry_run"),
     )
+    if settings.isolate and (planner_path is None or options.ray is not None):
+        raise _fail("drivedegrade_isolate", "needs the planner as a file (pytest --drivedegrade PLANNER.py): a "
+                    "conftest.py is imported by pytest itself in every process" if planner_path is None else
+                    "cannot be combined with --drivedegrade-ray: the actors run each cell's stream beside the "
+                    "planner; isolate it with -n N instead")
     if settings.adaptive and settings.shard is not None:  # an adaptive shard owns whole families' cells
         from ..cells import run_order
         from ..shards import adaptive_owned

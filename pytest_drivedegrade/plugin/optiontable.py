@@ -25,7 +25,8 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-data", "drivedegrade_data", "nuScenes data root (default: the embedded world, "
                "rendered into pytest's cache on first use)", {"metavar": "DIR"}),
     OptionSpec("--drivedegrade-split", "drivedegrade_split", "split to score: val (default), train, mini_val, "
-               "mini_train, all", {"metavar": "SPLIT"}),
+               "mini_train, all, junction (a world's junction scenes: drivedegrade world --junction-scenes N)",
+               {"metavar": "SPLIT"}),
     OptionSpec("--drivedegrade-frames", "drivedegrade_frames", "score a deterministic subset of N frames: each "
                "scene's middle contiguous run, scenes sharing N by their frame counts (default: all scorable "
                "frames); a subset's intervals speak for those frames, not for the full run's", {"metavar": "N"}),
@@ -83,11 +84,17 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-ray-gpus", "drivedegrade_ray_gpus", "GPUs each planner actor asks for (default 0; "
                "fractional allowed, e.g. 0.5 puts two actors on one GPU)", {"metavar": "G"}),
     OptionSpec("--drivedegrade-metric", "drivedegrade_metric", "the retention the verdict is put on: l2 (default, "
-               "M = mean L2), pdms (the PDMS-like score) or epdms (NAVSIM v2's extended score); all are always "
-               "computed and reported",
+               "M = mean L2), pdms (the PDMS-like score), epdms (NAVSIM v2's extended score) or epdms2 (the two-stage "
+               "EPDMS, with --drivedegrade-two-stage); all are always computed and reported",
                {"metavar": "METRIC"}),
     OptionSpec("--drivedegrade-ego-box", "drivedegrade_ego_box", "the ego box the PDMS and EPDMS score with: "
                "nuscenes (default, 4.084 x 1.85 m) or pacifica (NAVSIM's, 5.176 x 2.297 m)", {"metavar": "BOX"}),
+    OptionSpec("--drivedegrade-two-stage", "drivedegrade_two_stage", "score every open-loop cell also by NAVSIM "
+               "v2's two-stage pseudo-simulation: per frame, a second stage from start poses around where the plan "
+               "ends, its cameras rendered there by the embedded world and corrupted by the cell; the cell's "
+               "two-stage EPDMS (epdms2) and its retention join the outputs (embedded world only; not with "
+               "--drivedegrade-ray, --drivedegrade-adaptive, --drivedegrade-seeds above 1 or a planner with "
+               "reset())", {"action": "store_true"}),
     OptionSpec("--drivedegrade-timeout", "drivedegrade_timeout", "seconds one predict() call may take before the "
                "frame fails (default 60; 0 = no limit)", {"metavar": "SECONDS"}),
     OptionSpec("--drivedegrade-prefetch", "drivedegrade_prefetch", "frames decoded and corrupted ahead of the "
@@ -114,8 +121,12 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "closed-loop Driving Score counts: all (default: every collision, as the CARLA leaderboard) or "
                "at_fault (NAVSIM's rule: only those the ego is at fault for)", {"metavar": "all|at_fault"}),
     OptionSpec("--drivedegrade-closed-scenarios", "drivedegrade_closed_scenarios", "scenario routes the closed "
-               "loop drives after the val routes (default 18: 24 routes on the default world; 0: val routes only)",
+               "loop drives after the val routes (default 18: with the 6 light routes, 30 routes on the default "
+               "world; 0: none)",
                {"metavar": "N"}),
+    OptionSpec("--drivedegrade-closed-lights", "drivedegrade_closed_lights", "light routes (a traffic light whose "
+               "red meets the ego) the closed loop drives after the scenario routes (default 6: 30 routes on the "
+               "default world; 0: none)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-closed-steps", "drivedegrade_closed_steps", "end each closed-loop run after N "
                "planner calls (default: at the route's end)", {"metavar": "N"}),
     OptionSpec("--drivedegrade-adaptive", "drivedegrade_adaptive", "certify at a fraction of the cost: each cell "
@@ -126,6 +137,11 @@ OPTIONS: tuple[OptionSpec, ...] = (
     OptionSpec("--drivedegrade-alpha", "drivedegrade_alpha", "the adaptive run's error level: every interval and "
                "settled decision of the certificate holds together with probability >= 1 - alpha (default 0.05)",
                {"metavar": "X"}),
+    OptionSpec("--drivedegrade-isolate", "drivedegrade_isolate", "run every planner call (build, predict, "
+               "predict_batch, reset) in a child process started with a clean environment that receives only the "
+               "frame's inputs, so planner code cannot find which cell is running from the stack, the garbage "
+               "collector or PYTEST_CURRENT_TEST; the certificate records it (settings.planner_isolated). Needs a "
+               "planner file; not with --drivedegrade-ray", {"action": "store_true"}),
     OptionSpec("--drivedegrade-dry-run", "drivedegrade_dry_run", "stop after the pre-flight check (the planner's "
                "declared needs against the data, one clean frame predicted and validated, the run's predictions "
                "counted and its wall time estimated): no cell runs", {"action": "store_true"}),

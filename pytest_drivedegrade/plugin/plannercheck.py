@@ -90,6 +90,11 @@ def declared_problems(planner: Planner, context: RunContext) -> tuple[list[str],
     except (TypeError, ValueError):
         problems.append("planner.reset must take one argument, the scene token (reset(scene_token)); "
                         f"its signature is reset{_signature(reset)}")
+    if style.resets and getattr(context.settings, "two_stage", False):
+        problems.append("--drivedegrade-two-stage cannot score a planner with reset(): its stage two starts from "
+                        "poses the car never drove, where NAVSIM gives the planner the stage-one history; the suite "
+                        "does not replay that history into a stateful planner before each start. Run it without "
+                        "--drivedegrade-two-stage")
     batch = context.settings.batch
     if batch > 1 and not callable(getattr(planner, "predict_batch", None)):
         notes.append(f"--drivedegrade-batch {batch} has no effect: the planner has no predict_batch()")
@@ -240,7 +245,7 @@ def build_planner(config: pytest.Config, options: RunOptions, context: RunContex
     try:
         return PlannerFile(collect_path, loaded=module)(context)
     except FixtureUnavailable as exc:
-        return str(exc).split(", which a Ray actor")[0]
+        return str(exc).split(", which a ")[0]
     except DriveDegradeError as exc:
         raise pytest.UsageError(f"{HEAD}: building the planner failed, so no cell ran: {exc}") from None
 
@@ -378,6 +383,7 @@ def preflight_lines(config: pytest.Config, options: RunOptions, context: RunCont
     """The pre-flight check's lines (the estimate first); pytest.UsageError on a mismatch, before any cell."""
     from ..cells import cell_id
     from ..certificate.estimate import count_predictions, estimate_line, run_wall_seconds
+    from ..metrics.pdms.two_stage import STAGE_TWO_STARTS
 
     checked = _check(config, options, context, collect_path, module, store, cells, child)
     probe, why, notes = checked.probe, checked.why, list(checked.notes)
@@ -389,7 +395,8 @@ def preflight_lines(config: pytest.Config, options: RunOptions, context: RunCont
                              len(cells) + closed) if options.settings.shard is None else ""
     notes += [replaced] if replaced else []
     processes = _processes(config, options)
-    count = replace(count_predictions(len(context.frames), [len(context.seeds_for(f)) for f, _ in todo],
+    per_frame = 1 + (len(STAGE_TWO_STARTS) if options.settings.two_stage else 0)  # stage two: a call per start
+    count = replace(count_predictions(len(context.frames) * per_frame, [len(context.seeds_for(f)) for f, _ in todo],
                                       processes=processes, closed_cells=closed), cells=len(cells))
     seconds = None if probe is None else \
         run_wall_seconds(count, probe.seconds, processes=processes, cores=os.cpu_count() or 1, load=_others())

@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from ..raypool import RayPlanner
     from ..run import AnyPlanner
     from .adaptive import AdaptiveRunner
+    from .childplanner import ChildPlanner
 
 __all__ = ["PAYLOAD_ATTR", "SESSION_KEY", "DriveDegradeSession"]
 
@@ -115,6 +116,7 @@ class DriveDegradeSession:
         self.horizon_error: str | None = None  # the planner horizon's check against the data's, likewise
         self.started = time.time()  # temporary files older than this are left by an earlier, interrupted run
         self.remote: RayPlanner | None = None  # --drivedegrade-ray: the planner actors (controller only)
+        self.isolated: ChildPlanner | str | None = None  # --drivedegrade-isolate: the stand-in, or why none
         self._device_env: str | None = None  # $DRIVEDEGRADE_DEVICE before this run set it
         self.runner: AdaptiveRunner | None = None  # --drivedegrade-adaptive: this process's adaptive cells
         self.floor: FloorAhead | None = None  # the xdist controller's floor, worked out beside the cells
@@ -126,7 +128,7 @@ class DriveDegradeSession:
     @classmethod
     def start(cls, config: pytest.Config) -> DriveDegradeSession:
         options = parse(config)
-        elsewhere = planner_runs_elsewhere(config, options.ray)
+        elsewhere = planner_runs_elsewhere(config, options.ray, options.settings.isolate)
         guarded = not elsewhere and not _is_worker(config)  # -n 0: the planner shares the status's process
         if guarded:
             exitguard.arm()
@@ -157,6 +159,8 @@ class DriveDegradeSession:
         collections pytest runs after this hook (five, for unraisable exceptions) do not walk them: 2.5 s at the
         end of the main job."""
         self._close_actors()
+        if self.isolated is not None and not isinstance(self.isolated, str):
+            self.isolated.close()
         preflight.restore_device(self._device_env)
         if self.floor is not None:
             self.floor.close()
@@ -173,9 +177,13 @@ class DriveDegradeSession:
             return None
         collector = CellCollector.from_parent(parent, path=file_path)
         call = _certify_cell_in_actors if self.options.ray else _certify_cell
+        closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
+        if self.options.settings.isolate:
+            from .isolated import certify_isolated
+
+            call = closed_call = certify_isolated
         collector.module, collector.cells, collector.call = self.planner_module, self.owned_cells(), call
-        collector.closed = self.closed
-        collector.closed_call = _certify_closed_in_actors if self.options.ray else _certify_closed
+        collector.closed, collector.closed_call = self.closed, closed_call
         return collector
 
     def owned_cells(self) -> list[tuple[str, int]]:
@@ -235,7 +243,8 @@ class DriveDegradeSession:
         from .plannercheck import preflight_lines
 
         child = None
-        if self.config.getoption("numprocesses", default=None):  # the controller runs no planner code (issue 37)
+        if self.config.getoption("numprocesses", default=None) or self.options.settings.isolate:  # no planner code
+            # runs in the controller (issue 37), nor in any process of an isolated run
             from .context import cache_root
             from .isolated import check_in_child
 

@@ -99,7 +99,8 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null:
 
 
 def publish_closed_only(report_dir: Path, prov: Provenance, run: ClosedRun, flat: float, *,
-                        signing_key: Ed25519PrivateKey | None = None) -> tuple[dict[str, object], list[str]]:
+                        signing_key: Ed25519PrivateKey | None = None, isolated: bool = False) \
+        -> tuple[dict[str, object], list[str]]:
     """A run of closed cells only: its certificate (signed when a key is given), closed_loop.csv and report.html;
     (the sealed certificate, the terminal lines)."""
     from ..certificate.closed import closed_only_certificate
@@ -107,7 +108,7 @@ def publish_closed_only(report_dir: Path, prov: Provenance, run: ClosedRun, flat
     from .closed_html import write_closed_report
 
     folder = Path(report_dir) / prov.planner_name
-    cert = closed_only_certificate(prov, run, flat)
+    cert = closed_only_certificate(prov, run, flat, isolated=isolated)
     if signing_key is not None:
         from ..certificate.signing import sign
 

@@ -7,11 +7,11 @@ cells.csv, the certificate's cells and the JUnit testcase properties all select 
 
 from __future__ import annotations
 
-from ..certificate.fields import EPDMS, EXTRA, IDENTITY, PDMS, STABLE, per_horizon
+from ..certificate.fields import EPDMS, EXTRA, IDENTITY, PDMS, STABLE, TWO_STAGE, per_horizon
 from ..metrics.trajectory import CONVENTIONS
 
 __all__ = ["COMMAND", "CSV", "EPDMS", "EXTRA", "HORIZONS", "IDENTITY", "L2_AVG", "PDMS", "PROVENANCE", "STABLE",
-           "TESTCASE", "per_horizon"]
+           "TESTCASE", "TWO_STAGE", "per_horizon"]
 
 #: Mean L2 over the three horizons in each convention (``l2_avg`` is the stp3 one).
 L2_AVG: tuple[str, ...] = tuple(f"l2_avg_{c}" for c in CONVENTIONS)
@@ -27,7 +27,8 @@ PROVENANCE: tuple[str, ...] = ("planner", "planner_fingerprint", "dataset_finger
 COMMAND: tuple[str, ...] = ("command_following", "command_following_ci_low", "command_following_ci_high",
                             "command_label", "command_frames", "junction_frames")
 #: cells.csv, in this order.
-CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *EPDMS, *PROVENANCE, *COMMAND)
+CSV: tuple[str, ...] = (*STABLE, *L2_AVG, *HORIZONS, *EXTRA, *PDMS, "map_scored", *EPDMS, *PROVENANCE, *COMMAND,
+                        *TWO_STAGE)
 #: JUnit testcase properties of a cell item, known as soon as the cell ran (no retention yet: clean may run on
 #: another worker).
 TESTCASE: tuple[str, ...] = (*IDENTITY, "failed_frames", "data_errors", "l2_avg", *per_horizon("l2", "stp3"),

@@ -182,7 +182,27 @@ def pdms_ego_context(analysis: RunAnalysis, n: int = 5) -> dict[str, object]:
             "verdict_metric": analysis.verdict.metric,
             "map_scored": mapped is not None and math.isfinite(mapped) and mapped > 0,
             "damaging_pdms": [sub(s) for s in most_damaging(analysis.summaries, n)],
-            "clean_pdms": sub(clean) if clean is not None else None}
+            "clean_pdms": sub(clean) if clean is not None else None, "two_stage": two_stage_context(analysis)}
+
+
+def two_stage_context(analysis: RunAnalysis) -> dict[str, object] | None:
+    """The two-stage section (--drivedegrade-two-stage): the axes on two-stage and one-stage EPDMS retention, and
+    per cell its one-stage, stage-two and two-stage EPDMS with both retentions; None in a one-stage run."""
+    ax2, ax = analysis.axes_epdms2, analysis.axes_epdms
+    if ax2 is None:
+        return None
+    from ..closedloop.twostage import STAGE_TWO_STARTS
+
+    def row(s: CellSummary) -> dict[str, object]:
+        m = s.metrics
+        return {"cell": s.cell, "frames": m.get("epdms2_frames", "—"), "epdms": _fmt(m.get("epdms")),
+                "stage2": _fmt(m.get("epdms_stage2")), "epdms2": _fmt(m.get("epdms2")),
+                "retention": _fmt(m.get("epdms_retention")), "retention2": _fmt(m.get("epdms2_retention")),
+                "ci2": f"{_fmt(m.get('epdms2_retention_ci_low'))} – {_fmt(m.get('epdms2_retention_ci_high'))}"}
+
+    return {"starts": len(STAGE_TWO_STARTS), "cells": [row(s) for s in analysis.summaries],
+            "axes": [{"k": k, "epdms2": _fmt(ax2.value(k)), "epdms": _fmt(ax.value(k) if ax is not None else None)}
+                     for k in AXES]}
 
 
 def render_report(analysis: RunAnalysis, provenance: Provenance, *, montage: np.ndarray | None = None,

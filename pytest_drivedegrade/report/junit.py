@@ -16,12 +16,12 @@ import numpy as np
 from ..certificate.seal import epdms_unscored
 from ..scoring.records import AXES, BESIDE_AXES, EGO_AXES, CellSummary, RunAnalysis
 from ..scoring.reliance import RELIANCE_INPUTS
-from .columns import EPDMS, PDMS, STABLE, per_horizon
+from .columns import EPDMS, PDMS, STABLE, TWO_STAGE, per_horizon
 
 #: Testcase properties of a finished summary, in the order they appear in the XML.
 CELL_PROPERTIES = (*STABLE, *per_horizon("l2", "stp3"), *per_horizon("l2", "uniad"), "collision_3s_stp3",
                    "vru_3s_stp3", "jerk", "endpoint_shift", "energy", "separable_from_null", "conformance_errors",
-                   "data_errors", *PDMS, *EPDMS)
+                   "data_errors", *PDMS, *EPDMS, *TWO_STAGE)
 
 SUITE_PREFIX = "drivedegrade_"
 
@@ -55,6 +55,8 @@ def suite_properties(analysis: RunAnalysis) -> list[tuple[str, str | float | int
     if analysis.axes_epdms is not None:  # and each EPDMS term the run did not score, with the reason
         out += [(f"axis_epdms_{k}", analysis.axes_epdms.value(k)) for k in AXES]
         out += [(f"epdms_unscored_{k}", why) for k, why in epdms_unscored(analysis).items()]
+    if analysis.axes_epdms2 is not None:  # --drivedegrade-two-stage: the axes on two-stage EPDMS retention
+        out += [(f"axis_epdms2_{k}", analysis.axes_epdms2.value(k)) for k in AXES]
     out += [("verdict", verdict.label), ("verdict_flat", verdict.flat), ("verdict_negative_gap", verdict.negative_gap),
             ("verdict_text", verdict.text), ("verdict_confidence", verdict.confidence),
             ("verdict_ego_label", verdict.ego_label), ("verdict_metric", verdict.metric),

@@ -43,6 +43,9 @@ def analyse(run: FinishedRun) -> RunAnalysis:
                            scenes=run.scenes)
     analysis.settings.update(batch=settings.batch, reuse=settings.reuse, device=settings.device)
     analysis.settings["ego_box"] = settings.ego_box  # the box the PDMS and EPDMS scored with (issue 39)
+    analysis.settings["planner_isolated"] = settings.isolate  # --drivedegrade-isolate (issue 37)
+    if settings.two_stage:  # only then: a one-stage certificate keeps its form (absent reads as false)
+        analysis.settings["two_stage"] = True
     # the horizon the PDMS and EPDMS scored: 3 s (six poses), or 4 s for a planner declaring NAVSIM's eight; L2
     # is always the first six poses' (nuScenes' 3 s convention)
     poses = max((r.plans.shape[1] for r in run.records.values()), default=HORIZON_STEPS)
@@ -81,8 +84,9 @@ def cost_line(cost: Mapping[str, Any]) -> str:
     """The cost ledger in one line of the terminal summary."""
     sec = cost["seconds"]
     fps = cost.get("planner_frames_per_second")
-    return (f"cost: {cost['predictions']} predictions, {cost['reused']} frames reused the clean plan; seconds in "
-            f"cells: planner "
+    staged = f" and {cost['stage_two_calls']} stage-two calls" if cost.get("stage_two_calls") else ""
+    return (f"cost: {cost['predictions']} predictions{staged}, {cost['reused']} frames reused the clean plan; "
+            f"seconds in cells: planner "
             f"{sec['planner']:.1f}" + (f" ({fps:.1f} frames/s)" if fps else "") + f", decode {sec['decode']:.1f}, "
             f"inject {sec['inject']:.1f}, scoring {sec['metrics'] + sec['pdms']:.1f}, input check {sec['check']:.1f}"
             + _busy(cost))
@@ -129,5 +133,5 @@ def publish_closed(run: FinishedRun, report_dir: Path, signing_key: Ed25519Priva
 
     assert run.closed is not None
     cert, lines = publish_closed_only(report_dir, run.provenance, run.closed, run.settings.flat,
-                                      signing_key=signing_key)
+                                      signing_key=signing_key, isolated=run.settings.isolate)
     return Published(cert, None, [*lines, *run.notes])

@@ -85,6 +85,8 @@ def pdms_ego_lines(analysis: RunAnalysis) -> list[str]:
     lines = [f"axes (PDMS): {_axes_line(analysis.axes_pdms)}"]
     if analysis.axes_epdms is not None:
         lines.append(f"axes (EPDMS): {_axes_line(analysis.axes_epdms)}")
+    if analysis.axes_epdms2 is not None:
+        lines.append(f"axes (two-stage EPDMS): {_axes_line(analysis.axes_epdms2)}")
     if ax.ego is not None or ax.ego_removal is not None:
         lines.append(f"ego: ego_noise S5 {format_value(ax.ego)}  ego_blind "
                      f"{format_value(ax.ego_removal)} -> {analysis.verdict.ego_label}")

@@ -81,30 +81,41 @@ def analyse_run(records: Iterable[CellRecord | Mapping[str, Any]], *, groups: Fa
     partial_families = {by_cell[c].family for c in partial}
     per = axis_resamples(summaries, res, groups)
     ax = replace(run_axes(summaries, groups), intervals=iv.axis_intervals(per), partial=partial)
-    ax_pdms = replace(run_axes(summaries, groups, "pdms"), partial=partial)
-    ax_epdms = replace(run_axes(summaries, groups, "epdms"), partial=partial)
+    ax_pdms, ax_epdms, ax_epdms2 = score_axes(summaries, groups, partial)
     moved = run_movement(summaries, nc.max_l2_change if nc is not None else None, groups.quality, groups.removal)
-    v = run_verdict({"pdms": ax_pdms, "epdms": ax_epdms}.get(metric, ax), per, metric=metric, flat=flat,
-                    basis=basis, reliance=moved)
+    on = {"pdms": ax_pdms, "epdms": ax_epdms, "epdms2": ax_epdms2}.get(metric) or ax
+    v = run_verdict(on, per, metric=metric, flat=flat, basis=basis, reliance=moved)
     memo = blind_equals_clean(clean, by_cell.get("blind"), floor_frames, convention=convention, seed=seed,
                               n_resamples=n_resamples if intervals else 0)
     v = undetermined_by_memo(undetermined_by_null_control(undetermined_by_failures(v, failed), nc), memo)
-    probe = command_probe(by_cell, seed=seed, n_resamples=n_resamples if intervals else 0)
+    probe = command_probe(by_cell, seed=seed, n_resamples=n_resamples if intervals else 0, scenes=frame_scenes)
     v = v if probe is None else replace(v, text=f"{v.text} {probe.following.text()}")
     return RunAnalysis(summaries, run_thresholds(summaries, res, partial_families), ax, v, nc,
                        floor_comparison(floor_l2, summaries, groups.removal, floor_ego_removal),
                        analysis_settings(convention=convention, kind=kind, flat=flat, seed=seed, seeds=seeds,
                                          n_resamples=n_resamples, metric=metric, res=res, basis=basis),
-                       axes_pdms=ax_pdms, axes_epdms=ax_epdms, reliance=moved, command=probe)
+                       axes_pdms=ax_pdms, axes_epdms=ax_epdms, axes_epdms2=ax_epdms2, reliance=moved, command=probe)
 
 
-def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int) -> CommandProbe | None:
-    """The command_swap cell's following figure against clean (`scoring.command.swap_probe`); None when the cell
-    did not run. Frames away from junctions are not scored."""
+def score_axes(summaries: list[CellSummary], groups: FamilyGroups, partial: tuple[str, ...]
+               ) -> tuple[Axes, Axes, Axes | None]:
+    """The axes on PDMS, EPDMS and two-stage EPDMS retention (None: not a two-stage run), flagged `partial`."""
+    two_stage = any("epdms2_retention" in s.metrics for s in summaries)  # --drivedegrade-two-stage
+    ax_pdms, ax_epdms, *rest = (replace(run_axes(summaries, groups, m), partial=partial)
+                                for m in ("pdms", "epdms", *(("epdms2",) if two_stage else ())))
+    return ax_pdms, ax_epdms, rest[0] if rest else None
+
+
+def command_probe(by_cell: Mapping[str, CellRecord], *, seed: int, n_resamples: int,
+                  scenes: Sequence[str] | None = None) -> CommandProbe | None:
+    """The command_swap cell's following figure against clean (`scoring.command.swap_probe`; its interval a
+    scene-cluster bootstrap with `scenes`, each clean frame's scene); None when the cell did not run. Frames away
+    from junctions are not scored."""
     swap = by_cell.get(COMMAND_SWAP)
     if swap is None:
         return None
-    return swap_probe(by_cell["clean"].plans, swap.plans, swap.command_target, n_resamples=n_resamples, seed=seed)
+    return swap_probe(by_cell["clean"].plans, swap.plans, swap.command_target, n_resamples=n_resamples, seed=seed,
+                      scenes=scenes)
 
 
 def cells_by_id(records: Iterable[CellRecord | Mapping[str, Any]]) -> dict[str, CellRecord]:
@@ -198,7 +209,8 @@ def run_verdict(on: Axes, per: iv.AxisResamples, *, metric: str, flat: float,
     cannot support one (too few scenes: `Basis.confidence_reason`, said in the text)."""
     by_axes = verdict(on, flat)
     v = read_movement(by_axes, on, reliance)
-    text = {"pdms": "On PDMS retention: ", "epdms": "On EPDMS retention: "}.get(metric, "") + v.text
+    text = {"pdms": "On PDMS retention: ", "epdms": "On EPDMS retention: ",
+            "epdms2": "On two-stage EPDMS retention: "}.get(metric, "") + v.text
     confidence = iv.verdict_confidence(by_axes.label, per.quality, per.removal, flat) \
         if per.quality is not None and metric == "l2" else None
     withheld = None if basis is None or confidence is None else basis.confidence_reason

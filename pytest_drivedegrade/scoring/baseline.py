@@ -36,7 +36,8 @@ class Regression:
         """``name: retention X vs baseline Y (drop D)`` with as many decimals (3 at least) as it takes for the
         printed drop to exceed the printed tolerance: 1.0000 vs 0.9996 reads ``drop 0.0004``, never 0.000."""
         d = shown_digits(self.drop, self.tolerance)
-        what = {"pdms": "PDMS retention", "epdms": "EPDMS retention"}.get(self.metric, "retention")
+        what = {"pdms": "PDMS retention", "epdms": "EPDMS retention",
+                "epdms2": "two-stage EPDMS retention"}.get(self.metric, "retention")
         return f"{self.name}: {what} {self.current:.{d}f} vs baseline {self.baseline:.{d}f} (drop {self.drop:.{d}f})"
 
 
@@ -50,7 +51,7 @@ def shown_digits(drop: float, tolerance: float, least: int = 3, most: int = 12) 
 
 #: Each verdict metric's (per-cell retention field, axes section) in a certificate.
 METRIC_FIELDS = {"l2": ("retention", "axes"), "pdms": ("pdms_retention", "axes_pdms"),
-                 "epdms": ("epdms_retention", "axes_epdms")}
+                 "epdms": ("epdms_retention", "axes_epdms"), "epdms2": ("epdms2_retention", "axes_epdms2")}
 
 
 def gate_metric(cert: Mapping[str, object]) -> str:

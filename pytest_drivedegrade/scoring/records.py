@@ -311,6 +311,7 @@ class RunAnalysis:
     settings: dict[str, Any]
     axes_pdms: Axes  #: the axes on PDMS retention (spec 3)
     axes_epdms: Axes | None = None  #: the axes on EPDMS retention (spec 4.1)
+    axes_epdms2: Axes | None = None  #: the axes on two-stage EPDMS retention (--drivedegrade-two-stage)
     reliance: Reliance | None = None  #: each input's plan movement (spec 5, issue 40)
     command: CommandProbe | None = None  #: the command_swap cell's following figure (spec 5, issue 40)
 
@@ -322,8 +323,18 @@ class RunAnalysis:
                 "floor": self.floor.to_builtins(), "settings": deepcopy(self.settings),
                 "axes_pdms": self.axes_pdms.to_builtins(),
                 **({} if self.axes_epdms is None else {"axes_epdms": self.axes_epdms.to_builtins()}),
+                **({} if self.axes_epdms2 is None else {"axes_epdms2": self.axes_epdms2.to_builtins()}),
                 **({} if self.reliance is None else {"reliance": self.reliance.to_builtins()}),
                 **({} if self.command is None else {"command": self.command.to_builtins()})}
+
+    def two_stage_sections(self) -> Builtins:
+        """The certificate's two-stage sections (--drivedegrade-two-stage): ``axes_epdms2`` and ``two_stage`` (how
+        stage two was scored: `metrics.pdms.two_stage.certificate_section`); none in a one-stage run."""
+        from ..metrics.pdms.two_stage import certificate_section
+
+        if self.axes_epdms2 is None:
+            return {}
+        return {"axes_epdms2": self.axes_epdms2.to_builtins(), "two_stage": certificate_section()}
 
     def s5(self) -> dict[str, float]:
         """S5 retention per ladder family."""
@@ -350,7 +361,9 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     totals = dict.fromkeys(COST_PARTS, 0.0)
     walls: dict[str, list[float]] = {}
     predictions = reused = 0
+    records_seen: list[CellRecord] = []
     for record in records:
+        records_seen.append(record)
         runs = [record, *getattr(record, "seed_runs", [])]
         saved = sum(int(getattr(r, "reused", 0)) for r in runs)
         made = sum(len(r.frames) if getattr(r, "passes", None) is None else r.passes for r in runs) - saved
@@ -366,8 +379,11 @@ def cost_ledger(records: Iterable[CellRecord]) -> dict[str, Any]:
     processes = sorted(({"wall": w, "planner_busy": _share(p, w)} for w, p in walls.values()),
                        key=lambda p: -float(p["wall"] or 0.0))
     wall = sum(w for w, _ in walls.values())
+    # --drivedegrade-two-stage: the stage-two calls, in the planner's seconds (a one-stage ledger keeps its form)
+    staged = int(sum(float(r.seconds.get("stage_two_calls", 0.0)) for r in records_seen))
     return {"predictions": predictions, "reused": reused, "seconds": totals, "cells": per_cell,
-            "planner_frames_per_second": predictions / totals["planner"] if totals["planner"] > 0 else None,
+            **({"stage_two_calls": staged} if staged else {}),
+            "planner_frames_per_second": (predictions + staged) / totals["planner"] if totals["planner"] > 0 else None,
             "wall": wall if walls else None, "planner_busy": _share(sum(p for _, p in walls.values()), wall),
             "processes": processes}
 

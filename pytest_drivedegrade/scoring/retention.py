@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ..cells import EPDMS_FIELDS, PDMS_FIELDS, CellRecord, is_camera_ladder
+from ..cells import EPDMS_FIELDS, PDMS_FIELDS, TWO_STAGE_FIELDS, CellRecord, is_camera_ladder
 from ..errors import InvalidInput
 from .clusters import cluster_counts, percentile_interval, scene_clusters
 from .records import CellSummary, finite_mean, horizon_metrics
@@ -152,10 +152,16 @@ def pdms_metrics(record: CellRecord, clean: CellRecord, *, n_resamples: int = DE
     """A cell's mean PDMS-like score and sub-scores (spec 3), the share of frames scored with a map
     (``map_scored``), and PDMS retention M(cell) / M(clean) (a reward) with its paired bootstrap CI
     (``pdms_retention``, ``pdms_retention_ci_low``, ``pdms_retention_ci_high``); the same for the EPDMS (spec
-    4.1: its terms' means, ``epdms_retention`` and its CI); NaN where not scored."""
+    4.1: its terms' means, ``epdms_retention`` and its CI); in a two-stage run also the stage-two and two-stage
+    EPDMS means (``epdms_stage2``, ``epdms2``), the frames with a stage two and ``epdms2_retention`` with its CI
+    (absent from a one-stage run's); NaN where not scored."""
     out = {k: finite_mean(getattr(record, k)) for k in (*PDMS_FIELDS, *EPDMS_FIELDS)}
     out["map_scored"] = finite_mean(record.map_scored)
-    for name in ("pdms", "epdms"):
+    two_stage = np.isfinite(clean.epdms2).any() or np.isfinite(record.epdms2).any()
+    if two_stage:  # --drivedegrade-two-stage: the stage-two and two-stage EPDMS, on the frames that have them
+        out.update({k: finite_mean(getattr(record, k)) for k in TWO_STAGE_FIELDS})
+        out["epdms2_frames"] = int(np.isfinite(record.epdms2).sum())
+    for name in ("pdms", "epdms", *(("epdms2",) if two_stage else ())):
         mine, theirs = getattr(record, name), getattr(clean, name)
         if record.cell == clean.cell:
             r, ci = (1.0, (1.0, 1.0)) if np.isfinite(theirs).any() else (math.nan, (math.nan, math.nan))

@@ -119,15 +119,18 @@ def negative_gap(gap: float | None, interval: tuple[float | None, float | None] 
     return high is None or round(high, 6) < 0
 
 
-#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default), PDMS or EPDMS retention.
-VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms", "epdms")
+#: The figures the verdict can be put on (--drivedegrade-metric): L2 retention (default), PDMS or EPDMS retention,
+#: or the two-stage EPDMS retention (epdms2, --drivedegrade-two-stage).
+VERDICT_METRICS: tuple[str, ...] = ("l2", "pdms", "epdms", "epdms2")
+#: The score whose retention each metric but L2 is, by metric (a reward: M(cell) / M(clean)).
+SCORE_METRICS: tuple[str, ...] = ("pdms", "epdms", "epdms2")
 EGO_LABELS: tuple[str, ...] = ("ego-reliant", "ego-insensitive", "undetermined")
 
 
 def retention_of(summary: CellSummary, metric: str = "l2") -> float:
     """A summary's retention on `metric`: L2 (``retention``), PDMS or EPDMS (``pdms_retention``,
     ``epdms_retention``; NaN when unscored)."""
-    if metric in ("pdms", "epdms"):
+    if metric in SCORE_METRICS:
         return float(summary.metrics.get(f"{metric}_retention", math.nan))
     return summary.retention
 

@@ -54,7 +54,7 @@ def planner():
 
 CLOSED = ("--drivedegrade-loop", "closed", "--drivedegrade-closed-cells", "clean,blackout-s5,blackout-s3",
           "--drivedegrade-closed-steps", "4", "--drivedegrade-split", "all", "-p", "no:randomly",
-          "--drivedegrade-closed-scenarios", "0")
+          "--drivedegrade-closed-scenarios", "0", "--drivedegrade-closed-lights", "0")
 
 
 def write(dd, back=False, raise_dark=False):
@@ -164,6 +164,7 @@ def test_both_loops_put_the_closed_section_beside_the_open_cells_with_their_agre
     result = dd.run("--drivedegrade-loop", "both", "--drivedegrade-closed-cells", "clean,blackout-s5",
                     "--drivedegrade-closed-steps", "4", "--drivedegrade-closed-seeds", "1", "-p", "no:randomly",
                     "-p", "no:xdist", "--junitxml=j.xml", "--drivedegrade-closed-scenarios", "0",
+                    "--drivedegrade-closed-lights", "0",
                     planner="driver.py", families="blackout", severities="5")
     assert result.ret == 0 and result.parseoutcomes()["passed"] >= 6  # the open cells and the two closed ones
     folder = dd.folder("driver")
@@ -186,7 +187,7 @@ def test_both_loops_in_two_shards_merged_give_the_unsharded_csvs(dd, eleven_scen
     unsharded run's byte for byte."""
     write(dd)
     both = ("--drivedegrade-loop", "both", *CLOSED[2:6], "--drivedegrade-closed-seeds", "1", "-p", "no:randomly",
-            "-p", "no:xdist", "--drivedegrade-closed-scenarios", "0")
+            "-p", "no:xdist", "--drivedegrade-closed-scenarios", "0", "--drivedegrade-closed-lights", "0")
     kw = {"planner": "driver.py", "families": "blackout", "severities": "5", "data": eleven_scene_world}
     assert dd.run(*both, report="full", **kw).ret == 0
     for i in (1, 2):

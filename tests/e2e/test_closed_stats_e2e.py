@@ -53,14 +53,15 @@ def six_route_world(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from pytest_drivedegrade.data.world import write_world
 
     root = write_world(tmp_path_factory.mktemp("w36"), scenes=34, seed=5)
-    assert len(load_routes(root, scenarios=0)) == 4  # 4 val scenes: 4 routes (no scenario routes)
+    assert len(load_routes(root, scenarios=0, lights=0)) == 4  # 4 val scenes: 4 routes (no scenario routes)
     return root
 
 
 def test_a_planner_with_unseeded_noise_has_every_closed_cell_not_separable(dd, six_route_world: Path) -> None:
     dd.pytester.makepyfile(noisy=NOISY)
     result = dd.run("--drivedegrade-loop", "closed", "--drivedegrade-closed-steps", "4", "-p", "no:randomly",
-                    "-p", "no:xdist", "--drivedegrade-closed-scenarios", "0", planner="noisy.py",
+                    "-p", "no:xdist", "--drivedegrade-closed-scenarios", "0", "--drivedegrade-closed-lights", "0",
+                    planner="noisy.py",
                     data=six_route_world)
     assert result.ret == 0, result.stdout.str()
     cert = load_json(dd.folder("noisy") / "certificate.json")

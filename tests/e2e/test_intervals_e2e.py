@@ -28,7 +28,7 @@ VOLATILE_COLUMNS = ("planner_fingerprint", "dataset_fingerprint")
 NEW_THRESHOLD_KEYS = ("s10_ci", "s25_ci", "s10_never", "s25_never")
 NEW_AXIS_KEYS = ("quality_ci", "removal_ci", "gap_ci", "mean_ci")
 NEW_VERDICT_KEYS = ("confidence", "borderline")
-NEW_SETTINGS_KEYS = ("seeds", "seed_values", "intervals")
+NEW_SETTINGS_KEYS = ("seeds", "seed_values", "intervals", "planner_isolated")  # the last: issue 37's isolation
 #: Fields the Trust issue adds (partial results, data faults), with their values in a run without failures.
 TRUST_FIELDS = {"data_errors": 0, "partial": [], "reason": None, "failed_cells": {}, "frames_compared": 4}
 

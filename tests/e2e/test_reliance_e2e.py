@@ -115,13 +115,14 @@ def planner(request):
 '''
 
 
-@pytest.mark.parametrize("follows, label, value", [(False, "command-insensitive", 0.0),
-                                                   (True, "command-following", 1.0)])
-def test_hidden_behaviour_planners_get_their_command_label_on_real_junction_frames(dd, two_scene_world, follows,
-                                                                                     label, value) -> None:
-    """The 11-scene world (seed 1) has 4 val frames where another command is meaningful: a planner that ignores
-    the command scores 0 with the interval [0, 0], one that plans the expert's path when told the other command
-    scores 1 with [1, 1]: each interval excludes the other label, and verify recomputes both."""
+@pytest.mark.parametrize("follows, value", [(False, 0.0), (True, 1.0)])
+def test_hidden_behaviour_planners_get_their_command_figure_on_real_junction_frames(dd, two_scene_world, follows,
+                                                                                    value) -> None:
+    """The 11-scene world (seed 1) has 4 val frames where another command is meaningful, all at one junction: a
+    planner that ignores the command scores 0 with the frame interval [0, 0], one that plans the expert's path when
+    told the other command scores 1 with [1, 1], and neither is labelled (one junction cannot label a planner;
+    the junction split below does); verify recomputes both."""
+    label = "undetermined"
     dd.pytester.makepyfile(cmdplanner=COMMAND_PLANNER.format(follows=follows))
     args = [a if a != "4" else "68" for a in dd.args(planner="cmdplanner.py", families="command_swap",
                                                        severities="5", data=two_scene_world)]
@@ -133,3 +134,29 @@ def test_hidden_behaviour_planners_get_their_command_label_on_real_junction_fram
     assert (got["label"], got["following"], got["low"], got["high"]) == (label, value, value, value)
     assert got["frames"] == got["junction_frames"] == 4 and len(got["sums"]) == 4
     assert check_consistency(cert) == []
+
+
+@pytest.fixture(scope="module")
+def junction_world(tmp_path_factory):
+    """One train and one val scene, and the world's first two junction scenes (rendered)."""
+    from pytest_drivedegrade.data.world import write_world
+
+    return write_world(tmp_path_factory.mktemp("junctionworld"), scenes=2, junction_scenes=2)
+
+
+@pytest.mark.parametrize("follows, label, value", [(False, "command-insensitive", 0.0),
+                                                   (True, "command-following", 1.0)])
+def test_on_the_junction_split_the_labels_rest_on_scenes(dd, junction_world, follows, label, value) -> None:
+    """`--drivedegrade-split junction` scores a world's junction scenes: 8 junction frames from 2 scenes, the
+    interval a scene-cluster bootstrap over them (named in the certificate), verify recomputing it."""
+    dd.pytester.makepyfile(cmdplanner=COMMAND_PLANNER.format(follows=follows))
+    args = [a if a != "4" else "68" for a in dd.args(planner="cmdplanner.py", families="command_swap",
+                                                       severities="5", data=junction_world)]
+    result = dd.pytester.runpytest_inprocess(*args, "--drivedegrade-split", "junction")
+    result.stdout.fnmatch_lines([f"*command: *following {value:.3f} [[]{value:.3f} .. {value:.3f}[]] over 8 "
+                                 f"junction frames ({label})*"])
+    got = load_json(dd.folder("cmdplanner") / "certificate.json")["command"]
+    assert (got["label"], got["following"], got["low"], got["high"]) == (label, value, value, value)
+    assert got["frames"] == 8 and got["scenes"] == [0] * 4 + [1] * 4
+    assert got["basis"] == "scene-cluster bootstrap, 2 scenes"
+    assert check_consistency(load_json(dd.folder("cmdplanner") / "certificate.json")) == []

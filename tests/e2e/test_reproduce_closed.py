@@ -41,7 +41,7 @@ def planner():
 
 CLOSED = ("--drivedegrade-closed-cells", "clean,blackout-s5,blackout-s3", "--drivedegrade-closed-steps", "4",
           "--drivedegrade-closed-seeds", "1", "-p", "no:randomly", "-p", "no:xdist", "--drivedegrade-closed-scenarios",
-          "0")
+          "0", "--drivedegrade-closed-lights", "0")
 
 
 def results(out: str) -> dict[str, str]:

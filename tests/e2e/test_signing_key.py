@@ -217,3 +217,37 @@ def test_sign_refuses_an_edited_certificate_and_takes_the_key_from_the_variable(
     assert signed.returncode == 0, signed.stderr
     assert cli("verify", str(path), "--public-key", str(pub)).returncode == 0
     assert leaks(tmp_path, key_material(key), key, signed.stdout, signed.stderr, none.stderr) == []
+
+
+#: The closed loop's quickest run (as tests/e2e/test_closed_loop.py runs it): two closed cells, four steps each.
+CLOSED = ("--drivedegrade-loop", "closed", "--drivedegrade-closed-cells", "clean,blackout-s5",
+          "--drivedegrade-closed-steps", "4", "--drivedegrade-split", "all", "--drivedegrade-closed-scenarios", "0")
+
+
+@pytest.mark.parametrize("layout", ["closed", "isolate", "closed-isolate"])
+def test_the_planner_can_read_the_signing_key_the_scanner_finds_none_in_the_closed_loop_or_isolated(
+        dd, key_material, layout):
+    """The scanner driving the closed loop (it plans every step of every route there), and the scanner under
+    --drivedegrade-isolate (built and called in its own child process, whose parent is the run): no
+    /proc/*/environ and no file on its or its parent's command line holds key material; the certificate signed
+    afterwards verifies with --public-key; no output holds key material."""
+    key, pub = keygen(dd.pytester.path / "issuer")
+    material = key_material(key)
+    found = write_scanner(dd, material)
+    extra = (*(CLOSED if "closed" in layout else ()), *(("--drivedegrade-isolate",) if "isolate" in layout else ()))
+    result = dd.run("-n", "0", *extra, planner="scanner.py", families="jpeg", severities="1", report="rep",
+                    subprocess=True)
+    no_traceback(result)
+    assert result.ret == 0, result.stdout.str()
+    scans = [line for line in found.read_text().splitlines() if not line.startswith("conftest")]
+    assert {line.split()[0] for line in scans} == {"import", "build", "predict"}, scans
+    assert all(line.split()[2] == "0" for line in scans), scans
+    cert_path = dd.pytester.path / "rep" / "scanner" / "certificate.json"
+    signed = cli("sign", str(cert_path), "--key", str(key))
+    assert signed.returncode == 0, signed.stderr
+    assert ("warning" in signed.stderr) == ("isolate" not in layout), signed.stderr  # sign says: not isolated
+    ok = cli("verify", str(cert_path), "--public-key", str(pub))
+    assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
+    said = "planner isolated: yes" if "isolate" in layout else "planner isolated: no"
+    assert said in ok.stdout, ok.stdout
+    assert leaks(dd.pytester.path, material, key, result.stdout.str(), signed.stdout, ok.stdout) == []

@@ -65,3 +65,34 @@ def test_false_accusation_a_stateful_planner_without_reset_is_never_blamed_for_a
     cli = [sys.executable, "-m", "pytest_drivedegrade.cli"]
     assert subprocess.run([*cli, "sign", str(cert), "--key", str(key)], check=False).returncode == 0
     assert subprocess.run([*cli, "verify", str(cert), "--public-key", str(pub)], check=False).returncode == 0
+
+
+def test_the_signing_key_a_scanning_planner_on_one_ray_actor_finds_none(dd, no_stray_ray, key_material):
+    """Issue 37's done-when, Ray local with one actor: the scanner of tests/e2e/test_signing_key.py (every
+    /proc/*/environ, every file on its and its parent's command line) runs in the actor and finds no key
+    material; the certificate signed afterwards verifies with --public-key."""
+    import subprocess
+    import sys
+
+    from test_signing_key import leaks, write_scanner
+
+    from pytest_drivedegrade.certificate.signing import keygen
+
+    key, pub = keygen(dd.pytester.path / "issuer")
+    material = key_material(key)
+    found = write_scanner(dd, material)
+    result = dd.run(*test_ray.RAY, "--drivedegrade-ray-actors", "1", planner="scanner.py", families="jpeg",
+                    severities="1", subprocess=True)
+    no_traceback(result)
+    assert result.ret == 0, result.stdout.str()
+    result.stdout.fnmatch_lines(["*ray: 1 planner actor(s) on a local cluster*"], consecutive=False)
+    scans = [line for line in found.read_text().splitlines() if not line.startswith("conftest")]
+    assert {line.split()[0] for line in scans} >= {"build", "predict"}, scans
+    assert all(line.split()[2] == "0" for line in scans), scans
+    cert = dd.folder("scanner") / "certificate.json"
+    cli = [sys.executable, "-m", "pytest_drivedegrade.cli"]
+    assert subprocess.run([*cli, "sign", str(cert), "--key", str(key)], check=False).returncode == 0
+    ok = subprocess.run([*cli, "verify", str(cert), "--public-key", str(pub)], capture_output=True, text=True,
+                        check=False)
+    assert ok.returncode == 0 and "signature verifies" in ok.stdout, ok.stderr
+    assert leaks(dd.pytester.path, material, key, result.stdout.str(), ok.stdout) == []

@@ -98,10 +98,12 @@ def test_the_worlds_expert_scores_at_least_95_on_every_route(routes: dict[int, R
 
 
 def test_the_expert_drives_every_route_of_a_data_root(world: Path) -> None:
-    found = load_routes(world, scenarios=3)
+    found = load_routes(world, scenarios=3, lights=1)
     val = NuScenesReader(world).manifest["splits"]["val"]  # type: ignore[index]
     assert [r.name for r in found] == [*val, "scenario-0000-crossing", "scenario-0001-braking",
-                                       "scenario-0002-blocked"]
+                                       "scenario-0002-blocked", "lights-0000"]
+    assert [r.name for r in load_routes(world)][-7:] == ["scenario-0017-blocked",
+                                                         *(f"lights-{i:04d}" for i in range(6))]
     assert [r.name for r in load_routes(world, limit=len(val) + 1)] == [*val, "scenario-0000-crossing"]
     for route in found:
         assert route.length > 20.0

@@ -10,7 +10,7 @@ import pytest
 from pytest_drivedegrade.data.frame import Command
 from pytest_drivedegrade.data.junctions import alternative, ego_lane, manoeuvre
 from pytest_drivedegrade.data.maps import Lane, LaneMap
-from pytest_drivedegrade.scoring.command import command_label, following
+from pytest_drivedegrade.scoring.command import command_label, following, frame_sums, from_sums
 
 STEPS = np.arange(1, 7) * 0.5
 
@@ -106,7 +106,7 @@ def test_a_planner_that_follows_only_when_the_cameras_show_the_junction() -> Non
     blind = following(plan(False, np.zeros(30, bool)), plan(True, np.zeros(30, bool)), logged, target)
     den = ((target - logged) ** 2).sum(axis=(1, 2))
     assert clean.value == pytest.approx(0.9 * den[shows].sum() / den.sum())  # 0.9 x the frames it sees, weighted
-    assert clean.label == "undetermined"  # 0.61, interval 0.43 .. 0.80: partial following is neither label
+    assert clean.label == "command-partial"  # 0.61, interval 0.43 .. 0.80: the command steers it, not shown half way
     always = following(plan(False, np.ones(30, bool)), plan(True, np.ones(30, bool)), logged, target)
     assert always.value == pytest.approx(0.9) and always.label == "command-following"
     assert blind.value == 0.0 and blind.label == "command-insensitive"
@@ -115,12 +115,25 @@ def test_a_planner_that_follows_only_when_the_cameras_show_the_junction() -> Non
 
 
 @pytest.mark.parametrize("low, high, value, label", [
-    (0.6, 0.9, 0.7, "command-following"), (0.5, 0.9, 0.7, "command-following"), (0.4, 0.9, 0.7, "undetermined"),
+    (0.6, 0.9, 0.7, "command-following"), (0.5, 0.9, 0.7, "command-following"), (0.4, 0.9, 0.7, "command-partial"),
+    (0.1, 0.3, 0.2, "command-partial"), (0.09, 0.3, 0.2, "undetermined"),
     (-0.2, 0.09, 0.0, "command-insensitive"), (-0.2, 0.1, 0.0, "undetermined"), (None, None, None, "undetermined"),
     (None, None, 0.8, "command-following"),
 ])
 def test_each_label_excludes_the_other(low, high, value, label) -> None:
     assert command_label(low, high, value) == label
+
+
+def test_one_junction_never_labels_a_planner() -> None:
+    """Frames of one known scene are one junction: the figure and a frame interval are shown, the label is
+    undetermined whatever they say (4 frames of one val scene are all the default world holds); the same frames
+    spread over two scenes are labelled from the scene-cluster interval."""
+    logged, target, _, own = frames(8)
+    follows = own + 0.9 * (target - logged)
+    one = from_sums(*frame_sums(own, follows, logged, target), scenes=[7] * 8)
+    assert one.value == pytest.approx(0.9) and one.low is not None and one.label == "undetermined"
+    two = from_sums(*frame_sums(own, follows, logged, target), scenes=[7] * 4 + [9] * 4)
+    assert two.scenes == 2 and two.label == "command-following"
 
 
 def test_no_scored_frame_is_not_measured() -> None:

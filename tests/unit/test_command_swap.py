@@ -59,7 +59,7 @@ def certificate(res) -> dict:
 @pytest.mark.parametrize("plan_of, label, low, high", [
     (ignores, "command-insensitive", 0.0, 0.0),
     (follows, "command-following", 0.9, 0.9),
-    (follows_when_shown, "undetermined", None, None),
+    (follows_when_shown, "command-partial", None, None),
 ])
 def test_each_hidden_behaviour_gets_its_label_and_verify_recomputes_it(plan_of, label, low, high) -> None:
     res = analyse_run(swap_run(plan_of), groups=GROUPS, n_resamples=500)
@@ -203,3 +203,66 @@ def test_compare_shows_the_command_label_and_reads_a_spec_4_certificate_without_
     assert certificate_row(new)["command_label"] == "command-following"
     assert certificate_row(new)["command_following"] == pytest.approx(0.9)
     assert certificate_row(old)["command_label"] is None and certificate_row(old)["command_following"] is None
+
+
+def test_the_interval_resamples_scenes_when_the_frames_scenes_are_known() -> None:
+    """Two scenes of six junction frames each: one where the plan follows the told manoeuvre fully, one where it
+    ignores it. Frames treated as independent give an interval about 0.5 ([0.17, 0.83]);
+    the scene-cluster bootstrap (two scenes: resamples 0, 0.5 or 1, read at the expanded levels for 2 scenes) gives
+    [0, 1], the spread two scenes can support. Verify recomputes each from the section, scenes included."""
+    logged, target, _, own = frames(12)
+    target = logged + np.stack([np.zeros(6), np.linspace(0.5, 3.0, 6)], axis=-1)  # the same |change| everywhere
+    told = own + (target - logged) * (np.arange(12) < 6)[:, None, None]
+    scenes = ["a"] * 6 + ["b"] * 6
+    by_frames = swap_probe(own, told, target - logged, n_resamples=400, seed=1)
+    by_scenes = swap_probe(own, told, target - logged, n_resamples=400, seed=1, scenes=scenes)
+    assert by_frames.following.value == by_scenes.following.value == pytest.approx(0.5)
+    assert by_frames.following.scenes is None and 0.1 < by_frames.following.low < 0.5 < by_frames.following.high < 0.9
+    f = by_scenes.following
+    assert (f.low, f.high, f.scenes, f.label) == (0.0, 1.0, 2, "undetermined")
+    assert "scene-cluster bootstrap, 2 scenes" in f.text()
+    section = by_scenes.to_builtins()
+    assert section["scenes"] == [0] * 6 + [1] * 6 and section["basis"] == "scene-cluster bootstrap, 2 scenes"
+    settings = {"seed": 1, "n_resamples": 400}
+    cert = canonicalize({"command": section, "settings": settings, "cells": [{"cell": "command_swap"}]})
+    assert check_command(cert) == []
+    moved = {**cert, "command": {**cert["command"], "scenes": [0] * 12}}  # one scene: a frame bootstrap's interval
+    assert any(p.startswith("command.low: certificate says 0.0") for p in check_command(moved))
+    bad = {**cert, "command": {**cert["command"], "scenes": [0] * 5}}
+    assert check_command(bad)[0].startswith("command.scenes: not a list of 12 scene indices")
+    old = {**cert, "command": {k: v for k, v in by_frames.to_builtins().items()}}  # as spec 5.0.0 wrote it
+    assert "scenes" not in old["command"] and check_command(old) == []
+
+
+def test_a_spec_5_0_certificate_between_the_lines_still_verifies_as_undetermined() -> None:
+    """Spec 5.0.0 had no `command-partial`: a frame-bootstrap figure of 0.5 [0.17, 0.83] was `undetermined` there
+    and verifies so; the same section under a later spec must say `command-partial`."""
+    logged, target, _, own = frames(12)
+    target = logged + np.stack([np.zeros(6), np.linspace(0.5, 3.0, 6)], axis=-1)
+    told = own + (target - logged) * (np.arange(12) < 6)[:, None, None]
+    section = swap_probe(own, told, target - logged, n_resamples=400, seed=1).to_builtins()
+    assert section["label"] == "command-partial"
+    settings = {"seed": 1, "n_resamples": 400}
+    old = canonicalize({"spec_version": "5.0.0", "settings": settings, "cells": [{"cell": "command_swap"}],
+                        "command": {**section, "label": "undetermined"}})
+    assert check_command(old) == []
+    new = {**old, "spec_version": "5.1.0"}
+    assert check_command(new) == ["command.label: certificate says 'undetermined', its sums give 'command-partial'"]
+
+
+def test_the_run_analysis_gives_the_probe_the_frames_scenes() -> None:
+    recs = swap_run(follows)
+    scenes = {t: f"s{i % 3}" for i, t in enumerate(recs[0].frames)}
+    res = analyse_run(recs, groups=GROUPS, n_resamples=300, scenes=scenes)
+    assert res.command is not None and res.command.following.scenes == 3
+    assert res.command.scenes == tuple(i % 3 for i in range(24))  # junction frames only, in order
+    assert check_command(certificate(res)) == []
+
+
+def test_the_section_names_its_basis_only_where_a_frame_was_scored() -> None:
+    logged, target, _, own = frames(3)
+    one = swap_probe(own[:1], own[:1] + (target - logged)[:1], (target - logged)[:1], n_resamples=100, seed=0,
+                     scenes=["a"])
+    assert one.following.low is None and one.to_builtins()["basis"] == "no interval"
+    none = swap_probe(own, own, np.full_like(target, np.nan), n_resamples=100, seed=0, scenes=["a", "b", "c"])
+    assert "scenes" not in none.to_builtins() and "basis" not in none.to_builtins()  # the 5.0.0 section's form

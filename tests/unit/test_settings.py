@@ -31,25 +31,30 @@ BASE = RunSettings(data=Path("/data/nuscenes"), split="val", frames=8, seed=0, b
 #: One other value per setting.
 CHANGED = {"data": Path("/elsewhere/nuscenes"), "split": "mini_val", "frames": 6, "seed": 3, "seeds": 2,
            "batch": 8, "reuse": False, "device": "cuda:1", "timeout": 5.0, "metric": "pdms", "flat": 0.9,
-           "ego_box": "pacifica", "shard": Shard(2, 3), "prefetch": 3, "adaptive": True, "alpha": 0.1,
-           "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5, "closed_routes": 2,
-           "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault", "closed_scenarios": 5}
+           "ego_box": "pacifica", "two_stage": True, "shard": Shard(2, 3), "prefetch": 3, "adaptive": True,
+           "alpha": 0.1, "isolate": True, "loop": "both", "closed_cells": "all", "closed_seeds": 3, "closed_hz": 5,
+           "closed_routes": 2, "closed_steps": 8, "closed_agents": "reactive", "closed_collisions": "at_fault",
+           "closed_scenarios": 5, "closed_lights": 2}
 #: Who sees that change, written out here rather than read off the table: (run key, merge, gate, rerun argv).
 SEEN_BY = {"data": (False, False, False, False), "split": (False, True, True, True),
            "frames": (False, True, False, True), "seed": (True, True, True, True), "seeds": (True, True, True, True),
            "batch": (True, True, True, True), "reuse": (True, True, True, True), "device": (True, True, True, True),
            "timeout": (False, True, False, True), "metric": (False, True, True, True),
            "flat": (False, True, False, True), "ego_box": (True, True, True, True),
+           "two_stage": (True, True, True, True),
            "shard": (False, False, False, False),
            "prefetch": (False, False, False, False), "adaptive": (True, True, False, True),
            # alpha alone in a full run: no run key holds it and no certificate records it (an option parse refuses
            # --drivedegrade-alpha without --drivedegrade-adaptive); shards still compare it
            "alpha": (False, True, False, False),
+           # where the planner ran changes no plan, but an isolated run never reuses a cell made beside the stream
+           "isolate": (True, True, False, True),
            # the closed loop: the open cells' run key and the gate ignore it (the closed cells' own key holds it);
            # a rerun repeats the closed settings only of a run whose loop was closed (its closed_loop section)
            "loop": (False, True, False, True),
            **dict.fromkeys(("closed_cells", "closed_seeds", "closed_hz", "closed_routes", "closed_steps",
-                            "closed_agents", "closed_collisions", "closed_scenarios"), (False, True, False, False))}
+                            "closed_agents", "closed_collisions", "closed_scenarios", "closed_lights"),
+                         (False, True, False, False))}
 
 
 def test_every_field_has_one_row_in_field_order_and_a_reason() -> None:

@@ -123,8 +123,10 @@ class _Spy:
 @pytest.mark.parametrize("family, severity", [("clean", 0), ("jpeg", 3)])
 def test_stage_two_of_a_cell(world, family, severity):
     """Stage two renders at the start poses (the logged one gives the logged keyframe's images, under the cell's
-    operator), plans there and scores; the frame's two-stage EPDMS is stage one's times stage two's."""
-    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell
+    operator with the per-frame seed rule keyed by the stage-two token), plans there and scores; the frame's
+    two-stage EPDMS is stage one's times stage two's; the images equal a fresh render under the operator."""
+    from pytest_drivedegrade.closedloop import camera
+    from pytest_drivedegrade.closedloop.twostage import STAGE_TWO_STARTS, stage_two_cell, stage_two_world, start_poses
     from pytest_drivedegrade.corruptions.api import corrupt_sample
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.run import RunContext
@@ -143,18 +145,24 @@ def test_stage_two_of_a_cell(world, family, severity):
         assert result.two_stage[i] == pytest.approx(record.epdms[i] * result.stage_two[i])
     first = later[context.frames[have[0]].index + 6]
     logged = {c: NuScenesReader.load_image(first.cameras[c]) for c in FRONT}
-    expected = corrupt_sample(logged, family, severity, seed=context.seed, frame=f"{first.token}~stage2~0") \
-        if family != "clean" else logged
+
+    def corrupted(images, n):
+        return corrupt_sample(images, family, severity, seed=context.seed, frame=f"{first.token}~stage2~{n}") \
+            if family != "clean" else images
+
+    expected = corrupted(logged, 0)
     assert all(np.array_equal(spy.seen[0][c], expected[c]) for c in FRONT)  # at the logged pose: the data's
     assert all(not np.array_equal(spy.seen[1][c], expected[c]) for c in FRONT)  # half a metre left: not
+    route = stage_two_world(context).routes[first.scene_name]
+    fresh = corrupted(camera.images_at(route, FRONT, start_poses(first.pose)[1], first.index), 1)
+    assert all(np.array_equal(spy.seen[1][c], fresh[c]) for c in FRONT)  # a fresh render, corrupted alike
 
 
 def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(world):
     """From the logged pose, stage two is the cell's own frame at that keyframe: the same plan (constant velocity
     from the same state), the same terms; its EPDMS is the cell's without the terms stage two does not score (ec:
     no previous plan; hc: no past)."""
-    from pytest_drivedegrade.closedloop.routes import load_routes
-    from pytest_drivedegrade.closedloop.twostage import stage_two_scores
+    from pytest_drivedegrade.closedloop.twostage import stage_two_cell
     from pytest_drivedegrade.metrics.pdms.extended import ExtendedTerms, epdms_score
     from pytest_drivedegrade.run import RunContext
     from pytest_drivedegrade.settings import RunSettings
@@ -162,11 +170,44 @@ def test_stage_two_from_the_logged_pose_scores_as_the_cell_scored_that_keyframe(
     context = RunContext.open(RunSettings(data=world))
     spy = _Spy()
     record = context.run_cell(spy, "clean", 0)
-    route = load_routes(world)[0]
+    at_log = stage_two_cell(context, spy, record, offsets=((0.0, 0.0, 0.0),))
     for j in (6, 12, 20):
-        later = context.frames[j]
-        assert later.index == j and later.pose is not None
-        (score,) = stage_two_scores(context, spy, later, 6, "clean", 0, seed=0, starts=[later.pose], route=route)
+        assert context.frames[j].index == j
+        i = j - 6  # the frame whose stage two starts at keyframe j
         terms = ExtendedTerms(*(float(record.array(k)[j]) for k in ("nc", "dac", "ddc", "tlc", "ep", "ttc", "lk")),
                               1.0)
-        assert score == pytest.approx(epdms_score(terms, math.nan), abs=1e-9), j
+        assert at_log.stage_two[i] == pytest.approx(epdms_score(terms, math.nan), abs=1e-9), j
+
+
+def test_epdms2_retention_summary_and_gate():
+    """A cell's two-stage figures (`pdms_metrics`): the means over the frames that have a stage two, the paired
+    retention over frames finite in both; absent without a stage two; the baseline gate reads `epdms2_retention`
+    under --drivedegrade-metric epdms2 and names the metric."""
+    from pytest_drivedegrade.cells import CellRecord
+    from pytest_drivedegrade.scoring.baseline import cell_regression
+    from pytest_drivedegrade.scoring.retention import pdms_metrics
+    from pytest_drivedegrade.scoring.verdict import retention_of
+
+    def record(cell, epdms2, stage2):
+        n = len(epdms2)
+        return CellRecord(cell, cell.split("-")[0], 3 if "-" in cell else 0, [f"t{i}" for i in range(n)],
+                          np.zeros((n, 6, 2)), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6)), np.zeros(n),
+                          np.zeros(n), epdms=np.ones(n), epdms2=np.array(epdms2), epdms_stage2=np.array(stage2))
+
+    clean = record("clean", [0.8, 0.4, np.nan, 0.6], [0.8, 0.4, np.nan, 0.6])
+    cell = record("jpeg-s3", [0.4, 0.4, 0.9, np.nan], [0.4, 0.4, 0.9, np.nan])
+    got = pdms_metrics(cell, clean, n_resamples=0)
+    assert got["epdms2"] == pytest.approx((0.4 + 0.4 + 0.9) / 3) and got["epdms2_frames"] == 3
+    assert got["epdms2_retention"] == pytest.approx(0.8 / 1.2)  # frames 0 and 1: finite in both
+    assert "epdms2" not in pdms_metrics(record("clean", [np.nan] * 2, [np.nan] * 2),
+                                        record("clean", [np.nan] * 2, [np.nan] * 2), n_resamples=0)
+
+    class Summary:
+        metrics = got
+        retention = 1.0
+
+    assert retention_of(Summary(), "epdms2") == pytest.approx(0.8 / 1.2)  # type: ignore[arg-type]
+    baseline = {"cells": [{"cell": "jpeg-s3", "retention": 0.5, "epdms2_retention": 0.9}]}
+    reg = cell_regression("jpeg-s3", 0.7, baseline, 0.05, "epdms2")
+    assert reg is not None and reg.baseline == 0.9 and "two-stage EPDMS retention" in reg.message()
+    assert cell_regression("jpeg-s3", 0.7, baseline, 0.05, "l2") is None  # L2: baseline 0.5, no drop

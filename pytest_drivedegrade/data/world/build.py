@@ -17,6 +17,7 @@ from ...errors import DataError
 from ...progress import Progress, Sink
 from ..nuscenes import WORLD_MANIFEST, official_scene_names
 from . import export, tasks
+from .junctionscenes import JUNCTION_SPLIT, junction_indices, junction_names
 from .rig import Rig
 from .scene import KEYFRAMES, scene_keyframes
 from .tasks import SceneTask
@@ -50,7 +51,7 @@ def split_names(n: int) -> tuple[list[str], list[str]]:
 
 def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size: bool = False,
                 train_images: bool = False, progress: Sink | None = None, val_images: bool = True,
-                workers: int | None = None, future_s: int = 3) -> Path:
+                workers: int | None = None, future_s: int = 3, junction_scenes: int = 0) -> Path:
     """Generate a world of `scenes` scenes into `out_dir` (the nuScenes data root) and return it.
 
     Val images are rendered (unless `val_images` is False, for table-only checks); train images only with
@@ -59,6 +60,8 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
     The manifest is written last, so a world without one is incomplete. `future_s` 4: every scored frame holds
     4 s of future (NAVSIM's eight poses), each scene exporting two keyframes more (`scene.scene_keyframes`) and
     scoring the same frames as the default world's; the manifest then names it (``future_s``).
+    `junction_scenes` N > 0 adds N scenes in a split of their own, ``junction`` (`junctionscenes`: each turns at
+    a junction the ego reaches), rendered and fingerprinted as val; with 0 the world is the one without it.
     """
     n = DEFAULT_SCENES if scenes is None else int(scenes)
     try:
@@ -67,15 +70,21 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
         raise DataError(f"a world's future is 3 or 4 seconds per scored frame; got {future_s!r}") from None
     if n < 2:
         raise DataError(f"a world needs at least 2 scenes (one train, one val); got {n}")
+    if not isinstance(junction_scenes, int) or isinstance(junction_scenes, bool) or junction_scenes < 0:
+        raise DataError(f"junction_scenes is a count of scenes (0 or more); got {junction_scenes!r}")
     root = Path(out_dir)
     root.mkdir(parents=True, exist_ok=True)
     train, val = split_names(n)
     todo = [SceneTask(str(root), seed, i, name, full_size, render=(name in val and val_images)
                       or (name not in val and train_images), fingerprint_images=name in val, keyframes=keyframes)
             for i, name in enumerate(train + val)]
-    with Progress("drivedegrade world", n, unit="scenes", sink=progress or Sink.silent()) as bar:
+    junction = junction_names(junction_scenes)
+    todo += [SceneTask(str(root), seed, index, name, full_size, render=val_images, fingerprint_images=True,
+                       keyframes=keyframes) for index, name in zip(junction_indices(seed, junction_scenes), junction)]
+    with Progress("drivedegrade world", len(todo), unit="scenes", sink=progress or Sink.silent()) as bar:
         outputs = tasks.run_tasks(todo, workers, lambda t: bar.advance(note=f"{t.name}{' rendered' * t.render}"))
     longer = f"|future{future_s}" if future_s != 3 else ""  # only then: the default world keeps its fingerprint
+    longer += f"|junction{junction_scenes}" if junction_scenes else ""
     digest = hashlib.blake2b(f"{GENERATOR_VERSION}|{seed}|{n}|{full_size}{longer}".encode(), digest_size=16)
     for out in outputs:
         digest.update(out.fingerprint)
@@ -86,11 +95,15 @@ def write_world(out_dir, *, scenes: int | None = None, seed: int = 0, full_size:
     tables.update({name: [out.tables[name] for out in outputs] for name in tasks.SCENE_TABLES})
     for name, items in sorted(tables.items()):
         digest.update(export.dump_items(root / WORLD_VERSION / f"{name}.json", items))
-    events = {split: [e for out, t in zip(outputs, todo) if (t.name in val) == (split == "val")
-                      for e in out.events[:SCORABLE_PER_SCENE]] for split in ("train", "val")}
+    of = {name: split for split, names in (("train", train), ("val", val), (JUNCTION_SPLIT, junction))
+          for name in names}
+    events = {split: [e for out, t in zip(outputs, todo) if of[t.name] == split
+                      for e in out.events[:SCORABLE_PER_SCENE]]
+              for split in ("train", "val", *((JUNCTION_SPLIT,) if junction else ()))}
     manifest = {"generator": "pytest-drivedegrade world", "generator_version": GENERATOR_VERSION,
                 "version": WORLD_VERSION, "seed": seed, "scenes": n, "full_size": full_size,
-                "train_images": bool(train_images), "splits": {"train": train, "val": val},
+                "train_images": bool(train_images),
+                "splits": {"train": train, "val": val, **({JUNCTION_SPLIT: junction} if junction else {})},
                 "fingerprint": digest.hexdigest(), "events": {s: _event_stats(e) for s, e in events.items()}}
     if future_s != 3:  # only then: the default world's manifest keeps its bytes
         manifest["future_s"] = future_s
@@ -203,10 +216,13 @@ def cli_world(args) -> int:
     """`drivedegrade world --out DIR [--scenes N] [--seed S] [--full-size] [--train-images] [--future 3|4]`."""
     start = time.perf_counter()
     root = write_world(args.out, scenes=args.scenes, seed=args.seed, full_size=args.full_size,
-                       train_images=args.train_images, progress=Sink(), future_s=getattr(args, "future", 3))
+                       train_images=args.train_images, progress=Sink(), future_s=getattr(args, "future", 3),
+                       junction_scenes=getattr(args, "junction_scenes", 0))
     manifest = json.loads((root / MANIFEST).read_text())
     ev = manifest["events"]["val"]
-    print(f"wrote {root} ({manifest['scenes']} scenes, fingerprint {manifest['fingerprint']}) in "
+    junction = len(manifest["splits"].get(JUNCTION_SPLIT, []))
+    also = f" and {junction} junction scenes" if junction else ""
+    print(f"wrote {root} ({manifest['scenes']} scenes{also}, fingerprint {manifest['fingerprint']}) in "
           f"{time.perf_counter() - start:.1f} s; val frames with a camera-only event: {ev['fraction']:.0%}",
           file=sys.stderr)
     return 0

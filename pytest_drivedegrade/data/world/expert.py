@@ -25,7 +25,11 @@ REACTION = 10  # sim steps (1 s): how late a vehicle's change of speed reaches t
 VRU_LOOKAHEAD = 5  # sim steps (0.5 s): a pedestrian or cyclist this close to entering the corridor counts
 KEY_EVERY = 5  # sim steps per keyframe (2 Hz)
 #: Reasons the expert leaves its free-road acceleration, logged per step (EgoLog.react).
-REACT_NONE, REACT_VEHICLE, REACT_VRU, REACT_BEND = 0, 1, 2, 3
+REACT_NONE, REACT_VEHICLE, REACT_VRU, REACT_BEND, REACT_LIGHT = 0, 1, 2, 3, 4
+#: Traffic lights (`lights.TrafficLight`): the expert stops with its front bumper LIGHT_MARGIN (m) before the stop
+#: line, braking once stopping needs B_LIGHT (m/s^2); at the onset of yellow it goes on when stopping would need
+#: more than B_YELLOW (it then clears the line within the yellow), and stops otherwise.
+LIGHT_MARGIN, B_LIGHT, B_YELLOW = 1.0, 2.0, 3.0
 
 
 @dataclass
@@ -114,10 +118,54 @@ def perceived(s_obs: np.ndarray, v_obs: np.ndarray, vehicle: np.ndarray, t: int)
     return s, np.maximum(v, 0.0)
 
 
+@dataclass
+class LightStops:
+    """The lights on the expert's lane: each one's stop position (arc length on the lane), and per light whether
+    the expert is braking for it, or decided at the onset of yellow to go on."""
+
+    s_stop: np.ndarray
+    lights: tuple
+    braking: np.ndarray
+    going: np.ndarray
+
+    @staticmethod
+    def on(lane: Path, lights, net) -> LightStops:
+        mids = np.array([light.stop_line(net).mean(0) for light in lights]).reshape(-1, 2)
+        s_stop = lane.project(mids)[0] if len(mids) else np.zeros(0)
+        n = len(s_stop)
+        return LightStops(s_stop, tuple(lights), np.zeros(n, bool), np.zeros(n, bool))
+
+    def accel(self, t: int, s: float, v: float, v_cruise: float) -> float | None:
+        """The acceleration the lights ahead demand at step `t` (None: none)."""
+        out = None
+        for j, light in enumerate(self.lights):
+            front = s + EGO_LENGTH / 2
+            state = light.state_at(t * DT)
+            if state == "green":
+                self.braking[j] = self.going[j] = False
+            if state == "green" or front > self.s_stop[j]:
+                continue
+            gap = self.s_stop[j] - LIGHT_MARGIN - front
+            need = v * v / (2 * max(gap, 0.1))
+            if state == "yellow" and not self.braking[j] and not self.going[j]:
+                self.going[j] = need > B_YELLOW
+            if self.going[j] and state == "yellow":
+                continue
+            self.braking[j] |= need > B_LIGHT or gap < 1.0 or state == "yellow"
+            if self.braking[j]:
+                a = -need if v > 0.5 else idm(v, v_cruise, max(gap, 0.0) + S0, v)
+                out = a if out is None else min(out, a)
+        return out
+
+
 def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float,
-          projections: Projections | None = None) -> EgoLog:
-    """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`)."""
+          projections: Projections | None = None, lights: LightStops | None = None) -> EgoLog:
+    """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`;
+    `lights`: the traffic lights it obeys)."""
     v_allow = allowed_speed(lane, v_cruise)
+    if lights is not None:  # a fresh drive: no light braked for or passed yet
+        lights.braking[:] = False
+        lights.going[:] = False
     s_obs, v_obs, block = corridor_obstacles(lane, agents, projections)
     vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
     half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2
@@ -145,6 +193,9 @@ def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_st
                 a_i = -need if v > v_seen[i] + 0.5 else idm(v, v_cruise, gap, v - float(v_seen[i]))
                 if a_i < a:
                     a, why = a_i, (REACT_VEHICLE if vehicle[i] else REACT_VRU)
+        a_light = lights.accel(t, s, v, v_cruise) if lights is not None else None
+        if a_light is not None and a_light < a:
+            a, why = a_light, REACT_LIGHT
         a = max(a, -B_MAX)
         log_r[t] = why if a < free - 0.3 else REACT_NONE
         log_s[t], log_v[t] = s, v

@@ -20,6 +20,7 @@ from . import models, render, sensing, texture
 from .agents import DT, KINDS
 from .expert import KEY_EVERY
 from .lanemap import lane_layers
+from .lights import map_layers
 from .rig import Rig
 from .roads import drivable_polygons
 from .scene import Scene
@@ -35,8 +36,8 @@ LIDAR = "LIDAR_TOP"
 CATEGORY_INDEX = {"human.pedestrian.adult": 2, "vehicle.bicycle": 14, "vehicle.bus.rigid": 16, "vehicle.car": 17,
                   "vehicle.truck": 23}
 MAP_TOLERANCE = 0.01  # m: the map's polygons stay this close to the painted carriageway edges
-#: Map expansion layers written empty (the world has no road blocks, walkways, stop lines, car parks or traffic
-#: lights in its map), so the file has the full schema `NuScenesMap` loads.
+#: Map expansion layers written empty (the world has no road blocks, walkways or car parks; stop lines and traffic
+#: lights only in its light scenes' maps), so the file has the full schema `NuScenesMap` loads.
 EMPTY_MAP_LAYERS = ("road_block", "walkway", "stop_line", "carpark_area", "traffic_light")
 
 
@@ -186,6 +187,9 @@ def map_expansion(scene: Scene, seed: int) -> dict:
     out.update(lanes.layers)
     out["node"] = nodes + out["node"]
     out["polygon"] = polygons + out["polygon"]
+    if scene.lights:  # the light scenes' stop lines and lights (`lights.map_layers`); other maps keep them empty
+        for name, rows in map_layers(scene.lights, scene.net, token, seed, scene.index, timestamp(scene, 0)).items():
+            out[name] = out.get(name, []) + rows
     far = np.array([[n["x"], n["y"]] for n in out["node"]]).max(0)
     out.update({"version": EXPANSION_VERSION, "canvas_edge": [float(np.ceil(far[0])), float(np.ceil(far[1]))],
                 "arcline_path_3": lanes.arcline_path_3, "connectivity": lanes.connectivity,
@@ -239,7 +243,8 @@ def scene_backdrop(scene: Scene) -> tuple[texture.GroundMap, np.ndarray, models.
     """What every render of a scene starts from, logged or at a simulated pose (`closedloop.camera`): the ground
     texture, the sky panorama and the static scenery, drawn from the scene's own random stream in this order."""
     rng = np.random.default_rng([scene.seed, scene.index, 0x7E27])
-    ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng)
+    lines = [(*light.stop_line(scene.net), light.along(scene.net)) for light in scene.lights]
+    ground = texture.ground_map(scene.net, scene.ego.xy, scene.style, scene.crosswalks, rng, lines)
     sky = texture.sky_panorama(scene.style, rng)
     static = models.Parts()
     for prop in scene.props:
@@ -276,6 +281,8 @@ def render_scene(scene: Scene, rig: Rig, root: Path, keys=None) -> list[bytes]:
         pose = (float(scene.ego.xy[step, 0]), float(scene.ego.xy[step, 1]), float(scene.ego.yaw[step]))
         parts = models.Parts(list(static.boxes), list(static.colours), dict(static.decals))
         render.agent_parts(parts, scene.agents, step)
+        if scene.lights:
+            models.light_parts(parts, scene.net, scene.lights, step, DT)
         for cam in CAMERAS:
             buf = camera_jpeg(scene, rig, cam, pre[cam], backdrop, parts, pose, step)
             path = root / image_name(scene, cam, k)

@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .lights import DARK, GREEN, HEAD_Z, HOUSING, LIT, RED, YELLOW
+
 GLASS = (45, 55, 70)
 TYRE = (28, 28, 30)
 
@@ -151,3 +153,29 @@ def pole(p: Parts, prop, rng) -> None:
     x, y = prop.xy
     p.add(x, y, prop.yaw, 0.0, prop.size[2], 0.18, 0.18, prop.colour)
     p.add(x, y, prop.yaw, prop.size[2], prop.size[2] + 0.25, 0.7, 0.35, (60, 60, 62))
+
+
+def light_parts(p: Parts, net, lights, step: int, dt: float) -> None:
+    """Add each traffic light's pole, mast arm and head (`lights.TrafficLight`), its lamps lit by its state at sim
+    `step` (`dt` s each)."""
+    for light in lights:
+        traffic_light(p, light.pole(net), light.head(net), light.state_at(step * dt))
+
+
+def traffic_light(p: Parts, pole_at, head_at, state: str) -> None:
+    """A traffic light on a mast arm: pole on the curb, arm over the lanes, head facing the approaching traffic with
+    three lamps (red, yellow, green from the top), the one of `state` lit (`lights.LIT`, `lights.DARK`)."""
+    px, py, pyaw = pole_at
+    hx, hy, hyaw = head_at
+    top = HEAD_Z[1] + 0.2
+    p.add(px, py, pyaw, 0.0, top, 0.22, 0.22, (95, 95, 100))
+    span = float(np.hypot(hx - px, hy - py)) + 0.2
+    p.add((px + hx) / 2, (py + hy) / 2, float(np.arctan2(hy - py, hx - px)), top - 0.2, top, span, 0.16,
+          (95, 95, 100))
+    l, w = 0.4, 0.8
+    head = p.add(hx, hy, hyaw, HEAD_Z[0], HEAD_Z[1], l, w, HOUSING)
+    step = (HEAD_Z[1] - HEAD_Z[0]) / 3
+    lamps = [_rect_x(l / 2 + 0.02, -0.28, 0.28, HEAD_Z[0] + (2 - i) * step + 0.04, HEAD_Z[0] + (3 - i) * step - 0.04)
+             for i in range(3)]
+    colours = [LIT[c] if c == state else DARK[c] for c in (RED, YELLOW, GREEN)]
+    p.decal(head, 0, np.array(lamps), np.array(colours, dtype=np.float64))

@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from ...constants import EGO_LENGTH
 from .agents import (
     DT,
     EGO_START_S,
@@ -32,7 +33,8 @@ from .agents import (
     crossing_walker,
     speed_profile,
 )
-from .expert import REACT_VEHICLE, drive, follower, keyframe_events, start_state
+from .expert import REACT_LIGHT, REACT_VEHICLE, LightStops, drive, follower, keyframe_events, start_state
+from .lights import TrafficLight
 from .roads import LANE_WIDTH, build_roads
 from .scene import KEYFRAMES, MIN_GAP, Scene, Style
 
@@ -133,4 +135,64 @@ def scenario_scene(seed: int, i: int) -> Scene:
     return Scene(index, seed, scenario_name(i), net, lane, agents, ego, style, events, crosswalks, v_cruise)
 
 
-__all__ = ["DT", "SCENARIO_KINDS", "scenario_name", "scenario_scene"]
+#: Light scenes (`light_scene`) are numbered from here, on a random stream of their own.
+LIGHT_BASE, LIGHT_KEY = 200_000, 0x119B7
+#: The stop line lies this far (m of route centreline) past the ego's start; a junction square that close to it
+#: moves it to the junction's painted stop line (`texture._paint_markings`: its bar from 0.75 to 0.25 m before
+#: the square).
+LIGHT_AHEAD_M = (45.0, 85.0)
+
+
+def light_name(i: int) -> str:
+    return f"lights-{i:04d}"
+
+
+def _light(rng, net, s0: float, v0: float) -> TrafficLight:
+    """A light whose red meets the ego: yellow 3-6 s before a free-driving ego would reach the line, green again
+    4-9 s after it would have."""
+    s_line = EGO_START_S + float(rng.uniform(*LIGHT_AHEAD_M))
+    for j in net.junctions:
+        if abs(j.s_route - s_line) < j.half + 12.0:
+            s_line = float(j.s_route - j.half - 0.75)
+    t_arrive = max(s_line - s0, 0.0) / max(v0, 1.0)
+    t_yellow = max(t_arrive - float(rng.uniform(3.0, 6.0)), 0.5)
+    return TrafficLight(s_line, net.route.lanes, t_yellow, t_arrive + float(rng.uniform(4.0, 9.0)))
+
+
+def ran_red(lane, light: TrafficLight, net, ego) -> bool:
+    """Whether the logged ego's front crosses the light's stop line while it is red."""
+    s_stop = float(lane.project(light.stop_line(net).mean(0)[None])[0][0])
+    front = ego.s + EGO_LENGTH / 2
+    crossed = np.flatnonzero((front[:-1] <= s_stop) & (front[1:] > s_stop))
+    return any(light.state_at((t + 1) * DT) == "red" for t in crossed)
+
+
+def light_scene(seed: int, i: int) -> Scene:
+    """Light scene `i` of the world with `seed` (deterministic in (seed, i)): roads, lane, background traffic and a
+    traffic light whose red the expert stops at; redrawn when the expert does not stop for it, runs it, or cannot
+    drive the scene safely."""
+    index = LIGHT_BASE + i
+    rng = np.random.default_rng([seed, index, LIGHT_KEY])
+    for _ in range(SCENARIO_TRIES):
+        net = build_roads(rng)
+        turn, lanes = (net.junctions[0].turn if net.junctions else "straight"), net.route.lanes
+        k = lanes - 1 if turn == "right" else (0 if turn == "left" else int(rng.integers(lanes)))
+        lane = net.route.center.offset(-(k + 0.5) * LANE_WIDTH)
+        v_cruise = float(rng.uniform(8.0, 12.0))
+        style = Style.draw(rng)
+        background = background_traffic(rng, net, k)
+        s0, v0 = start_state(rng, v_cruise)
+        light = _light(rng, net, s0, v0)
+        ego = drive(lane, background, v_cruise, v0, s0, lights=LightStops.on(lane, [light], net))
+        stopped = bool(((ego.speed < 0.3) & (ego.react == REACT_LIGHT)).any())
+        if stopped and ego.min_gap >= MIN_GAP and not ran_red(lane, light, net, ego):
+            break
+    else:
+        raise RuntimeError(f"light scene {i} of world seed {seed}: no drivable draw in {SCENARIO_TRIES} tries")
+    agents = [*background, follower(rng, lane, ego)]
+    events = keyframe_events(lane, ego, KEYFRAMES)
+    return Scene(index, seed, light_name(i), net, lane, agents, ego, style, events, [], v_cruise,
+                 lights=(light,))
+
+
+__all__ = ["DT", "SCENARIO_KINDS", "light_name", "light_scene", "scenario_name", "scenario_scene"]

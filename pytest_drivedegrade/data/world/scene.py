@@ -81,6 +81,7 @@ class Scene:
     crosswalks: list[float]  # arc lengths on the route centreline with a zebra crossing
     v_cruise: float
     keyframes: int = KEYFRAMES  # the keyframes it exports (`scene_keyframes`)
+    lights: tuple = ()  # its traffic lights (`lights.TrafficLight`): only the light scenes (`scenarios`) have any
 
     @functools.cached_property
     def props(self) -> list[Prop]:

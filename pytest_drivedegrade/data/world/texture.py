@@ -101,7 +101,7 @@ def _paint_roads(p: _Painter, net: RoadNet, style, rng) -> None:
         p.line(base + steps, 0.05, asphalt * 0.6)
 
 
-def _paint_markings(p: _Painter, net: RoadNet, style, crosswalks: list[float]) -> None:
+def _paint_markings(p: _Painter, net: RoadNet, style, crosswalks: list[float], stop_lines=()) -> None:
     white, yellow = (235, 235, 228), (225, 185, 40)
     for road in net.roads:
         c = road.center
@@ -127,11 +127,15 @@ def _paint_markings(p: _Painter, net: RoadNet, style, crosswalks: list[float]) -
         q = j.center - (j.half + 0.5) * u
         w = route.lanes * LANE_WIDTH
         p.poly(np.array([q - 0.25 * u, q + 0.25 * u, q + 0.25 * u - w * v, q - 0.25 * u - w * v]), white)
+    for a, b, u in stop_lines:  # a traffic light's stop line: a 0.5 m bar from the line on, across its lanes
+        p.poly(np.array([a, b, b + 0.5 * u, a + 0.5 * u]), white)
 
 
 def ground_map(net: RoadNet, ego_xy: np.ndarray, style, crosswalks: list[float],
-               rng: np.random.Generator) -> GroundMap:
+               rng: np.random.Generator, stop_lines=()) -> GroundMap:
     """Paint the ground around the ego's drive into a mip pyramid (uint8 throughout: the map is large).
+    `stop_lines`: the traffic lights' lines as (end, end, unit vector along the road), painted white (none but
+    in the light scenes: the painting draws nothing from `rng`, so every other ground is as it was).
 
     The map is tens of megabytes: every step after the painting works in place (a fresh array that size costs
     more in page faults than the arithmetic), with the same saturating arithmetic as fresh arrays would give."""
@@ -142,7 +146,7 @@ def ground_map(net: RoadNet, ego_xy: np.ndarray, style, crosswalks: list[float],
     img[1:] = img[0]  # row copies: much faster than broadcasting one pixel over the image
     p = _Painter(img, lo)
     _paint_roads(p, net, style, rng)
-    _paint_markings(p, net, style, crosswalks)
+    _paint_markings(p, net, style, crosswalks, stop_lines)
     small = (h // 4 + 1, w // 4 + 1)
     patches = 1.0 + 0.10 * noise(rng, small, 75) + 0.06 * noise(rng, small, 10)
     factor = cv2.resize((patches * style.light * 128).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)

@@ -42,6 +42,7 @@ from .extended import (
     lane_query,
 )
 from .lanes import LaneView, astray
+from .lights import RedArea, red_areas, traffic_light_compliance
 from .local_map import LocalDrivable
 from .motion import (
     EgoPose,
@@ -101,6 +102,7 @@ class PreparedFrame:
     past: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the ego's last 1.5 s (`extended.history`)
     human: ExtendedTerms | None = None  # the expert's own EPDMS terms (the human filter)
     ego_size: np.ndarray = field(default_factory=lambda: EGO_SIZE.copy())  # the ego box (length, width), m
+    red_areas: tuple[RedArea, ...] | None = None  # the map's lights (EPDMS's tlc; None: no lights, not scored)
     #: plans judged on this frame (`judged`), by their bytes, up to MEMO_PLANS of them
     memo: dict[bytes, tuple[PDMSResult, ExtendedTerms]] = field(default_factory=dict, compare=False, repr=False)
 
@@ -109,14 +111,16 @@ class PreparedFrame:
                 ego: EgoStatus | InitialState | npt.ArrayLike = (0.0, 0.0), drivable: DrivableQuery | None = None,
                 ego_pose: EgoPose | None = None, *, static_categories: Sequence[str] = STATIC_CATEGORIES,
                 lanes: LaneView | None = None, expert_states: EgoStates | None = None,
-                past_motion: npt.ArrayLike | None = None, ego_size: npt.ArrayLike = EGO_SIZE) -> PreparedFrame:
+                past_motion: npt.ArrayLike | None = None, ego_size: npt.ArrayLike = EGO_SIZE,
+                red_areas: Sequence[RedArea] | None = None) -> PreparedFrame:
         """Prepare a frame from the arguments of `pdm_score` (less the plan); a whole map is cut to the
         polygons around the ego (`LocalDrivable`). The expert is tracked and judged once here: its progress
         and its multiplier (its own NC times DAC, as NAVSIM masks the reference's progress), and its EPDMS
         terms for the human filter (`lanes`: the lanes around the ego, in its frame). `expert_states`: the
         expert already tracked from this ego in a batch of frames (`tracked_experts`), the same states.
         `past_motion`: the past keyframes' motion (`Frame.past_motion`) for history comfort (None: hc 1).
-        `ego_size`: the ego box (length, width) every box test of the plan and the expert uses (`EGO_BOXES`)."""
+        `ego_size`: the ego box (length, width) every box test of the plan and the expert uses (`EGO_BOXES`).
+        `red_areas`: the lights' areas and red states (`lights.RedArea`) for tlc (None: not scored)."""
         size = np.array(ego_size, dtype=np.float64).reshape(2)
         expert_arr = waypoints(expert, "expert")
         steps = agent_steps(agents, len(expert_arr))
@@ -138,12 +142,13 @@ class PreparedFrame:
         # judge a plan (`score_tracked`): the reference's contacts in the reference's order, 6x cheaper
         bare = cls(expert_arr, tuple(steps), tuple(ids), tuple(seen), start, drivable, ego_pose,
                    tuple(static_categories), path, progress_along(path, es.xy[-1]), math.nan, boxes, index, reach,
-                   lanes, past, None, size)
+                   lanes, past, None, size, None if red_areas is None else tuple(red_areas))
         expert_nc = collision_score(es, bare.collisions(es), expert_astray, static_categories=static_categories,
                                     size=size)
         dac = 0.0 if expert_off.any() else 1.0
         query = lane_query(es, lanes)
-        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), float("nan"), 1.0,
+        tlc = traffic_light_compliance(es, bare.red_areas, size)
+        human = ExtendedTerms(expert_nc, dac, driving_direction(es, lanes, query), tlc, 1.0,
                               ttc_score(es, bare.projections(es), expert_ttc_astray),
                               lane_keeping(es, lanes, query), 1.0)  # NAVSIM scores the human without a past
         return replace(bare, expert_multiplier=expert_nc * dac, human=human)
@@ -164,7 +169,8 @@ class PreparedFrame:
                             route=route_centreline(lane_map, frame.pose, logged))
         return cls.prepare(expert, agents, frame.ego, drivable, frame.pose,
                            static_categories=static_categories, lanes=lanes, expert_states=expert_states,
-                           past_motion=frame.past_motion, ego_size=ego_size)
+                           past_motion=frame.past_motion, ego_size=ego_size,
+                           red_areas=red_areas(lane_map, frame.pose, frame.timestamp, poses))
 
     def _hit_pairs(self, xy: np.ndarray, heading: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Ego boxes at xy (Q, 2) / heading (Q,) against the agent boxes of waypoint `step` (Q,): the (query,
@@ -240,7 +246,7 @@ class PreparedFrame:
     def extended(self, ps: EgoStates, result: PDMSResult) -> ExtendedTerms:
         """The plan's EPDMS terms before the human filter, from its tracked states and its PDMS `result`:
         ddc and lk on the lanes, NAVSIM v2's progress (against the expert's multiplied progress, the multiplier
-        now with ddc), history comfort; tlc is not scored (no traffic lights in the data)."""
+        now with ddc), history comfort; tlc where the frame's map has traffic lights (`lights`)."""
         query = lane_query(ps, self.lanes)
         ddc = driving_direction(ps, self.lanes, query)
         expert_ddc = self.human.ddc if self.human is not None else float("nan")
@@ -249,7 +255,8 @@ class PreparedFrame:
         ep = ep_v2(result.progress_m, plan_mult, self.expert_m, expert_mult)
         lk = lane_keeping(ps, self.lanes, query)
         hc = history_comfort(ps, self.past)
-        return ExtendedTerms(result.nc, result.dac, ddc, float("nan"), ep, result.ttc, lk, hc)
+        tlc = traffic_light_compliance(ps, self.red_areas, self.ego_size)
+        return ExtendedTerms(result.nc, result.dac, ddc, tlc, ep, result.ttc, lk, hc)
 
 
 def tracked_experts(frames: Sequence[Frame], poses: int = HORIZON_STEPS) -> dict[str, EgoStates]:

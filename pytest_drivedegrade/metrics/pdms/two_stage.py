@@ -10,17 +10,35 @@ every weight underflows to 0). The stage-two score is the weighted mean of the s
 score is stage one's times stage two's; the frame's two-stage score is the mean of its two groups (now and the
 frame before), and the run's the mean over frames.
 
-Pure functions; what is not built (stage two's start states, its rendered cameras and planner calls inside a
-cell) is listed in docs/explanation/navsim.md.
+Pure functions and constants; stage two's frames, rendered cameras and planner calls inside a cell are
+`closedloop.twostage`'s (--drivedegrade-two-stage).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import numpy.typing as npt
 
 #: NAVSIM's SceneAggregator.sigma_squared (m^2): the Gaussian kernel's variance.
 SIGMA_SQUARED: float = 0.1
+#: The stage-two start poses, (forward m, left m, yaw rad) from the logged ego pose in its own frame: the logged
+#: pose, half a metre to each side, a metre ahead and behind, 5 degrees to each side. NAVSIM's come from its
+#: synthetic-scene data set (navhard_two_stage), which the suite does not have: an adaptation.
+STAGE_TWO_STARTS: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, -0.5, 0.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0),
+    (0.0, 0.0, math.radians(5.0)), (0.0, 0.0, -math.radians(5.0)))
+
+
+def certificate_section() -> dict[str, object]:
+    """The certificate's ``two_stage`` section: how a two-stage run (--drivedegrade-two-stage) scored its stage two
+    (the start poses, forward m, left m, yaw rad; the kernel's variance; the aggregation; where the images came
+    from)."""
+    return {"starts": [list(s) for s in STAGE_TWO_STARTS], "sigma_squared": SIGMA_SQUARED,
+            "aggregation": "per frame: stage one's EPDMS x the Gaussian-weighted mean of its stage-two starts' EPDMS "
+                           "(NAVSIM v2); the cell's epdms2 is the mean over the frames with a stage two",
+            "render": "the embedded world at each start pose, corrupted by the cell's operator"}
 
 
 def stage_two_weights(endpoint: npt.ArrayLike, starts: npt.ArrayLike, sigma_squared: float = SIGMA_SQUARED
