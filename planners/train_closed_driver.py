@@ -22,7 +22,8 @@ expert brakes W times as often; `--final-epochs`, `--threads`.
     python planners/train_closed_driver.py [--routes 50] [--rounds 2] [--epochs 20] [--beta 0.2] [--world CACHE_ROOT]
 
 The committed weights were made with the defaults (5859 samples; 1400 s on this 2-core machine while shared).
-Same seed, thread count and torch: the same weights, tensor for tensor. One experiment with the levers (54 routes,
+Reruns gather the same data but do not train bit-identical weights across processes (cause not found;
+docs/how-to/closed-loop.md gives the spread). One experiment with the levers (54 routes,
 two thirds scenario, 3 rounds, --corrupt 0.3 with low light, --brake-weight 2: 2567 s) scored worse on the slice
 and is documented in docs/how-to/closed-loop.md.
 """

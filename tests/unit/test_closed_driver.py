@@ -134,8 +134,8 @@ def test_the_training_routes_are_not_the_slices(small_world: Path) -> None:
 
 
 def test_training_is_deterministic_for_a_seed() -> None:
-    """The recipe's training step on the same data and seed gives the same weights, tensor for tensor (the
-    committed weights' reproducibility rests on it; the gathering is seeded the same way)."""
+    """The recipe's training step on the same data and seed gives the same weights, tensor for tensor, within a
+    process (across processes the whole recipe's weights differ: docs/how-to/closed-loop.md)."""
     rng = np.random.default_rng(3)
     pix = rng.integers(0, 256, (40, 6, 45, 80), dtype=np.uint8)
     feats = rng.normal(size=(40, FEATURE_SIZE)).astype(np.float32)
