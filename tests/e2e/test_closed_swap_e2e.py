@@ -110,11 +110,20 @@ def test_the_expert_follows_the_swapped_command_and_a_command_ignoring_planner_d
     assert figure["complete_runs"] == 0 and figure["ds_mean"] < 80
 
 
-def test_the_swap_cell_reproduces_and_a_tampered_figure_fails_verify(dd, capsys):
+def test_the_swap_cell_shards_merge_reproduces_and_a_tampered_figure_fails_verify(dd, capsys):
     result, folder = drive(dd, True, "-p", "no:xdist")
     assert result.ret == 0, result.stdout.str()
     cert_path = folder / "certificate.json"
     cert = load_json(cert_path)
+    for i in (1, 2):  # the swap cell's two runs fall one to each shard
+        shard, _ = drive(dd, True, "-p", "no:xdist", "--drivedegrade-shard", f"{i}/2", report="sh")
+        assert shard.ret == 0, shard.stdout.str()
+    shards, out = dd.pytester.path / "sh" / "told", dd.pytester.path / "merged"
+    assert main(["merge", str(shards / "shard-2-of-2"), str(shards / "shard-1-of-2"), "--out", str(out)]) == 0
+    assert (out / "told" / "closed_loop.csv").read_text() == (folder / "closed_loop.csv").read_text()
+    merged = load_json(out / "told" / "certificate.json")["closed_loop"]
+    assert merged["cells"] == cert["closed_loop"]["cells"] and merged["command_swap"] == \
+        cert["closed_loop"]["command_swap"]
     capsys.readouterr()
     assert main(["reproduce", str(cert_path), str(dd.pytester.path / "told.py"), "--closed-cells", "1",
                  "--seed", "0"]) == 0
