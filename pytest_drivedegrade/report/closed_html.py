@@ -127,9 +127,25 @@ def _null_text(analysis: ClosedAnalysis, imported: bool, imported_null: str = "b
             "difference from clean reaches into the band is not separable from the null.")
 
 
-def _swap_note(analysis: ClosedAnalysis) -> str:
-    from .closed_outputs import swap_text
+def swap_text(analysis: ClosedAnalysis) -> str | None:
+    """What the command swap measured, in a sentence (None when its cell did not run)."""
+    got = analysis.command_swap
+    if got is None:
+        return None
 
+    def num(key: str, digits: int) -> str:
+        value = got.get(key)
+        return f"{float(value):.{digits}f}" if isinstance(value, (int, float)) else "n/a"
+
+    return (f"command followed in closed loop: {num('command_followed', 3)} (mean route completion of "
+            f"{got.get('routes')} junction route(s) swapped to go straight on, {got.get('complete_runs')} of "
+            f"{got.get('runs')} run(s) complete, DS {num('ds_mean', 1)}); the same routes unswapped in closed-clean: "
+            f"completion {num('clean_completion', 3)}, DS {num('clean_ds_mean', 1)}. A planner that turns where the "
+            "log turned, whatever the command says, leaves the swapped route at the junction; one that never turns "
+            "completes it, but not the routes unswapped")
+
+
+def _swap_note(analysis: ClosedAnalysis) -> str:
     text = swap_text(analysis) or ""
     return (f"{SWAP_CELL} drives the junction routes with their command swapped (the route goes straight on where "
             f"the log turned; the planner is told STRAIGHT there): {text[0].upper()}{text[1:]}. It is not paired "

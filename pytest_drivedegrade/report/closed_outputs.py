@@ -60,23 +60,6 @@ def _agreement(agrees: bool | None) -> str:
     return "yes" if agrees else "no"
 
 
-def swap_text(analysis: ClosedAnalysis) -> str | None:
-    """What the command swap measured, in a sentence (None when its cell did not run)."""
-    got = analysis.command_swap
-    if got is None:
-        return None
-
-    def num(key: str, digits: int) -> str:
-        value = got.get(key)
-        return _fmt(float(value), digits) if isinstance(value, (int, float)) else "n/a"
-
-    return (f"command followed in closed loop: {num('command_followed', 3)} (mean route completion of "
-            f"{got.get('routes')} junction route(s) swapped to go straight on, {got.get('complete_runs')} of "
-            f"{got.get('runs')} run(s) complete, DS {num('ds_mean', 1)}); the same routes unswapped in closed-clean: "
-            f"completion {num('clean_completion', 3)}, DS {num('clean_ds_mean', 1)}. A planner that turns where the "
-            "log turned, whatever the command says, leaves the swapped route at the junction")
-
-
 def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> list[str]:
     """The terminal summary of the closed cells: one line per cell, the null control, the verdict (`run` None:
     runs imported from CARLA, whose null control is `imported_null` against clean)."""
@@ -88,6 +71,8 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null:
                      f"{_fmt(c.completion, 3)}, retention {_fmt(c.retention, 3)} [{_fmt(c.retention_low, 3)}, "
                      f"{_fmt(c.retention_high, 3)}], {c.unscored} of {len(c.rows)} unscored; {kinds}"
                      + ("; not separable from the null" if c.separable_from_null is False else ""))
+    from .closed_html import swap_text
+
     swap = swap_text(analysis)
     lines += [f"  {swap}"] if swap else []
     null = analysis.null
