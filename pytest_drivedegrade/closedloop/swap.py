@@ -12,7 +12,11 @@ logged drive, or as the swapped lane allows from the start when that is shorter.
 The privileged expert given the swapped route (`expert.WorldExpert` over the swapped routes: the logged speeds
 along the swapped lane) completes it; a planner that ignores the command and turns where the log turned leaves
 the swapped lane at the junction and the run ends deviated, its completion the share driven before it.
-`swap_cell` runs the junction routes' swapped routes as one closed cell, ``closed-command_swap``.
+Only junction routes whose logged lane gets farther than the route deviation (`leaderboard.DEVIATION_M`) from
+the swapped lane are driven (`junction_routes`): on the others the logged drive ends soon after the junction and
+a planner that ignores the command completes the swapped route or nearly. `swap_cell` runs the swapped routes
+as one closed cell, ``closed-command_swap``; the plugin drives the same cell (`plugin.closed.drive`,
+``--drivedegrade-closed-cells ...,command_swap``) and `closedloop.analysis.swap_figures` reads it.
 """
 
 from __future__ import annotations
