@@ -12,12 +12,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cells import NULL_CELL, Json, as_int, as_map, as_opt_float, closed_id, trace_digest
+from .cells import NULL_CELL, SWAP, Json, as_int, as_map, as_opt_float, closed_id, trace_digest
 from .results import END_UNSCORED, RunResult
 
 CLEAN = closed_id("clean", 0)
 NULL = closed_id(*NULL_CELL)
 REMOVAL = closed_id("blackout", 5)
+SWAP_CELL = closed_id(SWAP, 0)
+#: The suffix of a swapped route's name (`swap.swapped_route`).
+SWAP_SUFFIX = "-swap"
 
 
 @dataclass(frozen=True)
@@ -203,3 +206,22 @@ def null_figures(cells: Mapping[str, CellFigures], reads_rear: bool, null_rows: 
     return NullFigures(mode, passed, None if first is None else first.route, None if first is None else first.seed,
                        None if first is None else first_step, wander, min(lows, default=None),
                        max(highs, default=None), tuple(other.rows) if mode == "wander" else ())
+
+
+def swap_figures(cells: Mapping[str, CellFigures]) -> dict[str, Json] | None:
+    """The command swap in the closed loop (None when its cell did not run): its runs are over other routes than
+    clean's (the junction routes swapped, ``<route>-swap``), so it is never paired with clean run for run, has no
+    retention and no axis; beside its own figures stand clean's over the same junction routes unswapped.
+    ``command_followed`` is the swapped routes' mean completion: 1 when the planner went where it was told."""
+    swap = cells.get(SWAP_CELL)
+    if swap is None:
+        return None
+    routes = {r.route[:-len(SWAP_SUFFIX)] for r in swap.rows if r.route.endswith(SWAP_SUFFIX)}
+    clean = cells.get(CLEAN)
+    same = CellFigures(CLEAN, "clean", 0, tuple(r for r in clean.rows if r.route in routes)) if clean else None
+    complete = [r for r in swap.rows if r.completion is not None and r.completion >= 1.0]
+    return {"cell": SWAP_CELL, "routes": len(routes), "runs": len(swap.rows), "unscored": swap.unscored,
+            "command_followed": swap.completion, "complete_runs": len(complete), "ds_mean": swap.mean,
+            "clean_runs": None if same is None else len(same.rows),
+            "clean_completion": None if same is None else same.completion,
+            "clean_ds_mean": None if same is None else same.mean}

@@ -25,6 +25,9 @@ SLICE: tuple[tuple[str, int], ...] = (("clean", 0), ("gaussian_blur", 3), ("gaus
                                       ("motion_blur", 5), ("blackout", 5), ("blackout", 3))
 #: The null control's cell: blackout S3 darkens exactly the rear three cameras.
 NULL_CELL = ("blackout", 3)
+#: The command swap's cell (`closedloop.swap`, issue 40): clean cameras, the junction routes with their command
+#: swapped (the route going straight on where the log turned). Not in the slice; in `all`, or named in a list.
+SWAP = "command_swap"
 #: Version of a stored closed cell (part of its run key). 2 (spec 5): runs scored as the CARLA leaderboard scores
 #: them (every collision, percentage infractions with their value, route deviation and blocked ends).
 CLOSED_RECORD_VERSION = 2
@@ -64,25 +67,27 @@ def as_map(value: object, where: str = "value") -> Mapping[str, object]:
 
 
 def closed_id(family: str, severity: int) -> str:
-    """`closed-clean` or `closed-<family>-s<severity>`."""
-    return f"{PREFIX}clean" if family == "clean" else f"{PREFIX}{family}-s{int(severity)}"
+    """`closed-clean`, `closed-command_swap` or `closed-<family>-s<severity>`."""
+    return f"{PREFIX}{family}" if family in ("clean", SWAP) else f"{PREFIX}{family}-s{int(severity)}"
 
 
 def parse_id(cell: str) -> tuple[str, int]:
     """(family, severity) of a closed cell id (with or without the `closed-` prefix); InvalidInput otherwise."""
     name = cell[len(PREFIX):] if cell.startswith(PREFIX) else cell
-    if name == "clean":
-        return "clean", 0
+    if name in ("clean", SWAP):
+        return name, 0
     family, sep, sev = name.rpartition("-s")
     if not sep or not sev.isdigit():
-        raise InvalidInput(f"{cell!r} is not a closed-loop cell (clean or <family>-s<severity>, e.g. blackout-s5)")
+        raise InvalidInput(f"{cell!r} is not a closed-loop cell (clean, {SWAP} or <family>-s<severity>, e.g. "
+                           "blackout-s5)")
     return family, int(sev)
 
 
 def selection(text: str) -> list[tuple[str, int]]:
-    """The cells of `--drivedegrade-closed-cells`: `slice`, `all` (the slice and every other family at S3 and
-    S5), or a comma-separated list of cells (clean, blackout-s5, closed-motion_blur-s3, ...), always with
-    clean first and blackout S3 (when present) last. DriveDegradeError naming what is wrong."""
+    """The cells of `--drivedegrade-closed-cells`: `slice`, `all` (the slice, every other family at S3 and S5,
+    and the command swap), or a comma-separated list of cells (clean, blackout-s5, closed-motion_blur-s3,
+    command_swap, ...), always with clean first and blackout S3 (when present) last. DriveDegradeError naming
+    what is wrong."""
     from ..corruptions.ladder import FAMILIES, SEVERITIES
 
     text = text.strip()
@@ -90,14 +95,15 @@ def selection(text: str) -> list[tuple[str, int]]:
         cells = list(SLICE)
     elif text == "all":
         cells = [*SLICE[:-1], *((f, s) for f in FAMILIES if f not in ("gaussian_blur", "motion_blur", "blackout")
-                                for s in (3, 5)), NULL_CELL]
+                                for s in (3, 5)), (SWAP, 0), NULL_CELL]
     else:
         cells = []
         for part in (p.strip() for p in text.split(",") if p.strip()):
             family, severity = parse_id(part)
-            if family != "clean" and (family not in FAMILIES or severity not in SEVERITIES):
+            if family not in ("clean", SWAP) and (family not in FAMILIES or severity not in SEVERITIES):
                 raise DriveDegradeError(f"unknown closed-loop cell {part!r}: give slice, all, or cells such as "
-                                        f"clean,blackout-s5 (families: {', '.join(FAMILIES)}; severities 1..5)")
+                                        f"clean,blackout-s5 (families: {', '.join(FAMILIES)}; severities 1..5) "
+                                        f"or {SWAP}")
             if (family, severity) not in cells:
                 cells.append((family, severity))
         if not cells:

@@ -12,7 +12,11 @@ logged drive, or as the swapped lane allows from the start when that is shorter.
 The privileged expert given the swapped route (`expert.WorldExpert` over the swapped routes: the logged speeds
 along the swapped lane) completes it; a planner that ignores the command and turns where the log turned leaves
 the swapped lane at the junction and the run ends deviated, its completion the share driven before it.
-`swap_cell` runs the junction routes' swapped routes as one closed cell, ``closed-command_swap``.
+Only junction routes whose logged lane gets farther than the route deviation (`leaderboard.DEVIATION_M`) from
+the swapped lane are driven (`junction_routes`): on the others the logged drive ends soon after the junction and
+a planner that ignores the command completes the swapped route or nearly. `swap_cell` runs the swapped routes
+as one closed cell, ``closed-command_swap``; the plugin drives the same cell (`plugin.closed.drive`,
+``--drivedegrade-closed-cells ...,command_swap``) and `closedloop.analysis.swap_figures` reads it.
 """
 
 from __future__ import annotations
@@ -28,12 +32,14 @@ from ..data.world.roads import Path as LanePath
 from ..data.world.roads import in_junction
 from ..data.world.scene import KEYFRAMES
 from ..planning import Planner
+from .cells import SWAP, closed_id
+from .leaderboard import DEVIATION_M
 from .results import CellResult
 from .routes import Route
 from .simulate import Rules, Timings, run_route
 
 #: The closed cell of swapped routes.
-SWAP_CELL = "closed-command_swap"
+SWAP_CELL = closed_id(SWAP, 0)
 #: The road straight on beyond a turning junction reaches this far (m) from the junction's centre
 #: (`roads.build_roads`' ``ahead`` road).
 AHEAD_M = 90.0
@@ -80,9 +86,27 @@ def swapped_route(route: Route) -> Route | None:
                    length=float(length))
 
 
+def parting_m(route: Route, swap: Route) -> float:
+    """How far (m) the route's logged lane gets from its swapped lane along the swapped route (0.5 m steps):
+    where a planner that turns where the log turned ends up, at most, measured from where it was told to go."""
+    s = np.arange(swap.start_s, swap.start_s + swap.length + 1e-9, 0.5)
+    x, y, _ = swap.lane.at(s)
+    _, d = route.lane.project(np.stack([x, y], axis=1))
+    return float(np.abs(d).max())
+
+
 def junction_routes(routes: Sequence[Route]) -> list[Route]:
-    """The swapped routes of the junction routes among `routes`, in their order."""
-    return [s for s in (swapped_route(r) for r in routes) if s is not None]
+    """The swapped routes of the junction routes among `routes`, in their order: those whose logged lane parts
+    from the swapped lane by more than the leaderboard's route deviation (`DEVIATION_M`) before the route ends,
+    so that a planner that turns where the log turned ends deviated. A route whose logged drive ends soon after
+    the junction (its lanes a few metres apart by then) would score such a planner complete: it cannot tell
+    whether the command was followed, and is left out."""
+    out = []
+    for route in routes:
+        swap = swapped_route(route)
+        if swap is not None and parting_m(route, swap) > DEVIATION_M:
+            out.append(swap)
+    return out
 
 
 def swap_cell(planner: Planner, routes: Sequence[Route], seeds: tuple[int, ...] = (0,),
@@ -95,4 +119,4 @@ def swap_cell(planner: Planner, routes: Sequence[Route], seeds: tuple[int, ...] 
     return CellResult.of(SWAP_CELL, runs)
 
 
-__all__ = ["SWAP_CELL", "junction_routes", "swap_cell", "swapped_lane", "swapped_route"]
+__all__ = ["SWAP_CELL", "junction_routes", "parting_m", "swap_cell", "swapped_lane", "swapped_route"]

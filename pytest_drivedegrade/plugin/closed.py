@@ -18,6 +18,7 @@ from ..closedloop.analysis import RunRow, first_difference, parting_step
 from ..closedloop.cells import (
     CLOSED_RECORD_VERSION,
     NULL_CELL,
+    SWAP,
     ClosedPayload,
     ClosedRecord,
     as_float,
@@ -30,6 +31,7 @@ from ..closedloop.cells import (
 from ..closedloop.results import RunResult
 from ..closedloop.routes import Route, load_routes
 from ..closedloop.simulate import Corruption, Rules, Timings, run_route
+from ..closedloop.swap import junction_routes
 from ..errors import DriveDegradeError, InvalidInput
 from ..pacing import closed_threads, opencv_share
 from ..planning import planner_name
@@ -53,6 +55,7 @@ class ClosedState:
     stored once)."""
 
     routes: list[Route] | None = None
+    swapped: list[Route] | None = None
     clean: dict[int, ClosedRecord] = field(default_factory=dict)
 
     def route_list(self, context: RunContext) -> list[Route]:
@@ -61,6 +64,14 @@ class ClosedState:
             self.routes = load_routes(context.reader.root, context.settings.closed_scenarios, limit=limit,
                                       lights=context.settings.closed_lights)
         return self.routes
+
+    def cell_routes(self, context: RunContext, family: str) -> list[Route]:
+        """The routes a cell drives: every route, or for the command swap the junction routes swapped."""
+        if family != SWAP:
+            return self.route_list(context)
+        if self.swapped is None:
+            self.swapped = junction_routes(self.route_list(context))
+        return self.swapped
 
 
 def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
@@ -77,7 +88,7 @@ def closed_key(context: RunContext, planner: AnyPlanner) -> dict[str, Builtin]:
 def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: str, severity: int) -> ClosedRecord:
     """Every run of the cell this process drives (a shard's share of them), in run order."""
     s = context.settings
-    routes = {r.name: r for r in state.route_list(context)}  # the names; actors build their own routes
+    routes = {r.name: r for r in state.cell_routes(context, family)}  # the names; actors build their own routes
     runs = run_list(list(routes), [s.seed + k for k in range(s.closed_seeds)], family)
     if s.shard is not None:
         runs = shard_runs(runs, s.shard.index, s.shard.count)
@@ -86,9 +97,10 @@ def drive(context: RunContext, state: ClosedState, planner: AnyPlanner, family: 
                                 s.closed_agents, Rules(s.closed_collisions, s.timeout), s.closed_scenarios,
                                 s.closed_lights)
     timings, out, threads = Timings(), [], closed_threads(s)
+    corruption = Corruption() if family == SWAP else Corruption(family, severity)  # the swap: clean cameras
     with opencv_share(), ThreadPoolExecutor(threads, "drivedegrade-closed") if threads else nullcontext() as pool:
         for route, seed in runs:
-            out.append(run_route(planner, routes[route], Corruption(family, severity), seed, timings,
+            out.append(run_route(planner, routes[route], corruption, seed, timings,
                                  plan_every=SIM_HZ // s.closed_hz, max_steps=s.closed_steps, agents=s.closed_agents,
                                  pool=pool, rules=Rules(s.closed_collisions, s.timeout)))
     seconds = {"render": timings.render, "plan": timings.plan, "track": timings.track, "score": timings.score}
@@ -181,6 +193,11 @@ def certify_closed(context: RunContext, state: ClosedState, planner: AnyPlanner,
     else:
         record = stored.record if stored else drive(context, state, planner, family, severity)
     failures = [f"run {r.route} (seed {r.seed}) unscored: {r.error}" for r in record.runs if r.ds is None]
+    if family == SWAP and not record.runs:
+        failures.append(f"{cell}: none of the {len(state.route_list(context))} closed-loop route(s) turns at a "
+                        "junction its logged ego enters, so no command can be swapped; drive more routes "
+                        "(--drivedegrade-closed-routes, --drivedegrade-closed-scenarios) or leave command_swap out of "
+                        "--drivedegrade-closed-cells")
     if (family, severity) == NULL_CELL:
         rear = reads_rear(context, planner)
         if rear and not record.null_runs:  # the null is an untouched rerun of clean: how far does it wander?

@@ -106,8 +106,11 @@ OPTIONS: tuple[OptionSpec, ...] = (
                "closed: it drives the embedded world through the degraded cameras (cells closed-clean, "
                "closed-blackout-s5, ...); both", {"metavar": "open|closed|both"}),
     OptionSpec("--drivedegrade-closed-cells", "drivedegrade_closed_cells", "closed-loop cells: slice (default: "
-               "clean, gaussian_blur and motion_blur S3/S5, blackout S3 (the null control) and S5), all (the slice "
-               "and every other family at S3 and S5), or a list such as clean,blackout-s5", {"metavar": "CELLS"}),
+               "clean, gaussian_blur and motion_blur S3/S5, blackout S3 (the null control) and S5), all (the slice, "
+               "every other family at S3 and S5 and command_swap), or a list such as clean,blackout-s5; "
+               "command_swap drives the junction routes with their command swapped (straight on where the log "
+               "turned) and reports the mean completion as 'command followed in closed loop'",
+               {"metavar": "CELLS"}),
     OptionSpec("--drivedegrade-closed-seeds", "drivedegrade_closed_seeds", "corruption seeds every closed-loop "
                "route runs under (default 2)", {"metavar": "K"}),
     OptionSpec("--drivedegrade-closed-hz", "drivedegrade_closed_hz", "closed-loop planner calls per second: 1, 2 "

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..atomic import atomic_write_text
 from ..certificate.closed import ClosedRun
+from ..closedloop.analysis import SWAP_CELL
 from ..closedloop.results import RunResult
 from ..scoring.closed_loop import ClosedAnalysis
 from .plots import ACCENT, INK, MUTED, _figure, _style, to_data_uri
@@ -59,7 +60,7 @@ def divergent(run: ClosedRun, n: int = 3) -> list[tuple[str, RunResult, RunResul
         return []
     found = []
     for cell, record in records.items():
-        if cell == "closed-clean":
+        if cell in ("closed-clean", SWAP_CELL):  # the swap drives other routes than clean's
             continue
         for a, b in zip(clean.runs, record.runs):
             found.append((cell, a, b, _parting(a, b)))
@@ -126,6 +127,31 @@ def _null_text(analysis: ClosedAnalysis, imported: bool, imported_null: str = "b
             "difference from clean reaches into the band is not separable from the null.")
 
 
+def swap_text(analysis: ClosedAnalysis) -> str | None:
+    """What the command swap measured, in a sentence (None when its cell did not run)."""
+    got = analysis.command_swap
+    if got is None:
+        return None
+
+    def num(key: str, digits: int) -> str:
+        value = got.get(key)
+        return f"{float(value):.{digits}f}" if isinstance(value, (int, float)) else "n/a"
+
+    return (f"command followed in closed loop: {num('command_followed', 3)} (mean route completion of "
+            f"{got.get('routes')} junction route(s) swapped to go straight on, {got.get('complete_runs')} of "
+            f"{got.get('runs')} run(s) complete, DS {num('ds_mean', 1)}); the same routes unswapped in closed-clean: "
+            f"completion {num('clean_completion', 3)}, DS {num('clean_ds_mean', 1)}. A planner that turns where the "
+            "log turned, whatever the command says, leaves the swapped route at the junction; one that never turns "
+            "completes it, but not the routes unswapped")
+
+
+def _swap_note(analysis: ClosedAnalysis) -> str:
+    text = swap_text(analysis) or ""
+    return (f"{SWAP_CELL} drives the junction routes with their command swapped (the route goes straight on where "
+            f"the log turned; the planner is told STRAIGHT there): {text[0].upper()}{text[1:]}. It is not paired "
+            "with closed-clean run for run (other routes), so it has no retention and no axis.")
+
+
 def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null: str = "blackout S3") -> str:
     """The section's HTML (escaped text; charts as data URIs); `run` None for runs imported from CARLA (no
     traces: the simulator keeps them)."""
@@ -150,6 +176,7 @@ def closed_fragment(analysis: ClosedAnalysis, run: ClosedRun | None, imported_nu
         "<table><tr><th>cell</th><th>runs</th><th>unscored</th><th>DS mean (std)</th><th>bounds</th>"
         "<th>completion</th><th>retention [bounds]</th><th>infractions</th><th>separable</th></tr>"
         + "".join(rows) + "</table>"
+        + (f"<p>{e(_swap_note(analysis))}</p>" if analysis.command_swap is not None else "") +
         f"<p>{_null_text(analysis, run is None, imported_null)}</p>"
         f"<p>Closed-loop verdict: <b>{e(analysis.label)}</b>{e(also)}"
         f". Availability-versus-quality separation: {e(str(separation.get('holds')))}; under every assignment of the "

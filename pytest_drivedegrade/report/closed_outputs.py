@@ -71,6 +71,10 @@ def closed_lines(analysis: ClosedAnalysis, run: ClosedRun | None, imported_null:
                      f"{_fmt(c.completion, 3)}, retention {_fmt(c.retention, 3)} [{_fmt(c.retention_low, 3)}, "
                      f"{_fmt(c.retention_high, 3)}], {c.unscored} of {len(c.rows)} unscored; {kinds}"
                      + ("; not separable from the null" if c.separable_from_null is False else ""))
+    from .closed_html import swap_text
+
+    swap = swap_text(analysis)
+    lines += [f"  {swap}"] if swap else []
     null = analysis.null
     if null is not None and null.mode == "identical":
         how = "bit for bit" if run is not None else "DS and end alike (the simulator keeps the traces)"

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..closedloop.analysis import CLEAN, NULL, CellFigures, NullFigures, RunRow, null_figures
+from ..closedloop.analysis import CLEAN, NULL, SWAP_CELL, CellFigures, NullFigures, RunRow, null_figures, swap_figures
 from ..closedloop.cells import Json, as_float, as_list, as_map, parse_id
 from ..closedloop.results import RunResult
 from ..constants import DEFAULT_FLAT
@@ -56,6 +56,7 @@ class ClosedAnalysis:
     flat: float
     open_label: str | None
     reason: str | None = None  #: why the label is undetermined (a failed null, unscored runs that sway it)
+    command_swap: Mapping[str, Json] | None = None  #: the command swap's figures (`analysis.swap_figures`)
 
     @property
     def robust(self) -> bool:
@@ -81,7 +82,8 @@ class ClosedAnalysis:
                 "verdict": {"label": self.label, "labels_under_bounds": labels, "robust": self.robust,
                             "flat": self.flat, "reason": self.reason,
                             "basis": "paired route bootstrap (routes resampled, seeds averaged per route)"},
-                "separation": separation, "open_loop": {"label": self.open_label, "agrees": self.agrees}}
+                "separation": separation, "open_loop": {"label": self.open_label, "agrees": self.agrees},
+                "command_swap": None if self.command_swap is None else dict(self.command_swap)}
 
 
 def _retentions(cells: Sequence[CellFigures], reads_rear: bool, null: NullFigures | None,
@@ -94,6 +96,9 @@ def _retentions(cells: Sequence[CellFigures], reads_rear: bool, null: NullFigure
     kv = rs.route_values(clean.rows, draws.routes, None)
     out = []
     for c in cells:
+        if c.cell == SWAP_CELL:  # other routes than clean's: no pairing, no retention (`swap_figures`)
+            out.append(c)
+            continue
         (lo, hi), (clo, chi) = c.bounds, clean.bounds
         p = rs.paired(draws, rs.route_values(c.rows, draws.routes, None), kv)
         diff = draws.interval(p.difference) if c.cell != CLEAN else None
@@ -237,7 +242,7 @@ def analyse_rows(rows: Mapping[str, Sequence[RunRow]], *, reads_rear: bool = Fal
     label, reason = _headline(_label(q, r, flat), corners, null, cells, groups)
     labels = tuple(corners) + tuple(_interval_corners(ax, draws, flat))
     return ClosedAnalysis(tuple(cells), null, axes, label, labels, _separation(cells, groups, axes, ax, draws),
-                          flat, open_label, reason)
+                          flat, open_label, reason, swap_figures(by_id))
 
 
 def _with_band(null: NullFigures | None, cells: Mapping[str, CellFigures], draws: rs.RouteDraws) \
@@ -306,7 +311,7 @@ def check_section(section: Mapping[str, object], open_label: str | None) -> list
         theirs = by_cell.get(mine["cell"])
         _diff(problems, f"closed_loop.cells.{mine['cell']}", _legacy(theirs, LEGACY_CELL) if legacy else theirs,
               _legacy(mine, LEGACY_CELL) if legacy else mine)
-    for key in ("null_control", "axes", "verdict", "separation", "open_loop"):
+    for key in ("null_control", "axes", "verdict", "separation", "open_loop", "command_swap"):
         if legacy and key in LEGACY_SECTION:
             _diff(problems, f"closed_loop.{key}", _legacy(section.get(key), LEGACY_SECTION[key]),
                   _legacy(got[key], LEGACY_SECTION[key]))

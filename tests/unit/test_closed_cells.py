@@ -44,7 +44,11 @@ def test_the_slice_is_the_papers_seven_with_clean_first_and_the_null_last() -> N
     assert selection("slice") == list(SLICE) and len(SLICE) == 7
     assert SLICE[0] == ("clean", 0) and SLICE[-1] == ("blackout", 3)
     every = selection("all")
-    assert every[0] == ("clean", 0) and every[-1] == ("blackout", 3) and len(every) == 7 + 2 * 13
+    assert every[0] == ("clean", 0) and every[-1] == ("blackout", 3) and len(every) == 7 + 2 * 13 + 1
+    assert every[-2] == ("command_swap", 0) and ("command_swap", 0) not in SLICE  # opt-in: `all` or named
+    assert selection("command_swap,clean") == [("clean", 0), ("command_swap", 0)]
+    assert closed_id("command_swap", 0) == "closed-command_swap" and parse_id("closed-command_swap") == \
+        ("command_swap", 0) and parse_id("command_swap") == ("command_swap", 0)
     assert selection("blackout-s3, closed-motion_blur-s5,clean") == [("clean", 0), ("motion_blur", 5),
                                                                       ("blackout", 3)]
     assert [closed_id(*c) for c in SLICE[:2]] == ["closed-clean", "closed-gaussian_blur-s3"]

@@ -76,3 +76,64 @@ def test_the_expert_given_the_swapped_route_completes_it_and_a_command_ignoring_
     cell = swap_cell(WorldExpert([swap]), [turning])
     assert cell.cell == SWAP_CELL and [r.route for r in cell.runs] == [swap.name]
     assert cell.runs[0].completion == told.completion and cell.runs[0].ds == told.ds  # deterministic
+
+
+def test_a_junction_route_whose_logged_drive_stays_near_the_swapped_lane_is_not_driven() -> None:
+    """Scenario route 14 turns right, but the logged drive ends 1.4 m from the swapped lane: the planner that
+    turns where the log turned completes its swapped route, so it cannot tell whether the command was followed
+    and the cell leaves it out; route 9's logged lane ends 42 m off the swapped one and is driven."""
+    from pytest_drivedegrade.closedloop.leaderboard import DEVIATION_M
+    from pytest_drivedegrade.closedloop.swap import parting_m
+
+    near, far = route_of(scenario_scene(0, 14)), route_of(scenario_scene(0, 9))
+    swap_near, swap_far = swapped_route(near), swapped_route(far)
+    assert swap_near is not None and swap_far is not None
+    assert parting_m(near, swap_near) < 2.0 < DEVIATION_M < parting_m(far, swap_far) < 45.0
+    went = run_route(WorldExpert([replace(near, name=swap_near.name)]), swap_near)
+    assert (went.end, went.completion) == (END_COMPLETE, 1.0)  # ignored the command, scored as if it followed
+    assert [s.name for s in junction_routes([near, far])] == [swap_far.name]
+
+
+def test_the_swap_cell_has_no_retention_and_its_figure_stands_beside_clean_on_the_same_routes() -> None:
+    from pytest_drivedegrade.closedloop.analysis import RunRow
+    from pytest_drivedegrade.scoring.closed_loop import analyse_rows, check_section
+
+    def row(route: str, ds: float, completion: float) -> RunRow:
+        return RunRow(route, 0, ds, completion, "complete" if completion == 1.0 else "route_deviation", "t" + route)
+
+    clean = [row("a", 90.0, 1.0), row("b", 80.0, 1.0), row("c", 70.0, 0.5)]
+    swap = [row("a-swap", 60.0, 0.6), row("c-swap", 50.0, 0.4)]
+    got = analyse_rows({"closed-clean": clean, SWAP_CELL: swap})
+    cell = {c.cell: c for c in got.cells}[SWAP_CELL]
+    assert cell.retention is None and cell.retention_ci is None and cell.separable_from_null is None
+    assert got.command_swap == {"cell": SWAP_CELL, "routes": 2, "runs": 2, "unscored": 0,
+                                "command_followed": pytest.approx(0.5), "complete_runs": 0, "ds_mean": 55.0,
+                                "clean_runs": 2, "clean_completion": pytest.approx(0.75), "clean_ds_mean": 80.0}
+    assert got.axes == analyse_rows({"closed-clean": clean}).axes  # no axis rests on it
+    section = {**got.figures(), "verdict": got.figures()["verdict"]}
+    assert check_section(section, None) == []
+    section["command_swap"] = {**section["command_swap"], "command_followed": 1.0}
+    assert any(p.startswith("closed_loop.command_swap.command_followed") for p in check_section(section, None))
+    assert analyse_rows({"closed-clean": clean}).figures()["command_swap"] is None
+
+
+def test_a_ray_actor_drives_the_swapped_route_as_this_process_does(small_world) -> None:
+    """`remote.drive_one` (a Ray planner actor's job) knows the swapped routes and drives them with clean
+    cameras: the run it returns is the local run, bit for bit."""
+    from types import SimpleNamespace
+
+    from pytest_drivedegrade.closedloop.cells import run_from_builtins, trace_digest
+    from pytest_drivedegrade.closedloop.remote import drive_one
+    from pytest_drivedegrade.closedloop.routes import load_routes
+
+    routes = load_routes(small_world, scenarios=15, lights=0)
+    swap = junction_routes(routes)
+    assert [s.name for s in swap] == ["scenario-0013-braking-swap", "scenario-0014-blocked-swap"]
+    context = SimpleNamespace(reader=SimpleNamespace(root=small_world))
+    got = drive_one(context, WorldExpert(swap), family="command_swap", severity=0, route=swap[1].name, seed=0,
+                    plan_every=5, max_steps=None, scenarios=15, lights=0)
+    remote = run_from_builtins(got["run"])  # type: ignore[arg-type]
+    local = run_route(WorldExpert(swap), swap[1], seed=0)
+    assert (remote.route, remote.end, remote.completion, remote.ds) == (local.route, local.end, local.completion,
+                                                                        local.ds)
+    assert trace_digest(remote) == trace_digest(local) and remote.end == END_COMPLETE
