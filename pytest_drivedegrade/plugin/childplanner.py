@@ -49,9 +49,8 @@ GRACE_SECONDS = 5.0
 
 
 #: Prefixes of the variables a planner's process never gets: pytest's and xdist's (``PYTEST_CURRENT_TEST`` names
-#: the running cell, ``PYTEST_XDIST_WORKER`` the worker), the signing key (which a run refuses anyway) and the
-#: device (which the child sets from the run's settings). A user's own variables pass, ``DRIVEDEGRADE_``-named
-#: ones included (a planner's log path, say): none of the suite's names the cell.
+#: the running cell), the signing key (refused anyway) and the device (the child sets it from the run's settings).
+#: A user's own variables pass, ``DRIVEDEGRADE_``-named ones included: none of the suite's names the cell.
 UNCLEAN_PREFIXES = ("PYTEST_", "DRIVEDEGRADE_SIGNING_KEY", "DRIVEDEGRADE_DEVICE")
 
 
