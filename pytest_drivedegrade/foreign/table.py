@@ -166,15 +166,20 @@ def _integer(text: str, where: str, column: str) -> int:
         raise DataError(f"{where}: column {column}: {text.strip()!r} is not a whole number") from None
 
 
+#: Columns only the suite's own cells.csv carries (its provenance): a table with them is one the suite wrote.
+SUITE_MARKS = ("planner_fingerprint", "dataset_fingerprint", "spec_version")
+
+
 def _ignored(header: Sequence[str], where: str) -> list[str]:
     """Columns the table has that no reader takes: ignored when they are no near miss of a known one (a
     suite's own cells.csv carries many), a DataError naming the column it probably meant otherwise."""
     known = (*KEY_COLUMNS, *METRIC_COLUMNS, *RETENTION_COLUMNS)
+    suites = set(SUITE_MARKS) <= set(header)  # the suite's own cells.csv: its other columns are its own, no typos
     out = []
     for name in header:
         if name in known:
             continue
-        close = difflib.get_close_matches(name, known, n=1, cutoff=0.85)
+        close = None if suites else difflib.get_close_matches(name, known, n=1, cutoff=0.85)
         if close and not name.startswith(close[0]):
             raise DataError(f"{where}: column {name!r} is not one the table format knows; did you mean "
                             f"{close[0]!r}? (docs/how-to/foreign-evaluator.md lists the columns)")
