@@ -143,19 +143,3 @@ def test_a_run_without_a_junction_route_fails_the_swap_cell_saying_why(dd):
     out = result.stdout.str()
     assert "closed-command_swap: none of the 1 closed-loop route(s) turns at a junction" in out
     assert "Traceback" not in out
-
-
-def test_the_swap_cell_on_ray_planner_actors_is_the_serial_run(dd):
-    """`--drivedegrade-ray local`: each swapped run is a Ray actor's job (`remote.drive_one` builds the swapped
-    routes there); closed_loop.csv is the in-process run's byte for byte."""
-    pytest.importorskip("ray")
-    serial, folder = drive(dd, True, "-p", "no:xdist")
-    assert serial.ret == 0, serial.stdout.str()
-    name = "told"
-    args = dd.args(*CLOSED, "-p", "no:xdist", "--drivedegrade-ray", "local", "--drivedegrade-ray-actors", "1",
-                   planner=f"{name}.py", report="ray")
-    ray = dd.pytester.runpytest_subprocess(*args)
-    assert ray.ret == 0, ray.stdout.str() + ray.stderr.str()
-    assert "the planner is built in the Ray actors" in ray.stdout.str()  # every run an actor's job
-    assert (dd.folder(name, report="ray") / "closed_loop.csv").read_text() == \
-        (folder / "closed_loop.csv").read_text()
