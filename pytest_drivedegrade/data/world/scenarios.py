@@ -29,14 +29,12 @@ from .agents import (
     SIM_STEPS,
     Agent,
     along,
-    background_traffic,
     crossing_walker,
     speed_profile,
 )
-from .expert import REACT_LIGHT, REACT_VEHICLE, LightStops, drive, follower, keyframe_events, start_state
+from .expert import REACT_LIGHT, REACT_VEHICLE, LightStops, drive, follower, keyframe_events
 from .lights import TrafficLight
-from .roads import LANE_WIDTH, build_roads
-from .scene import KEYFRAMES, MIN_GAP, Scene, Style
+from .scene import KEYFRAMES, MIN_GAP, Scene, draw_ground
 
 #: The scenario kinds, drawn in turn (scenario i has kind i mod 3).
 SCENARIO_KINDS = ("crossing", "braking", "blocked")
@@ -107,22 +105,6 @@ def _release(rng, lane, agents: list[Agent], v_cruise: float, v0: float, s0: flo
     return (out, ego) if ego.min_gap >= MIN_GAP else None
 
 
-def _ground(rng):
-    """One draw of a scenario or light scene's ground, in `scene.make_scene`'s order: the roads, the ego's lane
-    (the turning lane at a junction), the cruise speed (8-12 m/s), the style, the background traffic, the start
-    state. Returns (roads, the lane's offset, the lane, cruise speed, style, background, s0, v0)."""
-    net = build_roads(rng)
-    turn, lanes = (net.junctions[0].turn if net.junctions else "straight"), net.route.lanes
-    k = lanes - 1 if turn == "right" else (0 if turn == "left" else int(rng.integers(lanes)))
-    lane_d = -(k + 0.5) * LANE_WIDTH
-    lane = net.route.center.offset(lane_d)
-    v_cruise = float(rng.uniform(8.0, 12.0))
-    style = Style.draw(rng)
-    background = background_traffic(rng, net, k)
-    s0, v0 = start_state(rng, v_cruise)
-    return net, lane_d, lane, v_cruise, style, background, s0, v0
-
-
 def scenario_scene(seed: int, i: int) -> Scene:
     """Scenario scene `i` of the world with `seed` (deterministic in (seed, i)); kind SCENARIO_KINDS[i mod 3].
     Roads, lane choice and background traffic are drawn as `scene.make_scene` draws them."""
@@ -130,7 +112,7 @@ def scenario_scene(seed: int, i: int) -> Scene:
     index = SCENARIO_BASE + i
     rng = np.random.default_rng([seed, index, SCENARIO_KEY])
     for _ in range(SCENARIO_TRIES):
-        net, lane_d, lane, v_cruise, style, background, s0, v0 = _ground(rng)
+        net, lane_d, lane, v_cruise, style, background, s0, v0 = draw_ground(rng, (8.0, 12.0))
         scenario, crosswalks = _events(rng, kind, net, lane, lane_d, v_cruise)
         got = _release(rng, lane, scenario + background, v_cruise, v0, s0) if len(scenario) == 2 else None
         if got is not None:
@@ -182,7 +164,7 @@ def light_scene(seed: int, i: int) -> Scene:
     index = LIGHT_BASE + i
     rng = np.random.default_rng([seed, index, LIGHT_KEY])
     for _ in range(SCENARIO_TRIES):
-        net, _, lane, v_cruise, style, background, s0, v0 = _ground(rng)
+        net, _, lane, v_cruise, style, background, s0, v0 = draw_ground(rng, (8.0, 12.0))
         light = _light(rng, net, s0, v0)
         ego = drive(lane, background, v_cruise, v0, s0, lights=LightStops.on(lane, [light], net))
         stopped = bool(((ego.speed < 0.3) & (ego.react == REACT_LIGHT)).any())

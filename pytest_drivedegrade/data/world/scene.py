@@ -97,20 +97,27 @@ MAX_TRIES = 8  # draws of a scene's scenario before it falls back to background 
 MIN_GAP = 0.5  # m: the expert must keep at least this bumper gap to everything in its corridor
 
 
+def draw_ground(rng: np.random.Generator, cruise: tuple[float, float]):
+    """One draw of a scene's ground, in this order (the world's bytes depend on it): the roads, the ego's lane (the
+    turning lane at a junction), the cruise speed in `cruise` (m/s), the style, the background traffic, the start
+    state. Returns (roads, the lane's offset, the lane, cruise speed, style, background, s0, v0)."""
+    net = build_roads(rng)
+    turn, lanes = (net.junctions[0].turn if net.junctions else "straight"), net.route.lanes
+    k = lanes - 1 if turn == "right" else (0 if turn == "left" else int(rng.integers(lanes)))
+    lane_d = -(k + 0.5) * LANE_WIDTH
+    lane = net.route.center.offset(lane_d)
+    v_cruise = float(rng.uniform(*cruise))
+    style = Style.draw(rng)
+    background = background_traffic(rng, net, k)
+    s0, v0 = start_state(rng, v_cruise)
+    return net, lane_d, lane, v_cruise, style, background, s0, v0
+
+
 def make_scene(seed: int, index: int, name: str, keyframes: int = KEYFRAMES) -> Scene:
     """Generate scene `index` of the world with `seed`: deterministic for a given (seed, index); `keyframes`
     (`scene_keyframes`) changes only how many of its keyframes are exported, never the drive."""
     rng = np.random.default_rng([seed, index, 0x5EED])
-    net = build_roads(rng)
-    turn = net.junctions[0].turn if net.junctions else "straight"
-    lanes = net.route.lanes
-    k = lanes - 1 if turn == "right" else (0 if turn == "left" else int(rng.integers(lanes)))
-    lane_d = -(k + 0.5) * LANE_WIDTH
-    lane = net.route.center.offset(lane_d)
-    v_cruise = float(rng.uniform(8.0, 14.0))
-    style = Style.draw(rng)
-    background = background_traffic(rng, net, k)
-    s0, v0 = start_state(rng, v_cruise)
+    net, lane_d, lane, v_cruise, style, background, s0, v0 = draw_ground(rng, (8.0, 14.0))
     v0 = min(v0, float(np.interp(s0, lane.s, allowed_speed(lane, v_cruise))))  # not already too fast for a bend
     seen: Projections = {}  # the background's projections on the lane, computed once for every try
     for _ in range(MAX_TRIES):  # redraw a scenario the expert cannot drive safely (too late to stop)
