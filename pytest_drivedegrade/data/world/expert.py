@@ -158,45 +158,79 @@ class LightStops:
         return out
 
 
-def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float,
-          projections: Projections | None = None, lights: LightStops | None = None) -> EgoLog:
-    """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`;
-    `lights`: the traffic lights it obeys)."""
-    v_allow = allowed_speed(lane, v_cruise)
-    if lights is not None:  # a fresh drive: no light braked for or passed yet
-        lights.braking[:] = False
-        lights.going[:] = False
-    s_obs, v_obs, block = corridor_obstacles(lane, agents, projections)
-    vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
-    half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2
-    engaged = np.zeros(len(agents), bool)
-    s, v, min_gap = s_start, v_start, np.inf
-    log_s, log_v, log_r = np.zeros(SIM_STEPS), np.zeros(SIM_STEPS), np.zeros(SIM_STEPS, int)
-    for t in range(SIM_STEPS):
-        free = idm(v, v_cruise, None, 0.0)
+@dataclass
+class ExpertRule:
+    """The expert's driving rule on one lane among one set of agents: what `accel` asks at a step, from any state.
+    `drive` rolls it out from the scene's start; the reference driver's training labels roll it out from the states
+    the driver reaches (planners/train_closed_driver.py)."""
+
+    lane: Path
+    v_cruise: float
+    v_allow: np.ndarray
+    s_obs: np.ndarray
+    v_obs: np.ndarray
+    block: np.ndarray
+    vehicle: np.ndarray
+    half_len: np.ndarray
+    lights: LightStops | None
+
+    @staticmethod
+    def of(lane: Path, agents: list[Agent], v_cruise: float, projections: Projections | None = None,
+           lights: LightStops | None = None) -> ExpertRule:
+        s_obs, v_obs, block = corridor_obstacles(lane, agents, projections)
+        vehicle = np.array([a.kind not in ("pedestrian", "cyclist") for a in agents], bool)
+        half_len = np.array([a.size[0] / 2 for a in agents]) + EGO_LENGTH / 2
+        return ExpertRule(lane, v_cruise, allowed_speed(lane, v_cruise), s_obs, v_obs, block, vehicle, half_len,
+                          lights)
+
+    def fresh(self) -> np.ndarray:
+        """A fresh start: no light braked for or passed yet; returns the engaged flags (none yet)."""
+        if self.lights is not None:
+            self.lights.braking[:] = False
+            self.lights.going[:] = False
+        return np.zeros(len(self.vehicle), bool)
+
+    def accel(self, t: int, s: float, v: float, engaged: np.ndarray, v_cruise: float | None = None,
+              ) -> tuple[float, int, float]:
+        """(acceleration, REACT_* that set it, the free-road acceleration) at step `t` from (s, v); `engaged`
+        (updated in place) holds the agents the expert is braking for; `v_cruise` overrides the scene's."""
+        v0 = self.v_cruise if v_cruise is None else v_cruise
+        free = idm(v, v0, None, 0.0)
         a, why = free, REACT_NONE
-        v_next_allowed = float(np.interp(s + v * DT, lane.s, v_allow))
+        v_next_allowed = float(np.interp(s + v * DT, self.lane.s, self.v_allow))
         if v > v_next_allowed + 1e-3:  # a bend ahead needs it now: brake along the allowed profile
             a, why = (v_next_allowed - v) / DT, REACT_BEND
-        ahead = block[:, t] & (s_obs[:, t] > s)
-        true_gap = s_obs[:, t] - s - half_len
-        if ahead.any():
-            min_gap = min(min_gap, float(true_gap[ahead].min()))
-        s_seen, v_seen = perceived(s_obs, v_obs, vehicle, t)
+        ahead = self.block[:, t] & (self.s_obs[:, t] > s)
+        s_seen, v_seen = perceived(self.s_obs, self.v_obs, self.vehicle, t)
         engaged &= ahead
         for i in np.flatnonzero(ahead):
-            gap = float(s_seen[i] - s - half_len[i])
+            gap = float(s_seen[i] - s - self.half_len[i])
             need = required_decel(v, gap, float(v_seen[i]))
             if not engaged[i] and (need > B_TRIGGER or gap < S0 + 0.5 * v):
                 engaged[i] = True
             if engaged[i]:
-                a_i = -need if v > v_seen[i] + 0.5 else idm(v, v_cruise, gap, v - float(v_seen[i]))
+                a_i = -need if v > v_seen[i] + 0.5 else idm(v, v0, gap, v - float(v_seen[i]))
                 if a_i < a:
-                    a, why = a_i, (REACT_VEHICLE if vehicle[i] else REACT_VRU)
-        a_light = lights.accel(t, s, v, v_cruise) if lights is not None else None
+                    a, why = a_i, (REACT_VEHICLE if self.vehicle[i] else REACT_VRU)
+        a_light = self.lights.accel(t, s, v, v0) if self.lights is not None else None
         if a_light is not None and a_light < a:
             a, why = a_light, REACT_LIGHT
-        a = max(a, -B_MAX)
+        return max(a, -B_MAX), why, free
+
+
+def drive(lane: Path, agents: list[Agent], v_cruise: float, v_start: float, s_start: float,
+          projections: Projections | None = None, lights: LightStops | None = None) -> EgoLog:
+    """Simulate the ego along `lane` on the sim clock; returns its log (`projections`: see `corridor_obstacles`;
+    `lights`: the traffic lights it obeys)."""
+    rule = ExpertRule.of(lane, agents, v_cruise, projections, lights)
+    engaged = rule.fresh()
+    s, v, min_gap = s_start, v_start, np.inf
+    log_s, log_v, log_r = np.zeros(SIM_STEPS), np.zeros(SIM_STEPS), np.zeros(SIM_STEPS, int)
+    for t in range(SIM_STEPS):
+        ahead = rule.block[:, t] & (rule.s_obs[:, t] > s)
+        if ahead.any():
+            min_gap = min(min_gap, float((rule.s_obs[:, t] - s - rule.half_len)[ahead].min()))
+        a, why, free = rule.accel(t, s, v, engaged)
         log_r[t] = why if a < free - 0.3 else REACT_NONE
         log_s[t], log_v[t] = s, v
         v_next = max(v + a * DT, 0.0)
