@@ -1,12 +1,12 @@
 """The closed loop on the default world, timed: per-route Driving Score of the world's expert, constant velocity,
-the ego-only floor and camera_cnn on the clean cell and blackout S5 (`--slice`: the paper's seven cells), the
-seconds each cell spends rendering, planning, tracking and scoring, and the slice's projected wall time with
-`-n 2` (cells dealt longest first to two workers; each worker builds a route's backdrop once, as here), from
-each cell's CPU seconds (single-threaded torch and OpenCV: on an idle machine CPU time is the wall time; on a
-shared one it is what the wall would be without the neighbours).
+the ego-only floor, camera_cnn and the reference driver (closed_driver) on the clean cell and blackout S5
+(`--slice`: the paper's seven cells), the seconds each cell spends rendering, planning, tracking and scoring,
+and the slice's projected wall time with `-n 2` (cells dealt longest first to two workers; each worker builds a
+route's backdrop once, as here), from each cell's CPU seconds (single-threaded torch and OpenCV: on an idle
+machine CPU time is the wall time; on a shared one it is what the wall would be without the neighbours).
 
     python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive] [--prefetch N]
-                                    [--planners expert,constant_velocity,floor,camera_cnn]
+                                    [--planners expert,constant_velocity,floor,camera_cnn,closed_driver]
                                     [--collisions all|at_fault] [--routes N]
 
 `--routes N` drives the first N routes only (quick mode; default: the 6 val routes and the 18 scenario routes).
@@ -55,7 +55,8 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
     make = {"expert": lambda: WorldExpert(routes),
             "constant_velocity": lambda: load_planner_file("constant_velocity").ConstantVelocity(),
             "floor": lambda: load_or_train_floor(NuScenesReader(root, split="train"), cache_root / "floor"),
-            "camera_cnn": lambda: load_planner_file("camera_cnn").CameraCNNPlanner()}
+            "camera_cnn": lambda: load_planner_file("camera_cnn").CameraCNNPlanner(),
+            "closed_driver": lambda: load_planner_file("closed_driver").ClosedDriver()}
     return {name: make[name]() for name in names}
 
 

@@ -5,6 +5,7 @@ plugin on the junction scenes with the command_swap cell, its `command` section 
                                                        # privileged expert, camera_cnn, temporal_cnn, closed_driver
     python benchmarks/command_labels.py --quick        # 4 junction scenes; floor, constant_velocity, the expert
     python benchmarks/command_labels.py --world DIR    # a world already built with --junction-scenes
+    python benchmarks/command_labels.py --planners closed_driver   # some of the planners only (names below)
 
 Each run is `pytest --drivedegrade PLANNER --drivedegrade-data WORLD --drivedegrade-split junction
 --drivedegrade-families command_swap --drivedegrade-severities 5 -n 0` (4 cells: clean, null, blind, command_swap).
@@ -48,7 +49,12 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--world", type=Path)
     parser.add_argument("--json")
+    parser.add_argument("--planners", help="comma-separated names among: " + ", ".join(PLANNERS))
     args = parser.parse_args()
+    chosen = args.planners.split(",") if args.planners else list(PLANNERS)
+    unknown = sorted(set(chosen) - set(PLANNERS))
+    if unknown:
+        parser.error(f"unknown planner(s) {', '.join(unknown)}: the names are {', '.join(PLANNERS)}")
     work = Path(tempfile.mkdtemp(prefix="command-labels-"))
     world = args.world
     if world is None:
@@ -59,7 +65,7 @@ def main() -> None:
         print(f"world with junction scenes built in {time.perf_counter() - start:.1f} s: {world}")
     rows = {}
     for name, planner in PLANNERS.items():
-        if args.quick and name not in QUICK:
+        if (args.quick and name not in QUICK) or name not in chosen:
             continue
         got = certify(planner, world, work / "rep")
         rows[name] = got
