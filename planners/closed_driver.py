@@ -32,7 +32,7 @@ from pytest_drivedegrade.planning import Command, EgoStatus
 
 WEIGHTS = Path(__file__).with_name("closed_driver.pt")
 CAMERAS: tuple[str, ...] = ("CAM_FRONT",)
-#: Network input size per view (width, height) and the zoomed view's share of the image (width, height).
+#: Network input size per view (width, height).
 VIEW: tuple[int, int] = (80, 45)
 #: The zoomed view's crop as shares of the image (left, top, right, bottom): the horizon and the light heads above it.
 ZOOM_BOX: tuple[float, float, float, float] = (0.3, 0.12, 0.7, 0.52)
@@ -81,9 +81,9 @@ class DriverNet(nn.Module):
 
 
 class DriverEnsemble(nn.Module):
-    """`members` DriverNets trained from different seeds on the same data; the plan is their mean. One network's
-    closed-loop score moved by 12 DS from seed to seed (58.6 to 70.4 on the 30-route slice); the mean of three
-    scored as the best of them (docs/how-to/closed-loop.md)."""
+    """`members` DriverNets trained from different seeds on the same data; the plan is their mean. Single networks of
+    near recipes scored 58.6 to 70.4 DS on the 30-route slice; the mean of three of them scored 70.0, as the best
+    did (docs/how-to/closed-loop.md)."""
 
     def __init__(self, members: int = MEMBERS) -> None:
         super().__init__()
@@ -94,7 +94,7 @@ class DriverEnsemble(nn.Module):
 
 
 class ClosedDriver:
-    """The planner contract around ``DriverNet`` (CPU, one thread; deterministic)."""
+    """The planner contract around ``DriverEnsemble`` (CPU, one thread; deterministic)."""
 
     cameras: tuple[str, ...] = CAMERAS
     name = "closed_driver"
