@@ -60,7 +60,7 @@ from pytest_drivedegrade.floor import ego_features  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: The image-quality families a route may be driven under while gathering (`--corrupt`; the slice's blur cells
 #: among them). Not low_light: at S4-S5 it is nearly black, and a driver trained on it drove on blind (measured:
-#: blackout S5 completion 0.95, DS 37.2, where the committed weights stop at completion 0.11, DS 10.2).
+#: blackout S5 completion 0.95, DS 37.2, where the weights of the time stopped at completion 0.11, DS 10.2).
 AUGMENT: tuple[str, ...] = ("gaussian_blur", "motion_blur", "gaussian_noise", "jpeg", "downscale")
 #: Share of the training routes that are scenario routes.
 SCENARIO_SHARE = 0.34
@@ -78,8 +78,8 @@ SPEED_FEATURE = 0
 
 class ReplanExpert(WorldExpert):
     """The labels: the world expert's plan (the log's positions at +0.5 .. +3 s) where the ego is on the log, and
-    off it, the world's expert rule (`data.world.expert.drive`: IDM to the cruise speed, bends, obstacles in the
-    corridor, lights) simulated from the ego's own state. Behind the log it aims `catch_up` m/s above the cruise
+    off it, the world's expert rule (`data.world.expert.ExpertRule`: IDM to the cruise speed, bends, obstacles in
+    the corridor, lights) rolled out from the ego's own state. Behind the log it aims `catch_up` m/s above the cruise
     speed and never plans past the log's positions; ahead of it, it drives on at the cruise speed.
 
     The world expert alone labels a state 20 m behind the log with a first waypoint 20 m away (40 m/s for 0.5 s),
