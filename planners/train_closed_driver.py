@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from closed_driver import MEMBERS, WEIGHTS, ClosedDriver, DriverEnsemble, DriverNet, preprocess  # noqa: E402
 
 from pytest_drivedegrade.closedloop import Corruption, route_of, run_route  # noqa: E402
-from pytest_drivedegrade.closedloop.expert import WorldExpert  # noqa: E402
+from pytest_drivedegrade.closedloop.expert import WorldExpert, log_ahead  # noqa: E402
 from pytest_drivedegrade.closedloop.loop_io import to_ego  # noqa: E402
 from pytest_drivedegrade.closedloop.routes import Route  # noqa: E402
 from pytest_drivedegrade.closedloop.simulate import PLAN_EVERY, Rules  # noqa: E402
@@ -128,10 +128,7 @@ class ReplanExpert(WorldExpert):
         v_cruise = route.scene.v_cruise
         s = self.replan(t, s_ego, max(float(ego.velocity[0]), 0.0), v_cruise + (self.catch_up if lag > 0 else 0.0))
         if lag > 0:  # behind: never past the log
-            steps = t + PLAN_EVERY * np.arange(1, HORIZON_STEPS + 1)
-            last = len(log.s) - 1
-            s = np.minimum(s, np.where(steps <= last, log.s[np.minimum(steps, last)],
-                                       log.s[last] + log.speed[last] * (steps - last) * DT))
+            s = np.minimum(s, log_ahead(route, t))
         x, y, _ = route.lane.at(s)
         pose = (float(here[0, 0]), float(here[0, 1]),
                 float(np.arctan2(context.ego2global[1, 0], context.ego2global[0, 0])))

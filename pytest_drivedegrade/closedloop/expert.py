@@ -16,6 +16,15 @@ from .routes import Route
 from .simulate import PLAN_EVERY
 
 
+def log_ahead(route: Route, t: int) -> np.ndarray:
+    """The logged ego's arc lengths on the route's lane at +0.5 .. +3 s from sim step `t` (past the log's end,
+    extrapolated at its last speed)."""
+    log = route.scene.ego
+    steps = t + PLAN_EVERY * np.arange(1, HORIZON_STEPS + 1)
+    last = len(log.s) - 1
+    return np.where(steps <= last, log.s[np.minimum(steps, last)], log.s[last] + log.speed[last] * (steps - last) * 0.1)
+
+
 class WorldExpert:
     """Reads no camera; knows the routes (by name) and plans from the route's log at the context's step."""
 
@@ -33,13 +42,8 @@ class WorldExpert:
                 context: FrameContext | None = None) -> np.ndarray:
         if self._route is None or context is None:
             raise RuntimeError("the world expert needs reset(route) and the frame context")
-        route, log = self._route, self._route.scene.ego
-        t = route.start_step + PLAN_EVERY * context.index
-        steps = t + PLAN_EVERY * np.arange(1, HORIZON_STEPS + 1)
-        last = len(log.s) - 1
-        s = np.where(steps <= last, log.s[np.minimum(steps, last)],
-                     log.s[last] + log.speed[last] * (steps - last) * 0.1)
-        x, y, _ = route.lane.at(s)
+        route = self._route
+        x, y, _ = route.lane.at(log_ahead(route, route.start_step + PLAN_EVERY * context.index))
         pose = (float(context.ego2global[0, 3]), float(context.ego2global[1, 3]),
                 float(np.arctan2(context.ego2global[1, 0], context.ego2global[0, 0])))
         return to_ego(np.stack([x, y], axis=1), pose)
