@@ -102,7 +102,12 @@ class ClosedDriver:
     def __init__(self, weights: Path = WEIGHTS, net: DriverNet | DriverEnsemble | None = None) -> None:
         self.net = net if net is not None else DriverEnsemble()
         if net is None:
-            self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+            try:
+                self.net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+            except RuntimeError as err:  # weights of another shape: say which file, and how to make new ones
+                raise ValueError(f"{weights}: not weights of this driver ({MEMBERS} networks of DriverNet; "
+                                 f"{str(err).splitlines()[0]}); retrain with python planners/train_closed_driver.py "
+                                 "--out PATH") from None
         self.net.eval()
         sidecar = Path(weights).with_suffix(".json")
         self.trained_on = json.loads(sidecar.read_text()) if net is None and sidecar.is_file() else {}

@@ -252,3 +252,25 @@ def test_the_initial_network_is_the_same_in_every_process() -> None:
     assert [p.returncode for p in procs] == [0, 0]
     assert runs[0][1] == runs[1][1]
     assert runs[0][0] != runs[1][0]  # the unseeded generator did differ between the two processes
+
+
+def test_edited_weights_change_the_planner_fingerprint_and_foreign_weights_are_refused(tmp_path, inputs) -> None:
+    """A hostile edit of the committed weights (one number of one member) changes the planner's fingerprint, so no
+    stored cell of the committed driver is reused for it; a file of one network (the weights before the ensemble)
+    is refused naming the file, not loaded half-way."""
+    from pytest_drivedegrade.planning import planner_fingerprint
+
+    path = Path(__file__).resolve().parents[2] / "planners" / "closed_driver.py"
+    state = torch.load(WEIGHTS, map_location="cpu", weights_only=True)
+    key = next(k for k in state if k.endswith("weight"))
+    state[key] = state[key].clone()
+    state[key].view(-1)[0] += 1e-3
+    edited = tmp_path / "edited.pt"
+    torch.save(state, edited)
+    honest, tampered = ClosedDriver(), ClosedDriver(edited)
+    assert planner_fingerprint(honest, path) != planner_fingerprint(tampered, path)
+    assert planner_fingerprint(honest, path) == planner_fingerprint(ClosedDriver(), path)
+    single = tmp_path / "single.pt"
+    torch.save(DriverNet().state_dict(), single)
+    with pytest.raises(ValueError, match="single.pt: not weights of this driver"):
+        ClosedDriver(single)
