@@ -1,12 +1,13 @@
 """The closed loop on the default world, timed: per-route Driving Score of the world's expert, constant velocity,
-the ego-only floor, camera_cnn and the reference driver (closed_driver) on the clean cell and blackout S5
+the ego-only floor, camera_cnn, the reference driver (closed_driver) and the percept bound (percept_expert:
+`closedloop.percept`) on the clean cell and blackout S5
 (`--slice`: the paper's seven cells), the seconds each cell spends rendering, planning, tracking and scoring,
 and the slice's projected wall time with `-n 2` (cells dealt longest first to two workers; each worker builds a
 route's backdrop once, as here), from each cell's CPU seconds (single-threaded torch and OpenCV: on an idle
 machine CPU time is the wall time; on a shared one it is what the wall would be without the neighbours).
 
     python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive] [--prefetch N]
-                                    [--planners expert,constant_velocity,floor,camera_cnn,closed_driver]
+                                    [--planners expert,constant_velocity,floor,camera_cnn,closed_driver,percept_expert]
                                     [--collisions all|at_fault] [--routes N]
 
 `--routes N` drives the first N routes only (quick mode; default: the 6 val routes and the 18 scenario routes).
@@ -31,6 +32,7 @@ import torch
 
 from pytest_drivedegrade.closedloop import Corruption, load_routes, run_cell
 from pytest_drivedegrade.closedloop.expert import WorldExpert
+from pytest_drivedegrade.closedloop.percept import PerceptExpert
 from pytest_drivedegrade.closedloop.simulate import Rules, Timings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +54,7 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
     from pytest_drivedegrade.data.nuscenes import NuScenesReader
     from pytest_drivedegrade.floor import load_or_train_floor
 
-    make = {"expert": lambda: WorldExpert(routes),
+    make = {"expert": lambda: WorldExpert(routes), "percept_expert": lambda: PerceptExpert(routes),
             "constant_velocity": lambda: load_planner_file("constant_velocity").ConstantVelocity(),
             "floor": lambda: load_or_train_floor(NuScenesReader(root, split="train"), cache_root / "floor"),
             "camera_cnn": lambda: load_planner_file("camera_cnn").CameraCNNPlanner(),

@@ -4,7 +4,8 @@
 `simulate` runs one (route, seed) through planner -> tracker -> bicycle model (`loop_io`: what the planner is
 given, `judge`: collisions, off-road, the road ahead at one step), `results` holds the typed run and
 cell results (Driving Score, completion, infractions, identification bounds), `expert` is the privileged
-reference driver that validates the simulator.
+reference driver that validates the simulator, `percept` the privileged bound of a driver that perceives the few
+numbers the expert's rule needs and plans with that rule.
 """
 
 from __future__ import annotations
