@@ -25,9 +25,7 @@ from ..data.context import FrameContext
 from ..data.frame import Command, EgoStatus
 from ..data.world.agents import DT
 from ..data.world.expert import (
-    A_LAT,
     A_MAX,
-    B_CURVE,
     B_LIGHT,
     B_MAX,
     B_TRIGGER,
@@ -35,11 +33,12 @@ from ..data.world.expert import (
     S0,
     ExpertRule,
     LightStops,
+    allowed_speed,
     idm,
     required_decel,
 )
 from ..data.world.lights import RED, YELLOW
-from ..data.world.roads import Path as LanePath
+from .expert import WorldExpert
 from .loop_io import to_ego
 from .routes import Route
 from .simulate import PLAN_EVERY
@@ -75,17 +74,6 @@ class Percept:
     yellow: bool = False
 
 
-def bend_speeds(lane: LanePath) -> np.ndarray:
-    """Per lane sample, the speed (capped at V_TOP) from which the ego can still slow down at `B_CURVE` for every
-    bend ahead (`expert.allowed_speed` without the cruise speed)."""
-    kappa = np.convolve(np.abs(lane.curvature()), np.ones(9) / 9, mode="same")
-    v = np.minimum(V_TOP, np.sqrt(A_LAT / np.maximum(kappa, 1e-5)))
-    ds = lane.s[1] - lane.s[0]
-    for i in range(len(v) - 2, -1, -1):
-        v[i] = min(v[i], np.sqrt(v[i + 1] ** 2 + 2 * B_CURVE * ds))
-    return v
-
-
 class WorldPercept:
     """Reads a route's `Percept` at any sim step and ego pose from the world (privileged)."""
 
@@ -94,7 +82,7 @@ class WorldPercept:
         self.lane = scene.lane
         self.rule = ExpertRule.of(scene.lane, scene.agents, V_TOP)
         self.lights = LightStops.on(scene.lane, list(scene.lights), scene.net) if scene.lights else None
-        self.bend = bend_speeds(scene.lane)
+        self.bend = allowed_speed(scene.lane, V_TOP)  # the bend speeds alone: a cruise speed no bend reaches
         early, vru = int(round(VRU_EARLY_S / DT)), ~self.rule.vehicle
         block = self.rule.block.copy()  # already 0.5 s early for pedestrians and cyclists: add the rest
         for k in range(1, early - 4):
@@ -180,20 +168,19 @@ def cruise_from_status(ego: EgoStatus) -> float:
     return float(np.clip(v0, *CRUISE_RANGE))
 
 
-class PerceptExpert:
+class PerceptExpert(WorldExpert):
     """The percept bound as a planner (privileged: reads no camera; needs reset(route) and the frame context)."""
 
-    cameras: tuple[str, ...] = ()
     name = "percept_expert"
 
     def __init__(self, routes: Sequence[Route]) -> None:
-        self._routes = {r.name: r for r in routes}
-        self._route: Route | None = None
+        super().__init__(routes)
         self._world: WorldPercept | None = None
         self._cruise: float | None = None
 
     def reset(self, route: str) -> None:
-        self._route = self._routes[route]
+        super().reset(route)
+        assert self._route is not None
         self._world = WorldPercept(self._route)
         self._cruise = None
 
