@@ -197,7 +197,10 @@ class PerceptExpert(WorldExpert):
                 context: FrameContext | None = None) -> np.ndarray:
         if context is None:
             raise RuntimeError("the percept expert needs reset(route) and the frame context")
-        p = self.percept(context)
+        return self.plan(self.percept(context), ego)
+
+    def plan(self, p: Percept, ego: EgoStatus) -> np.ndarray:
+        """The rule's waypoints from percept `p` (the cruise speed read from the route's first status)."""
         if self._cruise is None:
             self._cruise = cruise_from_status(ego)
         return on_lane(p.lane, plan_arcs(p, float(ego.velocity[0]), self._cruise))
