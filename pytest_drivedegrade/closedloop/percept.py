@@ -10,7 +10,8 @@ predicts the `Percept` and `plan` drives it.
 Where the world expert's log and this bound differ: it replans every 0.5 s, not every 0.1 s; it sees where each
 agent is now (no reaction delay) and assumes it keeps its speed for 3 s; it counts a pedestrian or cyclist
 `VRU_EARLY_S` before it enters the corridor; it stops `STOP_MARGIN` before a red line and holds there; its cruise
-speed is inferred once per route from the first ego status (`cruise_from_status`), not known.
+speed is inferred once per route from the first ego status (`cruise_from_status`), not known. Like the expert it
+decides once whether to go on at a yellow line and keeps to it (`YellowDecision`).
 """
 
 from __future__ import annotations
@@ -113,15 +114,39 @@ class WorldPercept:
         return Percept(lane, bend, gap, lead_speed, line, state == RED, state == YELLOW)
 
 
-def plan_arcs(p: Percept, speed: float, cruise: float) -> np.ndarray:
+def yellow_going(p: Percept, speed: float) -> bool:
+    """The expert's choice at a yellow line: go on when stopping before it would need more than `B_YELLOW`."""
+    return p.yellow and p.line < FAR_M and speed * speed / (2 * max(p.line - STOP_MARGIN, 0.1)) > B_YELLOW
+
+
+class YellowDecision:
+    """Whether to go on at the yellow line ahead, decided once, as the expert decides at the onset of yellow
+    (`data.world.expert.LightStops`): at the first call that reads a red or yellow line (going on only if that line
+    is yellow and `yellow_going`), kept while a red or yellow line is read, forgotten at a call that reads none.
+    Deciding again at each call lets a line read a few metres nearer turn a begun stop into a run through the
+    yellow, which then turns red before the ego clears it."""
+
+    def __init__(self) -> None:
+        self.going: bool | None = None
+
+    def update(self, p: Percept, speed: float) -> bool:
+        if not ((p.red or p.yellow) and p.line < FAR_M):
+            self.going = None
+            return False
+        if self.going is None:
+            self.going = yellow_going(p, speed)
+        return self.going
+
+
+def plan_arcs(p: Percept, speed: float, cruise: float, going: bool | None = None) -> np.ndarray:
     """Arc lengths (m) at +0.5 .. +3 s of the expert's rule driven from `speed` with percept `p`: IDM to `cruise`,
     the bend speeds, the obstacle (assumed to keep its speed; followed once stopping for it needs `B_TRIGGER` or it
     is closer than S0 + 0.5 s), the red or yellow line (braking once stopping needs `B_LIGHT`; at yellow going on
-    when stopping would need more than `B_YELLOW`)."""
+    when `going`, a `YellowDecision`, or when None, `yellow_going` now)."""
     v, s, out = max(speed, 0.0), 0.0, []
     bend = np.minimum(p.bend, cruise)
     stop = (p.red or p.yellow) and p.line < FAR_M
-    going = p.yellow and stop and v * v / (2 * max(p.line - STOP_MARGIN, 0.1)) > B_YELLOW
+    going = p.yellow and stop and (yellow_going(p, v) if going is None else going)
     lead, engaged, braking = p.gap < FAR_M, False, False
     for k in range(PLAN_EVERY * HORIZON_STEPS):
         a = idm(v, cruise, None, 0.0)
@@ -160,6 +185,13 @@ def on_lane(lane: np.ndarray, arcs: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=1)
 
 
+def tracked_lead_speed(gap: float, gap_before: float, speed: float, speed_before: float,
+                       dt: float = PLAN_EVERY * DT) -> float:
+    """The lead's speed (m/s, at least 0) that the bumper gap's change over the last `dt` s implies, with the ego's
+    mean speed over it: v_lead = v_ego + d(gap)/dt. A new, nearer obstacle reads slow; one that left reads fast."""
+    return max(0.5 * (speed + speed_before) + (gap - gap_before) / dt, 0.0)
+
+
 def cruise_from_status(ego: EgoStatus) -> float:
     """The IDM desired speed that the ego status's speed and acceleration imply on a free road (a = A_MAX (1 -
     (v / v0)^4) solved for v0), in CRUISE_RANGE; the speed itself when the ego is not speeding up."""
@@ -177,12 +209,14 @@ class PerceptExpert(WorldExpert):
         super().__init__(routes)
         self._world: WorldPercept | None = None
         self._cruise: float | None = None
+        self._yellow = YellowDecision()
 
     def reset(self, route: str) -> None:
         super().reset(route)
         assert self._route is not None
         self._world = WorldPercept(self._route)
         self._cruise = None
+        self._yellow = YellowDecision()
 
     def percept(self, context: FrameContext) -> Percept:
         """The world's percept at the context's step and pose."""
@@ -203,4 +237,5 @@ class PerceptExpert(WorldExpert):
         """The rule's waypoints from percept `p` (the cruise speed read from the route's first status)."""
         if self._cruise is None:
             self._cruise = cruise_from_status(ego)
-        return on_lane(p.lane, plan_arcs(p, float(ego.velocity[0]), self._cruise))
+        v = float(ego.velocity[0])
+        return on_lane(p.lane, plan_arcs(p, v, self._cruise, self._yellow.update(p, v)))

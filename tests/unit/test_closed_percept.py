@@ -21,13 +21,15 @@ from pytest_drivedegrade.closedloop.percept import (
     Percept,
     PerceptExpert,
     WorldPercept,
+    YellowDecision,
     cruise_from_status,
     on_lane,
     plan_arcs,
+    tracked_lead_speed,
 )
 from pytest_drivedegrade.constants import EGO_LENGTH
 from pytest_drivedegrade.data.frame import Command, EgoStatus
-from pytest_drivedegrade.data.world.expert import S0, idm
+from pytest_drivedegrade.data.world.expert import B_MAX, S0, idm
 from pytest_drivedegrade.data.world.lights import RED
 from pytest_drivedegrade.data.world.scenarios import light_scene, scenario_scene
 
@@ -72,6 +74,37 @@ def test_at_yellow_it_goes_on_where_stopping_would_need_more_than_b_yellow() -> 
     assert close[-1] > 30.0
     far = plan_arcs(road(line=40.0, yellow=True), 12.0, 12.0)
     assert far[-1] <= 40.0 - STOP_MARGIN + 1e-9
+
+
+def test_the_yellow_decision_is_taken_once_and_kept_until_no_line_is_read() -> None:
+    """The run this prevents (lights-3001, measured): yellow read 21.7 m from the stop at 9.8 m/s (2.2 m/s^2 to
+    stop: stop), then the line read 2.7 m nearer than it was at 7.9 m/s (3.8 m/s^2: go on, decided again), so the
+    ego sped back up and the light turned red before its tail cleared the line."""
+    first, nearer = road(line=STOP_MARGIN + 21.7, yellow=True), road(line=STOP_MARGIN + 8.2, yellow=True)
+    decide = YellowDecision()
+    assert decide.update(first, 9.8) is False and decide.update(nearer, 7.9) is False
+    assert plan_arcs(nearer, 7.9, 10.0, decide.going)[-1] <= 8.2 + 1e-9  # it keeps stopping
+    assert plan_arcs(nearer, 7.9, 10.0)[-1] > 8.2 + 5.0  # deciding again would go on
+    assert decide.update(road(), 7.0) is False and decide.going is None  # no line read: forgotten
+    assert decide.update(nearer, 7.9) is True  # a new line, read late: go on, and keep going
+    assert decide.update(road(line=STOP_MARGIN + 30.0, yellow=True), 7.9) is True
+    red = plan_arcs(road(line=STOP_MARGIN + 4.0, red=True), 7.9, 10.0, True)  # red after going on: it brakes
+    assert red[-1] == pytest.approx(7.9 ** 2 / (2 * B_MAX), abs=0.2) and red[-1] == red[-2]  # at B_MAX, to a stop
+    red_first = YellowDecision()
+    assert red_first.update(road(line=30.0, red=True), 12.0) is False
+    assert red_first.update(road(line=STOP_MARGIN + 3.0, yellow=True), 12.0) is False
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.0, 15.0), st.floats(0.0, 15.0), st.floats(0.0, 15.0), st.floats(1.0, 40.0))
+def test_the_tracked_lead_speed_is_what_moved_the_gap(lead: float, v0: float, v1: float, gap: float) -> None:
+    """A lead at constant speed, the ego from v0 to v1 at constant acceleration over 0.5 s: the gap's change gives
+    the lead's speed back; a lead that stands reads 0 however the ego moves."""
+    dt = 0.5
+    after = gap + lead * dt - 0.5 * (v0 + v1) * dt
+    assert tracked_lead_speed(after, gap, v1, v0, dt) == pytest.approx(lead, abs=1e-9)
+    assert tracked_lead_speed(gap - 0.5 * (v0 + v1) * dt, gap, v1, v0, dt) == pytest.approx(0.0, abs=1e-9)
+    assert tracked_lead_speed(gap - 20.0, gap, v1, v0, dt) == 0.0  # a nearer obstacle appeared: it reads standing
 
 
 def test_it_stops_behind_a_standing_obstacle_and_follows_a_moving_one() -> None:
