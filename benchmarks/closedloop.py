@@ -8,9 +8,14 @@ machine CPU time is the wall time; on a shared one it is what the wall would be 
 
     python benchmarks/closedloop.py [--seeds 1] [--slice] [--agents log|reactive] [--prefetch N]
                                     [--planners expert,constant_velocity,floor,camera_cnn,closed_driver,percept_expert]
-                                    [--collisions all|at_fault] [--routes N]
+                                    [--collisions all|at_fault] [--routes N] [--held-out]
 
-`--routes N` drives the first N routes only (quick mode; default: the 6 val routes and the 18 scenario routes).
+`--routes N` drives the first N routes only (quick mode; default: the slice's 30 routes, the 6 val routes, 18
+scenario routes and 6 light routes).
+
+`--held-out` drives 40 other routes instead: scenario scenes 3000-3023 and light scenes 3000-3015 of the world's
+seed, in neither the slice (0-17, 0-5) nor the reference driver's training routes (numbered from 1000, fewer than
+2000 of them). Choices about a driver are made on these, so the slice stays a test it was not tuned on.
 
 `--prefetch N` (N > 0) drives as the plugin does under `--drivedegrade-prefetch N`: N + 1 threads render a step's
 cameras at once and judge the last plan's steps while the next cameras render (same runs, bit for bit); compare
@@ -30,12 +35,14 @@ from typing import Any
 import cv2
 import torch
 
-from pytest_drivedegrade.closedloop import Corruption, load_routes, run_cell
+from pytest_drivedegrade.closedloop import Corruption, load_routes, route_of, run_cell
 from pytest_drivedegrade.closedloop.expert import WorldExpert
 from pytest_drivedegrade.closedloop.percept import PerceptExpert
 from pytest_drivedegrade.closedloop.simulate import Rules, Timings
 
 ROOT = Path(__file__).resolve().parents[1]
+#: `--held-out`: the scenario and light scene numbers driven instead of the slice.
+HELD_OUT_SCENARIOS, HELD_OUT_LIGHTS = range(3000, 3024), range(3000, 3016)
 CELLS = (Corruption(), Corruption("blackout", 5))
 SLICE = (Corruption(), Corruption("gaussian_blur", 3), Corruption("gaussian_blur", 5), Corruption("motion_blur", 3),
          Corruption("motion_blur", 5), Corruption("blackout", 3), Corruption("blackout", 5))
@@ -62,6 +69,19 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
     return {name: make[name]() for name in names}
 
 
+def held_out_routes(root: Path) -> list:
+    """The `--held-out` routes: scenario and light scenes of the world's seed that neither the slice nor the
+    reference driver's recipe drives."""
+    import json
+
+    from pytest_drivedegrade.data.nuscenes import WORLD_MANIFEST
+    from pytest_drivedegrade.data.world.scenarios import light_scene, scenario_scene
+
+    seed = int(json.loads((root / WORLD_MANIFEST).read_text())["seed"])
+    return [*(route_of(scenario_scene(seed, i)) for i in HELD_OUT_SCENARIOS),
+            *(route_of(light_scene(seed, i)) for i in HELD_OUT_LIGHTS)]
+
+
 def _short(route: str) -> str:
     """A route's column label: the val scene's number, s<number> for a scenario route, L<number> for a light
     route."""
@@ -86,13 +106,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--prefetch", type=int, default=0, help="threads beside the planner: N + 1 (0: serial)")
     parser.add_argument("--collisions", default="all", choices=("all", "at_fault"))
     parser.add_argument("--routes", type=int, default=None, help="the first N routes only")
+    parser.add_argument("--held-out", action="store_true", help="40 routes in neither the slice nor training")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     from pytest_drivedegrade.data.world import ensure_default_world
 
     root = ensure_default_world(args.cache_root)
-    routes = load_routes(root, limit=args.routes)
+    routes = held_out_routes(root) if args.held_out else load_routes(root)
+    routes = routes[:args.routes] if args.routes is not None else routes
     print("routes: " + ", ".join(f"{r.name} ({r.length:.0f} m)" for r in routes))
     pool = ThreadPoolExecutor(args.prefetch + 1, "closed") if args.prefetch > 0 else None
     header = f"{'planner':<18} {'cell':<18} " + " ".join(f"{_short(r.name):>6}" for r in routes) + \
