@@ -13,8 +13,11 @@ otherwise a few pixels. From both views and the ego features (``floor.ego_featur
   yellow.
 
 The plan is ``percept.plan_arcs`` (IDM to the cruise speed, bends, the obstacle, the light) placed on the predicted
-lane; the cruise speed is inferred once per route from the first ego status (``percept.cruise_from_status``), so
-the driver has ``reset()`` and is streamed scene by scene in the open loop.
+lane; the cruise speed is inferred once per route from the first ego status (``percept.cruise_from_status``). Two
+things carry from one call to the next: the decision at a yellow line (``percept.YellowDecision``, as the expert
+decides once), and the gap, whose change gives the lead's speed where that is slower than the speed read from one
+frame (``percept.tracked_lead_speed``: a standing car a frame reads as moving is not crept up to). So the driver
+has ``reset()`` and is streamed scene by scene in the open loop.
 
 Weights are committed beside this file (``closed_driver.pt``; ``closed_driver.json`` holds the recipe's
 settings and what it measured). Retrain with ``python planners/train_closed_driver.py`` (docs/how-to/closed-loop.md).
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -39,9 +43,11 @@ from pytest_drivedegrade.closedloop.percept import (
     FAR_M,
     LANE_AHEAD,
     Percept,
+    YellowDecision,
     cruise_from_status,
     on_lane,
     plan_arcs,
+    tracked_lead_speed,
 )
 from pytest_drivedegrade.floor import FEATURE_SIZE, ego_features
 from pytest_drivedegrade.planning import Command, EgoStatus
@@ -171,10 +177,15 @@ class ClosedDriver:
         sidecar = Path(weights).with_suffix(".json")
         self.trained_on = json.loads(sidecar.read_text()) if net is None and sidecar.is_file() else {}
         self._cruise: float | None = None
+        self._yellow = YellowDecision()
+        self._last: tuple[float, float] | None = None
 
     def reset(self, scene: str) -> None:
-        """A new route or scene: the cruise speed is read again from its first ego status."""
+        """A new route or scene: the cruise speed is read again from its first ego status, and what was read at
+        the last call (the gap, the yellow decision) is forgotten."""
         self._cruise = None
+        self._yellow = YellowDecision()
+        self._last = None
 
     def percept(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> Percept:
         """What the network reads from the front camera, the ego status and the command."""
@@ -185,9 +196,13 @@ class ClosedDriver:
 
     def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
         p = self.percept(images, ego, cmd)
+        v = float(ego.velocity[0])
         if self._cruise is None:
             self._cruise = cruise_from_status(ego)
-        return on_lane(p.lane, plan_arcs(p, float(ego.velocity[0]), self._cruise))
+        last, self._last = self._last, (p.gap, v)
+        if last is not None and p.gap < FAR_M and last[0] < FAR_M:  # the slower of the read and the tracked speed
+            p = replace(p, lead_speed=min(p.lead_speed, tracked_lead_speed(p.gap, last[0], v, last[1])))
+        return on_lane(p.lane, plan_arcs(p, v, self._cruise, self._yellow.update(p, v)))
 
 
 @pytest.fixture(scope="session")
