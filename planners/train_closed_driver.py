@@ -63,7 +63,7 @@ from pytest_drivedegrade.floor import ego_features  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Share of the training routes that are scenario routes, and light routes (the rest: the world's train scenes).
-SCENARIO_SHARE, LIGHT_SHARE = 0.45, 0.45
+SCENARIO_SHARE, LIGHT_SHARE = 0.47, 0.47
 #: Loss weights of the lead's speed (L1, normalised) and of the probabilities (binary cross entropy).
 LEAD_WEIGHT, PROFILE_WEIGHT = 0.2, 2.0
 
@@ -232,10 +232,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--world", type=Path, default=ROOT / ".pytest_cache/d/drivedegrade",
                         help="the cache root the default world is built in, or a world data root")
-    parser.add_argument("--routes", type=int, default=900)
+    parser.add_argument("--routes", type=int, default=1200)
     parser.add_argument("--scenario-share", type=float, default=SCENARIO_SHARE, help="share of scenario routes")
     parser.add_argument("--light-share", type=float, default=LIGHT_SHARE, help="share of light routes")
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--epochs", type=int, default=12, help="epochs after each round")
     parser.add_argument("--beta", type=float, default=0.2)
     parser.add_argument("--members", type=int, default=MEMBERS, help="networks in the ensemble")
