@@ -14,8 +14,8 @@ machine CPU time is the wall time; on a shared one it is what the wall would be 
 scenario routes and 6 light routes).
 
 `--held-out` drives 40 other routes instead: scenario scenes 3000-3023 and light scenes 3000-3015 of the world's
-seed, in neither the slice (0-17, 0-5) nor the reference driver's training routes (numbered from 1000, fewer than
-2000 of them). Choices about a driver are made on these, so the slice stays a test it was not tuned on.
+seed, in neither the slice (0-17, 0-5) nor the reference driver's training routes (numbered from 1000; its recipe
+refuses to reach 3000). Choices about a driver are made on these, so the slice stays a test it was not tuned on.
 
 `--prefetch N` (N > 0) drives as the plugin does under `--drivedegrade-prefetch N`: N + 1 threads render a step's
 cameras at once and judge the last plan's steps while the next cameras render (same runs, bit for bit); compare

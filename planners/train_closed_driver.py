@@ -64,6 +64,8 @@ from pytest_drivedegrade.floor import ego_features  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: Share of the training routes that are scenario routes, and light routes (the rest: the world's train scenes).
 SCENARIO_SHARE, LIGHT_SHARE = 0.47, 0.47
+#: Scenario and light scenes from this number on are held out for choosing (benchmarks/closedloop.py --held-out).
+HELD_OUT_FROM = 3000
 #: Loss weights of the lead's speed (L1, normalised) and of the probabilities (binary cross entropy).
 LEAD_WEIGHT, PROFILE_WEIGHT = 0.2, 2.0
 
@@ -117,6 +119,10 @@ def training_specs(world: Path, count: int, scenario_share: float = SCENARIO_SHA
     seed, train = int(manifest["seed"]), list(manifest["splits"]["train"])
     names = train + list(manifest["splits"]["val"])
     scenarios, lights = int(count * scenario_share + 1e-9), int(count * light_share + 1e-9)
+    if max(scenarios, lights) > HELD_OUT_FROM - 1000:
+        raise ValueError(f"{max(scenarios, lights)} scenario or light training routes would reach the held-out "
+                         f"scenes numbered from {HELD_OUT_FROM} (benchmarks/closedloop.py --held-out): at most "
+                         f"{HELD_OUT_FROM - 1000} of each")
     if count - scenarios - lights > len(train):
         raise ValueError(f"{world}: {count - scenarios - lights} train scenes asked for, the world has {len(train)}: "
                          "fewer --routes or larger --scenario-share / --light-share")

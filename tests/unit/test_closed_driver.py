@@ -179,7 +179,8 @@ def test_a_profile_reads_as_the_distance_it_was_trained_on() -> None:
 
 def test_the_training_routes_are_not_the_slices(small_world: Path) -> None:
     """Training drives the train scenes, scenarios and light scenes numbered from 1000; the slice the val scenes,
-    scenarios and light scenes from 0: no route, and no scene, in common."""
+    scenarios and light scenes from 0: no route, and no scene, in common; nor with the held-out scenes from 3000
+    (benchmarks/closedloop.py --held-out), which the recipe refuses to reach."""
     train_ = training_routes(small_world, 6, 2 / 3, 0.0)
     names = [r.name for r in train_]
     assert names[:2] == ["scene-0001", "scene-0002"] and len(names) == 6
@@ -187,6 +188,10 @@ def test_the_training_routes_are_not_the_slices(small_world: Path) -> None:
     mixed = [r.name for r in training_routes(small_world, 6, 1 / 3, 1 / 3)]
     assert len(mixed) == 6 and sum(n.startswith("scenario-10") for n in mixed) == 2
     assert [n for n in mixed if n.startswith("lights-")] == ["lights-1000", "lights-1001"]
+    last = training_specs(small_world, 4000, 0.5, 0.5)  # 2000 of each: scenes 1000 .. 2999
+    assert max(index for _, _, index, _ in last) == 2999
+    with pytest.raises(ValueError, match="held-out scenes numbered from 3000"):
+        training_specs(small_world, 4002, 0.5, 0.5)  # 2001 of each would reach scenario 3000
     with pytest.raises(ValueError, match="train scenes"):
         training_routes(small_world, 9, 1 / 3, 1 / 3)
     slice_names = {r.name for r in load_routes(small_world)}
