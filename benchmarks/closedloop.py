@@ -35,14 +35,13 @@ from typing import Any
 import cv2
 import torch
 
-from pytest_drivedegrade.closedloop import Corruption, load_routes, route_of, run_cell
+from pytest_drivedegrade.closedloop import Corruption, load_routes, run_cell
 from pytest_drivedegrade.closedloop.expert import WorldExpert
 from pytest_drivedegrade.closedloop.percept import PerceptExpert
+from pytest_drivedegrade.closedloop.routes import held_out_routes
 from pytest_drivedegrade.closedloop.simulate import Rules, Timings
 
 ROOT = Path(__file__).resolve().parents[1]
-#: `--held-out`: the scenario and light scene numbers driven instead of the slice.
-HELD_OUT_SCENARIOS, HELD_OUT_LIGHTS = range(3000, 3024), range(3000, 3016)
 CELLS = (Corruption(), Corruption("blackout", 5))
 SLICE = (Corruption(), Corruption("gaussian_blur", 3), Corruption("gaussian_blur", 5), Corruption("motion_blur", 3),
          Corruption("motion_blur", 5), Corruption("blackout", 3), Corruption("blackout", 5))
@@ -67,19 +66,6 @@ def planners(names: list[str], routes: list, cache_root: Path, root: Path) -> di
             "camera_cnn": lambda: load_planner_file("camera_cnn").CameraCNNPlanner(),
             "closed_driver": lambda: load_planner_file("closed_driver").ClosedDriver()}
     return {name: make[name]() for name in names}
-
-
-def held_out_routes(root: Path) -> list:
-    """The `--held-out` routes: scenario and light scenes of the world's seed that neither the slice nor the
-    reference driver's recipe drives."""
-    import json
-
-    from pytest_drivedegrade.data.nuscenes import WORLD_MANIFEST
-    from pytest_drivedegrade.data.world.scenarios import light_scene, scenario_scene
-
-    seed = int(json.loads((root / WORLD_MANIFEST).read_text())["seed"])
-    return [*(route_of(scenario_scene(seed, i)) for i in HELD_OUT_SCENARIOS),
-            *(route_of(light_scene(seed, i)) for i in HELD_OUT_LIGHTS)]
 
 
 def _short(route: str) -> str:

@@ -43,10 +43,7 @@ from pytest_drivedegrade.closedloop.percept import (
     FAR_M,
     LANE_AHEAD,
     Percept,
-    YellowDecision,
-    cruise_from_status,
-    on_lane,
-    plan_arcs,
+    RulePlanner,
     tracked_lead_speed,
 )
 from pytest_drivedegrade.floor import FEATURE_SIZE, ego_features
@@ -176,15 +173,13 @@ class ClosedDriver:
         self.net.eval()
         sidecar = Path(weights).with_suffix(".json")
         self.trained_on = json.loads(sidecar.read_text()) if net is None and sidecar.is_file() else {}
-        self._cruise: float | None = None
-        self._yellow = YellowDecision()
+        self._rule = RulePlanner()
         self._last: tuple[float, float] | None = None
 
     def reset(self, scene: str) -> None:
         """A new route or scene: the cruise speed is read again from its first ego status, and what was read at
         the last call (the gap, the yellow decision) is forgotten."""
-        self._cruise = None
-        self._yellow = YellowDecision()
+        self._rule.reset()
         self._last = None
 
     def percept(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> Percept:
@@ -197,12 +192,10 @@ class ClosedDriver:
     def predict(self, images: Mapping[str, np.ndarray], ego: EgoStatus, cmd: Command) -> np.ndarray:
         p = self.percept(images, ego, cmd)
         v = float(ego.velocity[0])
-        if self._cruise is None:
-            self._cruise = cruise_from_status(ego)
         last, self._last = self._last, (p.gap, v)
         if last is not None and p.gap < FAR_M and last[0] < FAR_M:  # the slower of the read and the tracked speed
             p = replace(p, lead_speed=min(p.lead_speed, tracked_lead_speed(p.gap, last[0], v, last[1])))
-        return on_lane(p.lane, plan_arcs(p, v, self._cruise, self._yellow.update(p, v)))
+        return self._rule.plan(p, ego)
 
 
 @pytest.fixture(scope="session")

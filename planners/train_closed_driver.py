@@ -53,7 +53,7 @@ from closed_driver import (  # noqa: E402
 
 from pytest_drivedegrade.closedloop import Corruption, route_of, run_route  # noqa: E402
 from pytest_drivedegrade.closedloop.percept import Percept, PerceptExpert  # noqa: E402
-from pytest_drivedegrade.closedloop.routes import Route  # noqa: E402
+from pytest_drivedegrade.closedloop.routes import HELD_OUT_FROM, Route  # noqa: E402
 from pytest_drivedegrade.closedloop.simulate import Rules  # noqa: E402
 from pytest_drivedegrade.data.context import FrameContext  # noqa: E402
 from pytest_drivedegrade.data.frame import Command, EgoStatus  # noqa: E402
@@ -64,8 +64,6 @@ from pytest_drivedegrade.floor import ego_features  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 #: Share of the training routes that are scenario routes, and light routes (the rest: the world's train scenes).
 SCENARIO_SHARE, LIGHT_SHARE = 0.47, 0.47
-#: Scenario and light scenes from this number on are held out for choosing (benchmarks/closedloop.py --held-out).
-HELD_OUT_FROM = 3000
 #: Loss weights of the lead's speed (L1, normalised) and of the probabilities (binary cross entropy).
 LEAD_WEIGHT, PROFILE_WEIGHT = 0.2, 2.0
 

@@ -200,6 +200,26 @@ def cruise_from_status(ego: EgoStatus) -> float:
     return float(np.clip(v0, *CRUISE_RANGE))
 
 
+class RulePlanner:
+    """The expert's rule as a planner of percepts, with what it keeps within a route: the cruise speed read from the
+    route's first status (`cruise_from_status`) and the yellow decision (`YellowDecision`). `reset()` at each new
+    route or scene; `plan(p, ego)` at each call."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        self.cruise: float | None = None
+        self.yellow = YellowDecision()
+
+    def plan(self, p: Percept, ego: EgoStatus) -> np.ndarray:
+        """Waypoints (6, 2) in the ego frame: `plan_arcs` from the ego's speed, placed on the perceived lane."""
+        if self.cruise is None:
+            self.cruise = cruise_from_status(ego)
+        v = float(ego.velocity[0])
+        return on_lane(p.lane, plan_arcs(p, v, self.cruise, self.yellow.update(p, v)))
+
+
 class PerceptExpert(WorldExpert):
     """The percept bound as a planner (privileged: reads no camera; needs reset(route) and the frame context)."""
 
@@ -208,15 +228,13 @@ class PerceptExpert(WorldExpert):
     def __init__(self, routes: Sequence[Route]) -> None:
         super().__init__(routes)
         self._world: WorldPercept | None = None
-        self._cruise: float | None = None
-        self._yellow = YellowDecision()
+        self._rule = RulePlanner()
 
     def reset(self, route: str) -> None:
         super().reset(route)
         assert self._route is not None
         self._world = WorldPercept(self._route)
-        self._cruise = None
-        self._yellow = YellowDecision()
+        self._rule.reset()
 
     def percept(self, context: FrameContext) -> Percept:
         """The world's percept at the context's step and pose."""
@@ -234,8 +252,5 @@ class PerceptExpert(WorldExpert):
         return self.plan(self.percept(context), ego)
 
     def plan(self, p: Percept, ego: EgoStatus) -> np.ndarray:
-        """The rule's waypoints from percept `p` (the cruise speed read from the route's first status)."""
-        if self._cruise is None:
-            self._cruise = cruise_from_status(ego)
-        v = float(ego.velocity[0])
-        return on_lane(p.lane, plan_arcs(p, v, self._cruise, self._yellow.update(p, v)))
+        """The rule's waypoints from percept `p` (`RulePlanner`)."""
+        return self._rule.plan(p, ego)

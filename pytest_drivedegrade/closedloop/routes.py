@@ -30,6 +30,10 @@ from ..errors import DataError
 SCENARIO_ROUTES = 18
 #: Light routes (`data.world.scenarios.light_scene`: a traffic light whose red meets the ego) after them.
 LIGHT_ROUTES = 6
+#: Held-out routes (`held_out_routes`): scenario and light scenes numbered from HELD_OUT_FROM, in neither the slice
+#: nor the reference driver's training routes (planners/train_closed_driver.py numbers them from 1000 and refuses
+#: to reach HELD_OUT_FROM); choices about a driver are made on them, not on the slice.
+HELD_OUT_FROM, HELD_OUT_SCENARIOS, HELD_OUT_LIGHTS = 3000, 24, 16
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,14 @@ def load_routes(root: str | os.PathLike[str], scenarios: int = SCENARIO_ROUTES,
     return [*(route_of(make_scene(seed, names.index(name), name), rig) for name in val[:limit]),
             *(route_of(scenario_scene(seed, i), rig) for i in range(n_scenarios)),
             *(route_of(light_scene(seed, i), rig) for i in range(min(lights, max(limit - len(val) - scenarios, 0))))]
+
+
+def held_out_routes(root: str | os.PathLike[str]) -> list[Route]:
+    """The held-out routes of a world data root: HELD_OUT_SCENARIOS scenario scenes and HELD_OUT_LIGHTS light
+    scenes of its seed, numbered from HELD_OUT_FROM (benchmarks/closedloop.py --held-out)."""
+    seed = int(json.loads((Path(root) / WORLD_MANIFEST).read_text())["seed"])
+    return [*(route_of(scenario_scene(seed, HELD_OUT_FROM + i)) for i in range(HELD_OUT_SCENARIOS)),
+            *(route_of(light_scene(seed, HELD_OUT_FROM + i)) for i in range(HELD_OUT_LIGHTS))]
 
 
 def lane_progress(route: Route, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
